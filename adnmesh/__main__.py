@@ -1,0 +1,5 @@
+"""Allow ``python -m adnmesh``."""
+
+from adnmesh.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,89 @@
+"""``adnmesh check CONFIG``: validate a config and print a short summary of it."""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Iterable
+
+from rich.console import Console
+from rich.table import Table
+
+from adnmesh.commands import add_config_argument
+from adnmesh.config import DER_TYPES, Config, load_config
+
+__all__ = ["add_parser", "run", "summary_tables"]
+
+
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    """Add the ``check`` subparser."""
+    parser = subparsers.add_parser(
+        "check",
+        help="validate a config and summarise it",
+        description="Validate CONFIG and print its grid, DERs, delays, constraints and scenario. "
+        "Exit code 0 if valid, 2 with a one-line error otherwise.",
+    )
+    add_config_argument(parser)
+    return parser
+
+
+def run(args: argparse.Namespace) -> int:
+    """Load ``args.config``; print the summary to stdout."""
+    config = load_config(args.config)
+    # no markup: "[s]" is a unit, not a style; soft wrap: long paths stay on one line
+    console = Console(highlight=False, markup=False, soft_wrap=True)
+    c = config.constraints
+    console.print(f"{config.path}: valid (sha256 {config.sha256[:12]})")
+    console.print(f"grid: {config.grid} (SimBench {config.simbench_code})")
+    console.print(f"delays: T_com {config.t_com_s:g} s, T_meas {config.t_meas_s:g} s")
+    console.print(
+        f"constraints: disk margin >= {c.disk_margin_min:g}, "
+        f"overshoot < {c.overshoot_max_pct:g} %, settling band {c.settling_band_pct:g} %"
+    )
+    for table in summary_tables(config):
+        console.print(table)
+    return 0
+
+
+def _span(values: Iterable[float]) -> str:
+    """Format a set of numbers as ``"a"`` or ``"min-max"``."""
+    values = sorted(set(values))
+    return f"{values[0]:g}" if len(values) == 1 else f"{values[0]:g}-{values[-1]:g}"
+
+
+def summary_tables(config: Config) -> tuple[Table, Table]:
+    """Return the DER table (one row per type) and the scenario event table of ``config``."""
+    ders = Table(title=f"{len(config.ders)} DERs", title_justify="left")
+    for column in ("type", "count", "P_inst [MW]", "T_delay [s]", "T_rise [s]"):
+        ders.add_column(column, justify="left" if column == "type" else "right")
+    for der_type in DER_TYPES:
+        group = [d for d in config.ders if d.type == der_type]
+        if group:
+            ders.add_row(
+                der_type,
+                str(len(group)),
+                f"{sum(d.p_inst_w for d in group) / 1e6:.3f}",
+                _span(d.t_delay_s for d in group),
+                _span(d.t_rise_s for d in group),
+            )
+    total_mw = sum(d.p_inst_w for d in config.ders) / 1e6
+    ders.add_row("total", str(len(config.ders)), f"{total_mw:.3f}", "", "", style="bold")
+
+    scenario = config.scenario
+    events = Table(title=f"scenario, {scenario.duration_s:g} s", title_justify="left")
+    events.add_column("t [s]", justify="right")
+    events.add_column("event")
+    rows = [(s.t_s, 0, f"P_ref {s.delta_w / 1e6:+.3f} MW") for s in scenario.p_ref_steps]
+    available = set(config.der_ids())
+    for change in scenario.availability:
+        if change.available:
+            available |= set(change.ders)
+        else:
+            available -= set(change.ders)
+        state = "available" if change.available else "unavailable"
+        text = f"{state}: {', '.join(change.ders)} -> {len(available)} of {len(config.ders)} left"
+        rows.append((change.t_s, 1, text))
+    for t_s, _, text in sorted(rows):
+        events.add_row(f"{t_s:g}", text)
+    if not rows:
+        events.add_row("", "no events")
+    return ders, events

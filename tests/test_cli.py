@@ -1,0 +1,116 @@
+"""Tests of adnmesh.cli and the commands in adnmesh.commands."""
+
+from __future__ import annotations
+
+import re
+import runpy
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from adnmesh import __version__
+from adnmesh.cli import COMMANDS, build_parser, main
+from adnmesh.commands import check
+from adnmesh.errors import UsageError
+
+
+def test_check_prints_a_summary_of_the_reference_case(configs_dir: Path, capsys) -> None:
+    path = configs_dir / "simbench.yaml"
+    assert main(["check", str(path)]) == 0
+    out, err = capsys.readouterr()
+    assert err == ""
+    assert f"{path}: valid (sha256 " in out
+    assert "simbench-1-MV-rural (SimBench 1-MV-rural--0-no_sw)" in out
+    assert "T_com 0.1 s, T_meas 0.1 s" in out
+    assert "disk margin >= 1.5, overshoot < 1 %, settling band 5 %" in out
+    assert "11 DERs" in out and "12.660" in out  # total P_inst in MW
+    for der_type, count, p_mw in [("WT", 6, "11.400"), ("CHP", 3, "0.940"), ("PV", 2, "0.320")]:
+        cells = [re.findall(r"[^\s│┃|]+", line) for line in out.splitlines()]
+        assert [der_type, str(count), p_mw] in [row[:3] for row in cells], der_type
+    assert "T_delay [s]" in out  # units survive rich's markup
+    assert "P_ref +1.000 MW" in out and "P_ref -1.000 MW" in out
+    assert "unavailable: SGen1, SGen2, SGen3, SGen4, SGen7, SGen8" in out
+
+
+def test_up_validates_then_says_it_is_not_implemented(configs_dir: Path, capsys) -> None:
+    assert main(["up", str(configs_dir / "simbench.yaml")]) == 3
+    out, err = capsys.readouterr()
+    assert out == ""
+    assert err == "adnmesh up: the distributed runtime is not implemented yet (issue 5)\n"
+
+
+def test_up_reports_an_invalid_config_first(tmp_path: Path, capsys) -> None:
+    assert main(["up", str(tmp_path / "missing.yaml")]) == 2
+    assert capsys.readouterr().err == f"adnmesh: error: {tmp_path / 'missing.yaml'}: no such file\n"
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        ([], "the following arguments are required: COMMAND"),
+        (["frobnicate"], "invalid choice: 'frobnicate'"),
+        (["check"], "the following arguments are required: CONFIG"),
+    ],
+)
+def test_usage_errors_exit_2(argv: list[str], message: str, capsys) -> None:
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("usage: adnmesh") and message in err
+
+
+def test_version_and_help_exit_0(capsys) -> None:
+    assert main(["--version"]) == 0
+    assert capsys.readouterr().out == f"adnmesh {__version__}\n"
+    assert main(["--help"]) == 0
+    out = capsys.readouterr().out
+    assert all(name in out for name in ("check", "up"))
+
+
+def test_every_command_module_has_the_interface() -> None:
+    names = build_parser()._subparsers._group_actions[0].choices  # noqa: SLF001
+    assert list(names) == ["check", "up"]
+    assert all(callable(m.add_parser) and callable(m.run) for m in COMMANDS)
+
+
+def test_usage_error_is_one_line_and_exit_2(monkeypatch, configs_dir: Path, capsys) -> None:
+    def refuse(args):
+        raise UsageError("--speed needs --clock realtime")
+
+    monkeypatch.setattr(check, "run", refuse)
+    assert main(["check", str(configs_dir / "simbench.yaml")]) == 2
+    assert capsys.readouterr().err == "adnmesh: error: --speed needs --clock realtime\n"
+
+
+def test_ctrl_c_exits_130_with_one_line(monkeypatch, configs_dir: Path, capsys) -> None:
+    def interrupted(args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(check, "run", interrupted)
+    assert main(["check", str(configs_dir / "simbench.yaml")]) == 130
+    assert capsys.readouterr().err == "adnmesh: interrupted\n"
+
+
+def test_python_dash_m_adnmesh(monkeypatch, capsys) -> None:
+    monkeypatch.setattr(sys, "argv", ["adnmesh", "--version"])
+    with pytest.raises(SystemExit) as info:
+        runpy.run_module("adnmesh", run_name="__main__")
+    assert info.value.code == 0
+    assert capsys.readouterr().out == f"adnmesh {__version__}\n"
+
+
+def test_installed_console_script_prints_no_traceback(tmp_path: Path) -> None:
+    """The real entry point, in its own process: an invalid config is one line, exit code 2."""
+    script = Path(sys.executable).with_name("adnmesh")
+    assert script.exists(), f"{script} missing: install the project first (pip install -e .)"
+    config = tmp_path / "bad.yaml"
+    config.write_text("grid: [unclosed\n")
+    result = subprocess.run(
+        [str(script), "check", str(config)], capture_output=True, text=True, timeout=60, check=False
+    )
+    assert result.returncode == 2
+    assert result.stdout == ""
+    assert result.stderr.startswith(f"adnmesh: error: {config}: line 2, column 1: invalid YAML: ")
+    assert result.stderr.count("\n") == 1
+    assert "Traceback" not in result.stderr

@@ -1,0 +1,364 @@
+"""Tests of adnmesh.config: the reference case, the examples and every class of invalid input.
+
+Invalid inputs go through the command line (``adnmesh check``) so that what is tested is what a
+user sees: exit code 2 and one line naming the file and the key path.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import hashlib
+import math
+from pathlib import Path
+
+import pytest
+import yaml
+
+from adnmesh.cli import main
+from adnmesh.config import PT1_RISE_TIME_FACTOR, Config, load_config
+from adnmesh.errors import ConfigError
+
+# SPEC §6: id -> (type, P_inst [W], T_delay [s], T_rise [s])
+SPEC_TABLE = {
+    "SGen1": ("WT", 2.0e6, 0.01, 0.515),
+    "SGen2": ("WT", 2.0e6, 0.01, 0.515),
+    "SGen3": ("WT", 1.7e6, 0.01, 0.515),
+    "SGen4": ("WT", 1.9e6, 0.01, 0.515),
+    "SGen5": ("CHP", 0.31e6, 1.0, 24.57),
+    "SGen6": ("CHP", 0.35e6, 1.0, 24.57),
+    "SGen7": ("WT", 1.8e6, 0.01, 0.515),
+    "SGen8": ("WT", 2.0e6, 0.01, 0.515),
+    "SGen9": ("PV", 0.195e6, 0.01, 0.1),
+    "SGen10": ("PV", 0.125e6, 0.01, 0.1),
+    "SGen11": ("CHP", 0.28e6, 1.0, 24.57),
+}
+
+
+# --- the reference case ----------------------------------------------------------------------
+
+
+def test_simbench_config_has_the_eleven_ders_of_spec_section_6(simbench_config: Config) -> None:
+    assert simbench_config.der_ids() == tuple(SPEC_TABLE)
+    for der in simbench_config.ders:
+        assert (der.type, der.p_inst_w, der.t_delay_s, der.t_rise_s) == SPEC_TABLE[der.id]
+        assert der.p_sched_w == 0.0
+
+
+def test_simbench_config_delays_constraints_and_grid(simbench_config: Config) -> None:
+    assert simbench_config.t_com_s == 0.1
+    assert simbench_config.t_meas_s == 0.1
+    assert simbench_config.simbench_code == "1-MV-rural--0-no_sw"
+    assert simbench_config.grid == "simbench-1-MV-rural"
+    c = simbench_config.constraints
+    assert (c.disk_margin_min, c.overshoot_max_pct, c.settling_band_pct) == (1.5, 1.0, 5.0)
+
+
+def test_simbench_scenario_is_the_papers_demonstration(simbench_config: Config) -> None:
+    scenario = simbench_config.scenario
+    assert scenario.duration_s == 600.0
+    assert [(s.t_s, s.delta_w) for s in scenario.p_ref_steps] == [
+        (20.0, 1e6),
+        (100.0, -1e6),
+        (200.0, 1e6),
+        (420.0, -1e6),
+    ]
+    (change,) = scenario.availability
+    assert change.t_s == 170.0 and change.available is False
+    wind = {der.id for der in simbench_config.ders if der.type == "WT"}
+    assert set(change.ders) == wind and len(wind) == 6
+
+
+def test_t_lag_is_rise_time_over_ln9(simbench_config: Config) -> None:
+    wt = simbench_config.ders[0]
+    assert PT1_RISE_TIME_FACTOR == pytest.approx(2.197, abs=5e-4)
+    assert wt.t_lag_s == pytest.approx(0.515 / math.log(9.0), rel=1e-15)
+    # a PT1 with this time constant reaches 10 % and 90 % exactly t_rise_s apart
+    t10, t90 = -wt.t_lag_s * math.log(0.9), -wt.t_lag_s * math.log(0.1)
+    assert t90 - t10 == pytest.approx(wt.t_rise_s, rel=1e-12)
+
+
+def test_sha256_is_of_the_file_bytes(simbench_config: Config, configs_dir: Path) -> None:
+    expected = hashlib.sha256((configs_dir / "simbench.yaml").read_bytes()).hexdigest()
+    assert simbench_config.sha256 == expected
+
+
+def test_config_is_frozen(simbench_config: Config) -> None:
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        simbench_config.t_com_s = 0.2  # type: ignore[misc]
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        simbench_config.ders[0].p_inst_w = 1.0  # type: ignore[misc]
+
+
+def test_ders_by_id_keeps_the_requested_order(simbench_config: Config) -> None:
+    ders = simbench_config.ders_by_id(["SGen9", "SGen1"])
+    assert [d.id for d in ders] == ["SGen9", "SGen1"]
+
+
+def test_ders_by_id_rejects_an_unknown_id(simbench_config: Config) -> None:
+    with pytest.raises(ConfigError, match=r"^unknown DER id 'SGen12' \(known: SGen1, SGen2, "):
+        simbench_config.ders_by_id(["SGen1", "SGen12"])
+
+
+def test_simbench_sgen_mapping_matches_the_grid(simbench_config: Config) -> None:
+    """Each DER drives an MV static generator of its type whose p_mw equals its P_inst."""
+    simbench = pytest.importorskip("simbench")
+    net = simbench.get_simbench_net(simbench_config.simbench_code)
+    sgen = net.sgen.set_index("name")
+    simbench_type = {"WT": "Wind_MV", "CHP": "Biomass_MV", "PV": "PV_MV"}
+    for der in simbench_config.ders:
+        row = sgen.loc[der.sgen]
+        assert row["type"] == simbench_type[der.type], der.id
+        assert row["p_mw"] * 1e6 == pytest.approx(der.p_inst_w, rel=1e-12), der.id
+        assert net.bus.loc[row["bus"], "vn_kv"] == 20.0, der.id
+
+
+@pytest.mark.parametrize("name", ["two-wt", "wt-chp", "mixed-4"])
+def test_example_configs_load(configs_dir: Path, simbench_config: Config, name: str) -> None:
+    config = load_config(configs_dir / "examples" / f"{name}.yaml")
+    reference = {der.id: der for der in simbench_config.ders}
+    assert config.t_com_s == config.t_meas_s == 0.1
+    assert config.constraints == simbench_config.constraints
+    assert all(der == reference[der.id] for der in config.ders)
+    assert config.scenario.p_ref_steps and config.scenario.availability
+
+
+def test_optional_sections_take_their_defaults(tmp_path: Path, simbench_document: dict) -> None:
+    document = copy.deepcopy(simbench_document)
+    del document["constraints"]
+    del document["scenario"]["availability"]
+    document["ders"][0]["t_delay_s"] = 0  # a DER without reaction time is allowed
+    path = tmp_path / "defaults.yaml"
+    path.write_text(yaml.safe_dump(document))
+    config = load_config(path)
+    assert config.constraints.disk_margin_min == 1.5
+    assert config.scenario.availability == ()
+    assert config.ders[0].t_delay_s == 0.0
+
+
+def test_exponent_without_sign_is_a_number(tmp_path: Path, configs_dir: Path) -> None:
+    """PyYAML alone reads ``2.0e6`` as a string (YAML 1.1); adnmesh reads it as 2e6."""
+    text = (configs_dir / "simbench.yaml").read_text().replace("2.0e+6", "2.0e6")
+    path = tmp_path / "exponent.yaml"
+    path.write_text(text)
+    assert load_config(path).ders[0].p_inst_w == 2.0e6
+
+
+# --- invalid input: exit code 2 and one line naming file and key path ----------------------------
+
+
+@pytest.fixture(scope="session")
+def simbench_document(configs_dir: Path) -> dict:
+    """The reference config as plain data, to be broken by the tests below."""
+    return yaml.safe_load((configs_dir / "simbench.yaml").read_text())
+
+
+def _locate(doc, path: str):
+    """Return the container and the last key of a dotted key path (``ders.3.p_inst_w``)."""
+    *parents, last = [int(k) if k.isdigit() else k for k in path.split(".")]
+    for key in parents:
+        doc = doc[key]
+    return doc, last
+
+
+def _set(path: str, value):
+    """Return a mutation that sets the value at ``path``."""
+
+    def mutate(doc):
+        container, last = _locate(doc, path)
+        container[last] = value
+
+    return mutate
+
+
+def _delete(path: str):
+    """Return a mutation that removes the key at ``path``."""
+
+    def mutate(doc):
+        container, last = _locate(doc, path)
+        del container[last]
+
+    return mutate
+
+
+def _rename(path: str, new_key: str):
+    """Return a mutation that renames the key at ``path`` (keeping its value)."""
+
+    def mutate(doc):
+        container, last = _locate(doc, path)
+        container[new_key] = container.pop(last)
+
+    return mutate
+
+
+# (mutation, expected message after "<file>: ")
+INVALID = {
+    "missing key": (_delete("ders.3.p_inst_w"), "ders[3].p_inst_w: required key is missing"),
+    "missing section": (_delete("scenario"), "scenario: required key is missing"),
+    "wrong type": (
+        _set("ders.3.p_inst_w", "lots"),
+        "ders[3].p_inst_w: must be a positive number, got 'lots'",
+    ),
+    "boolean as number": (_set("t_com_s", True), "t_com_s: must be a positive number, got true"),
+    "list as mapping": (_set("constraints", [1.5]), "constraints: must be a mapping, got a list"),
+    "negative power": (
+        _set("ders.3.p_inst_w", -2),
+        "ders[3].p_inst_w: must be a positive number, got -2",
+    ),
+    "zero rise time": (
+        _set("ders.0.t_rise_s", 0),
+        "ders[0].t_rise_s: must be a positive number, got 0",
+    ),
+    "negative delay": (
+        _set("ders.5.t_delay_s", -0.5),
+        "ders[5].t_delay_s: must be a non-negative number, got -0.5",
+    ),
+    "zero T_com": (_set("t_com_s", 0), "t_com_s: must be a positive number, got 0"),
+    "negative T_meas": (_set("t_meas_s", -0.1), "t_meas_s: must be a positive number, got -0.1"),
+    "infinite duration": (
+        _set("scenario.duration_s", float("inf")),
+        "scenario.duration_s: must be a positive number, got inf",
+    ),
+    "unknown DER type": (
+        _set("ders.2.type", "Wind"),
+        "ders[2].type: must be one of WT, CHP, PV, got 'Wind'",
+    ),
+    "id unusable as a bus key": (
+        _set("ders.2.id", "SGen/3"),
+        "ders[2].id: must be an identifier (letters, digits, '_', '-'; starting with a letter), "
+        "got 'SGen/3'",
+    ),
+    "no DERs": (_set("ders", []), "ders: must have at least 1 item(s), got 0"),
+    "duplicate DER id": (
+        _set("ders.4.id", "SGen1"),
+        "ders[4].id: duplicate DER id 'SGen1' (also ders[0].id)",
+    ),
+    "duplicate sgen": (
+        _set("ders.1.sgen", "MV1.101 SGen 1"),
+        "ders[1].sgen: duplicate sgen 'MV1.101 SGen 1' (also ders[0].sgen)",
+    ),
+    "schedule above P_inst": (
+        _set("ders.8.p_sched_w", 2e5),
+        "ders[8].p_sched_w: must not exceed p_inst_w (195000), got 200000",
+    ),
+    "scenario names an unknown DER": (
+        _set("scenario.availability.0.ders.2", "SGen99"),
+        "scenario.availability[0].ders[2]: unknown DER id 'SGen99' (known: SGen1, SGen2, SGen3, "
+        "SGen4, SGen5, SGen6, SGen7, SGen8, SGen9, SGen10, SGen11)",
+    ),
+    "scenario names a DER twice": (
+        _set("scenario.availability.0.ders.2", "SGen1"),
+        "scenario.availability[0].ders[2]: duplicate DER id 'SGen1' "
+        "(also scenario.availability[0].ders[0])",
+    ),
+    "availability not a boolean": (
+        _set("scenario.availability.0.available", "no"),
+        "scenario.availability[0].available: must be true or false, got 'no'",
+    ),
+    "zero step": (
+        _set("scenario.p_ref_steps.1.delta_w", 0),
+        "scenario.p_ref_steps[1].delta_w: must be a non-zero number, got 0",
+    ),
+    "event after the end": (
+        _set("scenario.p_ref_steps.3.t_s", 700),
+        "scenario.p_ref_steps[3].t_s: must not exceed scenario.duration_s (600), got 700",
+    ),
+    "events out of order": (
+        _set("scenario.p_ref_steps.2.t_s", 50),
+        "scenario.p_ref_steps[2].t_s: must not be earlier than the previous event (100), got 50",
+    ),
+    "typo in a DER key": (
+        _rename("ders.2.p_inst_w", "p_inst"),
+        "ders[2].p_inst: unknown key (did you mean 'p_inst_w'?)",
+    ),
+    "typo in a section name": (
+        _rename("scenario", "scenaro"),
+        "scenaro: unknown key (did you mean 'scenario'?)",
+    ),
+    "typo in a constraint": (
+        _rename("constraints.overshoot_max_pct", "overshot_max_pct"),
+        "constraints.overshot_max_pct: unknown key (did you mean 'overshoot_max_pct'?)",
+    ),
+    "unknown section": (
+        _set("runtime", {"clock": "sim"}),
+        "runtime: unknown key (valid keys: grid, simbench_code, t_com_s, t_meas_s, constraints, "
+        "ders, scenario)",
+    ),
+    "disk margin out of range": (
+        _set("constraints.disk_margin_min", 2.5),
+        "constraints.disk_margin_min: must be a number in (0, 2), got 2.5",
+    ),
+    "overshoot limit zero": (
+        _set("constraints.overshoot_max_pct", 0),
+        "constraints.overshoot_max_pct: must be a number in (0, 100], got 0",
+    ),
+    "settling band too wide": (
+        _set("constraints.settling_band_pct", 60),
+        "constraints.settling_band_pct: must be a number in (0, 50], got 60",
+    ),
+}
+
+
+def _check(path: Path, capsys) -> tuple[int, str]:
+    code = main(["check", str(path)])
+    captured = capsys.readouterr()
+    return code, captured.err
+
+
+@pytest.mark.parametrize("case", list(INVALID))
+def test_invalid_config_is_one_line_naming_file_and_key(
+    case: str, tmp_path: Path, simbench_document: dict, capsys
+) -> None:
+    mutate, expected = INVALID[case]
+    document = copy.deepcopy(simbench_document)
+    mutate(document)
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(document, sort_keys=False))
+    code, err = _check(path, capsys)
+    assert code == 2
+    assert err == f"adnmesh: error: {path}: {expected}\n"
+
+
+# (file content or None for a missing file, expected message after "<file>: ")
+INVALID_FILES = {
+    "missing file": (None, "no such file"),
+    "YAML syntax error": (
+        "grid: simbench-1-MV-rural\nders: [\n  {id: SGen1\nt_com_s: 0.1\n",
+        "line 4, column 8: invalid YAML: ",
+    ),
+    "YAML indentation error": ("grid: x\n t_com_s: 0.1\n", "line 2, column 9: invalid YAML: "),
+    "duplicate YAML key": (
+        "grid: x\nt_com_s: 0.1\nt_com_s: 0.2\n",
+        "line 3, column 1: invalid YAML: duplicate key 't_com_s'",
+    ),
+    "empty file": ("# nothing here\n", "empty config (expected a mapping with keys: grid, "),
+    "top level is a list": ("- grid\n", "top level: must be a mapping, got a list"),
+    "not UTF-8": (b"grid: \xff\xfe\n", "not UTF-8 text (byte 6)"),
+}
+
+
+@pytest.mark.parametrize("case", list(INVALID_FILES))
+def test_unreadable_config_is_one_line_naming_the_file(case: str, tmp_path: Path, capsys) -> None:
+    content, expected = INVALID_FILES[case]
+    path = tmp_path / "bad.yaml"
+    if isinstance(content, bytes):
+        path.write_bytes(content)
+    elif content is not None:
+        path.write_text(content)
+    code, err = _check(path, capsys)
+    assert code == 2
+    assert err.startswith(f"adnmesh: error: {path}: {expected}")
+    assert err.count("\n") == 1 and err.endswith("\n")
+
+
+def test_a_directory_is_not_a_config(tmp_path: Path, capsys) -> None:
+    code, err = _check(tmp_path, capsys)
+    assert (code, err) == (2, f"adnmesh: error: {tmp_path}: is a directory, not a config file\n")
+
+
+def test_load_config_raises_config_error_with_the_same_message(tmp_path: Path) -> None:
+    path = tmp_path / "bad.yaml"
+    path.write_text("grid: x\n")
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    assert str(info.value) == f"{path}: simbench_code: required key is missing"
