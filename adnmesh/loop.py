@@ -1,0 +1,141 @@
+"""All figures of merit of the reference loop for M candidate PI pairs at once.
+
+:func:`evaluate` is the one entry point used by tuning, analyses and the CLI: certified
+stability, disk margin, classical margins (optional) and step info, vectorised over candidates
+and processed in memory-bounded chunks.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+from .freqresp import as_candidates
+from .margins import ClassicalMargins, DiskMargin, classical_margins, disk_margin
+from .plant import Plant
+from .stability import nyquist_stability
+from .stepresp import StepInfo, step_info
+
+__all__ = ["LoopFigures", "evaluate", "CHUNK"]
+
+#: candidates per frequency-domain chunk (bounds memory to ~100 MB)
+CHUNK = 2048
+
+
+@dataclass(frozen=True)
+class LoopFigures:
+    """Figures of merit per candidate (arrays of shape (M,)). NaN where not applicable.
+
+    Attributes
+    ----------
+    stable : ndarray of bool
+    certified : ndarray of bool
+        Stability verdict certified (see :mod:`adnmesh.stability`).
+    unstable_poles : ndarray of int
+    disk_margin : ndarray
+        alpha, 0 if unstable.
+    disk_omega : ndarray
+        Critical frequency of the disk margin, rad/s.
+    disk_gain_margin : ndarray, shape (M, 2)
+        Absolute.
+    disk_phase_margin_deg : ndarray
+    gain_margin, phase_margin_deg, delay_margin_s : ndarray
+        Classical margins (NaN unless requested).
+    gain_margin_omega, phase_margin_omega : ndarray
+        rad/s.
+    overshoot_pct, rise_time_s, settling_time_s, settling_time_2pct_s, peak, peak_time_s : ndarray
+        Step info of ``G_CL`` (NaN unless requested or where unstable).
+    """
+
+    stable: np.ndarray
+    certified: np.ndarray
+    unstable_poles: np.ndarray
+    disk_margin: np.ndarray
+    disk_omega: np.ndarray
+    disk_gain_margin: np.ndarray
+    disk_phase_margin_deg: np.ndarray
+    gain_margin: np.ndarray
+    gain_margin_omega: np.ndarray
+    phase_margin_deg: np.ndarray
+    phase_margin_omega: np.ndarray
+    delay_margin_s: np.ndarray
+    overshoot_pct: np.ndarray
+    rise_time_s: np.ndarray
+    settling_time_s: np.ndarray
+    settling_time_2pct_s: np.ndarray
+    peak: np.ndarray
+    peak_time_s: np.ndarray
+
+    def row(self, i: int) -> dict:
+        """Figures of candidate ``i`` as plain Python values (None for not-applicable)."""
+        out = {}
+        for f in fields(self):
+            v = getattr(self, f.name)[i]
+            if isinstance(v, np.ndarray):
+                out[f.name] = [None if not np.isfinite(x) else float(x) for x in v]
+            elif isinstance(v, (np.bool_, bool)):
+                out[f.name] = bool(v)
+            elif isinstance(v, (np.integer,)):
+                out[f.name] = int(v)
+            else:
+                out[f.name] = float(v) if np.isfinite(v) else None
+        return out
+
+
+def _frequency_part(plant: Plant, kp, ki, classical: bool):
+    nyq = nyquist_stability(plant, kp, ki)
+    dm = disk_margin(plant, kp, ki, nyq)
+    cm = classical_margins(plant, kp, ki, nyq) if classical else None
+    return nyq, dm, cm
+
+
+def evaluate(plant: Plant, kp, ki, *, band_pct: float = 5.0, classical: bool = True,
+             time_domain: bool = True, time_mask=None) -> LoopFigures:
+    """Evaluate the loop for M candidates.
+
+    Parameters
+    ----------
+    plant : Plant
+        Gains of shape (G,) (one plant) or (M, G) (one plant per candidate).
+    kp, ki : float or array_like, shape (M,)
+        PI gains, 1/W and 1/(W s), > 0.
+    band_pct : float
+        Settling band for ``settling_time_s``, percent.
+    classical : bool
+        Compute gain, phase and delay margins at all crossovers.
+    time_domain : bool
+        Compute step info (for the stable candidates in ``time_mask``).
+    time_mask : array_like of bool, optional
+        Restrict the (costly) step responses to these candidates, e.g. those meeting the
+        disk-margin constraint.
+    """
+    kp, ki, gains = as_candidates(plant, kp, ki)
+    m = kp.size
+    nan = lambda: np.full(m, np.nan)  # noqa: E731
+    stable = np.zeros(m, bool)
+    certified = np.zeros(m, bool)
+    poles = np.zeros(m, int)
+    alpha, w_disk = np.zeros(m), nan()
+    gm, gmw, pm, pmw, dmar = nan(), nan(), nan(), nan(), nan()
+    for start in range(0, m, CHUNK):
+        sl = slice(start, min(m, start + CHUNK))
+        sub = Plant(plant.actuators, gains[sl], plant.t_com_s, plant.t_meas_s)
+        nyq, dm, cm = _frequency_part(sub, kp[sl], ki[sl], classical)
+        stable[sl], certified[sl], poles[sl] = nyq.stable, nyq.certified, nyq.unstable_poles
+        alpha[sl], w_disk[sl] = dm.alpha, dm.omega
+        if cm is not None:
+            gm[sl], gmw[sl], pm[sl] = cm.gain_margin, cm.gain_margin_omega, cm.phase_margin_deg
+            pmw[sl], dmar[sl] = cm.phase_margin_omega, cm.delay_margin_s
+    dmo = DiskMargin(alpha, w_disk)
+    for arr in (gm, gmw, pm, pmw, dmar):
+        arr[~stable] = np.nan
+    if time_domain:
+        mask = stable if time_mask is None else stable & np.asarray(time_mask, bool)
+        info = step_info(Plant(plant.actuators, gains, plant.t_com_s, plant.t_meas_s), kp, ki,
+                         band_pct=band_pct, bandwidth_rad_s=w_disk, mask=mask)
+    else:
+        info = StepInfo(*(nan() for _ in range(6)), np.nan, nan())
+    return LoopFigures(stable, certified, poles, alpha, w_disk, dmo.gain_margin,
+                       dmo.phase_margin_deg, gm, gmw, pm, pmw, dmar, info.overshoot_pct,
+                       info.rise_time_s, info.settling_time_s, info.settling_time_2pct_s,
+                       info.peak, info.peak_time_s)
