@@ -1,0 +1,48 @@
+"""``adnmesh plot RUN.mcap [-o FIG.png]``: the paper-style time plot of a recorded run."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from adnmesh.commands.replay import note_if_truncated
+from adnmesh.errors import UsageError
+from adnmesh.recording import read_recording
+from adnmesh.recording.series import extract
+
+__all__ = ["add_parser", "run"]
+
+
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    """Add the ``plot`` subparser."""
+    parser = subparsers.add_parser(
+        "plot",
+        help="draw P_IP, P_ref, P_Y and the gains of a recording",
+        description="Draw the time plot of the recording RUN: P_IP and P_ref in MW, with "
+        "changes of the available DERs and faults shaded; below, P_Y and the active gains "
+        "K_P, K_I. The format follows the suffix of FIG (png, pdf, svg, ...).",
+    )
+    parser.add_argument("recording", metavar="RUN", help="recording (.mcap), e.g. logs/<run>.mcap")
+    parser.add_argument("-o", "--out", metavar="FIG", type=Path,
+                        help="figure to write (default: RUN with suffix .png)")
+    return parser
+
+
+def run(args: argparse.Namespace) -> int:
+    """Draw ``args.recording`` into ``args.out``."""
+    from matplotlib.figure import Figure
+
+    from adnmesh.recording.plot import save_plot
+
+    out = args.out or Path(args.recording).with_suffix(".png")
+    formats = Figure().canvas.get_supported_filetypes()
+    if out.suffix.lstrip(".").lower() not in formats:
+        raise UsageError(f"{out}: unknown figure format {out.suffix or '(no suffix)'!r} "
+                         f"(known: {', '.join(sorted(formats))})")
+    recording = read_recording(args.recording)
+    note_if_truncated(recording)
+    title = recording.run.get("run_id") or Path(args.recording).stem
+    clock = recording.run.get("clock")
+    save_plot(extract(recording), out, title=f"{title} ({clock} clock)" if clock else title)
+    print(f"{out}: written")
+    return 0

@@ -1,0 +1,89 @@
+"""``adnmesh replay RUN.mcap [--rrd OUT.rrd | --spawn | --web]``: a recording in Rerun."""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+from adnmesh.errors import UsageError
+from adnmesh.recording import read_recording
+from adnmesh.recording.series import extract
+
+__all__ = ["add_parser", "run", "note_if_truncated"]
+
+
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    """Add the ``replay`` subparser."""
+    parser = subparsers.add_parser(
+        "replay",
+        help="convert a recording to Rerun (.rrd file or a viewer)",
+        description="Convert the MCAP recording RUN into Rerun data: scalars on a sim_time "
+        "timeline at entity paths named after the bus keys, named series (P_ref, P_IP, P_Y, "
+        "every DER's setpoint and infeed, availability), events as text logs, and a layout of "
+        "the main plots. By default writes RUN with the suffix .rrd (no display needed); "
+        "--spawn and --web write the same file and open it in a viewer bound to 127.0.0.1.",
+    )
+    parser.add_argument("recording", metavar="RUN", help="recording (.mcap), e.g. logs/<run>.mcap")
+    target = parser.add_mutually_exclusive_group()
+    target.add_argument("--rrd", metavar="OUT", type=Path,
+                        help="write the Rerun data to OUT (default: RUN with suffix .rrd)")
+    target.add_argument("--spawn", action="store_true",
+                        help="also open it in the native Rerun viewer")
+    target.add_argument("--web", action="store_true",
+                        help="also serve the Rerun web viewer at http://127.0.0.1:WEB_PORT "
+                        "until Ctrl-C")
+    parser.add_argument("--web-port", type=int, default=9090,
+                        help="HTTP port of the web viewer (default 9090)")
+    return parser
+
+
+def note_if_truncated(recording) -> None:
+    """Tell the user (stderr) that a recording was cut short and read as far as it goes."""
+    if not recording.complete:
+        print(f"adnmesh: note: {recording.path} is truncated (killed run?): read the "
+              f"{recording.recovered_messages} messages it holds; 'adnmesh inspect' writes a "
+              f"recovered copy", file=sys.stderr)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Convert ``args.recording``; write the .rrd and, if asked, start a viewer on it."""
+    from adnmesh.recording.rerun_export import export_rrd, viewer_command
+
+    if not 0 < args.web_port < 65536:
+        raise UsageError(f"--web-port must be a port number (1-65535), got {args.web_port}")
+    recording = read_recording(args.recording)
+    note_if_truncated(recording)
+    out = args.rrd or Path(args.recording).with_suffix(".rrd")
+    run_data = extract(recording)
+    export_rrd(recording, out, run=run_data)
+    print(f"{out}: {len(run_data.series)} series, {len(run_data.events)} events from "
+          f"{len(recording.messages)} messages")
+    if args.spawn:
+        subprocess.Popen(viewer_command(out), start_new_session=True,  # noqa: S603
+                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        print(f"opened {out} in the Rerun viewer")
+    elif args.web:
+        print(f"serving the Rerun web viewer at http://127.0.0.1:{args.web_port} (Ctrl-C stops)",
+              flush=True)
+        return _serve(viewer_command(out, web=True, web_port=args.web_port))
+    return 0
+
+
+def _serve(command: list[str]) -> int:
+    """Run the viewer ``command`` until it ends; stop it if we are interrupted or terminated."""
+
+    def terminated(signum, frame):
+        raise SystemExit(128 + signum)
+
+    previous = signal.signal(signal.SIGTERM, terminated)
+    viewer = subprocess.Popen(command)  # noqa: S603
+    try:
+        return viewer.wait()
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        if viewer.poll() is None:
+            viewer.terminate()
+            viewer.wait(timeout=10)

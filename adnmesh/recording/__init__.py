@@ -1,0 +1,55 @@
+"""Recording runs to MCAP and reading them back.
+
+- :class:`Recorder` writes every bus message of a run to an MCAP file (JSON payloads with their
+  JSON Schemas, so Foxglove opens it), flushing periodically so a killed run stays readable.
+- :func:`read_recording` reads a recording, complete or truncated; :func:`recover` turns a
+  truncated one into a complete file.
+- :func:`validate_recording` checks messages against their schemas; :func:`check_counts`
+  compares what agents published with what was recorded.
+- :mod:`adnmesh.recording.series` turns messages into named series and events (one table of
+  key patterns), used by :mod:`~adnmesh.recording.rerun_export` (``adnmesh replay``),
+  :mod:`~adnmesh.recording.plot` (``adnmesh plot``) and :mod:`~adnmesh.recording.figures`
+  (``adnmesh inspect``).
+"""
+
+from adnmesh.recording.reader import (
+    ChannelInfo,
+    RecordedMessage,
+    Recording,
+    RecordingError,
+    read_recording,
+    recover,
+)
+from adnmesh.recording.validate import (
+    CountDifference,
+    RecordingLossError,
+    check_counts,
+    count_differences,
+    validate_recording,
+)
+from adnmesh.recording.writer import (
+    PUBLISHED_METADATA,
+    RECOVERY_METADATA,
+    RUN_METADATA,
+    RUN_METADATA_KEYS,
+    Recorder,
+)
+
+__all__ = [
+    "ChannelInfo",
+    "CountDifference",
+    "PUBLISHED_METADATA",
+    "RECOVERY_METADATA",
+    "RUN_METADATA",
+    "RUN_METADATA_KEYS",
+    "RecordedMessage",
+    "Recorder",
+    "Recording",
+    "RecordingError",
+    "RecordingLossError",
+    "check_counts",
+    "count_differences",
+    "read_recording",
+    "recover",
+    "validate_recording",
+]

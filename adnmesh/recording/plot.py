@@ -1,0 +1,109 @@
+"""The paper-style time plot of a recorded run (``adnmesh plot``).
+
+Top panel: P_ref (dashed steps) and the measured P_IP in MW over sim time; every time span in
+which the set of available DERs differs from the first one is shaded grey and labelled with the
+number available, faults are shaded
+red (an instant fault is a red line). Bottom panel: the controller output P_Y (left axis) and
+the active gains K_P, K_I (right axis, log scale, steps); gain switches are dotted vertical lines
+in both panels.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from adnmesh.recording.series import RunData
+
+__all__ = ["plot_run", "save_plot"]
+
+
+def _shade(ax, run: RunData, t_end_s: float, *, labels: bool) -> None:
+    spans = run.availability_spans()
+    if spans:
+        initial = spans[0][2]
+        shaded = False
+        for start, end, available in spans:
+            if available == initial:
+                continue
+            t0 = run.seconds(start)
+            t1 = run.seconds(end) if end is not None else t_end_s
+            ax.axvspan(t0, t1, color="0.85", zorder=0,
+                       label=None if shaded or not labels else "availability changed")
+            if not labels:
+                continue
+            ax.annotate(f"{len(available)} of {len(run.der_ids) or len(initial)} DERs available",
+                        xy=(t0, 1.0), xycoords=("data", "axes fraction"),
+                        xytext=(3, -3), textcoords="offset points", va="top", fontsize=8,
+                        color="0.3")
+            shaded = True
+    labelled = False
+    for start, end, _ in run.fault_spans():
+        t0 = run.seconds(start)
+        label = None if labelled or not labels else "fault"
+        if end is None or end > start:
+            t1 = run.seconds(end) if end is not None else t_end_s
+            ax.axvspan(t0, t1, color="tab:red", alpha=0.2, zorder=0, label=label)
+        else:
+            ax.axvline(t0, color="tab:red", lw=1.0, label=label)
+        labelled = True
+
+
+def plot_run(run: RunData, *, title: str | None = None):
+    """Return a matplotlib Figure of ``run`` (see the module doc)."""
+    from matplotlib.figure import Figure  # no pyplot: no global state, no display needed
+
+    fig = Figure(figsize=(10, 6.5), layout="constrained")
+    top, bottom = fig.subplots(2, 1, sharex=True, height_ratios=(3, 2))
+    p_ref, p_ip, p_y = run.one("p_ref"), run.one("p_ip"), run.one("p_y")
+    ends = [run.seconds(s.t_ns[-1]) for s in (p_ref, p_ip, p_y) if s is not None and s.t_ns.size]
+    t_end = max(ends) if ends else 1.0
+
+    _shade(top, run, t_end, labels=True)
+    if p_ref is not None:
+        t = np.append(run.seconds(p_ref.t_ns), t_end)
+        top.step(t, np.append(p_ref.values, p_ref.values[-1]) / 1e6, where="post",
+                 color="black", ls="--", lw=1.2, label="P_ref")
+    if p_ip is not None:
+        top.plot(run.seconds(p_ip.t_ns), p_ip.values / 1e6, color="tab:blue", lw=1.4,
+                 label="P_IP")
+    top.set_ylabel("active power at the IP [MW]")
+    top.legend(loc="lower left", bbox_to_anchor=(0.0, 1.0), ncols=4, fontsize=8, frameon=False)
+    top.grid(True, alpha=0.3)
+
+    _shade(bottom, run, t_end, labels=False)
+    if p_y is not None:
+        bottom.plot(run.seconds(p_y.t_ns), p_y.values, color="tab:green", lw=1.2, label="P_Y")
+    bottom.set_ylabel("P_Y [-]")
+    bottom.set_xlabel("sim time [s]")
+    bottom.grid(True, alpha=0.3)
+    gains = bottom.twinx()
+    for role, color, unit in (("kp", "tab:purple", "1/W"), ("ki", "tab:orange", "1/(W s)")):
+        series = run.one(role)
+        if series is not None and series.values.size and np.all(series.values > 0):
+            t = np.append(run.seconds(series.t_ns), t_end)
+            gains.step(t, np.append(series.values, series.values[-1]), where="post",
+                       color=color, lw=1.0, label=f"{series.name} [{unit}]")
+            gains.set_yscale("log")
+    gains.set_ylabel("active gains")
+    for event in (e for e in run.events if e.kind == "gain_switch"):
+        for ax in (top, bottom):
+            ax.axvline(run.seconds(event.t_ns), color="tab:purple", ls=":", lw=1.0)
+    handles = [h for ax in (bottom, gains) for h in ax.get_legend_handles_labels()[0]]
+    labels = [lab for ax in (bottom, gains) for lab in ax.get_legend_handles_labels()[1]]
+    if handles:
+        bottom.legend(handles, labels, loc="lower left", bbox_to_anchor=(0.0, 1.0), ncols=3,
+                      fontsize=8, frameon=False)
+    top.set_xlim(0 if run.t0_ns == 0 else None, t_end)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    return fig
+
+
+def save_plot(run: RunData, out_path: str | Path, *, title: str | None = None) -> Path:
+    """Draw ``run`` with :func:`plot_run` and save it (format from the suffix: png, pdf, svg)."""
+    out_path = Path(out_path)
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    plot_run(run, title=title).savefig(out_path, dpi=150)
+    return out_path

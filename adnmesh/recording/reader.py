@@ -1,0 +1,349 @@
+"""Reading recordings back, including the unfinished file of a killed run.
+
+:func:`read_recording` reads an MCAP file front to back (never through its summary section),
+one record at a time: the records of a complete file, or, for a truncated one, every record
+that was completely written. Since the recorder writes its messages in chunks that are closed
+and flushed every flush interval, a recorder killed at any moment leaves a file from which all
+messages of its closed chunks come back. :func:`recover` writes them into a new, complete file.
+
+Anything that is neither a complete nor a truncated MCAP file (not MCAP at all, a chunk whose
+checksum does not match, a malformed record) raises :class:`RecordingError`, whose message is
+one line naming the file; the command line reports it with exit code 2.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import struct
+import tempfile
+from dataclasses import dataclass, field
+from io import BytesIO
+from pathlib import Path
+from typing import Any
+
+from mcap.data_stream import ReadDataStream
+from mcap.opcode import Opcode
+from mcap.records import Channel, Chunk, Footer, Header, Message, Metadata, Schema
+from mcap.stream_reader import breakup_chunk
+from mcap.writer import CompressionType, Writer
+
+from adnmesh.errors import UsageError
+from adnmesh.recording.writer import RECOVERY_METADATA, RUN_METADATA, SCHEMA_ENCODING
+
+__all__ = [
+    "ChannelInfo",
+    "MCAP_MAGIC",
+    "RecordedMessage",
+    "Recording",
+    "RecordingError",
+    "read_recording",
+    "recover",
+]
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+"""The 8 bytes at the start and the end of every MCAP file."""
+
+_RECORD_HEAD = struct.Struct("<BQ")  # opcode, length of the record body
+_KNOWN_OPCODES = frozenset(int(op) for op in Opcode)
+
+
+class RecordingError(UsageError):
+    """A file is not a readable recording; the message is one line naming the file."""
+
+
+@dataclass(frozen=True)
+class RecordedMessage:
+    """One recorded message.
+
+    Attributes
+    ----------
+    topic : str
+        The bus key it was published on.
+    schema_name : str
+        Its message type ("" for a channel without schema).
+    sequence : int
+        Its number on its channel: 1, 2, 3, … in recording order.
+    log_time_ns, publish_time_ns : int
+        Delivery and send time, ns (sim time in sim mode).
+    data : bytes
+        The payload as recorded (JSON text for adnmesh recordings).
+    """
+
+    topic: str
+    schema_name: str
+    sequence: int
+    log_time_ns: int
+    publish_time_ns: int
+    data: bytes
+
+    def payload(self) -> Any:
+        """Return the payload decoded from JSON (raises ValueError if it is not JSON)."""
+        return json.loads(self.data)
+
+
+@dataclass(frozen=True)
+class ChannelInfo:
+    """A recorded channel: its topic, message encoding, message type and channel metadata."""
+
+    topic: str
+    message_encoding: str
+    schema_name: str
+    metadata: dict[str, str] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Recording:
+    """The content of a recording file.
+
+    Attributes
+    ----------
+    path : Path
+        The file read.
+    messages : tuple of RecordedMessage
+        Every message, in file order (the order the recorder wrote them).
+    channels : dict of str to ChannelInfo
+        Per topic, in order of first appearance.
+    schemas : dict of str to dict
+        Message type -> its JSON Schema (schemas of other encodings are left out).
+    metadata_records : tuple of (str, dict)
+        Every metadata record, in file order.
+    library : str
+        The writer named in the file's header.
+    complete : bool
+        False if the file was truncated (a killed run) and read as far as it was written.
+    dropped_bytes : int
+        Bytes at the end of a truncated file that did not form a complete record.
+    """
+
+    path: Path
+    messages: tuple[RecordedMessage, ...]
+    channels: dict[str, ChannelInfo]
+    schemas: dict[str, dict]
+    metadata_records: tuple[tuple[str, dict[str, str]], ...]
+    library: str
+    complete: bool
+    dropped_bytes: int = 0
+
+    @property
+    def recovered_messages(self) -> int:
+        """The number of messages read from a truncated file (0 for a complete one)."""
+        return 0 if self.complete else len(self.messages)
+
+    @property
+    def metadata(self) -> dict[str, dict[str, str]]:
+        """Metadata records by name (a later record of the same name adds to and overrides)."""
+        merged: dict[str, dict[str, str]] = {}
+        for name, data in self.metadata_records:
+            merged.setdefault(name, {}).update(data)
+        return merged
+
+    @property
+    def run(self) -> dict[str, str]:
+        """The run's description: the ``adnmesh.run`` metadata record (empty if absent)."""
+        return self.metadata.get(RUN_METADATA, {})
+
+    def counts(self) -> dict[str, int]:
+        """Return the number of messages per topic, topics in order of first appearance."""
+        counts = dict.fromkeys(self.channels, 0)
+        for message in self.messages:
+            counts[message.topic] += 1
+        return counts
+
+    def time_range_ns(self) -> tuple[int, int] | None:
+        """Return (earliest, latest) over send and delivery times, ns; None without messages."""
+        if not self.messages:
+            return None
+        start = min(min(m.publish_time_ns, m.log_time_ns) for m in self.messages)
+        end = max(max(m.publish_time_ns, m.log_time_ns) for m in self.messages)
+        return start, end
+
+
+def _read_bytes(path: Path) -> bytes:
+    try:
+        return path.read_bytes()
+    except FileNotFoundError:
+        raise RecordingError(f"{path}: no such file") from None
+    except IsADirectoryError:
+        raise RecordingError(f"{path}: is a directory, not a recording") from None
+    except OSError as exc:
+        raise RecordingError(f"{path}: cannot read: {exc.strerror or exc}") from None
+
+
+def _frame(path: Path, data: bytes) -> tuple[list[tuple[int, int, int]], bool, int]:
+    """Split ``data`` into top-level records.
+
+    Returns the records as (opcode, body start, body end), whether the file is complete
+    (footer and closing magic present) and the number of bytes after the last whole record.
+    """
+    if not data:
+        raise RecordingError(f"{path}: empty file, not an MCAP recording")
+    if not data.startswith(MCAP_MAGIC):
+        raise RecordingError(f"{path}: not an MCAP file (it does not start with the MCAP magic)")
+    records: list[tuple[int, int, int]] = []
+    pos, size = len(MCAP_MAGIC), len(data)
+    while pos < size:
+        if size - pos < _RECORD_HEAD.size:
+            break
+        opcode, length = _RECORD_HEAD.unpack_from(data, pos)
+        start, end = pos + _RECORD_HEAD.size, pos + _RECORD_HEAD.size + length
+        if opcode not in _KNOWN_OPCODES and opcode < 0x80:
+            if data.count(0, pos) == size - pos:  # zeros after a crash: end of what was written
+                break
+            raise RecordingError(f"{path}: corrupt MCAP file: invalid record opcode 0x{opcode:02x} "
+                                 f"at byte {pos}")
+        if end > size:
+            break
+        records.append((opcode, start, end))
+        pos = end
+        if opcode == Opcode.FOOTER:
+            if data[pos:] == MCAP_MAGIC:
+                return records, True, 0
+            if data[pos:] and not MCAP_MAGIC.startswith(data[pos:]):
+                raise RecordingError(f"{path}: corrupt MCAP file: {size - pos} unexpected bytes "
+                                     f"after the footer")
+            break
+    if not records or records[0][0] != Opcode.HEADER:
+        raise RecordingError(f"{path}: corrupt MCAP file: no header record after the magic")
+    return records, False, size - pos
+
+
+def read_recording(path: str | Path) -> Recording:
+    """Read a recording, recovering a truncated one.
+
+    Parameters
+    ----------
+    path : str or Path
+        An MCAP file, complete or cut short (a killed run).
+
+    Returns
+    -------
+    Recording
+        With ``complete`` False and ``recovered_messages`` > 0 for a truncated file.
+
+    Raises
+    ------
+    RecordingError
+        If the file is missing, not MCAP, or corrupt (e.g. a chunk's checksum does not match).
+    """
+    path = Path(path)
+    data = _read_bytes(path)
+    frames, complete, dropped = _frame(path, data)
+
+    schemas_by_id: dict[int, Schema] = {}
+    channels_by_id: dict[int, Channel] = {}
+    messages: list[RecordedMessage] = []
+    metadata: list[tuple[str, dict[str, str]]] = []
+    library = ""
+
+    def take(record: object, offset: int) -> None:
+        if isinstance(record, Message):
+            channel = channels_by_id.get(record.channel_id)
+            if channel is None:
+                raise RecordingError(f"{path}: corrupt MCAP file: message on unknown channel "
+                                     f"{record.channel_id} at byte {offset}")
+            schema = schemas_by_id.get(channel.schema_id)
+            messages.append(RecordedMessage(
+                topic=channel.topic, schema_name=schema.name if schema else "",
+                sequence=record.sequence, log_time_ns=record.log_time,
+                publish_time_ns=record.publish_time, data=record.data))
+        elif isinstance(record, Schema):
+            schemas_by_id[record.id] = record
+        elif isinstance(record, Channel):
+            channels_by_id[record.id] = record
+
+    for opcode, start, end in frames:
+        offset = start - _RECORD_HEAD.size
+        stream = ReadDataStream(BytesIO(data[start:end]))
+        try:
+            if opcode == Opcode.HEADER:
+                library = Header.read(stream).library
+            elif opcode == Opcode.METADATA:
+                record = Metadata.read(stream)
+                metadata.append((record.name, dict(record.metadata)))
+            elif opcode == Opcode.SCHEMA:
+                take(Schema.read(stream), offset)
+            elif opcode == Opcode.CHANNEL:
+                take(Channel.read(stream), offset)
+            elif opcode == Opcode.MESSAGE:
+                take(Message.read(stream, end - start), offset)
+            elif opcode == Opcode.CHUNK:
+                for record in breakup_chunk(Chunk.read(stream), validate_crc=True):
+                    take(record, offset)
+            elif opcode == Opcode.FOOTER:
+                Footer.read(stream)
+        except RecordingError:
+            raise
+        except Exception as exc:  # noqa: BLE001 -- any failure to parse a whole record
+            name = Opcode(opcode).name.lower() if opcode in _KNOWN_OPCODES else f"0x{opcode:02x}"
+            problem = " ".join(str(exc).split()) or type(exc).__name__
+            raise RecordingError(f"{path}: corrupt MCAP file: {name} record at byte {offset}: "
+                                 f"{problem}") from None
+
+    channels: dict[str, ChannelInfo] = {}
+    for channel in channels_by_id.values():
+        schema = schemas_by_id.get(channel.schema_id)
+        channels.setdefault(channel.topic, ChannelInfo(
+            topic=channel.topic, message_encoding=channel.message_encoding,
+            schema_name=schema.name if schema else "", metadata=dict(channel.metadata)))
+    schemas: dict[str, dict] = {}
+    for schema in schemas_by_id.values():
+        if schema.encoding == SCHEMA_ENCODING:
+            try:
+                schemas[schema.name] = json.loads(schema.data)
+            except ValueError:
+                raise RecordingError(f"{path}: schema {schema.name!r} is not valid JSON") from None
+    return Recording(path=path, messages=tuple(messages), channels=channels, schemas=schemas,
+                     metadata_records=tuple(metadata), library=library, complete=complete,
+                     dropped_bytes=dropped)
+
+
+def write_recording(recording: Recording, out_path: str | Path,
+                    extra_metadata: tuple[tuple[str, dict[str, str]], ...] = ()) -> None:
+    """Write ``recording`` as a complete MCAP file (atomically: temporary file, then rename)."""
+    out_path = Path(out_path)
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{out_path.name}.", dir=out_path.parent)
+    try:
+        with os.fdopen(fd, "wb") as stream:
+            writer = Writer(stream, compression=CompressionType.ZSTD)
+            writer.start(profile="", library=recording.library)
+            for name, data in recording.metadata_records + tuple(extra_metadata):
+                writer.add_metadata(name, data)
+            schema_ids = {name: writer.register_schema(name, SCHEMA_ENCODING,
+                                                       json.dumps(schema, sort_keys=True).encode())
+                          for name, schema in recording.schemas.items()}
+            channel_ids = {
+                topic: writer.register_channel(topic, info.message_encoding,
+                                               schema_ids.get(info.schema_name, 0), info.metadata)
+                for topic, info in recording.channels.items()}
+            for m in recording.messages:
+                writer.add_message(channel_ids[m.topic], log_time=m.log_time_ns, data=m.data,
+                                   publish_time=m.publish_time_ns, sequence=m.sequence)
+            writer.finish()
+            stream.flush()
+            os.fsync(stream.fileno())
+        os.replace(tmp, out_path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def recover(path: str | Path, out_path: str | Path) -> int:
+    """Write what ``path`` holds into the complete MCAP file ``out_path``; return the message count.
+
+    For a truncated file these are the recovered messages; a complete file is copied record by
+    record. The new file carries every metadata record of the old one plus an
+    ``adnmesh.recovery`` record (source file, messages recovered, bytes dropped).
+
+    Raises
+    ------
+    RecordingError
+        As :func:`read_recording`.
+    """
+    recording = read_recording(path)
+    recovery = {"source": str(path), "complete": str(recording.complete).lower(),
+                "messages": str(len(recording.messages)),
+                "dropped_bytes": str(recording.dropped_bytes)}
+    write_recording(recording, out_path, ((RECOVERY_METADATA, recovery),))
+    return len(recording.messages)

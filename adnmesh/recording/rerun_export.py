@@ -1,0 +1,174 @@
+"""Converting a recording into Rerun data (``adnmesh replay``).
+
+Rerun reads MCAP itself but does not decode JSON channels, so adnmesh converts: every series of
+:func:`adnmesh.recording.series.extract` becomes an entity ``/<key>/<field>`` of ``Scalars``
+with a static ``SeriesLines`` style (its name, and step interpolation for step series), indexed
+by two timelines: ``sim_time`` (send time, from t0) and ``delivery_time`` (delivery time, from
+t0), both durations. Events (gain switches, availability changes, faults) become ``TextLog``
+entries at ``/<key>/events``. A blueprint lays out P_IP with P_ref, P_Y, the DERs' infeed and
+setpoints, availability, the gains and the event log.
+
+:func:`export_rrd` writes an ``.rrd`` file without any viewer (headless);
+:func:`viewer_command` is the command that opens one in a viewer bound to 127.0.0.1.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from adnmesh.recording.reader import Recording
+from adnmesh.recording.series import RunData, Series, extract
+
+__all__ = [
+    "APPLICATION_ID",
+    "DELIVERY_TIMELINE",
+    "SIM_TIMELINE",
+    "blueprint",
+    "export_rrd",
+    "log_run",
+    "rerun_entity_path",
+    "rerun_executable",
+    "viewer_command",
+]
+
+APPLICATION_ID = "adnmesh"
+SIM_TIMELINE = "sim_time"
+"""Timeline of send times (the instant a value was sampled or decided), duration from t0."""
+DELIVERY_TIMELINE = "delivery_time"
+"""Timeline of delivery times, duration from t0."""
+
+_LEVELS = {"INFO": "INFO", "WARN": "WARN", "ERROR": "ERROR"}
+
+
+def rerun_entity_path(path: str) -> str:
+    """Return ``path`` (``/a/b/c``) with each part escaped for Rerun."""
+    import rerun as rr
+
+    return "/" + "/".join(rr.escape_entity_path_part(p) for p in path.strip("/").split("/"))
+
+
+def _durations(t_ns: np.ndarray, t0_ns: int) -> np.ndarray:
+    return (np.asarray(t_ns, dtype=np.int64) - t0_ns).astype("timedelta64[ns]")
+
+
+def _views(run: RunData, roles: tuple[str, ...]) -> list[str]:
+    return [rerun_entity_path(s.entity_path) for role in roles for s in run.by_role(role)]
+
+
+def blueprint(run: RunData):
+    """Return the Rerun blueprint for ``run``: the main plots, laid out."""
+    import rerun.blueprint as rrb
+
+    def plot(name: str, *roles: str):
+        return rrb.TimeSeriesView(name=name, origin="/", contents=_views(run, roles) or [])
+
+    events = sorted({rerun_entity_path(f"/{e.topic}/events") for e in run.events})
+    return rrb.Blueprint(
+        rrb.Vertical(
+            plot("P_IP and P_ref [W]", "p_ref", "p_ip"),
+            plot("P_Y", "p_y"),
+            rrb.Horizontal(plot("DER infeed [W]", "der_infeed"),
+                           plot("DER setpoints [W]", "der_setpoint")),
+            rrb.Horizontal(plot("availability (1 = available)", "availability"),
+                           plot("gains K_P [1/W], K_I [1/(W s)]", "kp", "ki"),
+                           rrb.TextLogView(name="events", origin="/", contents=events or [])),
+            row_shares=[3, 2, 2, 2],
+        ),
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
+        rrb.TimePanel(timeline=SIM_TIMELINE, state="collapsed"),
+    )
+
+
+def _log_series(rec, series: Series, t0_ns: int) -> None:
+    import rerun as rr
+
+    path = rerun_entity_path(series.entity_path)
+    rec.log(path, rr.SeriesLines(names=series.name, colors=series.color,
+                                 interpolation_mode="StepAfter" if series.step else "Linear"),
+            static=True)
+    rec.send_columns(path,
+                     indexes=[rr.TimeColumn(SIM_TIMELINE, duration=_durations(series.t_ns, t0_ns)),
+                              rr.TimeColumn(DELIVERY_TIMELINE,
+                                            duration=_durations(series.log_time_ns, t0_ns))],
+                     columns=rr.Scalars.columns(scalars=series.values))
+
+
+def log_run(rec, run: RunData) -> None:
+    """Log every series and event of ``run`` to the Rerun recording stream ``rec``."""
+    import rerun as rr
+
+    for series in run.series.values():
+        _log_series(rec, series, run.t0_ns)
+    by_path: dict[str, list] = {}
+    for event in run.events:
+        by_path.setdefault(rerun_entity_path(f"/{event.topic}/events"), []).append(event)
+    for path, events in by_path.items():
+        rec.send_columns(
+            path,
+            indexes=[rr.TimeColumn(SIM_TIMELINE,
+                                   duration=_durations([e.t_ns for e in events], run.t0_ns))],
+            columns=rr.TextLog.columns(text=[e.text for e in events],
+                                       level=[_LEVELS.get(e.level, "INFO") for e in events]))
+
+
+def export_rrd(recording: Recording, out_path: str | Path, *, run: RunData | None = None) -> Path:
+    """Write ``recording`` as a Rerun ``.rrd`` file with its blueprint; return the path.
+
+    Needs no display and starts no viewer or server.
+    """
+    import rerun as rr
+
+    run = run if run is not None else extract(recording)
+    out_path = Path(out_path)
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    recording_id = recording.run.get("run_id") or recording.path.stem
+    rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id)
+    try:
+        rec.save(out_path, default_blueprint=blueprint(run))
+        rec.send_recording_name(recording_id)
+        log_run(rec, run)
+        rec.flush()
+    finally:
+        rec.disconnect()
+    return out_path
+
+
+def rerun_executable() -> list[str]:
+    """Return the command that runs the ``rerun`` program shipped with rerun-sdk.
+
+    The binary itself, not ``python -m rerun`` (which would run it as a child process that
+    outlives a killed parent).
+    """
+    try:
+        import rerun_cli
+    except ImportError:
+        rerun_cli = None
+    if rerun_cli is not None:
+        binary = Path(rerun_cli.__file__).parent / ("rerun.exe" if os.name == "nt" else "rerun")
+        if binary.is_file():
+            return [str(binary)]
+    found = shutil.which("rerun")
+    return [found] if found else [sys.executable, "-m", "rerun_cli"]
+
+
+def viewer_command(rrd_path: str | Path, *, web: bool = False, port: int | None = None,
+                   web_port: int | None = None) -> list[str]:
+    """Return the command that opens ``rrd_path`` in the Rerun viewer, bound to 127.0.0.1.
+
+    ``web`` serves the web viewer over HTTP (``web_port``, default Rerun's 9090) instead of
+    starting the native viewer. ``port`` is the viewer's gRPC port (default: Rerun's).
+    """
+    command = [*rerun_executable(), str(rrd_path), "--bind", "127.0.0.1"]
+    if port is not None:
+        command += ["--port", str(port)]
+    if web:
+        command += ["--web-viewer"]
+        if web_port is not None:
+            command += ["--web-viewer-port", str(web_port)]
+    return command

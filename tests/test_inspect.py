@@ -1,0 +1,166 @@
+"""Tests of ``adnmesh inspect``: summary, recovery of a killed run's file, errors."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from adnmesh.cli import main
+from adnmesh.recording import PUBLISHED_METADATA, Recorder, read_recording
+from adnmesh.recording.synthetic import FAKE_SCHEMAS, fake_run, write_fake_run
+
+
+@pytest.fixture(scope="module")
+def fake(tmp_path_factory) -> Path:
+    """A recorded fake run (60 s of sim time) with its publishers' counts."""
+    path = tmp_path_factory.mktemp("fake") / "fake.mcap"
+    write_fake_run(path)
+    return path
+
+
+def _lines(text: str) -> list[str]:
+    return [" ".join(line.replace("│", " ").split()) for line in text.splitlines()]
+
+
+def test_inspect_summarises_a_complete_recording(fake: Path, capsys) -> None:
+    assert main(["inspect", str(fake)]) == 0
+    out, err = capsys.readouterr()
+    assert err == ""
+    lines = _lines(out)
+    assert lines[0].startswith(f"{fake}: complete MCAP recording, 3918 messages on 13 topics, ")
+    assert lines[1].startswith("run: run_id fake, clock sim, seed 0, adnmesh_version ")
+    assert "time: 0.000 to 60.100 s (sim_time, send and delivery times)" in lines
+    assert "adn/fake/measurement/p_ip p_ip 601 0.000 60.000" in lines
+    assert "adn/fake/der/WT1/state der_state 601 0.000 60.000" in lines
+    assert "adn/fake/fault/der/CHP1 fault 2 40.000 42.000" in lines
+    assert any(line.startswith("5 +1.000 2.700 1.20 1.60 0.5") for line in lines)
+    assert "events: 1 gain switches, 1 availability changes, 2 fault events, 4 DER mode " \
+           "changes" in lines
+    assert any(line.startswith("25.000 s gain switch to entry 12: K_P 6.593e-08 -> 6.364e-07")
+               for line in lines)
+    assert "41.000 s CHP1: mode control -> watchdog" in lines
+    assert "published counts: every message recorded (3918 on 13 topics)" in lines
+    assert not any("recovered" in line for line in lines)
+
+
+def test_inspect_validates_schemas_on_request(fake: Path, capsys) -> None:
+    assert main(["inspect", str(fake), "--validate"]) == 0
+    assert "schema check: all 3918 messages valid" in _lines(capsys.readouterr().out)
+
+
+def test_inspect_prints_the_metadata_on_request(fake: Path, capsys) -> None:
+    assert main(["inspect", str(fake), "--metadata"]) == 0
+    lines = _lines(capsys.readouterr().out)
+    assert "metadata adnmesh.run:" in lines and "config: grid: fake" in lines
+    assert f"metadata {PUBLISHED_METADATA}:" in lines
+
+
+def test_inspect_recovers_a_truncated_recording(fake: Path, tmp_path: Path, capsys) -> None:
+    # a killed recorder: the fake run with a flush every 500 messages, cut mid-chunk
+    path = tmp_path / "killed.mcap"
+    recorder = Recorder(path, metadata={"run_id": "killed"}, schemas=FAKE_SCHEMAS)
+    for i, m in enumerate(fake_run()):
+        recorder.write(m.topic, m.schema_name, m.payload, log_time_ns=m.t_deliver_ns,
+                       publish_time_ns=m.t_send_ns)
+        if i % 500 == 499:
+            recorder.flush()
+    size_before = path.stat().st_size
+    recorder.flush()  # the last 100 messages: one more chunk (and its message indexes)
+    size_after = path.stat().st_size
+    recorder.close()
+    data = path.read_bytes()
+    path.write_bytes(data[: (size_before + size_after) // 2])  # the last chunk is unfinished
+    expected = read_recording(path)
+    assert 0 < len(expected.messages) < 3918 and len(expected.messages) % 500 == 0
+
+    assert main(["inspect", str(path)]) == 0
+    lines = _lines(capsys.readouterr().out)
+    n = len(expected.messages)
+    recovered = tmp_path / "killed.recovered.mcap"
+    assert lines[0].startswith(f"{path}: TRUNCATED MCAP recording, {n} messages on ")
+    assert lines[1] == f"recovered {n} messages into {recovered} " \
+                       f"({expected.dropped_bytes} bytes of an unfinished record dropped)"
+    assert expected.dropped_bytes > 0
+    again = read_recording(recovered)
+    assert again.complete and again.messages == expected.messages
+    assert again.run["run_id"] == "killed"
+
+    out = tmp_path / "elsewhere" / "r.mcap"
+    assert main(["inspect", str(path), "--recover-to", str(out)]) == 0
+    assert f"recovered {n} messages into {out} " in capsys.readouterr().out
+    assert read_recording(out).complete
+
+
+def test_inspect_fails_loudly_when_counts_differ(tmp_path: Path, capsys) -> None:
+    path = tmp_path / "lossy.mcap"
+    with Recorder(path, metadata={}, schemas=FAKE_SCHEMAS) as recorder:
+        for m in list(fake_run(1.0))[:10]:
+            recorder.write(m.topic, m.schema_name, m.payload, log_time_ns=m.t_deliver_ns,
+                           publish_time_ns=m.t_send_ns)
+        published = recorder.counts()
+        published["adn/fake/measurement/p_ip"] += 2
+        recorder.add_metadata(PUBLISHED_METADATA, {k: str(v) for k, v in published.items()})
+    assert main(["inspect", str(path)]) == 1
+    lines = _lines(capsys.readouterr().out)
+    assert "published counts: MISMATCH on 1 topic(s)" in lines
+    assert "adn/fake/measurement/p_ip: published 3, recorded 1" in lines
+
+
+def test_inspect_reports_schema_violations(tmp_path: Path, capsys) -> None:
+    path = tmp_path / "invalid.mcap"
+    with Recorder(path, metadata={}, schemas=FAKE_SCHEMAS) as recorder:
+        recorder.write("adn/g/measurement/p_ip", "p_ip", b'{"p_ip_w": 1}', log_time_ns=0,
+                       publish_time_ns=0)
+    assert main(["inspect", str(path), "--validate"]) == 1
+    lines = _lines(capsys.readouterr().out)
+    assert "schema check: 1 problems" in lines
+    assert "adn/g/measurement/p_ip #1: (top level): 'v' is a required property" in lines
+
+
+@pytest.mark.parametrize("content, problem", [
+    (b"", "empty file, not an MCAP recording"),
+    (b"PK\x03\x04 a zip file", "not an MCAP file (it does not start with the MCAP magic)"),
+    (b"\x89MCAP0\r\n\x07garbage-garbage-garbage", "corrupt MCAP file: no header record after "
+                                                   "the magic"),
+    (b"\x89MCAP0\r\n\x42" + bytes(40), "corrupt MCAP file: invalid record opcode 0x42 at byte 8"),
+])
+def test_a_corrupt_or_non_mcap_file_is_a_one_line_error_exit_2(tmp_path: Path, content: bytes,
+                                                               problem: str, capsys) -> None:
+    path = tmp_path / "bad.mcap"
+    path.write_bytes(content)
+    assert main(["inspect", str(path)]) == 2
+    out, err = capsys.readouterr()
+    assert out == ""
+    assert err == f"adnmesh: error: {path}: {problem}\n"
+
+
+def test_a_damaged_chunk_is_a_one_line_error_exit_2(fake: Path, tmp_path: Path,
+                                                    capsys) -> None:
+    from mcap.reader import make_reader
+
+    with open(fake, "rb") as stream:
+        chunk = make_reader(stream).get_summary().chunk_indexes[0]
+    data = bytearray(fake.read_bytes())
+    data[chunk.chunk_start_offset + chunk.chunk_length // 2] ^= 0x55
+    path = tmp_path / "damaged.mcap"
+    path.write_bytes(bytes(data))
+    assert main(["inspect", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"adnmesh: error: {path}: corrupt MCAP file: chunk record at byte "
+                          f"{chunk.chunk_start_offset}: ")
+    assert err.count("\n") == 1
+
+
+def test_inspect_of_a_missing_file_is_exit_2(tmp_path: Path, capsys) -> None:
+    assert main(["inspect", str(tmp_path / "nope.mcap")]) == 2
+    assert capsys.readouterr().err == f"adnmesh: error: {tmp_path / 'nope.mcap'}: no such file\n"
+
+
+def test_inspect_runs_as_a_program(fake: Path) -> None:
+    result = subprocess.run([sys.executable, "-m", "adnmesh", "inspect", str(fake)],
+                            capture_output=True, text=True, timeout=60, check=False)
+    assert result.returncode == 0, result.stderr
+    assert "3918 messages on 13 topics" in result.stdout
