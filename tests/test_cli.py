@@ -70,7 +70,9 @@ def test_version_and_help_exit_0(capsys) -> None:
 
 def test_every_command_module_has_the_interface() -> None:
     names = build_parser()._subparsers._group_actions[0].choices  # noqa: SLF001
-    assert list(names) == ["check", "up"]
+    # one subparser per command module, named after it, in COMMANDS order
+    assert list(names) == [m.__name__.rsplit(".", 1)[1] for m in COMMANDS]
+    assert {"check", "up", "margins"} <= set(names)
     assert all(callable(m.add_parser) and callable(m.run) for m in COMMANDS)
 
 

@@ -1,0 +1,64 @@
+"""Disk and classical margins against closed forms and python-control with Padé delays."""
+import numpy as np
+import pytest
+
+from adnmesh.margins import classical_margins, disk_margin
+from adnmesh.stability import nyquist_stability
+
+from loops import LOOPS, gains
+from pade_reference import reference_figures
+from test_stability import integrator_with_delay
+
+
+def _margins(plant, kp, ki):
+    nyq = nyquist_stability(plant, kp, ki)
+    return nyq, disk_margin(plant, kp, ki, nyq), classical_margins(plant, kp, ki, nyq)
+
+
+@pytest.mark.parametrize("k_tau", [0.2, 0.6, 1.0, 1.4])
+def test_integrator_delay_closed_forms(k_tau):
+    tau = 0.4
+    k = k_tau / tau
+    plant, kp, ki = integrator_with_delay(k, tau)
+    _, dm, cm = _margins(plant, kp, ki)
+    # L = k e^{-s tau}/s: |L| = 1 at w = k, phase crossover at w tau = pi/2
+    assert cm.phase_margin_deg[0] == pytest.approx(90.0 - np.degrees(k_tau), rel=1e-9)
+    assert cm.phase_margin_omega[0] == pytest.approx(k, rel=1e-9)
+    assert cm.gain_margin[0] == pytest.approx(np.pi / (2 * k_tau), rel=1e-9)
+    assert cm.gain_margin_omega[0] == pytest.approx(np.pi / (2 * tau), rel=1e-9)
+    assert cm.delay_margin_s[0] == pytest.approx((np.pi / 2 - k_tau) / k, rel=1e-9)
+    # disk margin: 2 min |1+L|/|1-L| by brute force on a very fine grid
+    w = np.geomspace(1e-3, 1e3, 2_000_001) / tau
+    lw = k * np.exp(-1j * w * tau) / (1j * w)
+    alpha = 2.0 * np.min(np.abs(1 + lw) / np.abs(1 - lw))
+    assert dm.alpha[0] == pytest.approx(alpha, rel=1e-7)
+    lo, hi = dm.gain_margin[0]
+    assert lo == pytest.approx((2 - alpha) / (2 + alpha), rel=1e-6)
+    assert hi == pytest.approx((2 + alpha) / (2 - alpha), rel=1e-6)
+    assert dm.phase_margin_deg[0] == pytest.approx(np.degrees(2 * np.arctan(alpha / 2)), rel=1e-6)
+
+
+@pytest.mark.parametrize("name", list(LOOPS))
+def test_margins_agree_with_python_control(name):
+    plant, kp, ki = gains(name)
+    ref = reference_figures(plant, kp, ki)
+    nyq, dm, cm = _margins(plant, kp, ki)
+    assert nyq.stable[0] and ref["stable"]
+    assert dm.alpha[0] == pytest.approx(ref["disk_margin"], rel=2e-5)
+    assert cm.phase_margin_deg[0] == pytest.approx(ref["phase_margin_deg"], rel=1e-5)
+    assert cm.phase_margin_omega[0] == pytest.approx(ref["phase_margin_omega"], rel=1e-5)
+    assert cm.delay_margin_s[0] == pytest.approx(ref["delay_margin_s"], rel=1e-5)
+    if np.isfinite(ref["gain_margin"]):
+        assert cm.gain_margin[0] == pytest.approx(ref["gain_margin"], rel=1e-4)
+        assert cm.gain_margin_omega[0] == pytest.approx(ref["gain_margin_omega"], rel=1e-4)
+
+
+def test_all_crossovers_are_reported():
+    # a large delay makes the Nyquist curve cross the negative real axis many times
+    plant, kp, ki = integrator_with_delay(0.5, 2.0)
+    _, _, cm = _margins(plant, kp, ki)
+    gms = cm.all_gain_margins[0]
+    assert gms.size >= 5
+    # crossings at w tau = pi/2 + 2 pi n: GM_n = w_n / k
+    n = np.arange(gms.size)
+    np.testing.assert_allclose(gms, (np.pi / 2 + 2 * np.pi * n) / 2.0 / 0.5, rtol=1e-9)

@@ -1,0 +1,98 @@
+"""Step response with exact delays: closed forms, step-size error bound, python-control + Padé."""
+from math import factorial
+
+import numpy as np
+import pytest
+
+from adnmesh.plant import RISE_PER_LAG
+from adnmesh.stability import nyquist_stability
+from adnmesh.margins import disk_margin
+from adnmesh.stepresp import choose_step, simulate_step, step_info, step_info_from_samples
+
+from loops import LOOPS, gains
+from pade_reference import reference_figures
+from test_stability import integrator_with_delay
+
+#: stated bound of the simulation error on y (final value 1) at the default step
+Y_ERROR_BOUND = 1e-4
+
+
+def test_first_order_lag_figures():
+    t_lag, h = 2.0, 1e-3
+    t = np.arange(0, 40 + h / 2, h)
+    info = step_info_from_samples(h, 1.0 - np.exp(-t / t_lag))
+    assert info.rise_time_s[0] == pytest.approx(RISE_PER_LAG * t_lag, rel=1e-6)   # 2.197 T
+    assert info.settling_time_s[0] == pytest.approx(t_lag * np.log(20), rel=1e-6)
+    assert info.settling_time_2pct_s[0] == pytest.approx(t_lag * np.log(50), rel=1e-6)
+    assert info.overshoot_pct[0] == 0.0
+
+
+def test_second_order_overshoot_closed_form():
+    zeta, wn, h = 0.3, 2.0, 1e-3
+    t = np.arange(0, 30, h)
+    wd = wn * np.sqrt(1 - zeta**2)
+    y = 1 - np.exp(-zeta * wn * t) * (np.cos(wd * t) + zeta / np.sqrt(1 - zeta**2) * np.sin(wd * t))
+    info = step_info_from_samples(h, y)
+    assert info.overshoot_pct[0] == pytest.approx(100 * np.exp(-np.pi * zeta / np.sqrt(1 - zeta**2)),
+                                                  rel=1e-7)
+    assert info.peak_time_s[0] == pytest.approx(np.pi / wd, abs=1e-6)
+
+
+@pytest.mark.parametrize("k_tau", [0.3, 0.9])
+def test_integrator_delay_matches_method_of_steps_series(k_tau):
+    # y' = k (1 - y(t - tau)): y = sum_n (-1)^(n+1) k^n (t - n tau)_+^n / n!
+    tau = 0.5
+    k = k_tau / tau
+    plant, kp, ki = integrator_with_delay(k, tau)
+    errors = []
+    for h in (0.01, 0.005):
+        t, y = simulate_step(plant, kp, ki, 8 * tau, h=h)
+        exact = sum((-1) ** (n + 1) * k**n * np.clip(t - n * tau, 0, None) ** n / factorial(n)
+                    for n in range(1, 10))
+        errors.append(np.max(np.abs(y[0] - exact)))
+    assert errors[0] < Y_ERROR_BOUND
+    assert errors[1] < errors[0] / 3.5          # second order in h
+
+
+@pytest.mark.parametrize("name", list(LOOPS))
+def test_default_step_meets_stated_error_bound(name):
+    plant, kp, ki = gains(name)
+    nyq = nyquist_stability(plant, kp, ki)
+    bw = disk_margin(plant, kp, ki, nyq).omega[0]
+    h = choose_step(plant, bw)
+    t_end = 60.0
+    _, coarse = simulate_step(plant, kp, ki, t_end, h)
+    _, fine = simulate_step(plant, kp, ki, t_end, h / 4)
+    assert np.max(np.abs(coarse[0] - fine[0, ::4])) < Y_ERROR_BOUND
+
+
+@pytest.mark.parametrize("name", list(LOOPS))
+def test_step_info_agrees_with_python_control(name):
+    plant, kp, ki = gains(name)
+    t_end = {"wt": 20.0, "all": 60.0}.get(name, 200.0)
+    dt = 2e-3
+    ref = reference_figures(plant, kp, ki, t_end_s=t_end, dt=dt, order=10)
+    ours = step_info(plant, kp, ki)
+    # same response at the same instants, once the Padé model's own ringing at the arrival of
+    # the delayed step has died out (its error there shrinks only slowly with the order)
+    t, y = simulate_step(plant, kp, ki, t_end, h=dt)
+    later = t > plant.path_delays_s.max() + 1.0
+    assert np.max(np.abs(y[0] - ref["y"][: y.shape[1]])[later]) < Y_ERROR_BOUND
+    assert ours.overshoot_pct[0] == pytest.approx(ref["overshoot_pct"], abs=2e-3)
+    # python-control reports the first sample past each threshold (no interpolation)
+    for key in ("rise_time_s", "settling_time_s", "settling_time_2pct_s"):
+        assert getattr(ours, key)[0] == pytest.approx(ref[key], abs=2 * dt), key
+    if ref["overshoot_pct"] > 0.05:      # peak of a monotone response is just its horizon's end
+        assert ours.peak[0] == pytest.approx(ref["peak"], abs=2e-5)
+        assert ours.peak_time_s[0] == pytest.approx(ref["peak_time_s"], abs=0.05 * ref["peak_time_s"])
+
+
+def test_adaptive_horizon_and_coarsening_keep_accuracy():
+    plant, kp, ki = gains("wt")
+    kp, ki = kp, ki / 60.0            # slow integral action: a long creeping tail
+    fast = step_info(plant, kp, ki)
+    t, y = simulate_step(plant, kp, ki, float(fast.horizon_s[0]) + 10, h=0.005)
+    ref = step_info_from_samples(0.005, y)
+    assert fast.horizon_s[0] > 100
+    for key in ("rise_time_s", "settling_time_s", "settling_time_2pct_s", "overshoot_pct"):
+        assert getattr(fast, key)[0] == pytest.approx(getattr(ref, key)[0], rel=1e-4, abs=1e-4)
