@@ -10,7 +10,7 @@ import numpy as np
 
 from .plant import Plant
 
-__all__ = ["as_candidates", "loop_response", "loop_at", "log_grid"]
+__all__ = ["as_candidates", "loop_response", "loop_at", "loop_points", "log_grid"]
 
 
 def as_candidates(plant: Plant, kp, ki) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -78,6 +78,12 @@ def loop_at(plant: Plant, kp, ki, omega: np.ndarray) -> np.ndarray:
     ndarray, complex, same shape as ``omega``
     """
     kp, ki, gains = as_candidates(plant, kp, ki)
+    return loop_points(plant, kp, ki, gains, omega)
+
+
+def loop_points(plant: Plant, kp: np.ndarray, ki: np.ndarray, gains: np.ndarray,
+                omega: np.ndarray) -> np.ndarray:
+    """:func:`loop_at` for gains already broadcast by :func:`as_candidates` (hot loops)."""
     omega = np.asarray(omega, dtype=float)
     flat = omega.reshape(omega.shape[0], -1)
     resp = plant.group_responses(flat.ravel()).reshape(len(plant.actuators), *flat.shape)

@@ -90,7 +90,9 @@ def _frequency_part(plant: Plant, kp, ki, classical: bool):
 
 
 def evaluate(plant: Plant, kp, ki, *, band_pct: float = 5.0, classical: bool = True,
-             time_domain: bool = True, time_mask=None) -> LoopFigures:
+             time_domain: bool = True, time_mask=None,
+             overshoot_stop_pct: float | None = None,
+             disk_margin_min: float | None = None) -> LoopFigures:
     """Evaluate the loop for M candidates.
 
     Parameters
@@ -108,6 +110,12 @@ def evaluate(plant: Plant, kp, ki, *, band_pct: float = 5.0, classical: bool = T
     time_mask : array_like of bool, optional
         Restrict the (costly) step responses to these candidates, e.g. those meeting the
         disk-margin constraint.
+    overshoot_stop_pct : float, optional
+        Stop a candidate's simulation once its overshoot exceeds this (percent): enough to
+        know it violates an overshoot constraint (its overshoot is then a lower bound).
+    disk_margin_min : float, optional
+        Simulate only candidates whose disk margin reaches this (the others already violate
+        a disk-margin constraint).
     """
     kp, ki, gains = as_candidates(plant, kp, ki)
     m = kp.size
@@ -131,8 +139,11 @@ def evaluate(plant: Plant, kp, ki, *, band_pct: float = 5.0, classical: bool = T
         arr[~stable] = np.nan
     if time_domain:
         mask = stable if time_mask is None else stable & np.asarray(time_mask, bool)
+        if disk_margin_min is not None:
+            mask = mask & (alpha >= disk_margin_min)
         info = step_info(Plant(plant.actuators, gains, plant.t_com_s, plant.t_meas_s), kp, ki,
-                         band_pct=band_pct, bandwidth_rad_s=w_disk, mask=mask)
+                         band_pct=band_pct, bandwidth_rad_s=w_disk, mask=mask,
+                         overshoot_stop_pct=overshoot_stop_pct)
     else:
         info = StepInfo(*(nan() for _ in range(6)), np.nan, nan())
     return LoopFigures(stable, certified, poles, alpha, w_disk, dmo.gain_margin,

@@ -16,6 +16,7 @@ which the certified bounds of :mod:`adnmesh.stability` rely on.
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from functools import cached_property
@@ -82,9 +83,12 @@ class Actuator:
     def response(self, omega: np.ndarray) -> np.ndarray:
         """``H(j omega) exp(-j omega T_delay)`` at ``omega`` (rad/s), complex, unit DC gain."""
         s = 1j * np.asarray(omega, dtype=float)
-        num = np.polynomial.polynomial.polyval(s, self.numerator)
-        den = np.polynomial.polynomial.polyval(s, self.denominator)
-        return num / den * np.exp(-s * self.t_delay_s)
+        den = self.denominator
+        if den.size == 2:                         # pt1: the hot path of tuning
+            return np.exp(-s * self.t_delay_s) / (den[0] + den[1] * s)
+        num = self.numerator
+        return (num[0] + (num[1] * s if num.size > 1 else 0.0)) \
+            / (den[0] + s * (den[1] + s * den[2])) * np.exp(-s * self.t_delay_s)
 
     def state_space(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Controllable canonical form ``(A, B, C)`` of ``H`` (strictly proper, D = 0)."""
@@ -105,17 +109,23 @@ class Actuator:
 
         Returns ``(Phi, gamma_left, gamma_right, C)`` such that
         ``x[k+1] = Phi x[k] + gamma_left u[k] + gamma_right u[k+1]`` is exact whenever ``u``
-        is linear on ``[t_k, t_k + h]`` (h in s).
+        is linear on ``[t_k, t_k + h]`` (h in s). Cached per (actuator, h).
         """
-        a, b, c = self.state_space()
-        n = a.shape[0]
-        aug = np.zeros((n + 2, n + 2))
-        aug[:n, :n] = a
-        aug[:n, n] = b
-        aug[n, n + 1] = 1.0
-        e = scipy.linalg.expm(aug * h)
-        phi, g_u, g_v = e[:n, :n], e[:n, n], e[:n, n + 1] / h
-        return phi, g_u - g_v, g_v, c
+        return _foh(self, float(h))
+
+
+@functools.lru_cache(maxsize=4096)
+def _foh(act: Actuator, h: float):
+    """Augmented-matrix exponential: input u(t) = u0 + v t on [0, h] with v = (u1 - u0)/h."""
+    a, b, c = act.state_space()
+    n = a.shape[0]
+    aug = np.zeros((n + 2, n + 2))
+    aug[:n, :n] = a
+    aug[:n, n] = b
+    aug[n, n + 1] = 1.0
+    e = scipy.linalg.expm(aug * h)
+    phi, g_u, g_v = e[:n, :n], e[:n, n], e[:n, n + 1] / h
+    return phi, g_u - g_v, g_v, c
 
 
 @dataclass(frozen=True)

@@ -33,6 +33,7 @@ from math import gcd
 
 import numpy as np
 
+from ._kernels import advance
 from .freqresp import as_candidates
 from .plant import Plant
 
@@ -120,7 +121,8 @@ class _Simulator:
     """Method-of-steps simulation of M loops sharing actuator dynamics and step h."""
 
     def __init__(self, plant: Plant, kp, ki, h: float):
-        self.kp, self.ki, self.gains = as_candidates(plant, kp, ki)
+        kp, ki, gains = as_candidates(plant, kp, ki)
+        self.kp, self.ki, self.gains = (np.ascontiguousarray(a, dtype=float) for a in (kp, ki, gains))
         self.plant = plant
         self.order = max(a.denominator.size - 1 for a in plant.actuators)
         m, g = self.kp.size, len(plant.actuators)
@@ -187,7 +189,7 @@ class _Simulator:
     def keep(self, rows: np.ndarray) -> None:
         """Continue with the candidates ``rows`` only."""
         for name in ("kp", "ki", "gains", "p_y", "y_hist", "x", "x_int", "err", "kc"):
-            setattr(self, name, getattr(self, name)[rows])
+            setattr(self, name, np.ascontiguousarray(getattr(self, name)[rows]))
 
     def _taps(self, n, f, first: int, steps: int, right_end: bool):
         """Ring columns and weights of a delayed signal for ``steps`` consecutive samples.
@@ -209,44 +211,14 @@ class _Simulator:
     def run(self, steps: int) -> np.ndarray:
         """Advance ``steps`` steps and return y at the new samples, shape (M, steps)."""
         out = np.empty((self.kp.size, steps))
-        h, ring, k0 = self.h, self.ring, self.k
-        l0, l1, lw = self._taps(self.n_in, self.f_in, k0, steps, right_end=False)
-        r0, r1, rw = self._taps(self.n_in, self.f_in, k0 + 1, steps, right_end=True)
-        m0, m1, mw = self._taps(self.n_meas, self.f_meas, k0 + 1, steps, right_end=False)
-        fractional = bool(np.any(lw > 0) or np.any(rw > 0) or np.any(mw > 0))
-        first_order = self.order == 1
-        phi1, gl1, gr1 = self.phi[:, 0, 0], self.gl[:, 0], self.gr[:, 0]
-        kc1 = self.kc[:, :, 0]
-        x1 = self.x[:, :, 0].copy()
-        p_y, y_hist, kp, ki = self.p_y, self.y_hist, self.kp, self.ki
-        x_int, err_prev = self.x_int, self.err
-        half_h = 0.5 * h
-        for i in range(steps):
-            u_l = p_y[:, l0[i]]
-            u_r = p_y[:, r0[i]]
-            if fractional:
-                u_l = u_l * (1.0 - lw[i]) + p_y[:, l1[i]] * lw[i]
-                u_r = u_r * (1.0 - rw[i]) + p_y[:, r1[i]] * rw[i]
-            if first_order:
-                x1 = phi1 * x1 + gl1 * u_l + gr1 * u_r
-                y = (kc1 * x1).sum(axis=1)
-            else:
-                self.x = (np.einsum("gij,mgj->mgi", self.phi, self.x)
-                          + self.gl[None] * u_l[:, :, None] + self.gr[None] * u_r[:, :, None])
-                y = np.einsum("mgi,mgi->m", self.kc, self.x)
-            col = (k0 + i + 1) % ring
-            y_hist[:, col] = y
-            y_meas = y_hist[:, m0[i, 0]]
-            if fractional:
-                y_meas = y_meas * (1.0 - mw[i, 0]) + y_hist[:, m1[i, 0]] * mw[i, 0]
-            err = 1.0 - y_meas
-            x_int = x_int + half_h * (err_prev + err)
-            err_prev = err
-            p_y[:, col] = kp * err + ki * x_int
-            out[:, i] = y
-        if first_order:
-            self.x[:, :, 0] = x1
-        self.x_int, self.err, self.k = x_int, err_prev, k0 + steps
+        l0, l1, lw = self._taps(self.n_in, self.f_in, self.k, steps, right_end=False)
+        r0, r1, rw = self._taps(self.n_in, self.f_in, self.k + 1, steps, right_end=True)
+        m0, m1, mw = self._taps(self.n_meas, self.f_meas, self.k + 1, steps, right_end=False)
+        advance(steps, self.k, self.ring, self.h, self.kp, self.ki, self.kc, self.phi, self.gl,
+                self.gr, self.x, self.p_y, self.y_hist, self.x_int, self.err,
+                l0, l1, lw, r0, r1, rw, np.ascontiguousarray(m0[:, 0]),
+                np.ascontiguousarray(m1[:, 0]), np.ascontiguousarray(mw[:, 0]), out)
+        self.k += steps
         return out
 
 
@@ -356,12 +328,14 @@ def _horizon_floor(plant: Plant, gains: np.ndarray, bandwidth: np.ndarray) -> np
     return np.maximum(base, np.where(np.isfinite(bandwidth), 20.0 / bandwidth, 0.0))
 
 
-def _simulate_until_settled(plant, kp, ki, gains, h, t_min, band_pct, t_max):
+def _simulate_until_settled(plant, kp, ki, gains, h, t_min, band_pct, t_max, stop_above=None):
     """Simulate one step-size bucket; drop every candidate once it has settled.
 
     A candidate is settled when it has stayed within 0.5 % of the final value for the last
     quarter of the simulated time and at least ``t_min`` has been simulated; candidates still
-    unsettled at ``t_max`` keep ``inf`` settling times.
+    unsettled at ``t_max`` keep ``inf`` settling times. With ``stop_above``, a candidate whose
+    response exceeds that value is dropped at once (its overshoot is then a lower bound and its
+    settling times are NaN): a search only needs to know that it violates the constraint.
     """
     m = kp.size
     out = {k: np.full(m, np.nan) for k in ("os", "tr", "ts", "ts2", "pk", "tp", "hor")}
@@ -376,13 +350,15 @@ def _simulate_until_settled(plant, kp, ki, gains, h, t_min, band_pct, t_max):
         acc.add(t0, sim.h, y)
         elapsed = sim.time_s
         settled = (acc.settle[2] <= 0.75 * elapsed) & (elapsed >= t_min[alive])
-        finished = settled | (elapsed >= t_max)
+        over = acc.peak > stop_above if stop_above is not None else np.zeros(alive.size, bool)
+        finished = settled | over | (elapsed >= t_max)
         if finished.any():
             idx = alive[finished]
             out["os"][idx] = np.maximum(0.0, 100.0 * (acc.peak[finished] - 1.0))
             out["tr"][idx] = acc.t90[finished] - acc.t10[finished]
-            out["ts"][idx] = np.where(settled[finished], acc.settle[0][finished], np.inf)
-            out["ts2"][idx] = np.where(settled[finished], acc.settle[1][finished], np.inf)
+            unsettled = np.where(over[finished], np.nan, np.inf)
+            out["ts"][idx] = np.where(settled[finished], acc.settle[0][finished], unsettled)
+            out["ts2"][idx] = np.where(settled[finished], acc.settle[1][finished], unsettled)
             out["pk"][idx] = acc.peak[finished]
             out["tp"][idx] = acc.peak_t[finished]
             out["hor"][idx] = elapsed
@@ -404,7 +380,8 @@ def _simulate_until_settled(plant, kp, ki, gains, h, t_min, band_pct, t_max):
 
 
 def step_info(plant: Plant, kp, ki, band_pct: float = 5.0, h: float | None = None,
-              bandwidth_rad_s=None, mask=None, t_max_s: float = 20000.0) -> StepInfo:
+              bandwidth_rad_s=None, mask=None, t_max_s: float = 20000.0,
+              overshoot_stop_pct: float | None = None) -> StepInfo:
     """Step info of ``G_CL`` for M candidates (all assumed closed-loop stable).
 
     Parameters
@@ -423,6 +400,9 @@ def step_info(plant: Plant, kp, ki, band_pct: float = 5.0, h: float | None = Non
         Candidates to simulate (e.g. the stable ones); the rest get NaN.
     t_max_s : float
         Longest horizon, s; a response not settled by then reports infinite settling times.
+    overshoot_stop_pct : float, optional
+        Stop simulating a candidate as soon as its overshoot exceeds this (percent); its
+        overshoot is then only a lower bound and its settling times NaN.
     """
     kp, ki, gains = as_candidates(plant, kp, ki)
     m = kp.size
@@ -442,8 +422,9 @@ def step_info(plant: Plant, kp, ki, band_pct: float = 5.0, h: float | None = Non
         t_min = _horizon_floor(plant, gains, bw)
         for hb in np.unique(steps[idx]):
             sel = idx[steps[idx] == hb]
+            stop = None if overshoot_stop_pct is None else 1.0 + overshoot_stop_pct / 100.0
             res = _simulate_until_settled(plant, kp[sel], ki[sel], gains[sel], float(hb),
-                                          t_min[sel], band_pct, t_max_s)
+                                          t_min[sel], band_pct, t_max_s, stop)
             for k in fields:
                 fields[k][sel] = res[k]
     h_used = float(np.nanmin(steps)) if idx.size else float("nan")

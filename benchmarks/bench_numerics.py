@@ -85,6 +85,7 @@ def main(argv=None) -> int:
               f"({int(f.stable.sum())} stable)")
 
     kp, ki = candidates(total, args.pc_samples, seed=1)
+    python_control(config, kp[0], ki[0])            # warm-up
     t0 = time.perf_counter()
     ref = [python_control(config, a, b) for a, b in zip(kp, ki)]
     pc = (time.perf_counter() - t0) / args.pc_samples
