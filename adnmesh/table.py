@@ -53,7 +53,10 @@ class TableEntry:
     reason : str or None
         Why no feasible pair exists (infeasible entries only).
     figures : dict
-        ``FIGURE_KEYS`` of the as-deployed loop, plus ``global_rise_time_s`` where certified.
+        ``FIGURE_KEYS`` of the as-deployed loop (weights applied), plus ``design_rise_time_s``
+        (the tuning method's rise time on the unweighted plant), ``global_rise_time_s`` (the
+        global optimum's on that plant) and ``gain_back_off`` (factor applied to both gains so
+        that the weighted loop meets the constraints; 1 if none was needed).
     """
 
     ders: tuple[str, ...]
@@ -65,7 +68,9 @@ class TableEntry:
     figures: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
-        out = {"ders": list(self.ders), "kp": self.kp, "ki": self.ki, "w": dict(self.w),
+        finite = lambda v: v if v == v and abs(v) != float("inf") else None  # noqa: E731
+        out = {"ders": list(self.ders), "kp": finite(self.kp), "ki": finite(self.ki),
+               "w": dict(self.w),
                "feasible": self.feasible, "reason": self.reason}
         out.update(self.figures)
         return out
@@ -74,7 +79,8 @@ class TableEntry:
     def from_json(cls, obj: dict) -> "TableEntry":
         figures = {k: v for k, v in obj.items()
                    if k not in ("ders", "kp", "ki", "w", "feasible", "reason")}
-        return cls(tuple(obj["ders"]), float(obj["kp"]), float(obj["ki"]),
+        gain = lambda v: float("nan") if v is None else float(v)  # noqa: E731
+        return cls(tuple(obj["ders"]), gain(obj["kp"]), gain(obj["ki"]),
                    {k: float(v) for k, v in obj["w"].items()}, bool(obj["feasible"]),
                    obj.get("reason"), figures)
 

@@ -1,0 +1,87 @@
+"""``adnmesh tune CONFIG``: compute the gain-scheduling table for every DER subset."""
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+from adnmesh.commands import add_config_argument
+from adnmesh.config import load_config
+from adnmesh.errors import UsageError
+from adnmesh.table import default_table_path
+
+__all__ = ["add_parser", "run"]
+
+
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    """Add the ``tune`` subparser."""
+    parser = subparsers.add_parser(
+        "tune",
+        help="compute the gain-scheduling table (all DER subsets)",
+        description="Tune a PI pair and weights for every non-empty DER subset of CONFIG "
+        "(disk margin and overshoot constraints from the config) and write the table as JSON "
+        "plus CSV. Default output: tables/<config>.<sha12>.json, where `adnmesh up` looks.",
+    )
+    add_config_argument(parser)
+    parser.add_argument("--method", choices=("paper", "global"), default="paper",
+                        help="the paper's path/area search (default) or the global search")
+    parser.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
+    parser.add_argument("--out", type=Path, help="table path (JSON); the CSV goes beside it")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue an interrupted run's partial table at --out")
+    parser.add_argument("--disk-margin-min", type=float, help="override the config's alpha limit")
+    parser.add_argument("--overshoot-max-pct", type=float, help="override the overshoot limit, %%")
+    return parser
+
+
+def run(args: argparse.Namespace) -> int:
+    """Tune, showing progress; Ctrl-C keeps the partial table (exit 130)."""
+    from adnmesh.tuning import tune_table, write_csv
+
+    if args.workers < 1:
+        raise UsageError(f"--workers must be >= 1, got {args.workers}")
+    if args.disk_margin_min is not None and not 0 < args.disk_margin_min < 2:
+        raise UsageError(f"--disk-margin-min must be in (0, 2), got {args.disk_margin_min:g}")
+    if args.overshoot_max_pct is not None and not args.overshoot_max_pct > 0:
+        raise UsageError(f"--overshoot-max-pct must be positive, got {args.overshoot_max_pct:g}")
+    config = load_config(args.config)
+    out = args.out or default_table_path(config)
+    if args.resume and not out.exists():
+        raise UsageError(f"--resume: no partial table at {out}")
+    constraints = {k: v for k, v in (("disk_margin_min", args.disk_margin_min),
+                                     ("overshoot_max_pct", args.overshoot_max_pct)) if v is not None}
+    console = Console(stderr=True, highlight=False)
+    t0 = time.perf_counter()
+    with Progress(TextColumn("tuning ({task.fields[method]})"), BarColumn(), MofNCompleteColumn(),
+                  TextColumn("subsets"), TextColumn("{task.fields[rate]}"), TimeElapsedColumn(),
+                  console=console, transient=False) as bar:
+        task = bar.add_task("tune", total=None, method=args.method, rate="")
+
+        def progress(done: int, total: int) -> None:
+            dt = time.perf_counter() - t0
+            bar.update(task, completed=done, total=total,
+                       rate=f"{done / dt:.1f}/s" if dt > 1 and done else "")
+
+        try:
+            table = tune_table(config, args.method, args.workers, out, args.resume,
+                               constraints or None, on_progress=progress)
+        except KeyboardInterrupt:
+            console.print(f"interrupted: partial table kept at {out} (continue with --resume)")
+            return 130
+    csv_path = out.with_suffix(".csv")
+    write_csv(table, csv_path)
+    entries = list(table.entries.values())
+    infeasible = [e for e in entries if not e.feasible]
+    dt = time.perf_counter() - t0
+    print(f"wrote {out} and {csv_path}: {len(entries)} subsets "
+          f"({len(infeasible)} infeasible) in {dt:.1f} s, method {table.method}")
+    for e in infeasible[:5]:
+        print(f"  infeasible {','.join(e.ders)}: {e.reason}")
+    if table.static is not None and table.static.feasible:
+        s = table.static
+        print(f"static controller: K_P {s.kp:.4g} 1/W, K_I {s.ki:.4g} 1/(W s), worst rise time "
+              f"{s.figures['worst_rise_time_s']:.3g} s ({','.join(s.figures['worst_rise_time_subset'])})")
+    return 0

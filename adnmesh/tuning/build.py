@@ -1,0 +1,277 @@
+"""Build the gain-scheduling table CP: every subset, deduplicated, chunked, resumable.
+
+Subsets whose normalised plants coincide are tuned once (:class:`TuningProblem.key`); their
+gains differ only by ``1 / sum P_inst``. Plants are tuned in chunks (all plants of a chunk in
+lock-step, chunks optionally in worker processes); after every chunk the table so far is saved
+atomically, so an interrupted run leaves a valid partial table that ``resume`` continues.
+"""
+from __future__ import annotations
+
+import csv
+import os
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from ..table import FIGURE_KEYS, SchedulingTable, TableEntry, load_table, save_table
+from .global_search import tune_global
+from .paper import initial_values, tune_paper
+from .problem import TuningProblem, all_subsets
+from .static import static_controller
+from .weights import find_weights
+
+__all__ = ["tune_table", "tune_subset", "paper_path", "write_csv", "PlantGroup", "METHODS"]
+
+METHODS = ("paper", "global")
+CHUNK = 48
+BACK_OFF_STEPS = 50
+
+
+@dataclass(frozen=True)
+class PlantGroup:
+    """One normalised plant and the subsets that share it."""
+
+    fractions: np.ndarray
+    subsets: tuple[tuple[str, ...], ...]
+
+
+def group_subsets(problem: TuningProblem, subsets: Sequence[Sequence[str]]) -> list[PlantGroup]:
+    groups: dict[tuple, list] = {}
+    fracs: dict[tuple, np.ndarray] = {}
+    for s in subsets:
+        f, _ = problem.fractions(s)
+        key = problem.key(f)
+        groups.setdefault(key, []).append(tuple(s))
+        fracs.setdefault(key, f)
+    return [PlantGroup(fracs[k], tuple(v)) for k, v in groups.items()]
+
+
+def _entries(problem: TuningProblem, groups: list[PlantGroup], kp_n, ki_n, feasible, reasons,
+             global_rise, design_rise) -> list[TableEntry]:
+    """Table entries (absolute gains, weights, as-deployed figures) for tuned plant groups.
+
+    ``design_rise`` is the tuning method's rise time on the unweighted plant, ``global_rise``
+    the global optimum's on the same plant: the two are comparable, the as-deployed figures
+    (weights applied) are what the runtime gets.
+    """
+    rows = []                                  # (subset, K_P, K_I, global rise, design rise)
+    out: list[TableEntry] = []
+    for g, grp in enumerate(groups):
+        for s in grp.subsets:
+            total = float(problem.group_power(s).sum())
+            if feasible[g]:
+                rows.append((s, kp_n[g] / total, ki_n[g] / total, global_rise[g],
+                             design_rise[g]))
+            else:
+                out.append(TableEntry(s, float("nan"), float("nan"), {d: 1.0 for d in s}, False,
+                                      reasons[g], {"global_rise_time_s": None}))
+    if not rows:
+        return out
+    weights = find_weights(problem, [(r[0], r[1], r[2]) for r in rows])
+    gains = np.array([problem.group_power(r[0], w) for r, w in zip(rows, weights)])
+    kp = np.array([r[1] for r in rows])
+    ki = np.array([r[2] for r in rows])
+    usable = gains.sum(axis=1) > 0
+    gains[~usable] = 1.0                     # placeholder; such rows are reported infeasible
+    scale = _back_off(problem, gains, kp, ki)
+    kp, ki = kp * np.nan_to_num(scale, nan=1.0), ki * np.nan_to_num(scale, nan=1.0)
+    fig = problem.figures(gains, kp, ki)
+    for i, ((s, _, _, grise, drise), w) in enumerate(zip(rows, weights)):
+        row = fig.row(i)
+        figures = {k: row[k] for k in FIGURE_KEYS}
+        figures["settling_time_2pct_s"] = row["settling_time_2pct_s"]
+        figures["global_rise_time_s"] = None if not np.isfinite(grise) else float(grise)
+        figures["design_rise_time_s"] = float(drise)
+        figures["gain_back_off"] = float(scale[i]) if np.isfinite(scale[i]) else None
+        ok = bool(usable[i] and np.isfinite(scale[i]) and row["stable"]
+                  and row["disk_margin"] >= problem.disk_margin_min
+                  and row["overshoot_pct"] is not None
+                  and row["overshoot_pct"] < problem.overshoot_max_pct)
+        reason = None if ok else ("every weight reduced to 0" if not usable[i]
+                                  else "as-deployed loop violates a constraint")
+        out.append(TableEntry(s, float(kp[i]), float(ki[i]), w, ok, reason, figures))
+    return out
+
+
+def _back_off(problem: TuningProblem, gains, kp, ki) -> np.ndarray:
+    """Gain scale per entry so that the as-deployed loop (W applied) meets both constraints.
+
+    Find W changes the plant the gains were tuned for; where the weighted loop then misses a
+    constraint (typically alpha a few 1e-4 below the limit), both gains are lowered together
+    in 1 % steps (at most 50). 1.0 where nothing was needed, NaN where 50 steps did not help.
+    """
+    scale = np.ones(kp.size)
+    bad = np.nonzero(~problem.check(gains, kp, ki).feasible)[0]
+    if bad.size == 0:
+        return scale
+    factors = 0.99 ** np.arange(1, BACK_OFF_STEPS + 1)
+    rows = np.repeat(bad, factors.size)
+    f = np.tile(factors, bad.size)
+    ok = problem.check(gains[rows], kp[rows] * f, ki[rows] * f).feasible.reshape(bad.size, -1)
+    scale[bad] = np.where(ok.any(axis=1), factors[np.argmax(ok, axis=1)], np.nan)
+    return scale
+
+
+def _tune_chunk(args) -> list[TableEntry]:
+    """Worker: tune a chunk of plant groups (picklable entry point)."""
+    config, constraints, method, groups, single_thread = args
+    if single_thread:
+        import numba
+        numba.set_num_threads(1)
+    problem = TuningProblem(config, constraints["disk_margin_min"], constraints["overshoot_max_pct"])
+    fractions = np.array([g.fractions for g in groups])
+    kp0, ki0 = initial_values(problem, fractions)
+    glob = tune_global(problem, fractions, kp0, ki0)
+    if method == "global":
+        kp, ki, feas, rise = glob.kp, glob.ki, glob.feasible, glob.rise_time_s
+    else:
+        res = tune_paper(problem, fractions)
+        kp, ki, feas, rise = res.kp, res.ki, res.feasible, res.rise_time_s
+    reasons = ["no feasible pair: every candidate violates the disk margin or overshoot limit"
+               if not f else None for f in feas]
+    return _entries(problem, groups, kp, ki, feas, reasons, glob.rise_time_s, rise)
+
+
+def tune_table(config, method: str = "paper", workers: int = 1, out: Path | None = None,
+               resume: bool = False, constraints: dict | None = None,
+               on_progress: Callable[[int, int], None] | None = None,
+               subsets: Sequence[Sequence[str]] | None = None,
+               chunk_size: int = CHUNK) -> SchedulingTable:
+    """Tune CP for ``config`` (all 2^m - 1 subsets unless ``subsets`` is given).
+
+    Parameters
+    ----------
+    method : "paper" or "global"
+    workers : int
+        Worker processes (chunks of plants run in parallel).
+    out : Path, optional
+        Where the table is saved after every chunk (and finally).
+    resume : bool
+        Continue the partial table at ``out`` (same config, method and constraints).
+    constraints : dict, optional
+        ``disk_margin_min`` / ``overshoot_max_pct`` overriding the config's.
+    on_progress : callable(done, total), optional
+        Called with the number of subsets done.
+    chunk_size : int
+        Normalised plants tuned together. Chunks are fixed from the full subset list, so a
+        resumed run tunes exactly the batches an uninterrupted run would (same results).
+    """
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r}")
+    problem = TuningProblem(config, **(constraints or {}))
+    ids = list(config.der_ids())
+    wanted = [tuple(s) for s in (subsets if subsets is not None else all_subsets(ids))]
+    table = SchedulingTable(config.sha256, problem.constraints, method, tuple(ids))
+    if resume and out is not None and Path(out).exists():
+        old = load_table(out, config)
+        if old.method == method and old.constraints == problem.constraints:
+            table = old
+            table.complete = False
+    groups = group_subsets(problem, wanted)
+    chunks = [c for c in (groups[i:i + chunk_size] for i in range(0, len(groups), chunk_size))
+              if any(table.lookup(s) is None for g in c for s in g.subsets)]
+    done = len(wanted) - sum(len(g.subsets) for c in chunks for g in c)
+    if on_progress:
+        on_progress(done, len(wanted))
+    jobs = [(config, problem.constraints, method, c, workers > 1) for c in chunks]
+
+    def absorb(entries):
+        nonlocal done
+        for e in entries:
+            table.add(e)
+        done += len(entries)
+        if out is not None:
+            save_table(table, out)
+        if on_progress:
+            on_progress(done, len(wanted))
+
+    try:
+        if workers > 1 and len(jobs) > 1:
+            with ProcessPoolExecutor(max_workers=workers) as pool:
+                for entries in pool.map(_tune_chunk, jobs):
+                    absorb(entries)
+        else:
+            for job in jobs:
+                absorb(_tune_chunk(job))
+    except KeyboardInterrupt:
+        if out is not None:
+            save_table(table, out)
+        raise
+    if table.static is None and subsets is None:
+        table.static = _static_entry(problem, ids)
+    table.complete = subsets is None
+    if out is not None:
+        save_table(table, out)
+    return table
+
+
+def _static_entry(problem: TuningProblem, ids: list[str]) -> TableEntry:
+    """The static controller over every subset, with its worst-case figures."""
+    # absolute gains meet each subset through its group powers: one case per distinct vector
+    powers = np.unique(np.array([problem.group_power(s) for s in all_subsets(ids)]), axis=0)
+    tot = powers.sum(axis=1)
+    f = powers / tot[:, None]
+    kp0, _ = initial_values(problem, f)
+    hint = float(np.min(kp0 / tot))
+    res = static_controller(problem, f, tot, hint)
+    if not res.feasible:
+        return TableEntry(tuple(ids), float("nan"), float("nan"), {d: 1.0 for d in ids}, False,
+                          "no pair is feasible on every subset", {})
+    fig = problem.figures(powers, np.full(len(tot), res.kp), np.full(len(tot), res.ki))
+    worst = next(s for s in all_subsets(ids)
+                 if np.allclose(problem.group_power(s), powers[res.worst_plant]))
+    figures = {
+        "worst_rise_time_s": res.worst_rise_time_s,
+        "worst_rise_time_subset": list(worst),
+        "min_disk_margin": float(np.min(fig.disk_margin)),
+        "max_overshoot_pct": float(np.max(fig.overshoot_pct)),
+        "max_settling_time_s": float(np.max(fig.settling_time_s)),
+        "min_phase_margin_deg": float(np.min(fig.phase_margin_deg)),
+        "min_delay_margin_s": float(np.min(fig.delay_margin_s)),
+    }
+    return TableEntry(tuple(ids), res.kp, res.ki, {d: 1.0 for d in ids}, True, None, figures)
+
+
+def tune_subset(config, der_ids: Sequence[str], constraints: dict | None = None) -> TableEntry:
+    """Tune one subset on demand (global search: one vectorised batch, ~1 s), with weights.
+
+    Used by the CPFC when it meets a subset its table lacks.
+    """
+    problem = TuningProblem(config, **(constraints or {}))
+    ders = tuple(d for d in config.der_ids() if d in set(der_ids))
+    if len(ders) != len(set(der_ids)):
+        config.ders_by_id(der_ids)          # raises ConfigError naming the unknown id
+    fractions, _ = problem.fractions(ders)
+    kp0, ki0 = initial_values(problem, fractions)
+    glob = tune_global(problem, fractions, kp0, ki0)
+    reasons = [None if glob.feasible[0] else "no feasible pair on the global grid"]
+    group = PlantGroup(fractions, (ders,))
+    return _entries(problem, [group], glob.kp, glob.ki, glob.feasible, reasons,
+                    glob.rise_time_s, glob.rise_time_s)[0]
+
+
+def paper_path(config, der_ids: Sequence[str]) -> list[tuple[float, float, bool]]:
+    """The paper method's search path for one subset as (K_P 1/W, K_I 1/(W s), feasible)."""
+    problem = TuningProblem(config)
+    ders = [d for d in config.der_ids() if d in set(der_ids)]
+    fractions, total = problem.fractions(ders)
+    res = tune_paper(problem, fractions[None], record=True)
+    return [(kp / total, ki / total, ok) for kp, ki, ok in res.paths[0]]
+
+
+def write_csv(table: SchedulingTable, path: Path) -> None:
+    """One row per entry: ders, gains, weights, feasibility and the figures."""
+    path = Path(path)
+    keys = list(FIGURE_KEYS) + ["settling_time_2pct_s", "global_rise_time_s"]
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    with open(tmp, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["ders", "kp_per_w", "ki_per_w_s", "weights", "feasible", "reason"] + keys)
+        for e in table.to_json()["entries"]:
+            w.writerow([" ".join(e["ders"]), e["kp"], e["ki"],
+                        " ".join(f"{k}={v:g}" for k, v in e["w"].items() if v != 1.0),
+                        e["feasible"], e["reason"] or ""] + [e.get(k) for k in keys])
+    os.replace(tmp, path)

@@ -1,0 +1,186 @@
+"""The paper's tuning method (SPEC §3), run in lock-step for many normalised plants at once.
+
+All gains here are *normalised* (``kp_n`` dimensionless, ``ki_n`` in 1/s; see
+:mod:`adnmesh.tuning.problem`). Points the paper leaves open, defined here:
+
+Initial values
+    A 60° phase-margin PI design (MATLAB's ``pidtune`` default target): the crossover
+    ``omega_c`` is the lowest frequency where the plant's phase (delays included) is -90°, and the
+    PI adds 30° of lag there (``ki_n = kp_n omega_c tan 30°``) with ``|C g| = 1`` at ``omega_c``.
+    SPEC requires the initial point to be infeasible (too aggressive); if it is feasible, both
+    gains are raised by 25 % until it is not (at most 40 times).
+Path search
+    Start ``(kp_init, s ki_init)``. Infeasible: ``kp *= 1 - s``; feasible: remember it,
+    ``ki *= 1 + s``. The stop counter ES counts moves since the last *improvement* of the best
+    rise time on the path, starting at the first feasible point (before it, the path is only
+    walking into the feasible set); it is reset to 0 whenever a feasible point improves the best
+    rise time; the run stops when ES reaches 20, or after 5000 moves. The run's result is the
+    best feasible point seen. The second run (s = 0.001) starts at the first run's result.
+Area search (only if ``I_conv >= 1``)
+    From the path result, K_I is raised once by the step rule, then the rectangle between that
+    point, ``kp -> 0`` (down to 1 % of the path's kp, in 10 % steps) and ``ki = ki_init`` (in 5 %
+    steps) is scanned; the feasible point with the lowest rise time wins, or the path result if
+    none is better.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .problem import TuningProblem
+
+__all__ = ["initial_values", "path_search", "area_search", "PaperResult", "tune_paper", "ES_LIMIT"]
+
+ES_LIMIT = 20
+MAX_MOVES = 5000
+STEPS = (0.01, 0.001)
+AREA_KP_STEP = 0.10
+AREA_KI_STEP = 0.05
+AREA_KP_FLOOR = 0.01
+
+
+@dataclass
+class PaperResult:
+    """Per plant (arrays of shape (P,)): the chosen normalised pair and how it was found."""
+
+    kp: np.ndarray
+    ki: np.ndarray
+    rise_time_s: np.ndarray
+    feasible: np.ndarray
+    kp_init: np.ndarray
+    ki_init: np.ndarray
+    i_conv: np.ndarray
+    area_searched: np.ndarray
+    evaluations: int
+    paths: list = field(default_factory=list)     # per plant: list of (kp, ki, feasible)
+
+
+def initial_values(problem: TuningProblem, fractions: np.ndarray):
+    """60° phase-margin PI per normalised plant, raised until infeasible; shape (P,) each."""
+    fractions = np.atleast_2d(fractions)
+    omega = np.geomspace(1e-4, 1e3, 7001)
+    # loop plant: every delay of the loop (T_com, T_delay, T_meas) included
+    g = fractions @ problem.plant(fractions[0]).group_responses(omega)   # (P, N)
+    phase = np.unwrap(np.angle(g), axis=1)
+    below = phase <= -np.pi / 2
+    if not below.any(axis=1).all():
+        raise ValueError("plant phase never reaches -90 deg below 1e3 rad/s")
+    idx = np.maximum(np.argmax(below, axis=1), 1)
+    # interpolate the -90° crossing in log frequency
+    p0, p1 = phase[np.arange(len(idx)), idx - 1], phase[np.arange(len(idx)), idx]
+    lw = np.log(omega[idx - 1]) + (-np.pi / 2 - p0) / (p1 - p0) * np.log(omega[idx] / omega[idx - 1])
+    wc = np.exp(lw)
+    gc = np.abs(np.einsum("pg,gp->p", fractions,
+                          problem.plant(fractions[0]).group_responses(wc)))
+    kp = np.cos(np.pi / 6) / gc
+    ki = kp * wc * np.tan(np.pi / 6)
+    for _ in range(40):
+        ok = problem.check(fractions, kp, ki).feasible
+        if not ok.any():
+            break
+        kp = np.where(ok, kp * 1.25, kp)
+        ki = np.where(ok, ki * 1.25, ki)
+    return kp, ki
+
+
+def path_search(problem: TuningProblem, fractions, kp, ki, step: float, record: bool = False):
+    """One Path Search run per plant from ``(kp, ki)``; returns (best kp, ki, rise, min rise,
+    evaluations, paths). Plants that never become feasible return NaN."""
+    fractions = np.atleast_2d(fractions)
+    n = fractions.shape[0]
+    kp, ki = np.array(kp, float), np.array(ki, float)
+    best = np.full((3, n), np.nan)            # kp, ki, rise
+    es = np.zeros(n, int)
+    seen = np.zeros(n, bool)
+    active = np.ones(n, bool)
+    paths = [[] for _ in range(n)] if record else []
+    evaluations = 0
+    for _ in range(MAX_MOVES):
+        idx = np.nonzero(active)[0]
+        if idx.size == 0:
+            break
+        chk = problem.check(fractions[idx], kp[idx], ki[idx])
+        evaluations += idx.size
+        if record:
+            for j, i in enumerate(idx):
+                paths[i].append((float(kp[i]), float(ki[i]), bool(chk.feasible[j])))
+        feas = chk.feasible
+        better = feas & ~(chk.rise_time_s >= best[2, idx])      # NaN best counts as worse
+        b = idx[better]
+        best[:, b] = kp[b], ki[b], chk.rise_time_s[better]
+        seen[idx[feas]] = True
+        es[b] = 0
+        es[idx[~better & seen[idx]]] += 1
+        ki[idx[feas]] *= 1.0 + step
+        kp[idx[~feas]] *= 1.0 - step
+        active[idx[es[idx] >= ES_LIMIT]] = False
+        active[idx[kp[idx] < 1e-9]] = False
+    return best[0], best[1], best[2], evaluations, paths
+
+
+def area_search(problem: TuningProblem, fractions, kp, ki, ki_init, step: float):
+    """Scan the rectangle of SPEC §3.3 for each plant; returns (kp, ki, rise) of the best
+    feasible point found (NaN where none) and the number of evaluations."""
+    fractions = np.atleast_2d(fractions)
+    out = np.full((3, fractions.shape[0]), np.nan)
+    cand_p, cand_kp, cand_ki = [], [], []
+    for p in range(fractions.shape[0]):
+        n_kp = int(np.ceil(np.log(AREA_KP_FLOOR) / np.log(1 - AREA_KP_STEP))) + 1
+        kps = kp[p] * (1 - AREA_KP_STEP) ** np.arange(n_kp)
+        ki0 = ki[p] * (1 + step)
+        n_ki = max(1, int(np.floor(np.log(max(ki_init[p] / ki0, 1.0)) / np.log(1 + AREA_KI_STEP))) + 1)
+        kis = ki0 * (1 + AREA_KI_STEP) ** np.arange(n_ki)
+        gk, gi = np.meshgrid(kps, kis)
+        cand_p.append(np.full(gk.size, p))
+        cand_kp.append(gk.ravel())
+        cand_ki.append(gi.ravel())
+    if not cand_p:
+        return out[0], out[1], out[2], 0
+    rows, kps, kis = np.concatenate(cand_p), np.concatenate(cand_kp), np.concatenate(cand_ki)
+    chk = problem.check(fractions[rows], kps, kis)
+    rise = np.where(chk.feasible, chk.rise_time_s, np.inf)
+    for p in range(fractions.shape[0]):
+        sel = np.nonzero(rows == p)[0]
+        j = sel[np.argmin(rise[sel])]
+        if np.isfinite(rise[j]):
+            out[:, p] = kps[j], kis[j], rise[j]
+    return out[0], out[1], out[2], rows.size
+
+
+def tune_paper(problem: TuningProblem, fractions, record: bool = False) -> PaperResult:
+    """The paper's method for P normalised plants (shape (P, G)), in lock-step."""
+    fractions = np.atleast_2d(fractions)
+    kp0, ki0 = initial_values(problem, fractions)
+    evaluations = 0
+    kp, ki = kp0.copy(), STEPS[0] * ki0
+    best_kp, best_ki, best_rise = (np.full(len(kp0), np.nan) for _ in range(3))
+    min_rise = np.full(len(kp0), np.inf)
+    paths = [[] for _ in kp0] if record else []
+    for step in STEPS:
+        bk, bi, br, ev, pth = path_search(problem, fractions, kp, ki, step, record)
+        evaluations += ev
+        if record:
+            for acc, new in zip(paths, pth):
+                acc.extend(new)
+        improved = np.isfinite(br) & ~(br >= best_rise)
+        best_kp = np.where(improved, bk, best_kp)
+        best_ki = np.where(improved, bi, best_ki)
+        best_rise = np.where(improved, br, best_rise)
+        min_rise = np.fmin(min_rise, br)
+        # the second run starts at the first run's result (or where the first one ended up)
+        kp = np.where(np.isfinite(best_kp), best_kp, kp0 * STEPS[0])
+        ki = np.where(np.isfinite(best_ki), best_ki, ki0 * STEPS[0])
+    i_conv = min_rise / (problem.average_time_s(fractions) + problem.config.t_meas_s
+                         + problem.config.t_com_s)
+    area = np.isfinite(i_conv) & (i_conv >= 1.0)
+    if area.any():
+        idx = np.nonzero(area)[0]
+        ak, ai, ar, ev = area_search(problem, fractions[idx], best_kp[idx], best_ki[idx],
+                                     ki0[idx], STEPS[-1])
+        evaluations += ev
+        better = np.isfinite(ar) & (ar < best_rise[idx])
+        best_kp[idx[better]], best_ki[idx[better]], best_rise[idx[better]] = (
+            ak[better], ai[better], ar[better])
+    return PaperResult(best_kp, best_ki, best_rise, np.isfinite(best_rise), kp0, ki0, i_conv,
+                       area, evaluations, paths)

@@ -1,0 +1,122 @@
+"""The tuning problem of one config: subsets as normalised plants, and the feasibility check.
+
+Every subset A of a config's DERs is a *normalised plant*: the config's distinct actuator
+groups (same dynamics) with the fraction ``f_g = sum_{d in A, d in g} P_inst,d / sum_A P_inst``
+of the subset's installed power in each group. Two subsets with equal fraction vectors are the
+same tuning problem (e.g. every subset of identical wind turbines): the normalised gains
+``kp_n = K_P * sum_A P_inst`` (dimensionless) and ``ki_n = K_I * sum_A P_inst`` (1/s) are
+shared, and ``K_P = kp_n / sum_A P_inst`` (1/W), ``K_I = ki_n / sum_A P_inst`` (1/(W s)).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from itertools import combinations
+from typing import Sequence
+
+import numpy as np
+
+from ..loop import LoopFigures, evaluate
+from ..plant import RISE_PER_LAG, Actuator, Plant
+
+__all__ = ["TuningProblem", "Check", "all_subsets"]
+
+
+@dataclass(frozen=True)
+class Check:
+    """Feasibility of candidates (arrays of shape (M,)).
+
+    ``rise_time_s`` is NaN where infeasible; ``overshoot_pct`` may be a lower bound there.
+    """
+
+    feasible: np.ndarray
+    disk_margin: np.ndarray
+    overshoot_pct: np.ndarray
+    rise_time_s: np.ndarray
+    reason: np.ndarray            # "", "unstable", "disk margin", "overshoot"
+
+
+def all_subsets(ids: Sequence[str]) -> list[tuple[str, ...]]:
+    """Every non-empty subset of ``ids`` (2^m - 1), by size then config order."""
+    return [c for k in range(1, len(ids) + 1) for c in combinations(ids, k)]
+
+
+class TuningProblem:
+    """Normalised plants of a config's subsets and the constraint check.
+
+    Parameters
+    ----------
+    config : adnmesh.config.Config
+    disk_margin_min : float, optional
+        Constraint alpha >= this (default: the config's).
+    overshoot_max_pct : float, optional
+        Constraint overshoot < this, percent (default: the config's).
+    """
+
+    def __init__(self, config, disk_margin_min: float | None = None,
+                 overshoot_max_pct: float | None = None):
+        self.config = config
+        c = config.constraints
+        self.disk_margin_min = c.disk_margin_min if disk_margin_min is None else disk_margin_min
+        self.overshoot_max_pct = (c.overshoot_max_pct if overshoot_max_pct is None
+                                  else overshoot_max_pct)
+        self.band_pct = c.settling_band_pct
+        groups: dict[Actuator, int] = {}
+        self.group_of: dict[str, int] = {}
+        for der in config.ders:
+            act = Actuator(float(der.t_delay_s), float(der.t_rise_s) / RISE_PER_LAG)
+            self.group_of[der.id] = groups.setdefault(act, len(groups))
+        self.actuators = tuple(groups)
+        self.p_inst = {d.id: float(d.p_inst_w) for d in config.ders}
+
+    @property
+    def constraints(self) -> dict:
+        return {"disk_margin_min": self.disk_margin_min,
+                "overshoot_max_pct": self.overshoot_max_pct,
+                "settling_band_pct": self.band_pct}
+
+    def group_power(self, ders: Sequence[str], weights: dict | None = None) -> np.ndarray:
+        """Installed power (times weight) of the subset per actuator group, W; shape (G,)."""
+        out = np.zeros(len(self.actuators))
+        for d in ders:
+            out[self.group_of[d]] += self.p_inst[d] * (1.0 if weights is None else weights[d])
+        return out
+
+    def fractions(self, ders: Sequence[str]) -> tuple[np.ndarray, float]:
+        """(normalised plant f_g, shape (G,); total installed power of the subset, W)."""
+        power = self.group_power(ders)
+        return power / power.sum(), float(power.sum())
+
+    @staticmethod
+    def key(fractions: np.ndarray) -> tuple:
+        """Hashable identity of a normalised plant (fractions to 12 digits)."""
+        return tuple(np.round(fractions, 12))
+
+    def plant(self, gains: np.ndarray) -> Plant:
+        """Plant with group gains ``gains`` (shape (G,) or (M, G))."""
+        return Plant(self.actuators, gains, self.config.t_com_s, self.config.t_meas_s)
+
+    def average_time_s(self, fractions: np.ndarray) -> np.ndarray:
+        """``T_avg = sum_a (T_delay,a + T_rise,a) P_a / sum_a P_a`` (SPEC §3), s; shape (M,)."""
+        per_group = np.array([a.t_delay_s + a.t_lag_s * RISE_PER_LAG for a in self.actuators])
+        return np.atleast_2d(fractions) @ per_group
+
+    def figures(self, gains: np.ndarray, kp, ki, classical: bool = True) -> LoopFigures:
+        """All figures of merit (full step info, no shortcuts) — for reporting."""
+        return evaluate(self.plant(gains), kp, ki, band_pct=self.band_pct, classical=classical)
+
+    def check(self, gains: np.ndarray, kp, ki) -> Check:
+        """Constraint check of M candidates; rise time of the feasible ones.
+
+        ``gains`` (M, G) or (G,) are group gains (fractions for normalised gains). Candidates
+        violating the disk margin are not simulated, and a simulation stops as soon as the
+        overshoot limit is exceeded.
+        """
+        f = evaluate(self.plant(gains), kp, ki, band_pct=self.band_pct, classical=False,
+                     overshoot_stop_pct=self.overshoot_max_pct,
+                     disk_margin_min=self.disk_margin_min)
+        dm_ok = f.stable & (f.disk_margin >= self.disk_margin_min)
+        os_ok = dm_ok & (f.overshoot_pct < self.overshoot_max_pct) & np.isfinite(f.rise_time_s)
+        reason = np.where(~f.stable, "unstable",
+                          np.where(~dm_ok, "disk margin", np.where(~os_ok, "overshoot", "")))
+        return Check(os_ok, f.disk_margin, f.overshoot_pct,
+                     np.where(os_ok, f.rise_time_s, np.nan), reason)
