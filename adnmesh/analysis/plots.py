@@ -1,0 +1,183 @@
+"""Figures of the analyses (matplotlib, Agg canvas: no display and no pyplot state).
+
+Each function draws one result and writes it to ``path`` (format from the suffix).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.colors import BoundaryNorm, ListedColormap, LogNorm
+from matplotlib.figure import Figure
+from matplotlib.patches import Patch
+
+from .robustness import METRICS, RobustnessResult
+from .solution_space import REASONS, SolutionSpace
+from .uncertainty import B_RANGE, MODEL_LABELS, QUANTITY_LABELS, UncertaintyResult
+
+__all__ = ["plot_robustness", "plot_uncertainty", "plot_solution_space", "COLOURS"]
+
+COLOURS = {"adaptive": "#1f77b4", "static": "#ff7f0e"}
+_LOG_METRICS = {"rise_time_s", "settling_time_s", "gain_margin", "delay_margin_s"}
+
+
+def _save(fig: Figure, path) -> Path:
+    path = Path(path)
+    FigureCanvasAgg(fig)
+    fig.savefig(path, dpi=130)
+    return path
+
+
+def plot_robustness(result: RobustnessResult, path, outliers: bool = False) -> Path:
+    """Box plots of every metric, adaptive and static side by side."""
+    fig = Figure(figsize=(15, 7.5), layout="constrained")
+    axes = fig.subplots(2, 4).ravel()
+    for ax, metric in zip(axes, METRICS):
+        data, notes = [], []
+        ctrls = result.controllers
+        for ctrl in ctrls:
+            v = np.asarray(getattr(result, ctrl)[metric.key], float)
+            data.append(v[np.isfinite(v)])
+            no_pair = int((~getattr(result, f"{ctrl}_batch").has_gains).sum())
+            counts = {"infinite": int(np.isinf(v).sum()), "without PI pair": no_pair,
+                      "unstable": int(np.isnan(v).sum()) - no_pair}
+            what = [f"{n} {k}" for k, n in counts.items() if n > 0]
+            if what:
+                notes.append(f"{ctrl}: {', '.join(what)} (not shown)")
+        boxes = ax.boxplot([d if d.size else [np.nan] for d in data], showfliers=outliers,
+                           patch_artist=True, widths=0.55, medianprops={"color": "black"})
+        ax.set_xticks(list(range(1, len(ctrls) + 1)), list(ctrls))
+        for patch, ctrl in zip(boxes["boxes"], ctrls):
+            patch.set_facecolor(COLOURS[ctrl])
+            patch.set_alpha(0.75)
+        label = metric.label
+        if metric.key == "settling_time_s":
+            label = f"settling time ({result.band_pct:g} % band) [s]"
+        ax.set_title(label, fontsize=10)
+        if metric.key in _LOG_METRICS and all(d.size and np.all(d > 0) for d in data):
+            ax.set_yscale("log")
+        ax.grid(True, axis="y", alpha=0.3)
+        if notes:
+            ax.text(0.02, 0.98, "\n".join(notes), transform=ax.transAxes, va="top",
+                    fontsize=7, color="0.35")
+    info = axes[-1]
+    info.axis("off")
+    sb = result.static_batch
+    lines = [f"{len(result.subsets)} subsets",
+             "adaptive: table gains and weights per subset",
+             ("static: none in the table" if sb is None else
+              f"static: K_P = {sb.kp[0]:.3g} 1/W, K_I = {sb.ki[0]:.3g} 1/(W s)"),
+             "unstable: " + ", ".join(f"{c} {len(result.unstable(c))}" for c in ctrls),
+             f"without a PI pair in the table: {len(result.without_gains())}",
+             "reference model (PT1), exact delays",
+             "outliers shown" if outliers else "outliers hidden (whiskers 1.5 IQR)"]
+    info.text(0.0, 0.95, "\n".join(lines), va="top", fontsize=9)
+    info.legend(handles=[Patch(color=COLOURS[c], alpha=0.75, label=c) for c in ctrls],
+                loc="lower left")
+    fig.suptitle("Robustness and performance over all subsets")
+    return _save(fig, path)
+
+
+def plot_uncertainty(results: list[UncertaintyResult], path) -> Path:
+    """Ranges of b without failure per model and quantity, one panel per controller."""
+    fig = Figure(figsize=(6.5 * len(results), 5.5), layout="constrained")
+    axes = np.atleast_1d(fig.subplots(1, len(results), sharex=True, sharey=True))
+    lo_edge, hi_edge = B_RANGE
+    colours = {"stability": "#2ca02c", "rise_time": "#1f77b4", "settling_time": "#9467bd"}
+    for ax, res in zip(axes, results):
+        labels, pos, y = [], [], 0.0
+        for ml in res.models:
+            for q, (down, up) in ml.limits.items():
+                labels.append(f"{MODEL_LABELS[ml.model]}  {QUANTITY_LABELS[q]}")
+                pos.append(y)
+                y += 1
+                if "no subsets" in (down.status, up.status):
+                    continue
+                if "at nominal" in (down.status, up.status):
+                    ax.plot([1.0], [pos[-1]], "x", color="red", ms=9, mew=2)
+                    ax.text(1.08, pos[-1] + 0.18, "fails at b = 1", fontsize=7, color="red")
+                    continue
+                b_lo = down.b if down.status == "found" else lo_edge
+                b_hi = up.b if up.status == "found" else hi_edge
+                ax.plot([b_lo, b_hi], [pos[-1]] * 2, lw=6, color=colours[q],
+                        solid_capstyle="butt", alpha=0.85)
+                for b, lim, ha in ((b_lo, down, "right"), (b_hi, up, "left")):
+                    ax.text(b * (0.93 if ha == "right" else 1.07), pos[-1], lim.text(), ha=ha,
+                            va="center", fontsize=7)
+            y += 0.5
+        ax.axvline(1.0, color="0.3", ls="--", lw=1)
+        ax.set_xscale("log")
+        ax.set_xlim(lo_edge / 3, hi_edge * 3)
+        ax.set_yticks(pos, labels, fontsize=8)
+        ax.set_xlabel("b  (T_unc = b · T)")
+        n = len(res.names) - len(res.excluded) - len(res.without_gains)
+        ax.set_title(f"{res.controller} controller: b without failure ({n} subsets)",
+                     fontsize=10)
+        ax.grid(True, axis="x", which="both", alpha=0.25)
+    axes[0].invert_yaxis()              # shared: first model on top in every panel
+    fig.suptitle("Model uncertainty: stability and doubling limits "
+                 "(reference: nominal PT1 of each subset)", fontsize=10)
+    return _save(fig, path)
+
+
+_REASON_COLOURS = {"unstable": "#7f7f7f", "disk margin": "#f4a582", "overshoot": "#fddbc7",
+                   "": "#4dac26"}
+
+
+def plot_solution_space(space: SolutionSpace, path) -> Path:
+    """Feasibility classes and rise time over the (K_P, K_I) plane, search path on top."""
+    fig = Figure(figsize=(13, 5.5), layout="constrained")
+    ax_f, ax_r = fig.subplots(1, 2, sharex=True, sharey=True)
+    codes = np.zeros(space.reason.shape, int)
+    for i, r in enumerate(REASONS):
+        codes[space.reason == r] = i
+    cmap = ListedColormap([_REASON_COLOURS[r] for r in REASONS])
+    ax_f.pcolormesh(space.kp, space.ki, codes, cmap=cmap,
+                    norm=BoundaryNorm(np.arange(len(REASONS) + 1) - 0.5, len(REASONS)),
+                    shading="nearest")
+    counts = space.counts()
+    ax_f.legend(handles=[Patch(color=_REASON_COLOURS[r],
+                               label=f"{r or 'feasible'} ({counts[r or 'feasible']})")
+                         for r in REASONS], loc="lower left", fontsize=8)
+    rise = np.where(space.feasible, space.rise_time_s, np.nan)
+    ax_r.pcolormesh(space.kp, space.ki, np.where(space.feasible, np.nan, 0.0),
+                    cmap=ListedColormap(["#dddddd"]), shading="nearest")
+    if np.isfinite(rise).any():
+        lo, hi = np.nanmin(rise), np.nanmax(rise)
+        mesh = ax_r.pcolormesh(space.kp, space.ki, rise, cmap="viridis_r", shading="nearest",
+                               norm=LogNorm(lo, max(hi, lo * 1.01)))
+        fig.colorbar(mesh, ax=ax_r, label="rise time 10–90 % [s] (feasible points)")
+    c = space.constraints or {}
+    ax_f.set_title(f"feasibility (α ≥ {c.get('disk_margin_min', float('nan')):g}, "
+                   f"overshoot < {c.get('overshoot_max_pct', float('nan')):g} %)", fontsize=10)
+    ax_r.set_title("rise time where feasible (grey: infeasible)", fontsize=10)
+    best = space.best()
+    for ax in (ax_f, ax_r):
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("K_P [1/W]")
+        if space.table_point is not None:
+            ax.plot(*space.table_point, "*", ms=15, color="gold", mec="black",
+                    label="table entry")
+        if space.path:
+            p = np.array([(k, i) for k, i, _ in space.path])
+            ok = np.array([f for _, _, f in space.path], bool)
+            ax.plot(p[:, 0], p[:, 1], "-", color="black", lw=0.8, label="paper search path")
+            ax.plot(p[ok, 0], p[ok, 1], "o", ms=2.5, color="white", mec="black", mew=0.5)
+            ax.plot(p[~ok, 0], p[~ok, 1], "x", ms=3, color="black", mew=0.6)
+            ax.plot(*p[0], "s", ms=7, color="black", label="path start")
+            if ok.any():
+                ax.plot(*p[ok][-1], "^", ms=8, color="red", mec="black",
+                        label="path result (last feasible point)")
+        if best is not None:
+            ax.plot(best[0], best[1], "D", ms=6, color="white", mec="black",
+                    label=f"grid optimum ({best[2]:.3g} s)")
+    ax_f.set_ylabel("K_I [1/(W s)]")
+    handles, labels = ax_r.get_legend_handles_labels()
+    if handles:
+        ax_r.legend(handles, labels, loc="lower left", fontsize=8)
+    note = "" if space.path else "  (no search path: adnmesh.tuning.paper_path unavailable)"
+    fig.suptitle(f"Solution space of {{{space.name}}}: {space.p_inst_w / 1e6:.4g} MW, "
+                 f"weights 1{note}", fontsize=11)
+    return _save(fig, path)

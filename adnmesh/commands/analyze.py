@@ -1,0 +1,328 @@
+"""``adnmesh analyze CONFIG``: robustness, model-uncertainty and solution-space analyses.
+
+Reads the scheduling table of CONFIG (``--table``, default :func:`adnmesh.table.default_table_path`)
+and writes every output of one run into one folder (``--out``, default
+``out/analyze-<config stem>-<timestamp>/``) with an ``index.md`` that links them all. The
+numerics are in :mod:`adnmesh.analysis`; this module only parses, reports progress and writes.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+import time
+from datetime import datetime
+from pathlib import Path
+
+from rich.console import Console
+from rich.progress import (BarColumn, MofNCompleteColumn, Progress, SpinnerColumn, TextColumn,
+                           TimeElapsedColumn)
+from rich.table import Table
+
+from adnmesh import __version__
+from adnmesh.analysis import plots, report
+from adnmesh.analysis.robustness import METRICS, analyze_robustness
+from adnmesh.analysis.solution_space import paper_path, solution_space
+from adnmesh.analysis.subsets import subset_name
+from adnmesh.analysis.uncertainty import MODELS, analyze_uncertainty
+from adnmesh.commands import add_config_argument
+from adnmesh.config import load_config
+from adnmesh.errors import ConfigError, UsageError
+from adnmesh.table import default_table_path, load_table
+
+__all__ = ["add_parser", "run", "PARTS", "parse_subset", "default_out_dir"]
+
+PARTS = ("robustness", "uncertainty", "solution-space")
+
+
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    """Add the ``analyze`` subparser."""
+    parser = subparsers.add_parser(
+        "analyze",
+        help="robustness, model-uncertainty and solution-space analyses of the table",
+        description="Analyse the scheduling table of CONFIG (SPEC §4): figures of merit of every "
+        "subset, adaptive vs static (box plots, CSV); stability and doubling limits of the "
+        "actuator time-constant factor b for the PT1, PT2 and RHPZ models (table, JSON, "
+        "figure); optionally the (K_P, K_I) solution space of one subset. All outputs go to "
+        "one folder with an index.md.",
+    )
+    add_config_argument(parser)
+    parser.add_argument("--table", metavar="PATH",
+                        help="scheduling table (default: the one 'adnmesh tune CONFIG' writes)")
+    parser.add_argument("--out", metavar="DIR",
+                        help="output folder (default: out/analyze-<config>-<timestamp>)")
+    parser.add_argument("--outliers", action="store_true",
+                        help="show outliers in the box plots (hidden by default, as in the paper)")
+    parser.add_argument("--solution-space", metavar="IDS",
+                        help="also map the (K_P, K_I) plane of this subset, e.g. SGen1,SGen5")
+    parser.add_argument("--grid", type=int, default=60, metavar="N",
+                        help="solution-space grid points per axis (default 60)")
+    parser.add_argument("--models", default=",".join(MODELS), metavar="LIST",
+                        help=f"actuator models of the uncertainty analysis "
+                        f"(default {','.join(MODELS)})")
+    parser.add_argument("--only", metavar="PARTS",
+                        help=f"run only these parts, comma-separated ({', '.join(PARTS)})")
+    return parser
+
+
+def parse_subset(config, text: str) -> tuple[str, ...]:
+    """DER ids from ``"SGen1,SGen5"`` in config order; one-line errors for bad input."""
+    ids = [x.strip() for x in text.split(",") if x.strip()]
+    if not ids:
+        raise UsageError("--solution-space: give at least one DER id, e.g. SGen1,SGen5")
+    if len(set(ids)) != len(ids):
+        raise UsageError(f"--solution-space: duplicate DER id in {text!r}")
+    known = config.der_ids()
+    unknown = [i for i in ids if i not in known]
+    if unknown:
+        raise UsageError(f"--solution-space: unknown DER id '{unknown[0]}' "
+                         f"(known: {', '.join(known)})")
+    return tuple(d for d in known if d in ids)
+
+
+def _parse_list(text: str, allowed, option: str) -> tuple[str, ...]:
+    items = [x.strip().lower() for x in text.split(",") if x.strip()]
+    bad = [x for x in items if x not in allowed]
+    if not items or bad:
+        raise UsageError(f"{option}: {'unknown value ' + repr(bad[0]) if bad else 'empty'} "
+                         f"(choose from {', '.join(allowed)})")
+    return tuple(dict.fromkeys(items))
+
+
+def default_out_dir(config) -> Path:
+    """``out/analyze-<config stem>-<YYYYmmdd-HHMMSS>`` relative to the working directory."""
+    stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
+    return Path("out") / f"analyze-{Path(config.path).stem}-{stamp}"
+
+
+def _progress(console: Console) -> Progress:
+    return Progress(SpinnerColumn(), TextColumn("{task.description:<44}"), BarColumn(),
+                    MofNCompleteColumn(), TimeElapsedColumn(), console=console)
+
+
+def _write_csv(path: Path, header, rows) -> None:
+    with path.open("w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(header)
+        writer.writerows(rows)
+
+
+def _robustness(config, table, out: Path, outliers: bool, console: Console, err: Console):
+    n = len(table.entries) * (2 if table.static is not None else 1)
+    with _progress(err) as bar:
+        task = bar.add_task("robustness: evaluating subsets", total=n)
+        result = analyze_robustness(config, table, progress=lambda k: bar.advance(task, k))
+    header, rows = result.csv_rows()
+    _write_csv(out / "robustness.csv", header, rows)
+    plots.plot_robustness(result, out / "robustness.png", outliers=outliers)
+    md = report.robustness_markdown(result)
+    (out / "robustness.md").write_text(md)
+    t = Table(title=f"Robustness and performance over {len(result.subsets)} subsets "
+              "(median; worst subset)")
+    t.add_column("figure")
+    for c in result.controllers:
+        t.add_column(f"{c} median", justify="right")
+        t.add_column(f"{c} worst", overflow="fold")
+    summaries = {c: result.summary(c) for c in result.controllers}
+    for m in METRICS:
+        row = [m.label.replace("(band)", f"({result.band_pct:g} % band)")]
+        for c in result.controllers:
+            s = summaries[c][m.key]
+            row += [report.fmt(s.median), report.worst_text(s)]
+        t.add_row(*row)
+    console.print(t)
+    none = result.without_gains()
+    if none:
+        console.print(f"adaptive: {len(none)} subset(s) without a PI pair in the table (not "
+                      f"evaluated), e.g. {{{none[0]}}}")
+    for c in result.controllers:
+        bad = result.unstable(c)
+        if bad:
+            console.print(f"{c}: {len(bad)} unstable subset(s), e.g. {{{bad[0]}}}")
+    return result, md
+
+
+def _uncertainty(config, table, rob, models, out: Path, console: Console, err: Console):
+    from adnmesh.analysis.robustness import table_batches
+    if rob is None:
+        adaptive, static, _, _ = table_batches(config, table)
+        jobs = [("adaptive", adaptive, None), ("static", static, None)]
+    else:
+        jobs = [("adaptive", rob.adaptive_batch, rob.adaptive),
+                ("static", rob.static_batch, rob.static)]
+    jobs = [j for j in jobs if j[1] is not None]
+    band = config.constraints.settling_band_pct
+    results = []
+    with _progress(err) as bar:
+        tasks = {name: bar.add_task(f"uncertainty ({name})", total=6 * len(models))
+                 for name, _, _ in jobs}
+        for name, batch, nominal in jobs:
+            task = tasks[name]
+            nom = None if nominal is None else (nominal["rise_time_s"],
+                                                nominal["settling_time_s"])
+            res = analyze_uncertainty(
+                batch, band, name, models, nominal=nom,
+                notify=lambda text, task=task, name=name: bar.update(
+                    task, description=f"uncertainty ({name}): {text}"[:44]),
+                scan_done=lambda task=task: bar.advance(task))
+            bar.update(task, description=f"uncertainty ({name})")
+            results.append(res)
+    md = report.uncertainty_markdown(results)
+    (out / "uncertainty.md").write_text(f"# Model uncertainty: {config.path}\n\n{md}")
+    doc = {"config": str(config.path), "config_sha256": config.sha256,
+           "settling_band_pct": band, "note": report.REFERENCE_NOTE.format(band=band),
+           "controllers": {r.controller: r.to_json() for r in results}}
+    (out / "uncertainty.json").write_text(json.dumps(doc, indent=1, allow_nan=False))
+    plots.plot_uncertainty(results, out / "uncertainty.png")
+    for res in results:
+        header, values, who = report.uncertainty_rows(res)
+        t = Table(title=f"Model uncertainty, {res.controller} controller: limits in b "
+                  f"(first failing subset below)")
+        for h in header:
+            t.add_column(h, overflow="fold")
+        for v, w in zip(values, who):
+            t.add_row(*v)
+            t.add_row("", *w[1:], style="dim")
+        console.print(t)
+    return results, md
+
+
+def _solution_space(config, table, ids, grid: int, out: Path, console: Console, err: Console):
+    path = paper_path(config, ids)
+    entry = table.lookup(ids) if table is not None else None
+    point = None
+    if entry is not None and entry.kp > 0 and entry.ki > 0:     # NaN: entry without a PI pair
+        point = (entry.kp, entry.ki)
+    with _progress(err) as bar:
+        task = bar.add_task(f"solution space {{{subset_name(ids)}}}", total=grid * grid)
+        space = solution_space(config, ids, n=grid, path=path, table_point=point,
+                               progress=lambda k: bar.advance(task, k))
+    stem = "solution-space-" + "+".join(ids)
+    plots.plot_solution_space(space, out / f"{stem}.png")
+    rows = []
+    for i, ki in enumerate(space.ki):
+        for j, kp in enumerate(space.kp):
+            rows.append([f"{kp:.6g}", f"{ki:.6g}", space.reason[i, j] or "feasible",
+                         report.fmt(space.disk_margin[i, j], 6),
+                         report.fmt(space.overshoot_pct[i, j], 6),
+                         report.fmt(space.rise_time_s[i, j], 6)])
+    _write_csv(out / f"{stem}.csv", ["kp_per_w", "ki_per_w_s", "class", "disk_margin",
+                                      "overshoot_pct", "rise_time_s"], rows)
+    best = space.best()
+    doc = {"ders": list(ids), "p_inst_w": space.p_inst_w, "grid": grid,
+           "kp_range_per_w": [float(space.kp[0]), float(space.kp[-1])],
+           "ki_range_per_w_s": [float(space.ki[0]), float(space.ki[-1])],
+           "counts": space.counts(), "constraints": space.constraints,
+           "grid_optimum": None if best is None else
+           {"kp": best[0], "ki": best[1], "rise_time_s": best[2]},
+           "table_entry": None if point is None else {"kp": point[0], "ki": point[1]},
+           "paper_path": None if path is None else
+           [{"kp": kp, "ki": ki, "feasible": ok} for kp, ki, ok in path]}
+    (out / f"{stem}.json").write_text(json.dumps(doc, indent=1, allow_nan=False))
+    counts = ", ".join(f"{k} {v}" for k, v in space.counts().items())
+    line = f"solution space {{{subset_name(ids)}}}: {grid}x{grid} points ({counts})"
+    if best is not None:
+        line += f"; grid optimum K_P {best[0]:.4g} 1/W, K_I {best[1]:.4g} 1/(W s), " \
+                f"rise time {best[2]:.4g} s"
+    console.print(line)
+    if path is None:
+        console.print("  (no search path drawn: adnmesh.tuning.paper_path is not available)")
+    else:
+        console.print(f"  paper search path: {len(path)} points")
+    return stem, space, path
+
+
+def _index(config, table_path: Path, table, out: Path, parts: dict, times: dict,
+           total_s: float, outliers: bool) -> str:
+    lines = [f"# adnmesh analyze: {config.path}", "",
+             f"- config: `{config.path}` (sha256 {config.sha256[:12]})",
+             f"- table: `{table_path}` (method {table.method}, {len(table.entries)} entries"
+             + ("" if table.complete else ", incomplete") + ", static controller "
+             + ("yes" if table.static is not None else "none") + ")",
+             f"- adnmesh {__version__}, {datetime.now().isoformat(timespec='seconds')}",
+             f"- run time {total_s:.1f} s ("
+             + ", ".join(f"{k} {v:.1f} s" for k, v in times.items()) + ")", ""]
+    if "robustness" in parts:
+        lines += ["## Robustness and performance", "",
+                  "Every subset of the table as deployed (adaptive: its own K_P, K_I and "
+                  "weights W; static: the one static pair), reference model (PT1) with exact "
+                  "delays. Box plots with outliers " + ("shown" if outliers else "hidden") + ".",
+                  "", "![robustness](robustness.png)", "",
+                  "- [robustness.png](robustness.png) — box plots",
+                  "- [robustness.csv](robustness.csv) — one row per subset",
+                  "- [robustness.md](robustness.md) — summary table", "",
+                  parts["robustness"], ""]
+    if "uncertainty" in parts:
+        lines += ["## Model uncertainty", "", "![uncertainty](uncertainty.png)", "",
+                  "- [uncertainty.png](uncertainty.png) — ranges of b without failure",
+                  "- [uncertainty.md](uncertainty.md) — the tables below",
+                  "- [uncertainty.json](uncertainty.json) — limits, subsets and every "
+                  "evaluation of the scans", "", parts["uncertainty"], ""]
+    if "solution-space" in parts:
+        stem, space, path = parts["solution-space"]
+        best = space.best()
+        lines += [f"## Solution space of {{{space.name}}}", "",
+                  f"![solution space]({stem}.png)", "",
+                  f"- [{stem}.png]({stem}.png) — feasibility and rise time over (K_P, K_I), "
+                  "weights 1" + ("" if path else " (no search path: adnmesh.tuning.paper_path "
+                                 "not available)"),
+                  f"- [{stem}.csv]({stem}.csv) — every grid point",
+                  f"- [{stem}.json]({stem}.json) — grid extent, counts, search path", ""]
+        if best is not None:
+            lines += [f"Grid optimum: K_P = {best[0]:.4g} 1/W, K_I = {best[1]:.4g} 1/(W s), "
+                      f"rise time {best[2]:.4g} s.", ""]
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the analyses and write the output folder."""
+    t_start = time.perf_counter()
+    if args.grid < 5 or args.grid > 400:
+        raise UsageError(f"--grid must be between 5 and 400, got {args.grid}")
+    models = _parse_list(args.models, MODELS, "--models")
+    parts = _parse_list(args.only, PARTS, "--only") if args.only else PARTS
+    config = load_config(args.config)
+    ids = parse_subset(config, args.solution_space) if args.solution_space else None
+    if ids is None:
+        if args.only and "solution-space" in parts:
+            raise UsageError("--only solution-space needs --solution-space IDS")
+        parts = tuple(p for p in parts if p != "solution-space")
+    table_path = Path(args.table) if args.table else default_table_path(config)
+    if not table_path.exists():
+        raise ConfigError(f"{table_path}: no scheduling table; run 'adnmesh tune {args.config}' "
+                          "first (or give --table PATH)")
+    table = load_table(table_path, config)
+    if not table.entries:
+        raise ConfigError(f"{table_path}: the table has no entries")
+    out = Path(args.out) if args.out else default_out_dir(config)
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"--out: {out} exists and is not a folder")
+    out.mkdir(parents=True, exist_ok=True)
+    # wide tables when the output is a file or pipe (rich assumes 80 columns there)
+    console = Console(highlight=False, width=None if sys.stdout.isatty() else 160)
+    err = Console(stderr=True, highlight=False)
+    n_all = 2 ** len(config.ders) - 1
+    console.print(f"analyze {config.path}: table {table_path} ({len(table.entries)} of {n_all} "
+                  f"subsets, method {table.method}"
+                  + ("" if table.static is not None else ", no static controller") + ")")
+    done, times, rob = {}, {}, None
+    if "robustness" in parts:
+        t0 = time.perf_counter()
+        rob, done["robustness"] = _robustness(config, table, out, args.outliers, console, err)
+        times["robustness"] = time.perf_counter() - t0
+    if "uncertainty" in parts:
+        t0 = time.perf_counter()
+        _, done["uncertainty"] = _uncertainty(config, table, rob, models, out, console, err)
+        times["uncertainty"] = time.perf_counter() - t0
+    if "solution-space" in parts:
+        t0 = time.perf_counter()
+        done["solution-space"] = _solution_space(config, table, ids, args.grid, out, console,
+                                                 err)
+        times["solution space"] = time.perf_counter() - t0
+    total = time.perf_counter() - t_start
+    index = _index(config, table_path, table, out, done, times, total, args.outliers)
+    (out / "index.md").write_text(index)
+    console.print(f"wrote {out / 'index.md'} ({total:.1f} s: "
+                  + ", ".join(f"{k} {v:.1f} s" for k, v in times.items()) + ")")
+    return 0
