@@ -17,8 +17,9 @@ import hashlib
 import math
 import re
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import yaml
 
@@ -30,19 +31,28 @@ from adnmesh.schema import (
     Number,
     Record,
     SchemaError,
+    Spec,
     Text,
     at_index,
     at_key,
+    show,
 )
 
 __all__ = [
     "DER_TYPES",
     "PT1_RISE_TIME_FACTOR",
+    "AgentCrash",
     "AvailabilityChange",
     "Config",
     "Constraints",
     "DER",
+    "DEROffline",
+    "Faults",
+    "LinkSettings",
+    "Links",
+    "Outage",
     "PRefStep",
+    "Runtime",
     "Scenario",
     "load_config",
 ]
@@ -167,6 +177,155 @@ class Scenario:
     availability: tuple[AvailabilityChange, ...] = ()
 
 
+# --- the runtime section (optional; how `adnmesh up` runs the scenario) ----------------------
+
+@dataclass(frozen=True)
+class Outage:
+    """A window in which an ICT link loses every message sent.
+
+    Parameters
+    ----------
+    t_s : float
+        Start of the outage in s of scenario time.
+    duration_s : float
+        Length of the outage in s (> 0); messages sent in ``[t_s, t_s + duration_s)`` are lost.
+    """
+
+    t_s: float
+    duration_s: float
+
+
+@dataclass(frozen=True)
+class LinkSettings:
+    """The ICT channel model of one logical link (sender side decides every message's fate).
+
+    Parameters
+    ----------
+    delay_s : float or None
+        Fixed delay in s. ``None`` for the two links whose delay is the config's ``t_com_s``
+        (CPFC → DERs) and ``t_meas_s`` (measurement → CPFC).
+    jitter_s : float
+        Extra delay drawn uniformly from ``[0, jitter_s)`` per message, s.
+    loss : float
+        Probability that a message is lost, in [0, 1).
+    fifo : bool
+        Keep the send order (a message is never delivered before an earlier one on the link).
+    outages : tuple of Outage
+        Windows in which every message is lost.
+    """
+
+    delay_s: float | None = None
+    jitter_s: float = 0.0
+    loss: float = 0.0
+    fifo: bool = True
+    outages: tuple[Outage, ...] = ()
+
+
+@dataclass(frozen=True)
+class Links:
+    """ICT links of the runtime; the DER → measurement path is physical (no delay, no loss).
+
+    Parameters
+    ----------
+    cpfc_to_der : LinkSettings
+        ``P_Y`` and weights from the CPFC to the DERs (delay ``t_com_s``).
+    measurement_to_cpfc : LinkSettings
+        ``P_IP`` from the measurement to the CPFC (delay ``t_meas_s``).
+    der_to_availability : LinkSettings
+        Heartbeats from the DERs to the availability monitor (default delay 0.1 s).
+    availability_to_cpfc : LinkSettings
+        The availability vector SI to the CPFC (default delay 0.1 s).
+    """
+
+    cpfc_to_der: LinkSettings = LinkSettings()
+    measurement_to_cpfc: LinkSettings = LinkSettings()
+    der_to_availability: LinkSettings = LinkSettings(delay_s=0.1)
+    availability_to_cpfc: LinkSettings = LinkSettings(delay_s=0.1)
+
+
+@dataclass(frozen=True)
+class DEROffline:
+    """An ICT fault at one DER: it neither receives commands nor sends heartbeats for a while.
+
+    Parameters
+    ----------
+    der : str
+        DER id.
+    t_s, duration_s : float
+        Start and length of the fault, s.
+    """
+
+    der: str
+    t_s: float
+    duration_s: float
+
+
+@dataclass(frozen=True)
+class AgentCrash:
+    """An injected crash: the agent's process exits abruptly (exit code 70) at sim time ``t_s``.
+
+    Parameters
+    ----------
+    agent : str
+        ``cpfc``, ``measurement``, ``availability`` or ``der/<id>``.
+    t_s : float
+        When, s.
+    """
+
+    agent: str
+    t_s: float
+
+
+@dataclass(frozen=True)
+class Faults:
+    """Faults injected into a run (see :class:`DEROffline`, :class:`AgentCrash`)."""
+
+    der_offline: tuple[DEROffline, ...] = ()
+    crash: tuple[AgentCrash, ...] = ()
+
+
+@dataclass(frozen=True)
+class Runtime:
+    """How ``adnmesh up`` runs the scenario (the optional ``runtime:`` section).
+
+    Parameters
+    ----------
+    seed : int
+        Seed of the random streams of the ICT channel model (>= 0).
+    pi_period_s : float
+        Sampling period of the CPFC's PI controller, s.
+    measurement_period_s : float
+        Sampling period of ``P_IP`` (the DERs report their infeed at the same instants), s.
+    rest_of_grid_w : float
+        Constant part of ``P_IP`` besides the DER infeeds (loads, other generators), W. The
+        initial reference is ``rest_of_grid_w + sum(p_sched_w)``, the operating point with
+        ``P_Y = 0``.
+    heartbeat_period_s : float
+        Period of the DERs' heartbeats, s.
+    heartbeat_timeout_s : float
+        The availability monitor marks a DER unavailable after this long without a heartbeat, s.
+    watchdog_timeout_s : float
+        A DER falls back to ``P_sched`` after this long without a valid command, s.
+    weights_period_s : float
+        The CPFC repeats the weights W with ``P_Y`` this often (besides on every switch), s.
+    links : Links
+        ICT channel model per link.
+    faults : Faults
+        Injected faults.
+    """
+
+    seed: int = 0
+    pi_period_s: float = 0.01
+    measurement_period_s: float = 0.01
+    rest_of_grid_w: float = 0.0
+    heartbeat_period_s: float = 1.0
+    heartbeat_timeout_s: float = 2.5
+    watchdog_timeout_s: float = 1.0
+    weights_period_s: float = 1.0
+    links: Links = Links()
+    faults: Faults = Faults()
+
+
 @dataclass(frozen=True)
 class Config:
     """A validated configuration.
@@ -191,6 +350,8 @@ class Config:
         The time-domain scenario.
     sha256 : str
         SHA-256 of the file's bytes (hex), to tie results to the exact file.
+    runtime : Runtime
+        How the distributed runtime runs the scenario (optional section, defaults).
     """
 
     path: Path
@@ -202,6 +363,7 @@ class Config:
     constraints: Constraints
     scenario: Scenario
     sha256: str
+    runtime: Runtime = field(default_factory=Runtime)
 
     def der_ids(self) -> tuple[str, ...]:
         """Return the DER ids in file order."""
@@ -285,6 +447,104 @@ _SCENARIO = Record(
     build=Scenario,
 )
 
+
+
+@dataclass(frozen=True)
+class _Count(Spec):
+    """A non-negative integer (YAML int, not a boolean)."""
+
+    what: str = "a non-negative integer"
+
+    def check(self, value: Any, path: str) -> int:
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            raise SchemaError(path, f"must be {self.what}, got {show(value)}")
+        return value
+
+
+_PERIOD = Number("a number in [1e-6, 3600]", low=1e-6, high=3600.0)
+_PROBABILITY = Number("a probability in [0, 1)", low=0.0, high=1.0, high_open=True)
+_OUTAGE = Record({"t_s": Field(_NON_NEGATIVE), "duration_s": Field(_POSITIVE)}, build=Outage)
+_LINK_FIELDS = {
+    "jitter_s": Field(_NON_NEGATIVE, required=False),
+    "loss": Field(_PROBABILITY, required=False),
+    "fifo": Field(Flag(), required=False),
+    "outages": Field(ListOf(_OUTAGE), required=False),
+}
+
+
+def _link(default_delay_s: float | None) -> Record:
+    """A link record; with a default delay, ``delay_s`` may be set too."""
+    if default_delay_s is None:
+        return Record(_LINK_FIELDS, build=LinkSettings)
+    return Record(
+        {"delay_s": Field(_NON_NEGATIVE, required=False), **_LINK_FIELDS},
+        build=lambda **kw: LinkSettings(**{"delay_s": default_delay_s, **kw}),
+    )
+
+
+_LINKS = Record(
+    {
+        "cpfc_to_der": Field(_link(None), required=False),
+        "measurement_to_cpfc": Field(_link(None), required=False),
+        "der_to_availability": Field(_link(0.1), required=False),
+        "availability_to_cpfc": Field(_link(0.1), required=False),
+    },
+    build=Links,
+)
+
+_AGENT_NAME = r"(?:cpfc|measurement|availability|der/" + _IDENTIFIER + r")"
+_FAULTS = Record(
+    {
+        "der_offline": Field(
+            ListOf(
+                Record(
+                    {
+                        "der": Field(Text(_IDENTIFIER_WHAT, pattern=_IDENTIFIER)),
+                        "t_s": Field(_NON_NEGATIVE),
+                        "duration_s": Field(_POSITIVE),
+                    },
+                    build=DEROffline,
+                )
+            ),
+            required=False,
+        ),
+        "crash": Field(
+            ListOf(
+                Record(
+                    {
+                        "agent": Field(
+                            Text(
+                                "cpfc, measurement, availability or der/<id>",
+                                pattern=_AGENT_NAME,
+                            )
+                        ),
+                        "t_s": Field(_NON_NEGATIVE),
+                    },
+                    build=AgentCrash,
+                )
+            ),
+            required=False,
+        ),
+    },
+    build=Faults,
+)
+
+_RUNTIME = Record(
+    {
+        "seed": Field(_Count(), required=False),
+        "pi_period_s": Field(_PERIOD, required=False),
+        "measurement_period_s": Field(_PERIOD, required=False),
+        "rest_of_grid_w": Field(Number("a number"), required=False),
+        "heartbeat_period_s": Field(_PERIOD, required=False),
+        "heartbeat_timeout_s": Field(_PERIOD, required=False),
+        "watchdog_timeout_s": Field(_PERIOD, required=False),
+        "weights_period_s": Field(_PERIOD, required=False),
+        "links": Field(_LINKS, required=False),
+        "faults": Field(_FAULTS, required=False),
+    },
+    build=Runtime,
+)
+
 _CONFIG = Record(
     {
         "grid": Field(Text(_IDENTIFIER_WHAT, pattern=_IDENTIFIER)),
@@ -294,6 +554,7 @@ _CONFIG = Record(
         "constraints": Field(_CONSTRAINTS, required=False),
         "ders": Field(ListOf(_DER, min_len=1)),
         "scenario": Field(_SCENARIO),
+        "runtime": Field(_RUNTIME, required=False),
     }
 )
 
@@ -352,6 +613,44 @@ def _check_relations(values: dict) -> None:
                 raise SchemaError(
                     f"{path}[{j}]", f"unknown DER id '{der_id}' (known: {', '.join(known)})"
                 )
+    if "runtime" in values:
+        _check_runtime(values["runtime"], known, scenario.duration_s)
+
+
+def _check_runtime(runtime: Runtime, known: list[str], duration_s: float) -> None:
+    """Check the runtime section against itself, the DERs and the scenario."""
+    links = runtime.links
+    slack = runtime.heartbeat_period_s + links.der_to_availability.jitter_s
+    if runtime.heartbeat_timeout_s <= slack:
+        raise SchemaError(
+            "runtime.heartbeat_timeout_s",
+            f"must exceed heartbeat_period_s + der_to_availability.jitter_s ({slack:g}), "
+            f"got {runtime.heartbeat_timeout_s:g}",
+        )
+    slack = runtime.pi_period_s + links.cpfc_to_der.jitter_s
+    if runtime.watchdog_timeout_s <= slack:
+        raise SchemaError(
+            "runtime.watchdog_timeout_s",
+            f"must exceed pi_period_s + cpfc_to_der.jitter_s ({slack:g}), "
+            f"got {runtime.watchdog_timeout_s:g}",
+        )
+    for i, fault in enumerate(runtime.faults.der_offline):
+        if fault.der not in known:
+            raise SchemaError(
+                f"runtime.faults.der_offline[{i}].der",
+                f"unknown DER id '{fault.der}' (known: {', '.join(known)})",
+            )
+    for i, crash in enumerate(runtime.faults.crash):
+        where = f"runtime.faults.crash[{i}]"
+        if crash.agent.startswith("der/") and crash.agent[4:] not in known:
+            raise SchemaError(
+                f"{where}.agent", f"unknown DER id '{crash.agent[4:]}' (known: {', '.join(known)})"
+            )
+        if crash.t_s > duration_s:
+            raise SchemaError(
+                f"{where}.t_s",
+                f"must not exceed scenario.duration_s ({duration_s:g}), got {crash.t_s:g}",
+            )
 
 
 # --- reading the file ---------------------------------------------------------------------------
@@ -471,4 +770,5 @@ def load_config(path: str | Path) -> Config:
         constraints=values.get("constraints", Constraints()),
         scenario=values["scenario"],
         sha256=hashlib.sha256(data).hexdigest(),
+        runtime=values.get("runtime", Runtime()),
     )

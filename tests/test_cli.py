@@ -34,13 +34,6 @@ def test_check_prints_a_summary_of_the_reference_case(configs_dir: Path, capsys)
     assert "unavailable: SGen1, SGen2, SGen3, SGen4, SGen7, SGen8" in out
 
 
-def test_up_validates_then_says_it_is_not_implemented(configs_dir: Path, capsys) -> None:
-    assert main(["up", str(configs_dir / "simbench.yaml")]) == 3
-    out, err = capsys.readouterr()
-    assert out == ""
-    assert err == "adnmesh up: the distributed runtime is not implemented yet (issue 5)\n"
-
-
 def test_up_reports_an_invalid_config_first(tmp_path: Path, capsys) -> None:
     assert main(["up", str(tmp_path / "missing.yaml")]) == 2
     assert capsys.readouterr().err == f"adnmesh: error: {tmp_path / 'missing.yaml'}: no such file\n"

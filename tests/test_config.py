@@ -280,9 +280,9 @@ INVALID = {
         "constraints.overshot_max_pct: unknown key (did you mean 'overshoot_max_pct'?)",
     ),
     "unknown section": (
-        _set("runtime", {"clock": "sim"}),
-        "runtime: unknown key (valid keys: grid, simbench_code, t_com_s, t_meas_s, constraints, "
-        "ders, scenario)",
+        _set("power_flow", {"solver": "nr"}),
+        "power_flow: unknown key (valid keys: grid, simbench_code, t_com_s, t_meas_s, "
+        "constraints, ders, scenario, runtime)",
     ),
     "disk margin out of range": (
         _set("constraints.disk_margin_min", 2.5),
@@ -362,3 +362,98 @@ def test_load_config_raises_config_error_with_the_same_message(tmp_path: Path) -
     with pytest.raises(ConfigError) as info:
         load_config(path)
     assert str(info.value) == f"{path}: simbench_code: required key is missing"
+
+
+# --- the optional runtime section (adnmesh up) ---------------------------------------------------
+
+
+def test_runtime_section_is_optional_with_defaults(simbench_config: Config) -> None:
+    from adnmesh.config import Runtime
+
+    runtime = simbench_config.runtime
+    assert runtime == Runtime()
+    assert (runtime.seed, runtime.pi_period_s, runtime.measurement_period_s) == (0, 0.01, 0.01)
+    assert runtime.links.cpfc_to_der.delay_s is None          # the config's t_com_s
+    assert runtime.links.der_to_availability.delay_s == 0.1
+    assert runtime.faults.crash == () and runtime.faults.der_offline == ()
+
+
+def test_runtime_section_is_read(tmp_path: Path, simbench_document: dict) -> None:
+    document = copy.deepcopy(simbench_document)
+    document["runtime"] = {
+        "seed": 42, "pi_period_s": 0.02, "rest_of_grid_w": -1.5e6,
+        "links": {"cpfc_to_der": {"jitter_s": 0.01, "loss": 0.1,
+                                  "outages": [{"t_s": 5, "duration_s": 2}]},
+                  "der_to_availability": {"jitter_s": 0.05}},
+        "faults": {"der_offline": [{"der": "SGen3", "t_s": 10, "duration_s": 4}],
+                   "crash": [{"agent": "der/SGen4", "t_s": 30}]},
+    }
+    path = tmp_path / "runtime.yaml"
+    path.write_text(yaml.safe_dump(document, sort_keys=False))
+    runtime = load_config(path).runtime
+    assert (runtime.seed, runtime.pi_period_s, runtime.rest_of_grid_w) == (42, 0.02, -1.5e6)
+    link = runtime.links.cpfc_to_der
+    assert (link.delay_s, link.jitter_s, link.loss, link.fifo) == (None, 0.01, 0.1, True)
+    assert (link.outages[0].t_s, link.outages[0].duration_s) == (5.0, 2.0)
+    heartbeat = runtime.links.der_to_availability
+    assert (heartbeat.delay_s, heartbeat.jitter_s) == (0.1, 0.05)   # default delay kept
+    assert runtime.faults.der_offline[0].der == "SGen3"
+    assert runtime.faults.crash[0].agent == "der/SGen4"
+
+
+def test_runtime_example_config_loads(configs_dir: Path) -> None:
+    config = load_config(configs_dir / "examples" / "runtime-step.yaml")
+    assert (config.runtime.seed, config.runtime.rest_of_grid_w) == (7, -3e6)
+    assert config.ders[1].p_sched_w == 0.5e6
+
+
+RUNTIME_INVALID = {
+    "unknown runtime key": ({"clock": "sim"}, "runtime.clock: unknown key (valid keys: seed, "),
+    "negative seed": ({"seed": -1}, "runtime.seed: must be a non-negative integer, got -1"),
+    "fractional seed": ({"seed": 1.5}, "runtime.seed: must be a non-negative integer, got 1.5"),
+    "zero period": ({"pi_period_s": 0},
+                    "runtime.pi_period_s: must be a number in [1e-6, 3600], got 0"),
+    "loss of one": ({"links": {"measurement_to_cpfc": {"loss": 1.0}}},
+                    "runtime.links.measurement_to_cpfc.loss: must be a probability in [0, 1), "
+                    "got 1.0"),
+    "delay of a fixed link": ({"links": {"cpfc_to_der": {"delay_s": 0.2}}},
+                              "runtime.links.cpfc_to_der.delay_s: unknown key"),
+    "empty outage": ({"links": {"cpfc_to_der": {"outages": [{"t_s": 1, "duration_s": 0}]}}},
+                     "runtime.links.cpfc_to_der.outages[0].duration_s: must be a positive "
+                     "number, got 0"),
+    "heartbeat timeout too short": (
+        {"heartbeat_period_s": 1.0, "heartbeat_timeout_s": 1.0},
+        "runtime.heartbeat_timeout_s: must exceed heartbeat_period_s + "
+        "der_to_availability.jitter_s (1), got 1"),
+    "watchdog too short": (
+        {"watchdog_timeout_s": 0.05, "links": {"cpfc_to_der": {"jitter_s": 0.05}}},
+        "runtime.watchdog_timeout_s: must exceed pi_period_s + cpfc_to_der.jitter_s (0.06), "
+        "got 0.05"),
+    "offline fault of an unknown DER": (
+        {"faults": {"der_offline": [{"der": "SGen12", "t_s": 1, "duration_s": 1}]}},
+        "runtime.faults.der_offline[0].der: unknown DER id 'SGen12' (known: SGen1, "),
+    "crash of an unknown agent": (
+        {"faults": {"crash": [{"agent": "grid", "t_s": 1}]}},
+        "runtime.faults.crash[0].agent: must be cpfc, measurement, availability or der/<id>, "
+        "got 'grid'"),
+    "crash of an unknown DER": (
+        {"faults": {"crash": [{"agent": "der/SGen0", "t_s": 1}]}},
+        "runtime.faults.crash[0].agent: unknown DER id 'SGen0' (known: "),
+    "crash after the end": (
+        {"faults": {"crash": [{"agent": "cpfc", "t_s": 601}]}},
+        "runtime.faults.crash[0].t_s: must not exceed scenario.duration_s (600), got 601"),
+}
+
+
+@pytest.mark.parametrize("case", list(RUNTIME_INVALID))
+def test_invalid_runtime_section_is_one_line(case: str, tmp_path: Path, simbench_document: dict,
+                                             capsys) -> None:
+    runtime, expected = RUNTIME_INVALID[case]
+    document = copy.deepcopy(simbench_document)
+    document["runtime"] = runtime
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(document, sort_keys=False))
+    code, err = _check(path, capsys)
+    assert code == 2
+    assert err.startswith(f"adnmesh: error: {path}: {expected}"), err
+    assert err.count("\n") == 1

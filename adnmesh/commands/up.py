@@ -1,32 +1,173 @@
-"""``adnmesh up CONFIG``: start the distributed runtime (not implemented yet, issue 5)."""
+"""``adnmesh up CONFIG``: run the scenario as a mesh of processes around an embedded Zenoh router.
+
+Starts the CPFC, one DER agent per DER, the measurement and the availability monitor as separate
+processes (:mod:`adnmesh.runtime.launcher`), records every message to ``logs/<run-id>.mcap`` and
+prints a summary (:mod:`adnmesh.runtime.summary`). Progress lines and problems go to stderr, the
+summary to stdout.
+"""
+
+from __future__ import annotations
 
 import argparse
+import dataclasses
+import json
+import os
 import sys
+import time
+from pathlib import Path
+
+from rich.console import Console
 
 from adnmesh.commands import add_config_argument
-from adnmesh.config import load_config
+from adnmesh.config import Config, load_config
+from adnmesh.errors import UsageError
+from adnmesh.table import SchedulingTable, default_table_path, load_table, save_table
 
-__all__ = ["EXIT_NOT_IMPLEMENTED", "add_parser", "run"]
-
-EXIT_NOT_IMPLEMENTED = 3
-"""Exit code of ``up`` while the runtime does not exist."""
+__all__ = ["add_parser", "run", "scenario_subsets"]
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
     """Add the ``up`` subparser."""
     parser = subparsers.add_parser(
         "up",
-        help="start the CPFC, DER, measurement and availability agents (not implemented yet)",
+        help="run the scenario: CPFC, DER, measurement and availability agents as processes",
         description="Start every agent of CONFIG as its own process around an embedded Zenoh "
-        "router and record the run. Not implemented yet (issue 5): for now only CONFIG is "
-        "validated, and the exit code is 3.",
+        "router (listening on 127.0.0.1), run the scenario on the chosen clock, record every "
+        "message to MCAP and print a summary. Exit code 0 on success, 1 if the run failed "
+        "(an agent died, the recording is incomplete), 2 for a user error, 130/143 after "
+        "Ctrl-C/SIGTERM.",
     )
     add_config_argument(parser)
+    parser.add_argument("--clock", choices=["sim", "realtime"], default="sim",
+                        help="sim (default): deterministic simulated time, as fast as the agents "
+                        "allow; realtime: the wall clock")
+    parser.add_argument("--speed", type=float, metavar="X",
+                        help="realtime only: X simulated seconds per wall second (default 1)")
+    parser.add_argument("--seed", type=int, metavar="N",
+                        help="seed of the ICT random streams (default: runtime.seed of CONFIG)")
+    parser.add_argument("--table", metavar="PATH",
+                        help="gain-scheduling table (default: tables/<name>.<sha256[:12]>.json)")
+    parser.add_argument("--out", metavar="PATH",
+                        help="MCAP recording to write (default: logs/<run-id>.mcap)")
+    parser.add_argument("--summary-json", metavar="PATH",
+                        help="also write the summary as JSON to PATH")
+    parser.add_argument("--listen", metavar="ENDPOINT",
+                        help="endpoint of the embedded router (default: tcp/127.0.0.1:<free port>)")
     return parser
 
 
+def scenario_subsets(config: Config) -> list[frozenset[str]]:
+    """The sets of available DERs the scenario goes through, in order (all DERs first)."""
+    available = set(config.der_ids())
+    subsets = [frozenset(available)]
+    for change in config.scenario.availability:
+        if change.available:
+            available |= set(change.ders)
+        else:
+            available -= set(change.ders)
+        if available and frozenset(available) not in subsets:
+            subsets.append(frozenset(available))
+    return subsets
+
+
+def _tuner():
+    try:
+        from adnmesh.tuning import tune_subset
+    except ImportError:
+        return None
+    return tune_subset
+
+
+def _table(args, config: Config, run_dir: Path, run_id: str, log) -> Path:
+    """The table file the CPFC will use; tunes the scenario's subsets if there is none."""
+    path = Path(args.table) if args.table else default_table_path(config)
+    subsets = scenario_subsets(config)
+    if path.exists():
+        table = load_table(path, config)
+        missing = [s for s in subsets if table.lookup(s) is None]
+        if missing and _tuner() is None:
+            fallback = "its static controller" if table.static else "the gains in use"
+            log(f"warning: {path} lacks {len(missing)} subset(s) the scenario needs; the CPFC "
+                f"will use {fallback} for them")
+        return path
+    tune = _tuner()
+    if tune is None:
+        raise UsageError(f"no gain table {path} for {config.path}; run 'adnmesh tune "
+                         f"{config.path}' first (or give --table PATH)")
+    log(f"no gain table at {path}: tuning the {len(subsets)} subset(s) the scenario needs")
+    table = SchedulingTable(config.sha256, dataclasses.asdict(config.constraints), "on-demand",
+                            config.der_ids())
+    for subset in subsets:
+        table.add(tune(config, [d for d in config.der_ids() if d in subset]))
+    path = run_dir / f"{run_id}.table.json"
+    save_table(table, path)
+    log(f"tuned table written to {path}")
+    return path
+
+
 def run(args: argparse.Namespace) -> int:
-    """Validate the config, then report that the runtime does not exist yet (exit code 3)."""
-    load_config(args.config)
-    print("adnmesh up: the distributed runtime is not implemented yet (issue 5)", file=sys.stderr)
-    return EXIT_NOT_IMPLEMENTED
+    """Run the scenario; print the summary; return the exit code."""
+    config = load_config(args.config)
+    if args.speed is not None and args.clock != "realtime":
+        raise UsageError("--speed needs --clock realtime")
+    if args.speed is not None and not args.speed > 0:
+        raise UsageError(f"--speed must be positive, got {args.speed:g}")
+    if args.seed is not None and args.seed < 0:
+        raise UsageError(f"--seed must be >= 0, got {args.seed}")
+    from adnmesh.runtime.launcher import AGENTS_DIR, UpOptions
+    from adnmesh.runtime.launcher import run as launch
+    from adnmesh.runtime.summary import format_summary, summarize
+
+    if not AGENTS_DIR.is_dir():
+        raise UsageError(f"agent programs not found in {AGENTS_DIR} (run from a source checkout "
+                         "installed with 'pip install -e .')")
+    err = Console(stderr=True, highlight=False, markup=False, soft_wrap=True)
+
+    def log(line: str) -> None:
+        err.print(f"adnmesh up: {line}")
+
+    run_id = f"{Path(config.path).stem}-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"
+    out = Path(args.out) if args.out else Path("logs") / f"{run_id}.mcap"
+    table_path = _table(args, config, out.parent, run_id, log)
+    import hashlib
+    options = UpOptions(
+        config=config, table_path=table_path, out=out, clock=args.clock,
+        speed=args.speed or 1.0,
+        seed=config.runtime.seed if args.seed is None else args.seed,
+        listen=args.listen, log=log,
+        metadata={"run_id": run_id, "table_sha256":
+                  hashlib.sha256(table_path.read_bytes()).hexdigest()},
+    )
+    result = launch(options)
+    for problem in result.problems:
+        log(problem)
+    log(f"recording: {out} ({sum(result.recorded.values())} messages)")
+    if result.reason != "finished":
+        return result.exit_code
+    received = sum(int(b.get("stats", {}).get("received", 0)) for b in result.byes.values())
+    extra = {
+        "run_id": run_id,
+        "clock": args.clock,
+        "agents": len(result.byes),
+        "messages_recorded": sum(result.recorded.values()),
+        "messages_received_by_agents": received,
+        "rejected": sum(b["rejected"] for b in result.byes.values()),
+        "lost_on_links": sum(b["lost"] for b in result.byes.values()),
+        "startup_s": round(result.startup_s, 3),
+    }
+    if args.clock == "sim":
+        extra["clock_grants"] = result.grants
+        extra["grants_per_s"] = round(result.grants / result.wall_time_s, 1) \
+            if result.wall_time_s else None
+    summary = summarize(result.series, end_ns=result.end_ns,
+                        band_pct=config.constraints.settling_band_pct,
+                        wall_time_s=result.wall_time_s, extra=extra)
+    console = Console(highlight=False, markup=False, soft_wrap=True)
+    for item in format_summary(summary):
+        console.print(item)
+    if args.summary_json:
+        path = Path(args.summary_json)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(summary.to_json(), indent=1) + "\n")
+    sys.stdout.flush()
+    return result.exit_code

@@ -1,0 +1,67 @@
+"""The availability monitor: heartbeats and availability flags in, the SI vector out.
+
+A DER counts as available (``SI_d = true``) while the last heartbeat it delivered said
+``available: true`` and was delivered less than ``heartbeat_timeout_s`` ago: a DER that stops
+sending (ICT fault, crash) drops out when its heartbeat times out. Every DER is available at
+t = 0. The monitor sends SI on ``availability/si`` at t = 0 and whenever it changes.
+"""
+
+from __future__ import annotations
+
+from adnmesh.config import Config
+from adnmesh.control.base import Outgoing
+from adnmesh.runtime.links import ns
+from adnmesh.runtime.messages import Keys, Message
+
+__all__ = ["AvailabilityMonitor"]
+
+
+class AvailabilityMonitor:
+    """Builds SI from heartbeats (agent id ``availability``; see the module docstring)."""
+
+    agent_id = "availability"
+
+    def __init__(self, config: Config) -> None:
+        keys = Keys(config.grid)
+        self._si_key = keys.si
+        self.timeout_ns = ns(config.runtime.heartbeat_timeout_s)
+        self.der_ids = config.der_ids()
+        self._by_key = {keys.heartbeat(d): d for d in self.der_ids}
+        self.flag = dict.fromkeys(self.der_ids, True)
+        self.deadline_ns = dict.fromkeys(self.der_ids, self.timeout_ns)
+        self.expired: set[str] = set()
+        self._sent: dict[str, bool] | None = None
+        self._initial = True
+
+    def si(self) -> dict[str, bool]:
+        """The current availability vector, in config order."""
+        return {d: self.flag[d] and d not in self.expired for d in self.der_ids}
+
+    def next_timer_ns(self) -> int | None:
+        if self._initial:
+            return 0
+        live = [t for d, t in self.deadline_ns.items() if d not in self.expired]
+        return min(live) if live else None
+
+    def on_message(self, t_ns: int, message: Message) -> list[Outgoing]:
+        der_id = self._by_key.get(message.key)
+        if der_id is None:
+            return []
+        self.flag[der_id] = message.body["available"]
+        self.deadline_ns[der_id] = t_ns + self.timeout_ns
+        self.expired.discard(der_id)
+        return self._publish_if_changed()
+
+    def on_timer(self, t_ns: int) -> list[Outgoing]:
+        self._initial = False
+        for der_id, deadline in self.deadline_ns.items():
+            if deadline <= t_ns:
+                self.expired.add(der_id)
+        return self._publish_if_changed()
+
+    def _publish_if_changed(self) -> list[Outgoing]:
+        si = self.si()
+        if si == self._sent:
+            return []
+        self._sent = si
+        return [Outgoing(self._si_key, {"si": si})]

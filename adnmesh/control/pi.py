@@ -1,0 +1,107 @@
+"""The CPFC's sampled PI controller with bumpless gain switching and anti-windup (SPEC §5).
+
+Parallel form, sampled every ``h`` seconds::
+
+    x_I[k] = x_I[k-1] + h/2 (e[k-1] + e[k])          (trapezoidal rule)
+    P_Y[k] = K_P e[k] + K_I x_I[k]                   (held until the next sample)
+
+with ``e = P_ref - P_meas`` in W, ``K_P`` in 1/W, ``K_I`` in 1/(W s), ``x_I`` in W s and ``P_Y``
+dimensionless. The trapezoidal rule makes ``P_Y[k]`` a second-order accurate sample of the
+continuous PI of the reference model, so the only first-order difference between the runtime and
+the continuous-time analysis is the zero-order hold of ``P_Y`` (about half a period of extra
+delay).
+
+**Anti-windup** (conditional integration): the output is limited to ``[y_min, y_max]``, the range
+in which at least one actuator is not saturated; while the unlimited output lies beyond a limit
+and the error pushes further out, the integrator holds.
+
+**Bumpless switching**: :meth:`SampledPI.switch` replaces the gains at sample ``k`` after the
+output has been computed with the old ones, and sets ``x_I' = (P_Y[k] - K_P' e[k]) / K_I'`` so that
+``K_P' e[k] + K_I' x_I' = P_Y[k]``: the whole output stays continuous, not only the integral part
+(for ``K_P' = K_P`` this is the paper's ``K_I' x_I' = K_I x_I``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+__all__ = ["SampledPI", "SwitchRecord"]
+
+
+@dataclass(frozen=True)
+class SwitchRecord:
+    """What a gain switch did.
+
+    Attributes
+    ----------
+    p_y_before, p_y_after : float
+        Output with the old gains and with the new gains at the switching sample (equal up to
+        rounding).
+    kp_before, ki_before : float
+        The old gains, 1/W and 1/(W s).
+    """
+
+    p_y_before: float
+    p_y_after: float
+    kp_before: float
+    ki_before: float
+
+
+class SampledPI:
+    """Sampled PI controller (see the module docstring).
+
+    Parameters
+    ----------
+    kp : float
+        Proportional gain, 1/W (> 0).
+    ki : float
+        Integral gain, 1/(W s) (> 0).
+    period_s : float
+        Sampling period ``h``, s.
+    y_min, y_max : float
+        Output limits (dimensionless).
+    """
+
+    def __init__(self, kp: float, ki: float, period_s: float, y_min: float = -math.inf,
+                 y_max: float = math.inf) -> None:
+        if not (kp > 0 and ki > 0 and period_s > 0):
+            raise ValueError("need kp > 0, ki > 0 and period_s > 0")
+        self.kp, self.ki, self.h = float(kp), float(ki), float(period_s)
+        self.y_min, self.y_max = float(y_min), float(y_max)
+        self.x_i = 0.0          # integrator state, W s
+        self.e_prev = 0.0       # error at the previous sample, W
+        self.output = 0.0       # P_Y at the last sample
+        self.holding = False    # integrator held at the last sample (anti-windup)
+
+    def update(self, error_w: float) -> float:
+        """Take the error of the current sample, W; return ``P_Y``."""
+        x_trial = self.x_i + 0.5 * self.h * (self.e_prev + error_w)
+        u_trial = self.kp * error_w + self.ki * x_trial
+        self.holding = ((u_trial > self.y_max and error_w > 0)
+                        or (u_trial < self.y_min and error_w < 0))
+        if not self.holding:
+            self.x_i = x_trial
+        self.e_prev = error_w
+        u = self.kp * error_w + self.ki * self.x_i
+        self.output = min(max(u, self.y_min), self.y_max)
+        return self.output
+
+    def set_limits(self, y_min: float, y_max: float) -> None:
+        """Change the output limits (they depend on the actuators in use)."""
+        self.y_min, self.y_max = float(y_min), float(y_max)
+
+    def switch(self, kp: float, ki: float) -> SwitchRecord:
+        """Switch to new gains right after :meth:`update`, keeping ``P_Y`` continuous.
+
+        Uses the error of the last sample: ``x_I' = (P_Y - K_P' e) / K_I'``.
+        """
+        if not (kp > 0 and ki > 0):
+            raise ValueError("need kp > 0 and ki > 0")
+        before = self.output
+        record_kp, record_ki = self.kp, self.ki
+        self.kp, self.ki = float(kp), float(ki)
+        self.x_i = (before - self.kp * self.e_prev) / self.ki
+        after = self.kp * self.e_prev + self.ki * self.x_i
+        self.output = min(max(after, self.y_min), self.y_max)
+        return SwitchRecord(before, self.output, record_kp, record_ki)

@@ -1,0 +1,71 @@
+"""Zenoh session configuration shared by ``adnmesh up`` and every agent program.
+
+Connection flags are defined once (:func:`add_connection_arguments`), as in the zenoh-python
+examples: ``--mode``, ``--connect``, ``--listen``, ``--zenoh-config``. Multicast scouting is always
+off; endpoints are explicit. ``adnmesh up`` embeds the router (a session in mode ``router``,
+:func:`router_config`) listening on ``tcp/127.0.0.1:<port>`` by default; agents connect to it as
+clients. To run an agent on another host, point ``--connect`` at a router reachable from there.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import socket
+
+import zenoh
+
+__all__ = ["DEFAULT_ENDPOINT", "DEFAULT_HOST", "add_connection_arguments", "free_port",
+           "router_config", "session_config"]
+
+DEFAULT_HOST = "127.0.0.1"
+"""The only address adnmesh uses unless told otherwise."""
+
+DEFAULT_ENDPOINT = f"tcp/{DEFAULT_HOST}:7447"
+"""Where a client connects without ``--connect`` (Zenoh's usual router port on this host)."""
+
+
+def add_connection_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add ``--mode``, ``--connect``, ``--listen`` and ``--zenoh-config`` to ``parser``."""
+    group = parser.add_argument_group("Zenoh connection")
+    group.add_argument("--mode", "-m", choices=["client", "peer"], default="client",
+                       help="Zenoh session mode (default: client)")
+    group.add_argument("--connect", "-e", metavar="ENDPOINT", action="append",
+                       help="endpoint to connect to (repeatable; a client's default: "
+                       f"{DEFAULT_ENDPOINT})")
+    group.add_argument("--listen", "-l", metavar="ENDPOINT", action="append",
+                       help="endpoint to listen on (repeatable)")
+    group.add_argument("--zenoh-config", metavar="FILE",
+                       help="a Zenoh configuration file (JSON5); the flags above override it")
+
+
+def session_config(args: argparse.Namespace) -> zenoh.Config:
+    """The Zenoh config of a session from the flags of :func:`add_connection_arguments`."""
+    config = (zenoh.Config.from_file(args.zenoh_config) if args.zenoh_config
+              else zenoh.Config())
+    config.insert_json5("mode", json.dumps(args.mode))
+    connect = args.connect
+    if not connect and args.mode == "client" and not args.zenoh_config:
+        connect = [DEFAULT_ENDPOINT]
+    if connect:
+        config.insert_json5("connect/endpoints", json.dumps(connect))
+    if args.listen:
+        config.insert_json5("listen/endpoints", json.dumps(args.listen))
+    config.insert_json5("scouting/multicast/enabled", "false")
+    return config
+
+
+def router_config(listen: list[str]) -> zenoh.Config:
+    """The Zenoh config of the embedded router listening on ``listen``."""
+    config = zenoh.Config()
+    config.insert_json5("mode", json.dumps("router"))
+    config.insert_json5("listen/endpoints", json.dumps(listen))
+    config.insert_json5("scouting/multicast/enabled", "false")
+    return config
+
+
+def free_port(host: str = DEFAULT_HOST) -> int:
+    """A TCP port on ``host`` that was free a moment ago."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+        probe.bind((host, 0))
+        return probe.getsockname()[1]

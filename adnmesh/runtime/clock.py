@@ -1,0 +1,235 @@
+"""The sim clock's coordinator: conservative, event-driven time advance (bus-free).
+
+Every agent processes its events (timers and delivered messages) in time order and only while it
+is sure that no message can still arrive for an earlier time. The coordinator tells it how far it
+may go:
+
+- After each window an agent **reports** its next event time ``next_ns`` (``None``: none), how
+  many messages it has received so far (``received``) and, per key, how many it sent in the window
+  and the earliest delivery time among them (``sent``).
+- The coordinator keeps, per agent ``p``, a lower bound ``E_p`` on the time of anything ``p`` will
+  still do: its reported ``next_ns``, lowered to the earliest delivery time of messages sent to it
+  that its report may not account for (*messages in flight*: counted by their senders after its
+  last grant, and not yet received when it reported).
+- A message chain from ``p`` to ``b`` takes at least ``lookahead(p, b)`` (the least total link
+  delay, :class:`~adnmesh.runtime.topology.Topology`), so nothing can reach ``b`` before
+  ``LBTS(b) = min_p (E_p + lookahead(p, b))`` (lower bound on time stamps; ``p = b`` covers
+  cycles through ``b``).
+- The coordinator **grants** ``b`` the time ``until_ns = min(LBTS(b), end + 1 ns)`` together
+  with ``expect``, the number of messages sent to ``b`` so far. ``b`` first waits until it has
+  received ``expect`` messages (so nothing in flight is missed, whatever the order in which the
+  router forwards reports and data), then processes every event with ``t < until_ns`` — at equal
+  times messages first, in (delivery time, key, seq) order, then its timers — and reports again.
+
+A grant is sent when it lets the agent advance by a whole cycle's lookahead (the least delay
+around the shortest cycle through it: ``T_com + T_meas`` = 0.2 s for the CPFC, the DERs and the
+measurement): every window is a round trip and costs time, so few large windows beat many small
+ones. When no agent can make such a window and none is running, the agents of one kind with the
+earliest next event go (on a tie the kind listed last, the DERs); this staggers the stages around
+the control loop once, after which CPFC, DERs and measurement take full windows in turn.
+
+Messages in flight to ``b`` were sent after its grant, so they are delivered at or after it and
+``E_b`` is a true bound, never a stale one. Because every cycle of the message graph has a
+positive delay, the agent with the earliest event can always advance, and the fallback above
+grants it when nothing else runs: the run cannot deadlock. The run is finished when no agent has
+an event at or before ``end_ns``.
+
+The coordinator is deterministic given the reports, but the *sequence* of grants depends on the
+order in which reports arrive; the agents' messages (what they send, and when in sim time) do
+not: every agent processes exactly the events with ``t < until_ns`` in a fixed order.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+from adnmesh.runtime.topology import Topology
+
+__all__ = ["ClockError", "Coordinator", "Grant", "Report"]
+
+_INF = math.inf
+
+
+class ClockError(RuntimeError):
+    """The clock protocol was violated (e.g. a report from an unknown agent) or deadlocked."""
+
+
+@dataclass(frozen=True, slots=True)
+class Grant:
+    """Permission for ``agent`` to process every event before ``until_ns`` once it has received
+    ``expect`` messages in total."""
+
+    agent: str
+    until_ns: int
+    expect: int
+
+
+@dataclass(frozen=True, slots=True)
+class Report:
+    """What an agent reports after a window.
+
+    Attributes
+    ----------
+    agent : str
+    next_ns : int or None
+        Time of its next event (None: no event left).
+    received : int
+        Messages received so far (all keys it subscribes to, valid or not).
+    sent : dict
+        ``key -> (count, earliest delivery ns)`` of the messages it sent since its last report.
+    """
+
+    agent: str
+    next_ns: int | None
+    received: int
+    sent: Mapping[str, tuple[int, int]]
+
+
+class Coordinator:
+    """Grants sim time to the agents of a topology (see the module docstring).
+
+    Parameters
+    ----------
+    topology : Topology
+        Agents, receivers of every key, lookahead between agents.
+    end_ns : int
+        Last instant of the run, ns; events at ``end_ns`` are still processed.
+    """
+
+    def __init__(self, topology: Topology, end_ns: int, window_factor: float = 1.0) -> None:
+        self.topology = topology
+        self.end_ns = int(end_ns)
+        self.agents = topology.agents
+        index = {a: i for i, a in enumerate(self.agents)}
+        self._index = index
+        n = len(self.agents)
+        # for each receiver b: [(p, lookahead(p, b))] over the agents that can reach it
+        self._sources = [tuple((index[p], d) for (p, q), d in topology.lookahead_ns.items()
+                               if q == b) for b in self.agents]
+        self._receivers = {key: tuple(index[a] for a in to)
+                           for key, to in topology.receivers.items()}
+        # a grant should let an agent advance by its cycle's lookahead (see _grants)
+        self._min_window = [int(window_factor * topology.lookahead_ns.get((a, a), 0))
+                            for a in self.agents]
+        kinds = [a.split("/")[0] for a in self.agents]
+        self._kind = kinds
+        self._kind_rank = {k: kinds.index(k) for k in kinds}
+        self._next = [-_INF] * n          # reported next event (-inf until the first report)
+        self._pending = [_INF] * n        # earliest delivery of messages it has not accounted for
+        self._pending_new = [_INF] * n    # the same, for messages counted since its last grant
+        self._expected = [0] * n          # messages sent to it, as reported by the senders
+        self._received = [0] * n          # messages it says it has received
+        self._granted = [0] * n           # until_ns of its last grant
+        self._idle = [False] * n          # reported since its last grant
+        self._reported = [False] * n
+        self._started = False
+        self.grants_issued = 0
+        self.grants_per_agent = [0] * n
+        self.reports_received = 0
+
+    # -- protocol ----------------------------------------------------------------------------
+
+    def on_report(self, report: Report) -> list[Grant]:
+        """Take a report; return the grants that follow from it (none before :meth:`start`)."""
+        i = self._index.get(report.agent)
+        if i is None:
+            raise ClockError(f"report from unknown agent {report.agent!r}")
+        if self._reported[i] and self._idle[i]:
+            raise ClockError(f"{report.agent}: second report without a grant")
+        self.reports_received += 1
+        self._next[i] = _INF if report.next_ns is None else report.next_ns
+        self._received[i] = report.received
+        self._idle[i] = True
+        self._reported[i] = True
+        expected, pending, pending_new = self._expected, self._pending, self._pending_new
+        # what i did not account for: nothing if it has every message counted so far; else at
+        # most the messages counted after its grant (those before it waited for and processed
+        # or holds in next_ns); these are never earlier than its grant, so E stays exact
+        pending[i] = _INF if self._received[i] >= expected[i] else pending_new[i]
+        for key, (count, earliest) in report.sent.items():
+            for r in self._receivers.get(key, ()):
+                expected[r] += count
+                if earliest < pending[r]:
+                    pending[r] = earliest
+                if earliest < pending_new[r]:
+                    pending_new[r] = earliest
+        return self._grants() if self._started else []
+
+    def start(self) -> list[Grant]:
+        """Begin granting (after every agent's first report); return the first grants.
+
+        Raises
+        ------
+        ClockError
+            If an agent has not reported yet.
+        """
+        missing = [a for a, r in zip(self.agents, self._reported) if not r]
+        if missing:
+            raise ClockError(f"cannot start: no report yet from {', '.join(missing)}")
+        self._started = True
+        return self._grants()
+
+    @property
+    def finished(self) -> bool:
+        """True when every agent is idle and none has an event at or before ``end_ns``."""
+        if not self._started or not all(self._idle):
+            return False
+        return min(self._effective()) > self.end_ns
+
+    def now_ns(self) -> int:
+        """The time before which every agent has processed everything (the global frontier)."""
+        earliest = min(self._effective(), default=_INF)
+        return int(min(max(earliest, 0), self.end_ns + 1))
+
+    # -- internals ---------------------------------------------------------------------------
+
+    def _effective(self) -> list:
+        return [n if n < p else p for n, p in zip(self._next, self._pending)]
+
+    def _fallback(self, candidates: list, e: list) -> list:
+        """Nothing can make a full window and nothing runs: let the agents of one kind with the
+        earliest next event go (the kind listed last, e.g. the DERs, on a tie). Granting one
+        stage at a time staggers the stages around the control loop, after which every stage
+        makes full windows (one cycle's lookahead) in turn."""
+        earliest = min(e[b] for b, _, _ in candidates)
+        first = [c for c in candidates if e[c[0]] == earliest]
+        kind = max((self._kind[b] for b, _, _ in first), key=self._kind_rank.__getitem__)
+        return [c for c in first if self._kind[c[0]] == kind]
+
+    def _grants(self) -> list[Grant]:
+        e = self._effective()
+        horizon = self.end_ns + 1
+        granted = self._granted
+        candidates = []
+        for b, idle in enumerate(self._idle):
+            if not idle:
+                continue
+            eb = e[b]
+            if eb >= horizon:
+                continue
+            lbts = horizon
+            for p, d in self._sources[b]:
+                t = e[p] + d
+                if t < lbts:
+                    lbts = t
+            if eb < lbts and lbts > granted[b]:
+                candidates.append((b, int(lbts), lbts - eb >= self._min_window[b]
+                                   or lbts == horizon))
+        chosen = [c for c in candidates if c[2]]
+        if not chosen and candidates and all(self._idle):
+            chosen = self._fallback(candidates, e)
+        out = []
+        for b, until, _ in chosen:
+            granted[b] = until
+            self.grants_per_agent[b] += 1
+            self._idle[b] = False
+            self._pending_new[b] = _INF
+            out.append(Grant(self.agents[b], until, self._expected[b]))
+        self.grants_issued += len(out)
+        if not out and all(self._idle) and not self.finished:
+            raise ClockError(
+                "deadlock: every agent is idle, none may advance "
+                f"(earliest event {min(e)} ns, end {self.end_ns} ns)")
+        return out

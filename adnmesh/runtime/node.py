@@ -1,0 +1,210 @@
+"""One agent's runtime without the bus: inbox, event order, ICT links, envelopes, counts.
+
+A :class:`Node` wraps an agent state machine (:class:`adnmesh.control.base.Agent`). The process
+wrapper (:mod:`adnmesh.runtime.process`), the in-process runner (:mod:`adnmesh.runtime.local`)
+and tests all drive agents through it, so the order in which an agent sees its events is the
+same everywhere:
+
+- :meth:`Node.receive` takes a payload from the bus, validates it (a malformed or out-of-range
+  message is counted in ``rejected`` and dropped, never raised) and holds it until its delivery
+  time;
+- :meth:`Node.advance` processes every event before a time: at equal times delivered messages
+  first, ordered by (delivery time, key, seq), then the agent's timers;
+- what the agent returns goes through the sender side of its ICT link (fate and delivery time,
+  :class:`~adnmesh.runtime.links.Link`), gets its envelope (``seq`` per key, counted also for
+  lost messages so that receivers see the gap) and is returned as ``(key, payload)`` to publish;
+- :meth:`Node.report` summarises the window for the sim clock.
+"""
+
+from __future__ import annotations
+
+import heapq
+from dataclasses import dataclass, field
+
+from adnmesh.control.base import Agent
+from adnmesh.runtime.clock import Report
+from adnmesh.runtime.links import Link
+from adnmesh.runtime.messages import MessageError, decode, encode, message_type
+from adnmesh.runtime.topology import Topology
+
+__all__ = ["AgentCrash", "Node", "NodeCounts"]
+
+
+class AgentCrash(Exception):
+    """Raised by :meth:`Node.advance` when the agent reaches its injected crash time."""
+
+
+@dataclass
+class NodeCounts:
+    """What a node counted.
+
+    Attributes
+    ----------
+    published : dict
+        Messages handed to the bus per key.
+    received : int
+        Payloads received from the bus (valid or not).
+    rejected : int
+        Payloads rejected: malformed, out of range, or delivered in the past.
+    lost : int
+        Messages the ICT link model dropped (never published).
+    late : int
+        Realtime only: messages processed after their delivery time.
+    """
+
+    published: dict[str, int] = field(default_factory=dict)
+    received: int = 0
+    rejected: int = 0
+    lost: int = 0
+    late: int = 0
+
+
+class Node:
+    """Drives one agent (see the module docstring).
+
+    Parameters
+    ----------
+    agent : Agent
+        The state machine.
+    topology : Topology
+        For the links of the keys it publishes.
+    seed : int
+        Seed of the ICT random streams.
+    crash_ns : int, optional
+        Injected crash time: :meth:`advance` raises :class:`AgentCrash` instead of processing an
+        event at or after it.
+    strict : bool
+        Sim clock: reject a message delivered before the node's current time (it would break
+        causality). Realtime: process it at once and count it as late.
+    """
+
+    def __init__(self, agent: Agent, topology: Topology, seed: int, *, crash_ns: int | None = None,
+                 strict: bool = True) -> None:
+        self.agent = agent
+        self.agent_id = agent.agent_id
+        self.subscriptions = topology.subscriptions[agent.agent_id]
+        self._topology = topology
+        self.seed = seed
+        self._links = {key: Link(topology.link(agent.agent_id, key), seed, agent.agent_id)
+                       for key in topology.publishes(agent.agent_id)}
+        self._types = {key: message_type(key) for key in self._links}
+        self._seq = dict.fromkeys(self._links, 0)
+        self._inbox: list = []
+        self._window: dict[str, list[int]] = {}
+        self.crash_ns = crash_ns
+        self.strict = strict
+        self.now_ns = 0
+        self.granted_ns = 0
+        self.counts = NodeCounts()
+
+    @classmethod
+    def for_config(cls, agent: Agent, config) -> Node:
+        """A node for ``agent`` with the topology, seed and injected crash of ``config``."""
+        crash = [c.t_s for c in config.runtime.faults.crash if c.agent == agent.agent_id]
+        return cls(agent, Topology.from_config(config), config.runtime.seed,
+                   crash_ns=int(round(min(crash) * 1e9)) if crash else None)
+
+    def reseed(self, seed: int) -> None:
+        """Restart the ICT random streams with ``seed`` (before the first event only)."""
+        self.seed = seed
+        self._links = {key: Link(link.params, seed, self.agent_id)
+                       for key, link in self._links.items()}
+
+    # -- input ---------------------------------------------------------------------------------
+
+    def receive(self, key: str, payload: bytes) -> None:
+        """Take one payload from the bus (counts it; rejects it if invalid or in the past)."""
+        counts = self.counts
+        counts.received += 1
+        try:
+            message = decode(key, payload)
+        except MessageError:
+            counts.rejected += 1
+            return
+        t = message.t_deliver_ns
+        if t < self.now_ns:
+            if self.strict:
+                counts.rejected += 1
+                return
+            counts.late += 1
+            t = self.now_ns
+        heapq.heappush(self._inbox, (t, key, message.seq, message))
+
+    # -- time ----------------------------------------------------------------------------------
+
+    def next_event_ns(self) -> int | None:
+        """Time of the next event (delivered message or timer), or None."""
+        timer = self.agent.next_timer_ns()
+        if self._inbox:
+            t = self._inbox[0][0]
+            return t if timer is None or t < timer else timer
+        return timer
+
+    def advance(self, until_ns: int) -> list[tuple[str, bytes]]:
+        """Process every event with ``t < until_ns``; return the ``(key, payload)`` to publish.
+
+        Raises
+        ------
+        AgentCrash
+            If the next event is at or after the injected crash time.
+        """
+        out: list[tuple[str, bytes]] = []
+        inbox, agent = self._inbox, self.agent
+        while True:
+            timer = agent.next_timer_ns()
+            if inbox and (timer is None or inbox[0][0] <= timer):
+                t = inbox[0][0]
+                if t >= until_ns:
+                    break
+                self._check_crash(t)
+                message = heapq.heappop(inbox)[3]
+                self.now_ns = t
+                outgoing = agent.on_message(t, message)
+            elif timer is not None and timer < until_ns:
+                self._check_crash(timer)
+                self.now_ns = timer
+                outgoing = agent.on_timer(timer)
+            else:
+                break
+            for item in outgoing:
+                self._emit(self.now_ns, item.key, item.body, out)
+        self.granted_ns = max(self.granted_ns, until_ns)
+        return out
+
+    def _check_crash(self, t: int) -> None:
+        if self.crash_ns is not None and t >= self.crash_ns:
+            self.now_ns = self.crash_ns
+            raise AgentCrash(f"{self.agent_id}: injected crash at {self.crash_ns} ns")
+
+    def _emit(self, t: int, key: str, body: dict, out: list) -> None:
+        link = self._links[key]
+        seq = self._seq[key]
+        self._seq[key] = seq + 1
+        t_deliver = link.transmit(t)
+        if t_deliver is None:
+            self.counts.lost += 1
+            return
+        out.append((key, encode(self._types[key], self.agent_id, seq, t, t_deliver, body)))
+        published = self.counts.published
+        published[key] = published.get(key, 0) + 1
+        window = self._window.get(key)
+        if window is None:
+            self._window[key] = [1, t_deliver]
+        else:
+            window[0] += 1
+            if t_deliver < window[1]:
+                window[1] = t_deliver
+
+    def emit_now(self, key: str, body: dict) -> list[tuple[str, bytes]]:
+        """Send one message at the current time outside :meth:`advance` (e.g. a fault record)."""
+        out: list[tuple[str, bytes]] = []
+        self._emit(self.now_ns, key, body, out)
+        return out
+
+    # -- clock ---------------------------------------------------------------------------------
+
+    def report(self) -> Report:
+        """The report after a window; resets the per-window send counts."""
+        sent = {key: (w[0], w[1]) for key, w in self._window.items()}
+        self._window = {}
+        return Report(self.agent_id, self.next_event_ns(), self.counts.received, sent)

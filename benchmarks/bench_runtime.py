@@ -1,0 +1,204 @@
+#!/usr/bin/env python3
+"""Benchmark of the distributed runtime (``adnmesh up``), with the HELICS baseline in the same run.
+
+Measures, each printed as it comes:
+
+1. the SimBench scenario of ``configs/simbench.yaml`` (600 s, 11 DER processes + CPFC +
+   measurement + availability monitor) on the sim clock: wall time of the run (from the start
+   announcement to the end of the clock), speed factor (simulated s per wall s), start-up time,
+   clock grants per second, CPU seconds per process;
+2. the coordinator's time grants per second with N agents (N - 3 identical DERs, 60 s each);
+3. the same control loop as HELICS value federates (``../shared/bench/helics/run_helics.py``,
+   14 federates, 10 ms steps) and the ratio of the speed factors, adnmesh / HELICS.
+
+It measures; it asserts nothing (targets: speed factor >= 30, ratio >= 3). Usage::
+
+    .venv/bin/python benchmarks/bench_runtime.py                 # everything
+    .venv/bin/python benchmarks/bench_runtime.py --skip-helics --agents 4,14
+    .venv/bin/python benchmarks/bench_runtime.py --helics-python /tmp/venv-helics/bin/python \\
+        --helics-steps 60000 --json out/bench.json
+
+The gain table for the SimBench config is ``tables/simbench.<sha>.json`` if ``adnmesh tune``
+made one that holds the subsets the scenario needs; otherwise those two entries (all DERs; CHPs
+and PVs) are built here from gains checked against both design constraints (stable, disk margin
+>= 1.5, overshoot < 1 %), so that nothing is tuned during the measured run.
+Machine load matters (2 cores shared with 14+ processes): the load average is printed with
+every figure.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import yaml
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO))
+
+from adnmesh.config import load_config  # noqa: E402
+from adnmesh.loop import evaluate  # noqa: E402
+from adnmesh.plant import plant_from_ders  # noqa: E402
+from adnmesh.runtime.launcher import UpOptions, run  # noqa: E402
+from adnmesh.table import SchedulingTable, TableEntry, default_table_path, save_table  # noqa: E402
+
+# normalised gains (K * sum of P_inst) found by a grid search meeting both constraints
+SIMBENCH_GAINS = {
+    "all": (0.16, 0.768),          # 11 DERs: rise 2.5 s, overshoot 0.54 %, alpha 1.51
+    "no_wt": (0.54, 0.083044),     # CHPs and PVs: rise 27.5 s, overshoot 0.98 %, alpha 1.56
+}
+WT_GAINS = (0.2, 0.768)            # any number of identical WTs: rise 2.4 s, 0 %, alpha 1.51
+
+
+def load() -> str:
+    return " ".join(Path("/proc/loadavg").read_text().split()[:3])
+
+
+def checked_entry(config, ids, gains) -> TableEntry:
+    ders = config.ders_by_id(ids)
+    total = sum(d.p_inst_w for d in ders)
+    kp, ki = gains[0] / total, gains[1] / total
+    fig = evaluate(plant_from_ders(ders, config.t_com_s, config.t_meas_s), kp, ki)
+    ok = bool(fig.stable[0]) and fig.disk_margin[0] >= config.constraints.disk_margin_min \
+        and fig.overshoot_pct[0] < config.constraints.overshoot_max_pct
+    if not ok:
+        raise SystemExit(f"benchmark gains for {ids} violate the constraints")
+    return TableEntry(tuple(ids), kp, ki, dict.fromkeys(ids, 1.0))
+
+
+def simbench_table(config, workdir: Path) -> Path:
+    """The tuned table if it has every subset the scenario needs (no tuning during the run),
+    else a table with just those two entries."""
+    from adnmesh.commands.up import scenario_subsets
+    from adnmesh.errors import ConfigError
+    from adnmesh.table import load_table
+
+    path = REPO / default_table_path(config)
+    try:
+        tuned = load_table(path, config)
+        if all(tuned.lookup(s) is not None for s in scenario_subsets(config)):
+            return path
+    except ConfigError:
+        pass
+    table = SchedulingTable(config.sha256, {}, "benchmark", config.der_ids())
+    table.add(checked_entry(config, config.der_ids(), SIMBENCH_GAINS["all"]))
+    rest = [d.id for d in config.ders if d.type != "WT"]
+    table.add(checked_entry(config, rest, SIMBENCH_GAINS["no_wt"]))
+    out = workdir / "simbench.table.json"
+    save_table(table, out)
+    return out
+
+
+def run_up(config_path: Path, table: Path, workdir: Path) -> dict:
+    config = load_config(config_path)
+    cpu0 = time.process_time()
+    t0 = time.perf_counter()
+    result = run(UpOptions(config=config, table_path=table, out=workdir / "bench.mcap"))
+    total = time.perf_counter() - t0
+    if result.exit_code != 0:
+        raise SystemExit(f"adnmesh up failed: {result.reason}; {result.problems}")
+    sim_s = config.scenario.duration_s
+    cpu = {a: round(b["stats"]["cpu_s"], 2) for a, b in sorted(result.byes.items())}
+    return {
+        "agents": len(result.byes), "sim_s": sim_s,
+        "wall_s": round(result.wall_time_s, 2),
+        "speed_factor": round(sim_s / result.wall_time_s, 2),
+        "wall_incl_startup_s": round(total, 2), "startup_s": round(result.startup_s, 2),
+        "grants": result.grants, "grants_per_s": round(result.grants / result.wall_time_s, 1),
+        "messages": sum(result.recorded.values()),
+        "cpu_s": {"up (router, recorder, clock)": round(time.process_time() - cpu0, 2), **cpu},
+        "load": load(),
+    }
+
+
+def wt_config(n_ders: int, duration_s: float, workdir: Path) -> tuple[Path, Path]:
+    """A config with n identical WTs and one step; its one-entry table."""
+    document = yaml.safe_load((REPO / "configs" / "examples" / "two-wt.yaml").read_text())
+    base = document["ders"][0]
+    document["ders"] = [dict(base, id=f"WT{i}", sgen=f"bench {i}", p_inst_w=2.0e6)
+                        for i in range(1, n_ders + 1)]
+    document["scenario"] = {"duration_s": duration_s,
+                            "p_ref_steps": [{"t_s": 5, "delta_w": 1.0e6}]}
+    path = workdir / f"wt{n_ders}.yaml"
+    path.write_text(yaml.safe_dump(document, sort_keys=False))
+    config = load_config(path)
+    table = SchedulingTable(config.sha256, {}, "benchmark", config.der_ids())
+    table.add(checked_entry(config, config.der_ids(), WT_GAINS))
+    table_path = workdir / f"wt{n_ders}.table.json"
+    save_table(table, table_path)
+    return path, table_path
+
+
+def run_helics(python: str, steps: int, nfeds: int, core: str) -> dict:
+    script = REPO.parent / "shared" / "bench" / "helics" / "run_helics.py"
+    if not script.exists():
+        script = Path("/work/shared/bench/helics/run_helics.py")
+    result = subprocess.run([python, str(script), "--nfeds", str(nfeds), "--core", core,
+                             "--steps", str(steps), "--port", str(24000 + os.getpid() % 1000)],
+                            capture_output=True, text=True, timeout=3600, check=False)
+    lines = [line for line in result.stdout.splitlines() if line.startswith("{")]
+    if not lines:
+        raise SystemExit(f"HELICS run failed:\n{result.stdout}\n{result.stderr}")
+    data = json.loads(lines[-1])
+    data["load"] = load()
+    return data
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--config", default=str(REPO / "configs" / "simbench.yaml"))
+    parser.add_argument("--agents", default="4,8,14,23",
+                        help="agent counts N for the grants/s sweep (N - 3 DERs), '' to skip")
+    parser.add_argument("--sweep-s", type=float, default=60.0, help="sim s per sweep run")
+    parser.add_argument("--skip-simbench", action="store_true")
+    parser.add_argument("--skip-helics", action="store_true")
+    parser.add_argument("--helics-python", default="/tmp/venv-helics/bin/python")
+    parser.add_argument("--helics-steps", type=int, default=6000, help="10 ms steps (60000: 600 s)")
+    parser.add_argument("--helics-core", default="tcp")
+    parser.add_argument("--json", metavar="PATH", help="also write every figure as JSON")
+    args = parser.parse_args()
+
+    figures: dict = {"machine": {"cpus": os.cpu_count(), "load_at_start": load()}}
+    with tempfile.TemporaryDirectory(prefix="adnmesh-bench-") as tmp:
+        workdir = Path(tmp)
+        if not args.skip_simbench:
+            config_path = Path(args.config)
+            table = simbench_table(load_config(config_path), workdir)
+            print(f"SimBench scenario ({config_path.name}), sim clock ...", flush=True)
+            figures["simbench"] = run_up(config_path, table, workdir)
+            print(json.dumps(figures["simbench"]), flush=True)
+        sweep = []
+        for n in [int(x) for x in args.agents.split(",") if x.strip()]:
+            path, table = wt_config(n - 3, args.sweep_s, workdir)
+            fig = run_up(path, table, workdir)
+            fig.pop("cpu_s")
+            sweep.append(fig)
+            print(f"N = {n:3d} agents: {fig['grants']} grants in {fig['wall_s']} s = "
+                  f"{fig['grants_per_s']} grants/s, speed factor {fig['speed_factor']} "
+                  f"(load {fig['load']})", flush=True)
+        figures["grants_vs_agents"] = sweep
+        if not args.skip_helics:
+            print(f"HELICS baseline: 14 federates, {args.helics_steps} steps of 10 ms, "
+                  f"core {args.helics_core} ...", flush=True)
+            figures["helics"] = run_helics(args.helics_python, args.helics_steps, 14,
+                                           args.helics_core)
+            print(json.dumps(figures["helics"]), flush=True)
+            if "simbench" in figures:
+                ratio = figures["simbench"]["speed_factor"] / figures["helics"]["speed_factor"]
+                figures["ratio_adnmesh_to_helics"] = round(ratio, 2)
+                print(f"speed factor adnmesh {figures['simbench']['speed_factor']} / HELICS "
+                      f"{figures['helics']['speed_factor']} = {ratio:.2f}", flush=True)
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(figures, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

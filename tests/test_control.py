@@ -1,0 +1,347 @@
+"""Tests of adnmesh.control: the agents' state machines, driven without a bus or a clock."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import random
+from pathlib import Path
+
+import pytest
+
+from adnmesh.config import DER, Config, DEROffline, Faults, load_config
+from adnmesh.control import build_agent
+from adnmesh.control.availability import AvailabilityMonitor
+from adnmesh.control.cpfc import CPFC, GainSchedule, initial_p_ref_w, output_limits
+from adnmesh.control.der import DERController
+from adnmesh.control.dynamics import PT1DelayParams, PT1DelayState, infeed_at, set_point
+from adnmesh.control.measurement import Measurement
+from adnmesh.control.pi import SampledPI
+from adnmesh.runtime.messages import Keys, decode, encode, message_type
+from adnmesh.table import SchedulingTable, TableEntry
+
+MS = 1_000_000  # ns
+
+
+@pytest.fixture(scope="module")
+def config(configs_dir: Path) -> Config:
+    """Two WTs (SGen2 with a 0.5 MW schedule), a step at 1 s, SGen2 unavailable from 8 s."""
+    return load_config(configs_dir / "examples" / "runtime-step.yaml")
+
+
+@pytest.fixture(scope="module")
+def table(config: Config) -> SchedulingTable:
+    table = SchedulingTable(config.sha256, {}, "test", config.der_ids())
+    table.add(TableEntry(("SGen1", "SGen2"), 5e-8, 1.92e-7, {"SGen1": 1.0, "SGen2": 0.8}))
+    table.add(TableEntry(("SGen1",), 1e-7, 3.84e-7, {"SGen1": 1.0}))
+    return table
+
+
+def message(key: str, t_ns: int, body: dict, *, src: str = "cpfc", seq: int = 0):
+    """A decoded message as the runtime would deliver it."""
+    return decode(key, encode(message_type(key), src, seq, t_ns, t_ns, body))
+
+
+# --- DER dynamics -------------------------------------------------------------------------------
+
+
+def test_pt1_with_delay_is_exact_for_piecewise_constant_setpoints() -> None:
+    params = PT1DelayParams(p_inst_w=2e6, t_delay_ns=10 * MS, t_lag_s=0.25)
+    state = PT1DelayState.steady(1e5)
+    set_point(params, state, 100 * MS, 1.1e6)
+    set_point(params, state, 400 * MS, 6e5)
+    assert infeed_at(params, state, 110 * MS) == 1e5          # the dead time holds it
+    for t_ms in (200, 410, 437, 1000):
+        expected = 1e5
+        t = t_ms / 1e3
+        if t > 0.11:
+            expected = 1.1e6 + (1e5 - 1.1e6) * math.exp(-(min(t, 0.41) - 0.11) / 0.25)
+        if t > 0.41:
+            expected = 6e5 + (expected - 6e5) * math.exp(-(t - 0.41) / 0.25)
+        assert infeed_at(params, state, t_ms * MS) == pytest.approx(expected, rel=1e-13)
+
+
+def test_pt1_reaches_the_rise_time_of_the_config(config: Config) -> None:
+    der = config.ders[0]
+    params = PT1DelayParams.from_der(der)
+    state = PT1DelayState.steady(0.0)
+    set_point(params, state, 0, 1.0)
+    t10 = params.t_delay_ns * 1e-9 - der.t_lag_s * math.log(0.9)
+    t90 = params.t_delay_ns * 1e-9 - der.t_lag_s * math.log(0.1)
+    assert infeed_at(params, state, round(t10 * 1e9)) == pytest.approx(0.1, abs=1e-8)
+    assert infeed_at(params, state, round(t90 * 1e9)) == pytest.approx(0.9, abs=1e-8)
+    assert t90 - t10 == pytest.approx(der.t_rise_s, rel=1e-12)
+
+
+def test_pt1_refuses_to_go_back_in_time() -> None:
+    params = PT1DelayParams(1.0, 0, 1.0)
+    state = PT1DelayState.steady(0.0, t_ns=5)
+    with pytest.raises(ValueError, match="back in time"):
+        infeed_at(params, state, 4)
+
+
+# --- PI -----------------------------------------------------------------------------------------
+
+
+def test_pi_integrates_with_the_trapezoidal_rule() -> None:
+    pi = SampledPI(kp=2.0, ki=3.0, period_s=0.5)
+    assert pi.update(1.0) == pytest.approx(2.0 * 1.0 + 3.0 * 0.25)        # x = h/2 (0 + 1)
+    assert pi.update(3.0) == pytest.approx(2.0 * 3.0 + 3.0 * (0.25 + 1.0))  # x += h/2 (1 + 3)
+
+
+def test_pi_holds_its_integrator_while_saturated() -> None:
+    pi = SampledPI(kp=1.0, ki=10.0, period_s=0.1, y_min=-1.0, y_max=1.0)
+    for _ in range(50):
+        assert pi.update(2.0) == 1.0
+    assert pi.holding
+    x_held = pi.x_i
+    assert pi.update(-0.5) < 1.0             # leaves the limit at once: no wind-up to unwind
+    assert pi.x_i == pytest.approx(x_held + 0.05 * (2.0 - 0.5))
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_pi_switch_keeps_the_output_continuous(seed: int) -> None:
+    """SPEC §5: P_Y stays continuous across a switch, to floating-point precision."""
+    rng = random.Random(seed)
+    pi = SampledPI(kp=rng.uniform(1e-9, 1e-6), ki=rng.uniform(1e-9, 1e-6), period_s=0.01)
+    for _ in range(rng.randint(1, 200)):
+        pi.update(rng.uniform(-2e6, 2e6))
+    assert pi.x_i != 0.0
+    record = pi.switch(rng.uniform(1e-9, 1e-6), rng.uniform(1e-9, 1e-6))
+    scale = max(abs(record.p_y_before), abs(pi.kp * pi.e_prev))
+    assert abs(record.p_y_after - record.p_y_before) <= 4 * math.ulp(scale)
+    assert pi.kp * pi.e_prev + pi.ki * pi.x_i == pytest.approx(record.p_y_before, rel=1e-14)
+
+
+def test_pi_switch_with_equal_kp_keeps_the_integral_part() -> None:
+    """The paper's invariant K_I' x_I' = K_I x_I holds when only K_I changes."""
+    pi = SampledPI(kp=1e-7, ki=4e-7, period_s=0.01)
+    for error in (1e6, 8e5, 6e5):
+        pi.update(error)
+    integral = pi.ki * pi.x_i
+    pi.switch(1e-7, 1e-7)
+    assert pi.ki * pi.x_i == pytest.approx(integral, rel=1e-14)
+
+
+# --- DER local controller -----------------------------------------------------------------------
+
+
+def command(der: DERController, t_ns: int, p_y: float, entry: int = 0, w: dict | None = None,
+            seq: int = 0) -> None:
+    body = {"p_y": p_y, "p_ref_w": 0.0, "kp": 1.0, "ki": 1.0, "entry": entry}
+    if w is not None:
+        body["w"] = w
+    der.on_message(t_ns, message(Keys(der_grid(der)).p_y, t_ns, body, seq=seq))
+
+
+def der_grid(der: DERController) -> str:
+    return der._state_key.split("/")[1]  # noqa: SLF001
+
+
+def test_der_setpoint_follows_eq1(config: Config) -> None:
+    der = DERController(config.ders[1], config)            # SGen2: P_inst 2 MW, P_sched 0.5 MW
+    command(der, 100 * MS, 0.1, w={"SGen1": 1.0, "SGen2": 0.8})
+    assert der.setpoint_w == pytest.approx(0.1 * 0.8 * 2e6 + 0.5e6)
+    assert der.mode == "control"
+    command(der, 110 * MS, 5.0, seq=1)                     # limited to P_inst
+    assert der.setpoint_w == 2e6
+    command(der, 120 * MS, -5.0, seq=2)                    # and to 0
+    assert der.setpoint_w == 0.0
+
+
+def test_der_ignores_p_y_of_an_entry_whose_weights_it_lacks(config: Config) -> None:
+    der = DERController(config.ders[0], config)
+    command(der, 100 * MS, 0.2, entry=0, w={"SGen1": 0.5})
+    command(der, 110 * MS, 0.9, entry=1, seq=1)            # switch message lost: stale entry
+    assert der.setpoint_w == pytest.approx(0.2 * 0.5 * 2e6)
+    assert der.stats["stale_commands"] == 1
+    command(der, 120 * MS, 0.9, entry=1, w={"SGen2": 1.0}, seq=2)  # entry without this DER
+    assert der.setpoint_w == 0.0 and der.weight == 0.0
+
+
+def test_der_falls_back_to_its_schedule_after_the_watchdog(config: Config) -> None:
+    der = DERController(config.ders[1], config)
+    command(der, 100 * MS, 0.25, w={"SGen2": 1.0})
+    deadline = 100 * MS + int(config.runtime.watchdog_timeout_s * 1e9)
+    assert der.next_timer_ns() <= deadline
+    t = 0
+    while t < deadline:
+        t = der.next_timer_ns()
+        der.on_timer(t)
+    assert (der.mode, der.setpoint_w, der.stats["watchdog_trips"]) == ("watchdog", 0.5e6, 1)
+    command(der, deadline + 5 * MS, 0.25, seq=1)           # contact is back
+    assert der.mode == "control" and der.setpoint_w == pytest.approx(1e6)
+
+
+def test_der_availability_change_sends_a_heartbeat_and_runs_on_schedule(config: Config) -> None:
+    der = DERController(config.ders[1], config)            # SGen2: unavailable from 8 s
+    command(der, 100 * MS, 0.25, w={"SGen2": 1.0})
+    sent = []
+    t = 0
+    while t < 8000 * MS:
+        t = der.next_timer_ns()
+        sent += [(t, o) for o in der.on_timer(t)]
+        if t % (500 * MS) == 0 and t < 7500 * MS:          # keep the watchdog fed
+            command(der, t, 0.25, seq=t // MS)
+    beats = [(t, o.body["available"]) for t, o in sent if o.key.endswith("/heartbeat")]
+    assert beats[0] == (0, True)
+    assert beats[-1] == (8000 * MS, False)
+    assert der.mode == "schedule" and der.setpoint_w == 0.5e6
+    states = [o for _, o in sent if o.key.endswith("/state")]
+    assert len(states) == 801                              # every 10 ms from 0 to 8 s
+
+
+def test_der_offline_drops_commands_and_heartbeats(config: Config) -> None:
+    faulty = dataclasses.replace(config, runtime=dataclasses.replace(
+        config.runtime, faults=Faults(der_offline=(DEROffline("SGen1", 2.0, 1.5),))))
+    der = DERController(faulty.ders[0], faulty)
+    sent = []
+    t = 0
+    while t < 4000 * MS:
+        t = der.next_timer_ns()
+        sent += [(t, o) for o in der.on_timer(t)]
+        if 2000 * MS <= t < 3500 * MS and t % (100 * MS) == 0:
+            command(der, t, 0.3, w={"SGen1": 1.0}, seq=t // MS)
+    faults = [(t, o.body["active"]) for t, o in sent if "/fault/" in o.key]
+    assert faults == [(2000 * MS, True), (3500 * MS, False)]
+    beats = [t for t, o in sent if o.key.endswith("/heartbeat")]
+    assert 2000 * MS not in beats and 3000 * MS not in beats and 3500 * MS in beats
+    assert der.stats["dropped_offline"] == 15 and der.stats["commands"] == 0
+
+
+# --- measurement and availability ---------------------------------------------------------------
+
+
+def test_measurement_sums_the_infeeds_and_the_rest_of_the_grid(config: Config) -> None:
+    meas = Measurement(config)
+    keys = Keys(config.grid)
+    (out,) = meas.on_timer(0)
+    assert out.body == {"p_ip_w": -3e6 + 0.5e6}            # rest + schedules at rest
+    meas.on_message(10 * MS, message(keys.der_state("SGen1"), 10 * MS,
+                                     {"p_w": 1.5e5, "setpoint_w": 2e5, "mode": "control"},
+                                     src="der/SGen1"))
+    assert meas.next_timer_ns() == 10 * MS
+    (out,) = meas.on_timer(10 * MS)
+    assert out.key == keys.p_ip and out.body["p_ip_w"] == -3e6 + 1.5e5 + 0.5e6
+
+
+def test_availability_monitor_builds_si_from_heartbeats(config: Config) -> None:
+    monitor = AvailabilityMonitor(config)
+    keys = Keys(config.grid)
+    (first,) = monitor.on_timer(monitor.next_timer_ns())
+    assert first.body == {"si": {"SGen1": True, "SGen2": True}}
+
+    def beat(der_id: str, t_ns: int, available: bool):
+        return monitor.on_message(t_ns, message(keys.heartbeat(der_id), t_ns,
+                                                {"available": available},
+                                                src=f"der/{der_id}"))
+
+    assert beat("SGen1", 100 * MS, True) == []                  # no change, nothing sent
+    (change,) = beat("SGen2", 150 * MS, False)
+    assert change.body["si"] == {"SGen1": True, "SGen2": False}
+    timeout = int(config.runtime.heartbeat_timeout_s * 1e9)
+    assert monitor.next_timer_ns() == 100 * MS + timeout         # SGen1's heartbeat expires
+    (lost,) = monitor.on_timer(100 * MS + timeout)
+    assert lost.body["si"] == {"SGen1": False, "SGen2": False}
+    (back,) = beat("SGen1", 100 * MS + timeout + 1, True)
+    assert back.body["si"]["SGen1"] is True
+
+
+# --- CPFC ---------------------------------------------------------------------------------------
+
+
+def run_cpfc(cpfc: CPFC, until_ns: int, p_meas=None, si_at=None):
+    """Drive the CPFC's timer to ``until_ns``; return its messages by key."""
+    keys = Keys(cpfc.config.grid)
+    out = []
+    while cpfc.next_timer_ns() < until_ns:
+        t = cpfc.next_timer_ns()
+        if si_at is not None and t == si_at[0]:
+            cpfc.on_message(t, message(keys.si, t, {"si": si_at[1]}, src="availability"))
+        if p_meas is not None:
+            cpfc.on_message(t, message(keys.p_ip, t, {"p_ip_w": p_meas(t)}, src="measurement"))
+        out += [(t, o) for o in cpfc.on_timer(t)]
+    return out
+
+
+def test_cpfc_starts_at_the_operating_point_and_follows_the_scenario(config, table) -> None:
+    cpfc = CPFC(config, GainSchedule(config, table))
+    assert initial_p_ref_w(config) == -3e6 + 0.5e6
+    out = run_cpfc(cpfc, 1010 * MS)
+    refs = [(t, o.body["p_ref_w"]) for t, o in out if o.key.endswith("/p_ref")]
+    assert refs == [(0, -2.5e6), (1000 * MS, -1.5e6)]
+    p_y = [o.body for t, o in out if o.key.endswith("/p_y")]
+    assert all(b["p_y"] == 0.0 for b in p_y[:-1])              # at rest until the step
+    assert p_y[-1]["p_y"] == pytest.approx(5e-8 * 1e6 + 1.92e-7 * 0.005 * 1e6)
+    assert p_y[0]["w"] == {"SGen1": 1.0, "SGen2": 0.8} and "w" not in p_y[1]
+    assert p_y[0]["entry"] == 0
+
+
+def test_cpfc_switch_is_bumpless_with_a_nonzero_integrator(config, table) -> None:
+    """Test 7c at the state-machine level: the switch leaves P_Y unchanged."""
+    cpfc = CPFC(config, GainSchedule(config, table))
+    out = run_cpfc(cpfc, 5000 * MS, p_meas=lambda t: -2.5e6 + 0.6e6 * min(1.0, t / 4e9),
+                   si_at=(4500 * MS, {"SGen1": True, "SGen2": False}))
+    (t_switch, switched), = [(t, o.body) for t, o in out if "switch" in o.body]
+    assert t_switch == 4500 * MS
+    assert cpfc.pi.x_i != 0.0
+    assert switched["p_y"] - switched["switch"]["p_y_before"] == 0.0
+    assert (switched["kp"], switched["ki"]) == (1e-7, 3.84e-7)
+    assert switched["w"] == {"SGen1": 1.0} and switched["entry"] == 1
+    assert (switched["switch"]["kp_before"], switched["switch"]["ki_before"]) == (5e-8, 1.92e-7)
+    (event,) = cpfc.switches
+    assert event.available == ("SGen1",) and event.source == "table"
+
+
+def test_cpfc_repeats_the_weights_periodically(config, table) -> None:
+    cpfc = CPFC(config, GainSchedule(config, table))
+    out = run_cpfc(cpfc, 2500 * MS)
+    with_w = [t for t, o in out if o.key.endswith("/p_y") and "w" in o.body]
+    assert with_w == [0, 1000 * MS, 2000 * MS]
+
+
+def test_output_limits_are_where_every_der_saturates(config: Config) -> None:
+    low, high = output_limits(config, {"SGen1": 1.0, "SGen2": 0.5})
+    # SGen1: 0 .. 2 MW at P_Y in [0, 1]; SGen2 (0.5 MW schedule): P_Y in [-0.5, 1.5]
+    assert (low, high) == (-0.5, 1.5)
+    assert all(math.isnan(x) for x in output_limits(config, {}))
+
+
+def test_gain_schedule_falls_back_to_the_static_controller(config: Config) -> None:
+    table = SchedulingTable(config.sha256, {}, "test", config.der_ids())
+    table.static = TableEntry((), 2e-8, 1e-8, {})
+    schedule = GainSchedule(config, table, on_demand=False)
+    entry, source = schedule.lookup(frozenset({"SGen2"}))
+    assert source == "static"
+    assert (entry.ders, entry.kp, entry.ki, entry.w) == (("SGen2",), 2e-8, 1e-8, {"SGen2": 1.0})
+    assert schedule.lookup(frozenset()) == (None, "none")
+
+
+def test_gain_schedule_tunes_missing_subsets_on_demand(config: Config) -> None:
+    calls = []
+
+    def tune(cfg, ids):
+        calls.append(ids)
+        return TableEntry(tuple(ids), 3e-8, 2e-8, dict.fromkeys(ids, 1.0))
+
+    schedule = GainSchedule(config, None, tune=tune)
+    assert schedule.lookup(frozenset({"SGen2", "SGen1"}))[1] == "tuned"
+    assert schedule.lookup(frozenset({"SGen1", "SGen2"}))[1] == "tuned"
+    assert calls == [["SGen1", "SGen2"]]                     # once, in config order
+
+
+def test_build_agent_knows_every_agent(config, table) -> None:
+    schedule = GainSchedule(config, table)
+    kinds = {a: type(build_agent(a, config, schedule)).__name__
+             for a in ("cpfc", "measurement", "availability", "der/SGen2")}
+    assert kinds == {"cpfc": "CPFC", "measurement": "Measurement",
+                     "availability": "AvailabilityMonitor", "der/SGen2": "DERController"}
+    with pytest.raises(ValueError, match="unknown agent"):
+        build_agent("grid", config)
+    with pytest.raises(ValueError, match="schedule"):
+        build_agent("cpfc", config)
+
+
+def test_der_defaults_follow_the_config_dataclass() -> None:
+    der = DER("X", "PV", 1e5, 0.0, 0.1, "s")
+    assert PT1DelayParams.from_der(der).t_delay_ns == 0
