@@ -27,17 +27,19 @@ constant plus delay (so the slow tail of a minor CHP share is seen) and 20 / ban
 from __future__ import annotations
 
 from dataclasses import dataclass
+import functools
 from fractions import Fraction
 from functools import reduce
 from math import gcd
 
 import numpy as np
 
-from ._kernels import advance
+from ._kernels import advance, advance_exact
 from .freqresp import as_candidates
 from .plant import Plant
 
-__all__ = ["StepInfo", "simulate_step", "step_info", "step_info_from_samples", "choose_step"]
+__all__ = ["StepInfo", "simulate_step", "step_info", "step_info_from_samples", "choose_step",
+           "choose_steps"]
 
 _SETTLED_BAND = 0.005
 #: largest |second difference| of y (per step) at which the step may be doubled
@@ -81,12 +83,31 @@ class StepInfo:
     horizon_s: np.ndarray
 
 
-def _commensurate_unit(delays: np.ndarray) -> float:
+@functools.lru_cache(maxsize=256)
+def _commensurate_unit(delays: tuple[float, ...]) -> float:
     """Largest t with every delay an integer multiple of t (1 us resolution), s; 0 if none."""
     us = [int(round(float(Fraction(d).limit_denominator(10**6)) * 1e6)) for d in delays if d > 0]
     if not us:
         return 0.0
     return reduce(gcd, us) * 1e-6
+
+
+def choose_steps(plant: Plant, bandwidth_rad_s=None) -> np.ndarray:
+    """Default simulation step h per candidate, s; shape (M,) (see :func:`choose_step`)."""
+    gains = np.atleast_2d(plant.gains_w)
+    tau_min = np.array([float(a.time_constants_s.min()) for a in plant.actuators])
+    tau = np.min(np.where(gains > 0, tau_min[None, :], np.inf), axis=1)
+    h = np.minimum(0.5 * tau, 0.05)
+    if bandwidth_rad_s is not None:
+        bw = np.broadcast_to(np.asarray(bandwidth_rad_s, float), h.shape)
+        h = np.where(np.isfinite(bw) & (bw > 0), np.minimum(h, 0.05 / np.where(bw > 0, bw, 1.0)),
+                     h)
+    h = np.minimum(h, float(plant.path_delays_s.min()))
+    unit = _commensurate_unit(tuple(np.append(plant.path_delays_s, plant.t_meas_s).tolist()))
+    if unit > 0:
+        snap = unit >= h / 100
+        h = np.where(snap, unit / np.ceil(unit / h - 1e-9), h)
+    return h
 
 
 def choose_step(plant: Plant, bandwidth_rad_s: float | None = None) -> float:
@@ -96,17 +117,7 @@ def choose_step(plant: Plant, bandwidth_rad_s: float | None = None) -> float:
     (``tau_min`` their fastest time constant, ``omega_b`` the loop bandwidth in rad/s), then
     shrunk so that every delay is a multiple of h when the delays are commensurate.
     """
-    gains = np.atleast_2d(plant.gains_w)
-    active = np.any(gains > 0, axis=0)
-    tau_min = min(float(a.time_constants_s.min()) for a, on in zip(plant.actuators, active) if on)
-    h = min(0.5 * tau_min, 0.05)
-    if bandwidth_rad_s:
-        h = min(h, 0.05 / bandwidth_rad_s)
-    h = min(h, float(plant.path_delays_s.min()))
-    unit = _commensurate_unit(np.append(plant.path_delays_s, plant.t_meas_s))
-    if unit >= h / 100:
-        h = unit / np.ceil(unit / h - 1e-9)
-    return float(h)
+    return float(choose_steps(plant, bandwidth_rad_s)[0])
 
 
 def _delay_taps(delay_s: np.ndarray, h: float):
@@ -155,6 +166,7 @@ class _Simulator:
             self.phi[i, :k, :k], self.gl[i, :k], self.gr[i, :k], self.c[i, :k] = phi, gl, gr, c
         self.n_in, self.f_in = _delay_taps(self.plant.path_delays_s, h)
         self.n_meas, self.f_meas = _delay_taps(np.array([self.plant.t_meas_s]), h)
+        self.exact_delays = not (np.any(self.f_in) or np.any(self.f_meas))
         if np.any(self.n_in + self.f_in < 1.0 - 1e-9):
             raise ValueError("simulation step must not exceed T_com + T_delay")
         # columns 0..ring-1 hold samples j % ring; column `ring` is the constant 0 of t < 0
@@ -211,6 +223,12 @@ class _Simulator:
     def run(self, steps: int) -> np.ndarray:
         """Advance ``steps`` steps and return y at the new samples, shape (M, steps)."""
         out = np.empty((self.kp.size, steps))
+        if self.exact_delays:
+            advance_exact(steps, self.k, self.ring, self.h, self.kp, self.ki, self.kc, self.phi,
+                          self.gl, self.gr, self.x, self.p_y, self.y_hist, self.x_int, self.err,
+                          self.n_in, int(self.n_meas[0]), out)
+            self.k += steps
+            return out
         l0, l1, lw = self._taps(self.n_in, self.f_in, self.k, steps, right_end=False)
         r0, r1, rw = self._taps(self.n_in, self.f_in, self.k + 1, steps, right_end=True)
         m0, m1, mw = self._taps(self.n_meas, self.f_meas, self.k + 1, steps, right_end=False)
@@ -414,9 +432,8 @@ def step_info(plant: Plant, kp, ki, band_pct: float = 5.0, h: float | None = Non
     idx = np.nonzero(mask)[0]
     if idx.size:
         if h is None:
-            for i in idx:
-                pl = Plant(plant.actuators, gains[i], plant.t_com_s, plant.t_meas_s)
-                steps[i] = choose_step(pl, bw[i] if np.isfinite(bw[i]) else None)
+            steps[idx] = choose_steps(Plant(plant.actuators, gains[idx], plant.t_com_s,
+                                            plant.t_meas_s), bw[idx])
         else:
             steps[idx] = h
         t_min = _horizon_floor(plant, gains, bw)
