@@ -1,8 +1,10 @@
 """Global search: the feasible normalised pair with minimum rise time (dense grid + edge tracing).
 
 1. A log-spaced grid of ``(kp_n, ki_n)`` around the initial (too aggressive) design — ``kp_n``
-   from 1e-2 to 1.2 x ``kp_init``, ``ki_n`` from 1e-3 to 1.2 x ``ki_init`` — is checked for every
-   plant in one vectorised batch.
+   from 1e-2 to 1.2 x ``kp_init``, ``ki_n`` from 1e-3 to 1.2 x ``ki_init`` — is screened for the
+   disk margin for every plant in one vectorised batch; step responses are then simulated
+   column by column from the top, only until the column's highest feasible point is found
+   (:func:`_column_tops`).
 2. Rise time falls as K_I grows, so the optimum lies on the upper edge of the feasible set, which
    for these loops is a narrow wedge whose tip a compass search misses. For every grid column
    (fixed ``kp_n``) the edge is located by bisection in ``ki_n`` between the column's highest
@@ -86,6 +88,37 @@ def _edge(problem, fractions, plant, lkp, lo, hi, best: _Best) -> int:
     return evaluations
 
 
+def _column_tops(problem, fractions, plant, lkp, lki, best: _Best):
+    """Highest feasible row of every column of per-plant grids, simulating top-down.
+
+    ``plant`` (A,) indexes ``fractions``; ``lkp``, ``lki`` (A, R, C) are log gains with ``ki``
+    rising along R. The disk margin is screened for the whole grid at once; then, row by row
+    from the top, only the screened points of columns whose edge is still unknown are
+    simulated. Points below a column's highest feasible one are never simulated: they are
+    slower (rise time falls as K_I grows along a column), so they cannot be the optimum, and
+    they are the most expensive to simulate. Returns (top row per column, -1 where none is
+    feasible; evaluations).
+    """
+    a_n, r_n, c_n = lkp.shape
+    rows = np.repeat(plant, r_n * c_n)
+    screen = problem.check(fractions[rows], np.exp(lkp.ravel()), np.exp(lki.ravel()),
+                           simulate=np.zeros(rows.size, bool))
+    candidate = (screen.reason == "").reshape(a_n, r_n, c_n)      # meets the disk margin
+    evaluations = rows.size
+    top = np.full((a_n, c_n), -1)
+    for r in range(r_n - 1, -1, -1):
+        a_idx, col = np.nonzero(candidate[:, r, :] & (top < 0))
+        if a_idx.size == 0:
+            continue
+        c = problem.check(fractions[plant[a_idx]], np.exp(lkp[a_idx, r, col]),
+                          np.exp(lki[a_idx, r, col]))
+        ok = c.feasible
+        best.offer(plant[a_idx[ok]], lkp[a_idx[ok], r, col[ok]], lki[a_idx[ok], r, col[ok]],
+                   c.rise_time_s[ok])
+        top[a_idx[ok], col[ok]] = r
+    return top, evaluations
+
+
 def tune_global(problem: TuningProblem, fractions, kp_init, ki_init,
                 grid: tuple[int, int] = (GRID_KP, GRID_KI)) -> GlobalResult:
     """Global search for P plants (fractions shape (P, G); initial designs shape (P,))."""
@@ -96,17 +129,10 @@ def tune_global(problem: TuningProblem, fractions, kp_init, ki_init,
     lkp = np.log(kp_init)[:, None, None] + ukp[None, None, :]          # (P, 1, nkp)
     lki = np.log(ki_init)[:, None, None] + uki[None, :, None]          # (P, nki, 1)
     lkp, lki = np.broadcast_arrays(lkp, lki)                            # (P, nki, nkp)
-    rows = np.repeat(np.arange(n), grid[0] * grid[1])
-    c = problem.check(fractions[rows], np.exp(lkp.ravel()), np.exp(lki.ravel()))
-    evaluations = rows.size
     best = _Best(n)
-    ok = c.feasible
-    best.offer(rows[ok], lkp.ravel()[ok], lki.ravel()[ok], c.rise_time_s[ok])
-
     # edge of every grid column: highest feasible point and the infeasible one above it
-    feas = c.feasible.reshape(n, grid[1], grid[0])
-    top = grid[1] - 1 - np.argmax(feas[:, ::-1, :], axis=1)             # (P, nkp)
-    has = feas.any(axis=1) & (top < grid[1] - 1)
+    top, evaluations = _column_tops(problem, fractions, np.arange(n), lkp, lki, best)
+    has = (top >= 0) & (top < grid[1] - 1)
     p_idx, col = np.nonzero(has)
     j = top[p_idx, col]
     evaluations += _edge(problem, fractions, p_idx, lkp[p_idx, 0, col],
@@ -124,14 +150,9 @@ def tune_global(problem: TuningProblem, fractions, kp_init, ki_init,
         zk = best.lkp[alive, None, None] + col_off[None, None, :] * sp_kp      # (A, 1, C)
         zi = best.lki[alive, None, None] + row_off[None, :, None] * sp_ki      # (A, R, 1)
         zk, zi = np.broadcast_arrays(zk, zi)
-        p_rows = np.repeat(alive, zk[0].size)
-        c = problem.check(fractions[p_rows], np.exp(zk.ravel()), np.exp(zi.ravel()))
-        evaluations += p_rows.size
-        ok = c.feasible
-        best.offer(p_rows[ok], zk.ravel()[ok], zi.ravel()[ok], c.rise_time_s[ok])
-        feas = ok.reshape(zk.shape)
-        top = zk.shape[1] - 1 - np.argmax(feas[:, ::-1, :], axis=1)           # (A, C)
-        has = feas.any(axis=1) & (top < zk.shape[1] - 1)
+        top, ev = _column_tops(problem, fractions, alive, zk, zi, best)
+        evaluations += ev
+        has = (top >= 0) & (top < zk.shape[1] - 1)
         a_idx, col = np.nonzero(has)
         j = top[a_idx, col]
         evaluations += _edge(problem, fractions, alive[a_idx], zk[a_idx, 0, col],
