@@ -13,7 +13,10 @@ An adnmesh recording is an ordinary MCAP file (https://mcap.dev) that Foxglove o
   :meth:`Recorder.add_metadata` (e.g. :data:`PUBLISHED_METADATA`, the agents' own counts).
 
 Schema and channel records are written lazily, on the first message of their type or key.
-Messages are grouped in zstd-compressed chunks; every ``flush_interval_s`` of wall time the
+Messages are grouped in zstd-compressed chunks (each followed by its message indexes, with a
+chunk index, statistics and summary offsets in the summary section, as ``mcap.writer.Writer``
+lays them out); the message records and message indexes, written once per message, are packed
+here with :mod:`struct` (:class:`_McapStream`), every other record by :mod:`mcap.records`; every ``flush_interval_s`` of wall time the
 chunk in progress is closed and written, and the file is flushed and fsync'ed, so that a
 recorder killed at any moment (even by SIGKILL) leaves a file whose complete chunks
 :func:`adnmesh.recording.read_recording` recovers: all messages written more than about one
@@ -24,11 +27,30 @@ from __future__ import annotations
 
 import json
 import os
+import struct
 import threading
-from collections.abc import Mapping
+import zlib
+from collections.abc import Iterable, Mapping
 from pathlib import Path
+from typing import BinaryIO
 
-from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, Writer
+import zstandard
+from mcap.data_stream import RecordBuilder
+from mcap.opcode import Opcode
+from mcap.records import (
+    Channel,
+    Chunk,
+    ChunkIndex,
+    DataEnd,
+    Footer,
+    Header,
+    Metadata,
+    MetadataIndex,
+    Schema,
+    Statistics,
+    SummaryOffset,
+)
+from mcap.writer import LIBRARY_IDENTIFIER, MCAP0_MAGIC
 
 from adnmesh import __version__
 
@@ -79,6 +101,183 @@ RUN_METADATA_KEYS = {
 The recorder requires none of them but fills in the ones marked *filled in*."""
 
 _CHUNK_SIZE = 4 * 1024 * 1024  # bytes; chunks are normally closed by the flush timer first
+
+_MESSAGE_HEAD = struct.Struct("<BQHIQQ")  # opcode, record length, channel, sequence, 2 times
+_MESSAGE_FIELDS_BYTES = 2 + 4 + 8 + 8      # a message record's length without its data
+_INDEX_HEAD = struct.Struct("<BQHI")       # opcode, record length, channel, entries' bytes
+
+
+class _McapStream:
+    """An MCAP file written as ``mcap.writer.Writer`` writes it (chunked, zstd, every index,
+    statistics, summary offsets, CRCs of chunks and summary), for the recorder's lock to drive.
+
+    Messages go into the chunk in progress through :meth:`add_messages`, a batch at a time, as
+    packed bytes; :meth:`close_chunk` compresses and writes it with its message indexes.
+    """
+
+    def __init__(self, stream: BinaryIO, library: str, chunk_size: int) -> None:
+        self._stream = stream
+        self._chunk_size = chunk_size
+        self._records = RecordBuilder()
+        self._schemas: list[Schema] = []
+        self._channels: list[Channel] = []
+        self._chunk_indexes: list[ChunkIndex] = []
+        self._metadata_indexes: list[MetadataIndex] = []
+        self._channel_counts: dict[int, int] = {}
+        self._message_count = self._metadata_count = 0
+        self._start_ns = self._end_ns = 0           # over the file
+        self._new_chunk()
+        stream.write(MCAP0_MAGIC)
+        Header(profile="", library=library).write(self._records)
+        self._write_records()
+
+    # -- data section ----------------------------------------------------------------------
+
+    def add_schema(self, name: str, encoding: str, data: bytes) -> int:
+        """Register a schema (its record goes into the chunk in progress); return its id."""
+        schema = Schema(id=len(self._schemas) + 1, name=name, encoding=encoding, data=data)
+        self._schemas.append(schema)
+        self._add_to_chunk(schema)
+        return schema.id
+
+    def add_channel(self, topic: str, message_encoding: str, schema_id: int) -> int:
+        """Register a channel (its record goes into the chunk in progress); return its id."""
+        channel = Channel(id=len(self._channels) + 1, topic=topic,
+                          message_encoding=message_encoding, schema_id=schema_id, metadata={})
+        self._channels.append(channel)
+        self._add_to_chunk(channel)
+        return channel.id
+
+    def add_messages(self, channel_id: int, first_sequence: int,
+                     messages: Iterable[tuple[bytes, int, int]]) -> int:
+        """Append ``(data, log_time_ns, publish_time_ns)`` messages of one channel, numbered from
+        ``first_sequence``, to the chunk in progress; return how many."""
+        chunk, index = self._chunk, self._index.setdefault(channel_id, [])
+        low, high, pack = self._chunk_start_ns, self._chunk_end_ns, _MESSAGE_HEAD.pack
+        sequence = first_sequence
+        for data, log_time, publish_time in messages:
+            index.append(log_time)
+            index.append(len(chunk))
+            chunk += pack(Opcode.MESSAGE, _MESSAGE_FIELDS_BYTES + len(data), channel_id,
+                          sequence, log_time, publish_time)
+            chunk += data
+            low = log_time if low is None or log_time < low else low
+            high = log_time if log_time > high else high
+            sequence += 1
+        count = sequence - first_sequence
+        self._chunk_start_ns, self._chunk_end_ns = low, high
+        self._chunk_messages += count
+        self._channel_counts[channel_id] = self._channel_counts.get(channel_id, 0) + count
+        if len(chunk) > self._chunk_size:
+            self.close_chunk()
+        return count
+
+    def add_metadata(self, name: str, data: Mapping[str, str]) -> None:
+        """Write a metadata record now (outside any chunk) and index it."""
+        offset = self._stream.tell()
+        Metadata(name=name, metadata=dict(data)).write(self._records)
+        self._metadata_indexes.append(MetadataIndex(offset=offset, length=self._records.count,
+                                                    name=name))
+        self._metadata_count += 1
+        self._write_records()
+
+    def close_chunk(self) -> None:
+        """Compress and write the chunk in progress and its message indexes (if it holds a
+        message; schema and channel records alone wait for the next one)."""
+        if not self._chunk_messages:
+            return
+        data = bytes(self._chunk)
+        compressed = zstandard.compress(data)
+        start, end = self._chunk_start_ns, self._chunk_end_ns
+        chunk_offset = self._stream.tell()
+        Chunk(compression="zstd", data=compressed, message_start_time=start,
+              message_end_time=end, uncompressed_crc=zlib.crc32(data),
+              uncompressed_size=len(data)).write(self._records)
+        chunk_length = self._records.count
+        self._write_records()
+        offsets, indexes = self._message_indexes(chunk_offset + chunk_length)
+        self._stream.write(indexes)
+        self._chunk_indexes.append(ChunkIndex(
+            message_start_time=start, message_end_time=end, chunk_start_offset=chunk_offset,
+            chunk_length=chunk_length, message_index_offsets=offsets,
+            message_index_length=len(indexes), compression="zstd",
+            compressed_size=len(compressed), uncompressed_size=len(data)))
+        if not self._message_count:
+            self._start_ns = start
+        self._start_ns, self._end_ns = min(self._start_ns, start), max(self._end_ns, end)
+        self._message_count += self._chunk_messages
+        self._new_chunk()
+
+    # -- summary section -------------------------------------------------------------------
+
+    def finish(self) -> None:
+        """Close the chunk in progress, write the data end, the summary and the footer."""
+        self.close_chunk()
+        DataEnd(data_section_crc=0).write(self._records)
+        self._write_records()
+        summary_start = self._stream.tell()
+        summary = RecordBuilder()
+        offsets = []
+        statistics = Statistics(
+            message_count=self._message_count, schema_count=len(self._schemas),
+            channel_count=len(self._channels), attachment_count=0,
+            metadata_count=self._metadata_count, chunk_count=len(self._chunk_indexes),
+            message_start_time=self._start_ns, message_end_time=self._end_ns,
+            channel_message_counts=dict(self._channel_counts))
+        for opcode, records in ((Opcode.SCHEMA, self._schemas),
+                                (Opcode.CHANNEL, self._channels),
+                                (Opcode.STATISTICS, [statistics]),
+                                (Opcode.CHUNK_INDEX, self._chunk_indexes),
+                                (Opcode.ATTACHMENT_INDEX, []),
+                                (Opcode.METADATA_INDEX, self._metadata_indexes)):
+            group_start = summary.count
+            for record in records:
+                record.write(summary)
+            offsets.append(SummaryOffset(group_opcode=opcode,
+                                         group_start=summary_start + group_start,
+                                         group_length=summary.count - group_start))
+        summary_offset_start = summary_start + summary.count
+        for offset in offsets:
+            offset.write(summary)
+        data = summary.end()
+        footer_head = struct.pack("<BQQQ", Opcode.FOOTER, 8 + 8 + 4, summary_start,
+                                  summary_offset_start)
+        self._stream.write(data)
+        Footer(summary_start=summary_start, summary_offset_start=summary_offset_start,
+               summary_crc=zlib.crc32(footer_head, zlib.crc32(data))).write(self._records)
+        self._write_records()
+        self._stream.write(MCAP0_MAGIC)
+
+    # -- internals -------------------------------------------------------------------------
+
+    def _new_chunk(self) -> None:
+        self._chunk = bytearray()
+        self._index: dict[int, list[int]] = {}   # channel -> [log_time, offset, ...]
+        self._chunk_messages = 0
+        self._chunk_start_ns: int | None = None
+        self._chunk_end_ns = 0
+
+    def _add_to_chunk(self, record) -> None:
+        builder = RecordBuilder()
+        record.write(builder)
+        self._chunk += builder.end()
+
+    def _message_indexes(self, start: int) -> tuple[dict[int, int], bytes]:
+        """The message index records of the chunk in progress, written at file offset
+        ``start``: ``({channel: offset}, bytes)``."""
+        offsets, parts, at = {}, [], start
+        for channel_id, entries in self._index.items():
+            record = _INDEX_HEAD.pack(Opcode.MESSAGE_INDEX, 2 + 4 + 8 * len(entries),
+                                      channel_id, 8 * len(entries)) \
+                + struct.pack(f"<{len(entries)}Q", *entries)
+            offsets[channel_id] = at
+            at += len(record)
+            parts.append(record)
+        return offsets, b"".join(parts)
+
+    def _write_records(self) -> None:
+        self._stream.write(self._records.end())
+
 
 
 class Recorder:
@@ -138,9 +337,8 @@ class Recorder:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._file = open(self.path, "wb")  # noqa: SIM115 -- closed in close()
         try:
-            self._writer = Writer(self._file, chunk_size=_CHUNK_SIZE,
-                                  compression=CompressionType.ZSTD)
-            self._writer.start(profile="", library=f"adnmesh {__version__}; {LIBRARY_IDENTIFIER}")
+            self._writer = _McapStream(self._file, f"adnmesh {__version__}; {LIBRARY_IDENTIFIER}",
+                                       _CHUNK_SIZE)
             self._writer.add_metadata(RUN_METADATA, run)
             self._sync()
         except BaseException:
@@ -175,11 +373,24 @@ class Recorder:
         RuntimeError
             The recorder is closed, or an earlier flush failed (the cause is chained).
         """
+        self.write_many(topic, schema_name, [(payload, log_time_ns, publish_time_ns)])
+
+    def write_many(self, topic: str, schema_name: str,
+                   messages: list[tuple[bytes, int, int]]) -> None:
+        """Record several messages of one topic, in order: ``(payload, log_time_ns,
+        publish_time_ns)`` each (see :meth:`write`). All or none are recorded.
+
+        Raises
+        ------
+        ValueError, RuntimeError
+            As :meth:`write`.
+        """
         if schema_name not in self._schemas:
             raise ValueError(f"{topic}: unknown message type {schema_name!r}")
-        if log_time_ns < 0 or publish_time_ns < 0:
-            raise ValueError(f"{topic}: times must be >= 0 ns, got log_time_ns={log_time_ns}, "
-                             f"publish_time_ns={publish_time_ns}")
+        for _, log_time_ns, publish_time_ns in messages:
+            if log_time_ns < 0 or publish_time_ns < 0:
+                raise ValueError(f"{topic}: times must be >= 0 ns, got log_time_ns="
+                                 f"{log_time_ns}, publish_time_ns={publish_time_ns}")
         with self._lock:
             self._check_open()
             channel = self._channels.get(topic)
@@ -189,10 +400,11 @@ class Recorder:
             elif channel[1] != schema_name:
                 raise ValueError(f"{topic}: message type {schema_name!r}, but the topic is "
                                  f"recorded as {channel[1]!r}")
-            sequence = self._counts.get(topic, 0) + 1
-            self._writer.add_message(channel[0], log_time=int(log_time_ns), data=bytes(payload),
-                                     publish_time=int(publish_time_ns), sequence=sequence)
-            self._counts[topic] = sequence
+            first = self._counts.get(topic, 0) + 1
+            written = self._writer.add_messages(channel[0], first, (
+                (bytes(payload), int(log_time), int(publish_time))
+                for payload, log_time, publish_time in messages))
+            self._counts[topic] = first - 1 + written
             self._dirty = True
 
     def add_metadata(self, name: str, data: Mapping[str, str]) -> None:
@@ -254,14 +466,19 @@ class Recorder:
     def _register(self, topic: str, schema_name: str) -> int:
         schema_id = self._schema_ids.get(schema_name)
         if schema_id is None:
-            schema_id = self._writer.register_schema(schema_name, SCHEMA_ENCODING,
-                                                     self._schemas[schema_name])
+            schema_id = self._writer.add_schema(schema_name, SCHEMA_ENCODING,
+                                                self._schemas[schema_name])
             self._schema_ids[schema_name] = schema_id
-        return self._writer.register_channel(topic, MESSAGE_ENCODING, schema_id)
+        return self._writer.add_channel(topic, MESSAGE_ENCODING, schema_id)
+
+    def _flush_file(self) -> None:
+        """Write the chunk in progress and flush the file's buffer (no fsync)."""
+        self._writer.close_chunk()
+        self._file.flush()
 
     def _sync(self) -> None:
         """Close the chunk in progress and push the file to disk."""
-        self._writer.flush()
+        self._flush_file()
         os.fsync(self._file.fileno())
         self._dirty = False
 
@@ -273,7 +490,7 @@ class Recorder:
                 if self._closed or self._failure is not None or not self._dirty:
                     continue
                 try:
-                    self._writer.flush()
+                    self._flush_file()
                     self._dirty = False
                 except BaseException as exc:  # noqa: BLE001 -- reported by write()/close()
                     self._failure = exc

@@ -3,10 +3,11 @@
 :func:`run` does, in this order:
 
 1. opens the embedded Zenoh router (a session in mode ``router``, ``tcp/127.0.0.1:<free port>``
-   unless told otherwise) and, on that session, the recorder's subscriber on ``adn/<grid>/**``
-   (every message to MCAP, ``log_time`` = delivery time, ``publish_time`` = send time), the sim
-   clock's coordinator (reports in, grants out), and liveliness subscriptions that tell when an
-   agent's session appears or dies;
+   unless told otherwise) and, on that session, one subscriber on ``adn/<grid>/**`` for what
+   the agents send — every envelope to MCAP (``log_time`` = delivery time, ``publish_time`` =
+   send time), clock reports to the sim clock's coordinator (grants out), goodbyes to the
+   shutdown — and liveliness subscriptions that tell when an agent's session appears or dies;
+   what ``up`` publishes itself (grants, start, stop) it records as it sends it;
 2. spawns one process per agent with ``sys.executable agents/<kind>.py`` as Zenoh clients
    (own session so Ctrl-C reaches only ``up``; told to die with ``up`` on Linux), tracked by PID;
 3. waits until every agent is ready (liveliness token and first clock report), announces the
@@ -47,6 +48,7 @@ from adnmesh.runtime.messages import (
     decode,
     encode,
     message_type,
+    parse_json,
     split_frame,
 )
 from adnmesh.runtime.summary import RunSeries
@@ -64,6 +66,15 @@ EXIT_OK, EXIT_FAILED, EXIT_SIGINT, EXIT_SIGTERM = 0, 1, 130, 143
 
 _SUMMARY_TYPES = frozenset({"p_ip", "p_ref", "p_y", "heartbeat", "fault"})
 _TIMES = re.compile(rb'"t_send_ns":(\d+),"t_deliver_ns":(\d+)[,}]')
+
+
+def _loads(payload: bytes):
+    """The JSON value of a recorded payload (NaN and Infinity allowed: the recorder records
+    whatever comes and the summary takes what it can)."""
+    try:
+        return parse_json(payload)
+    except MessageError:
+        return json.loads(payload)
 
 
 @dataclass
@@ -203,8 +214,8 @@ class _Run:
         self.keys = topology.keys
         self.recorder = recorder
         # two locks: `lock` for the clock and the agents' state (held while publishing grants),
-        # `record_lock` for the recording; the router may deliver a message published under
-        # `lock` to `on_message` on the publishing thread itself.
+        # `record_lock` for the recording and the series; `record_lock` may be taken while
+        # holding `lock` (`send` records what it publishes), never the other way round.
         self.lock = threading.Lock()
         self.record_lock = threading.Lock()
         self.event = threading.Event()
@@ -228,14 +239,21 @@ class _Run:
     # -- publishing (callers hold self.lock) ---------------------------------------------------
 
     def send(self, key: str, body: dict, t_ns: int) -> None:
+        """Publish a message of ``up`` itself at sim time ``t_ns`` and record it (the recorder's
+        subscriber takes only what comes from the agents)."""
         seq = self.own_seq.get(key, 0)
         self.own_seq[key] = seq + 1
         self.own[key] = self.own.get(key, 0) + 1
         pub = self.publishers.get(key)
         if pub is None:
             pub = self.publishers[key] = self.session.declare_publisher(
-                key, congestion_control=zenoh.CongestionControl.BLOCK)
-        pub.put(encode(message_type(key), "up", seq, t_ns, t_ns, body))
+                key, congestion_control=zenoh.CongestionControl.BLOCK,
+                allowed_destination=zenoh.Locality.REMOTE)
+        type_name = message_type(key)
+        payload = encode(type_name, "up", seq, t_ns, t_ns, body)
+        pub.put(payload)
+        with self.record_lock:
+            self._record(key, type_name, [(payload, t_ns, t_ns)])
 
     def grant(self, grants) -> None:
         t = self.coordinator.now_ns() if grants else 0
@@ -245,46 +263,68 @@ class _Run:
             self.finished = True
             self.event.set()
 
+    # -- recording (callers hold self.record_lock) ---------------------------------------------
+
+    def _record(self, key: str, type_name: str, records: list[tuple[bytes, int, int]]) -> bool:
+        """Write ``(payload, log_time_ns, publish_time_ns)`` envelopes of one key; False if the
+        recorder refused them."""
+        try:
+            self.recorder.write_many(key, type_name, records)
+        except (ValueError, RuntimeError) as exc:   # reported at the end of the run
+            if not self.record_errors:
+                self.problems.append(f"recording failed: {exc}")
+            self.record_errors += len(records)
+            return False
+        return True
+
+    def _record_frame(self, key: str, type_name: str, envelopes: list[bytes]) -> None:
+        """Record the envelopes of one sample from an agent; feed the summary's series with
+        what it needs (P_IP, P_ref, switches, heartbeats, faults)."""
+        summary = type_name in _SUMMARY_TYPES
+        records, bodies = [], []
+        for payload in envelopes:
+            wanted = summary and (type_name != "p_y" or b'"switch"' in payload)
+            times = None if wanted else _TIMES.search(payload)  # our encoder's field order
+            if times is not None:
+                records.append((payload, int(times[2]), int(times[1])))
+                continue
+            try:
+                body = _loads(payload)
+                t_send, t_deliver = int(body["t_send_ns"]), int(body["t_deliver_ns"])
+            except (ValueError, TypeError, KeyError):
+                body, t_send, t_deliver = None, 0, 0
+            records.append((payload, max(t_deliver, 0), max(t_send, 0)))
+            if wanted and body is not None:
+                bodies.append(body)
+        if self._record(key, type_name, records):
+            for body in bodies:
+                self.series.add(type_name, body)
+
     # -- callbacks (Zenoh threads) -------------------------------------------------------------
 
-    def on_message(self, sample: zenoh.Sample) -> None:
+    def on_sample(self, sample: zenoh.Sample) -> None:
+        """Every sample an agent sends: record its envelopes; clock reports and goodbyes also
+        go to the clock and the shutdown."""
         key = str(sample.key_expr)
-        frame = sample.payload.to_bytes()
         try:
             type_name = message_type(key)
         except ValueError:
             with self.record_lock:
                 self.foreign += 1
             return
-        wanted = type_name in _SUMMARY_TYPES
+        envelopes = split_frame(sample.payload.to_bytes())
         with self.record_lock:
-            for payload in split_frame(frame):
-                body = None
-                times = _TIMES.search(payload)  # our encoder's field order: no JSON parse
-                if wanted or times is None:
-                    try:
-                        body = json.loads(payload)
-                        t_send, t_deliver = int(body["t_send_ns"]), int(body["t_deliver_ns"])
-                    except (ValueError, TypeError, KeyError):
-                        body, t_send, t_deliver = None, 0, 0
-                else:
-                    t_send, t_deliver = int(times[1]), int(times[2])
-                try:
-                    self.recorder.write(key, type_name, payload,
-                                        log_time_ns=max(t_deliver, 0),
-                                        publish_time_ns=max(t_send, 0))
-                except (ValueError, RuntimeError) as exc:   # reported at the end of the run
-                    if not self.record_errors:
-                        self.problems.append(f"recording failed: {exc}")
-                    self.record_errors += 1
-                    continue
-                if wanted and body is not None:
-                    self.series.add(type_name, body)
+            self._record_frame(key, type_name, envelopes)
+        if type_name == "clock_report":
+            for payload in envelopes:
+                self.on_report(key, payload)
+        elif type_name == "agent_bye":
+            for payload in envelopes:
+                self.on_bye(key, payload)
 
-    def on_report(self, sample: zenoh.Sample) -> None:
-        key = str(sample.key_expr)
+    def on_report(self, key: str, payload: bytes) -> None:
         try:
-            message = decode(key, sample.payload.to_bytes())
+            message = decode(key, payload)
         except MessageError as exc:
             with self.lock:
                 self.problems.append(f"{key}: rejected clock report: {exc}")
@@ -302,10 +342,9 @@ class _Run:
                 self.clock_error = str(exc)
                 self.event.set()
 
-    def on_bye(self, sample: zenoh.Sample) -> None:
-        key = str(sample.key_expr)
+    def on_bye(self, key: str, payload: bytes) -> None:
         try:
-            message = decode(key, sample.payload.to_bytes())
+            message = decode(key, payload)
         except MessageError as exc:
             with self.lock:
                 self.problems.append(f"{key}: rejected goodbye: {exc}")
@@ -360,9 +399,8 @@ def run(options: UpOptions) -> UpResult:
             if options.clock == "sim":
                 state.coordinator = Coordinator(topology, result.end_ns)
             handles = [
-                session.declare_subscriber(keys.all, state.on_message),
-                session.declare_subscriber(f"{keys.root}/clock/report/**", state.on_report),
-                session.declare_subscriber(f"{keys.root}/clock/bye/**", state.on_bye),
+                session.declare_subscriber(keys.all, state.on_sample,
+                                           allowed_origin=zenoh.Locality.REMOTE),
                 session.liveliness().declare_subscriber(f"{keys.root}/alive/**",
                                                         state.on_alive, history=True),
             ]
