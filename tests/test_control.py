@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import random
 from pathlib import Path
@@ -18,6 +19,8 @@ from adnmesh.control.dynamics import PT1DelayParams, PT1DelayState, infeed_at, s
 from adnmesh.control.measurement import Measurement
 from adnmesh.control.pi import SampledPI
 from adnmesh.runtime.messages import Keys, decode, encode, message_type
+from adnmesh.runtime.node import Node
+from adnmesh.runtime.topology import Topology
 from adnmesh.table import SchedulingTable, TableEntry
 
 MS = 1_000_000  # ns
@@ -232,9 +235,11 @@ def test_availability_monitor_builds_si_from_heartbeats(config: Config) -> None:
     assert first.body == {"si": {"SGen1": True, "SGen2": True}}
 
     def beat(der_id: str, t_ns: int, available: bool):
-        return monitor.on_message(t_ns, message(keys.heartbeat(der_id), t_ns,
+        """Deliver a heartbeat at ``t_ns``, then end the instant; return what was sent."""
+        assert monitor.on_message(t_ns, message(keys.heartbeat(der_id), t_ns,
                                                 {"available": available},
-                                                src=f"der/{der_id}"))
+                                                src=f"der/{der_id}")) == []
+        return monitor.on_timer(t_ns) if monitor.next_timer_ns() == t_ns else []
 
     assert beat("SGen1", 100 * MS, True) == []                  # no change, nothing sent
     (change,) = beat("SGen2", 150 * MS, False)
@@ -245,6 +250,29 @@ def test_availability_monitor_builds_si_from_heartbeats(config: Config) -> None:
     assert lost.body["si"] == {"SGen1": False, "SGen2": False}
     (back,) = beat("SGen1", 100 * MS + timeout + 1, True)
     assert back.body["si"]["SGen1"] is True
+
+
+def test_availability_monitor_sends_one_si_for_simultaneous_changes(configs_dir: Path) -> None:
+    """The SimBench scenario: six WTs go unavailable at 170 s, so at 170.1 s eleven heartbeats
+    arrive at once, six of them with ``available: false``; the monitor sends one SI with all six
+    changes (not one SI per heartbeat)."""
+    simbench = load_config(configs_dir / "simbench.yaml")
+    keys = Keys(simbench.grid)
+    (change,) = [c for c in simbench.scenario.availability if not c.available]
+    assert (change.t_s, len(change.ders)) == (170, 6)
+    node = Node(AvailabilityMonitor(simbench), Topology.from_config(simbench), seed=0)
+    sent = []
+    for second in range(171):   # every DER's heartbeat every second, 0.1 s on the link
+        t_ns = second * 1000 * MS
+        for der_id in simbench.der_ids():
+            available = second < change.t_s or der_id not in change.ders
+            node.receive(keys.heartbeat(der_id), encode(
+                "heartbeat", f"der/{der_id}", second, t_ns, t_ns + 100 * MS,
+                {"available": available}))
+        sent += [json.loads(payload) for _, payload in node.advance(t_ns + 500 * MS)]
+    assert [(m["t_send_ns"], m["si"]) for m in sent] == [
+        (0, dict.fromkeys(simbench.der_ids(), True)),
+        (170_100 * MS, {d: d not in change.ders for d in simbench.der_ids()})]
 
 
 # --- CPFC ---------------------------------------------------------------------------------------
