@@ -177,14 +177,15 @@ def serve(session: zenoh.Session, node: Node, grid: str) -> int:
                 inbox.rejected += 1
             return
         with cond:
-            if message.type == "clock_grant":
+            if message.type == "clock_grant":   # processed here: the main thread sleeps on
                 inbox.grants.append(message.body)
                 run_granted()
-            elif message.type == "clock_start":
+                return
+            if message.type == "clock_start":
                 inbox.start = message.body
             elif message.type == "clock_stop":
                 inbox.stop = inbox.stop or message.body["reason"]
-            cond.notify()
+            cond.notify()   # what the main thread waits for
 
     def on_up_alive(sample: zenoh.Sample) -> None:
         if sample.kind == zenoh.SampleKind.DELETE:
