@@ -9,17 +9,16 @@ clocks and in tests.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any, NamedTuple, Protocol
 
 from adnmesh.runtime.messages import Message
 
 __all__ = ["Agent", "Outgoing"]
 
 
-@dataclass(frozen=True, slots=True)
-class Outgoing:
-    """A message an agent wants sent: its key and its body (the runtime adds the envelope)."""
+class Outgoing(NamedTuple):
+    """A message an agent wants sent: its key and its body (the runtime adds the envelope).
+    A named tuple: agents make one per message."""
 
     key: str
     body: dict[str, Any]

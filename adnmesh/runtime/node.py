@@ -27,6 +27,8 @@ from adnmesh.runtime.links import Link
 from adnmesh.runtime.messages import MessageError, decode, encode, message_type
 from adnmesh.runtime.topology import Topology
 
+_heappop, _heappush = heapq.heappop, heapq.heappush
+
 __all__ = ["AgentCrash", "Node", "NodeCounts"]
 
 
@@ -59,6 +61,20 @@ class NodeCounts:
     late: int = 0
 
 
+class _Outbox:
+    """A node's sender side of one key: its link, message type and next ``seq``, and what it
+    sent on the key in the current clock window (count, earliest delivery, ns)."""
+
+    __slots__ = ("link", "type", "seq", "window_count", "window_earliest_ns")
+
+    def __init__(self, link: Link, type_name: str) -> None:
+        self.link = link
+        self.type = type_name
+        self.seq = 0
+        self.window_count = 0
+        self.window_earliest_ns = 0
+
+
 class Node:
     """Drives one agent (see the module docstring).
 
@@ -85,12 +101,11 @@ class Node:
         self.subscriptions = topology.subscriptions[agent.agent_id]
         self._topology = topology
         self.seed = seed
-        self._links = {key: Link(topology.link(agent.agent_id, key), seed, agent.agent_id)
-                       for key in topology.publishes(agent.agent_id)}
-        self._types = {key: message_type(key) for key in self._links}
-        self._seq = dict.fromkeys(self._links, 0)
+        self._outboxes = {key: _Outbox(Link(topology.link(agent.agent_id, key), seed,
+                                            agent.agent_id), message_type(key))
+                          for key in topology.publishes(agent.agent_id)}
+        self._window_keys: list[str] = []   # keys sent on in this window, in first-send order
         self._inbox: list = []
-        self._window: dict[str, list[int]] = {}
         self.crash_ns = crash_ns
         self.strict = strict
         self.now_ns = 0
@@ -107,8 +122,8 @@ class Node:
     def reseed(self, seed: int) -> None:
         """Restart the ICT random streams with ``seed`` (before the first event only)."""
         self.seed = seed
-        self._links = {key: Link(link.params, seed, self.agent_id)
-                       for key, link in self._links.items()}
+        for outbox in self._outboxes.values():
+            outbox.link = Link(outbox.link.params, seed, self.agent_id)
 
     # -- input ---------------------------------------------------------------------------------
 
@@ -128,7 +143,7 @@ class Node:
                 return
             counts.late += 1
             t = self.now_ns
-        heapq.heappush(self._inbox, (t, key, message.seq, message))
+        _heappush(self._inbox, (t, key, message.seq, message))
 
     # -- time ----------------------------------------------------------------------------------
 
@@ -149,51 +164,54 @@ class Node:
             If the next event is at or after the injected crash time.
         """
         out: list[tuple[str, bytes]] = []
-        inbox, agent = self._inbox, self.agent
+        inbox, agent, emit = self._inbox, self.agent, self._emit
+        next_timer_ns, on_message, on_timer = agent.next_timer_ns, agent.on_message, \
+            agent.on_timer
+        crash_ns = self.crash_ns
         while True:
-            timer = agent.next_timer_ns()
+            timer = next_timer_ns()
             if inbox and (timer is None or inbox[0][0] <= timer):
                 t = inbox[0][0]
                 if t >= until_ns:
                     break
-                self._check_crash(t)
-                message = heapq.heappop(inbox)[3]
+                if crash_ns is not None and t >= crash_ns:
+                    self._crash()
+                message = _heappop(inbox)[3]
                 self.now_ns = t
-                outgoing = agent.on_message(t, message)
+                outgoing = on_message(t, message)
             elif timer is not None and timer < until_ns:
-                self._check_crash(timer)
-                self.now_ns = timer
-                outgoing = agent.on_timer(timer)
+                if crash_ns is not None and timer >= crash_ns:
+                    self._crash()
+                self.now_ns = t = timer
+                outgoing = on_timer(timer)
             else:
                 break
-            for item in outgoing:
-                self._emit(self.now_ns, item.key, item.body, out)
+            for key, body in outgoing:
+                emit(t, key, body, out)
         self.granted_ns = max(self.granted_ns, until_ns)
         return out
 
-    def _check_crash(self, t: int) -> None:
-        if self.crash_ns is not None and t >= self.crash_ns:
-            self.now_ns = self.crash_ns
-            raise AgentCrash(f"{self.agent_id}: injected crash at {self.crash_ns} ns")
+    def _crash(self) -> None:
+        self.now_ns = self.crash_ns
+        raise AgentCrash(f"{self.agent_id}: injected crash at {self.crash_ns} ns")
 
     def _emit(self, t: int, key: str, body: dict, out: list) -> None:
-        link = self._links[key]
-        seq = self._seq[key]
-        self._seq[key] = seq + 1
-        t_deliver = link.transmit(t)
+        outbox = self._outboxes[key]
+        seq = outbox.seq
+        outbox.seq = seq + 1
+        t_deliver = outbox.link.transmit(t)
         if t_deliver is None:
             self.counts.lost += 1
             return
-        out.append((key, encode(self._types[key], self.agent_id, seq, t, t_deliver, body)))
+        out.append((key, encode(outbox.type, self.agent_id, seq, t, t_deliver, body)))
         published = self.counts.published
         published[key] = published.get(key, 0) + 1
-        window = self._window.get(key)
-        if window is None:
-            self._window[key] = [1, t_deliver]
-        else:
-            window[0] += 1
-            if t_deliver < window[1]:
-                window[1] = t_deliver
+        if not outbox.window_count:
+            self._window_keys.append(key)
+            outbox.window_earliest_ns = t_deliver
+        elif t_deliver < outbox.window_earliest_ns:
+            outbox.window_earliest_ns = t_deliver
+        outbox.window_count += 1
 
     def emit_now(self, key: str, body: dict) -> list[tuple[str, bytes]]:
         """Send one message at the current time outside :meth:`advance` (e.g. a fault record)."""
@@ -205,6 +223,10 @@ class Node:
 
     def report(self) -> Report:
         """The report after a window; resets the per-window send counts."""
-        sent = {key: (w[0], w[1]) for key, w in self._window.items()}
-        self._window = {}
+        sent = {}
+        for key in self._window_keys:
+            outbox = self._outboxes[key]
+            sent[key] = (outbox.window_count, outbox.window_earliest_ns)
+            outbox.window_count = 0
+        self._window_keys = []
         return Report(self.agent_id, self.next_event_ns(), self.counts.received, sent)
