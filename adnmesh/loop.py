@@ -92,7 +92,8 @@ def _frequency_part(plant: Plant, kp, ki, classical: bool):
 def evaluate(plant: Plant, kp, ki, *, band_pct: float = 5.0, classical: bool = True,
              time_domain: bool = True, time_mask=None,
              overshoot_stop_pct: float | None = None,
-             disk_margin_min: float | None = None) -> LoopFigures:
+             disk_margin_min: float | None = None,
+             t_max_s: float = 20000.0) -> LoopFigures:
     """Evaluate the loop for M candidates.
 
     Parameters
@@ -116,6 +117,9 @@ def evaluate(plant: Plant, kp, ki, *, band_pct: float = 5.0, classical: bool = T
     disk_margin_min : float, optional
         Simulate only candidates whose disk margin reaches this (the others already violate
         a disk-margin constraint).
+    t_max_s : float
+        Longest simulated step response, s; a response not settled by then has infinite
+        settling times (and NaN rise time if it has not reached 90 %).
     """
     kp, ki, gains = as_candidates(plant, kp, ki)
     m = kp.size
@@ -143,7 +147,7 @@ def evaluate(plant: Plant, kp, ki, *, band_pct: float = 5.0, classical: bool = T
             mask = mask & (alpha >= disk_margin_min)
         info = step_info(Plant(plant.actuators, gains, plant.t_com_s, plant.t_meas_s), kp, ki,
                          band_pct=band_pct, bandwidth_rad_s=w_disk, mask=mask,
-                         overshoot_stop_pct=overshoot_stop_pct)
+                         overshoot_stop_pct=overshoot_stop_pct, t_max_s=t_max_s)
     else:
         info = StepInfo(*(nan() for _ in range(6)), np.nan, nan())
     return LoopFigures(stable, certified, poles, alpha, w_disk, dmo.gain_margin,

@@ -56,7 +56,9 @@ class TableEntry:
         ``FIGURE_KEYS`` of the as-deployed loop (weights applied), plus ``design_rise_time_s``
         (the tuning method's rise time on the unweighted plant), ``global_rise_time_s`` (the
         global optimum's on that plant) and ``gain_back_off`` (factor applied to both gains so
-        that the weighted loop meets the constraints; 1 if none was needed).
+        that the weighted loop meets the constraints; 1 if none was needed) and ``tuned_by``
+        (``paper``, ``global``, or the global search standing in where the paper's path found
+        no feasible point).
     """
 
     ders: tuple[str, ...]

@@ -160,3 +160,77 @@ def test_cli_bad_arguments(args, message, capsys):
     assert main(["tune", str(CONFIGS / "two-wt.yaml"), *args]) == 2
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1
+
+
+def _literal_path(problem, fractions, kp, ki, step):
+    """SPEC §3.2 move by move, one evaluation per move (the reference for path_search)."""
+    from adnmesh.tuning.paper import ES_LIMIT
+    best, es, seen, path = None, 0, False, []
+    while es < ES_LIMIT and kp >= 1e-9 and len(path) < 5000:
+        chk = problem.check(fractions[None], np.array([kp]), np.array([ki]))
+        ok = bool(chk.feasible[0])
+        path.append((kp, ki, ok))
+        if ok and (best is None or chk.rise_time_s[0] < best[2]):
+            best, es = (kp, ki, chk.rise_time_s[0]), 0
+        elif seen or ok:
+            es += 1
+        seen |= ok
+        kp, ki = (kp, ki * (1 + step)) if ok else (kp * (1 - step), ki)
+    return best, path
+
+
+def test_path_search_makes_exactly_the_moves_of_the_rule():
+    from adnmesh.tuning.paper import path_search
+    config = load_config(CONFIGS / "wt-chp.yaml")
+    problem = TuningProblem(config)
+    f = problem.fractions(["SGen1", "SGen5"])[0]
+    kp0, ki0 = initial_values(problem, f[None])
+    best, path = _literal_path(problem, f, kp0[0], 0.01 * ki0[0], 0.01)
+    kp, ki, rise, _, paths = path_search(problem, f[None], kp0, 0.01 * ki0, 0.01, record=True)
+    assert len(path) > 40 and not path[0][2]            # it walks into the feasible set first
+    assert [p[2] for p in paths[0]] == [p[2] for p in path]
+    np.testing.assert_allclose([p[:2] for p in paths[0]], [p[:2] for p in path], rtol=1e-12)
+    assert (kp[0], ki[0]) == pytest.approx(best[:2], rel=1e-12)
+    assert rise[0] == pytest.approx(best[2], rel=1e-9)
+
+
+def test_paper_path_starts_again_with_a_lower_ki_when_it_never_meets_the_feasible_set():
+    # a slow CHP with a small fast PV share: 1 % of the PI design's K_I is infeasible for any kp
+    config = load_config(CONFIGS / "chp-pv.yaml")
+    problem = TuningProblem(config)
+    f = problem.fractions(["SGen5", "SGen10"])[0]
+    kp0, ki0 = initial_values(problem, f[None])
+    from adnmesh.tuning.paper import path_search
+    *_, rise, _, _ = path_search(problem, f[None], kp0, 0.01 * ki0, 0.01)
+    assert np.isnan(rise[0])                             # the literal start never gets there
+    table = tune_table(config, "paper")
+    for entry in table.entries.values():
+        assert entry.feasible and entry.figures["tuned_by"] == "paper", entry
+        fresh = _deployed(config, entry)
+        assert fresh["disk_margin"] >= 1.5 and fresh["overshoot_pct"] < 1.0
+        assert entry.figures["design_rise_time_s"] <= entry.figures["global_rise_time_s"] * 1.02
+
+
+def test_static_controller_is_feasible_everywhere_and_matches_a_brute_force_search(wt_chp):
+    config, table = wt_chp
+    static = table.static
+    assert static.feasible
+    worst = 0.0
+    for entry in table.entries.values():
+        plant = plant_from_ders(config.ders_by_id(entry.ders), config.t_com_s, config.t_meas_s)
+        f = evaluate(plant, static.kp, static.ki, classical=False).row(0)
+        assert f["stable"] and f["disk_margin"] >= 1.5 and f["overshoot_pct"] < 1.0
+        worst = max(worst, f["rise_time_s"])
+    assert worst == pytest.approx(static.figures["worst_rise_time_s"], rel=1e-3)
+    # brute force over absolute gains: the best worst-case rise time of a 48 x 48 log grid
+    problem = TuningProblem(config)
+    powers = np.array([problem.group_power(e.ders) for e in table.entries.values()])
+    kp, ki = np.meshgrid(np.geomspace(static.kp / 10, static.kp * 3, 48),
+                         np.geomspace(static.ki / 30, static.ki * 30, 48))
+    kp, ki = kp.ravel(), ki.ravel()
+    rows = np.repeat(np.arange(len(powers)), kp.size)
+    chk = problem.check(powers[rows], np.tile(kp, len(powers)), np.tile(ki, len(powers)))
+    rise = np.where(chk.feasible, chk.rise_time_s, np.inf).reshape(len(powers), -1)
+    grid_best = rise.max(axis=0).min()
+    assert np.isfinite(grid_best)
+    assert static.figures["worst_rise_time_s"] <= grid_best * 1.01

@@ -26,6 +26,8 @@ from .weights import find_weights
 __all__ = ["tune_table", "tune_subset", "paper_path", "write_csv", "PlantGroup", "METHODS"]
 
 METHODS = ("paper", "global")
+#: ``tuned_by`` of a paper-method entry whose path search never found a feasible point
+PAPER_FALLBACK = "global (the paper's path found no feasible point)"
 CHUNK = 48
 BACK_OFF_STEPS = 50
 
@@ -50,21 +52,22 @@ def group_subsets(problem: TuningProblem, subsets: Sequence[Sequence[str]]) -> l
 
 
 def _entries(problem: TuningProblem, groups: list[PlantGroup], kp_n, ki_n, feasible, reasons,
-             global_rise, design_rise) -> list[TableEntry]:
+             global_rise, design_rise, tuned_by) -> list[TableEntry]:
     """Table entries (absolute gains, weights, as-deployed figures) for tuned plant groups.
 
     ``design_rise`` is the tuning method's rise time on the unweighted plant, ``global_rise``
     the global optimum's on the same plant: the two are comparable, the as-deployed figures
-    (weights applied) are what the runtime gets.
+    (weights applied) are what the runtime gets. ``tuned_by`` (per group) names the method
+    that found the pair.
     """
-    rows = []                                  # (subset, K_P, K_I, global rise, design rise)
+    rows = []                          # (subset, K_P, K_I, global rise, design rise, tuned by)
     out: list[TableEntry] = []
     for g, grp in enumerate(groups):
         for s in grp.subsets:
             total = float(problem.group_power(s).sum())
             if feasible[g]:
                 rows.append((s, kp_n[g] / total, ki_n[g] / total, global_rise[g],
-                             design_rise[g]))
+                             design_rise[g], tuned_by[g]))
             else:
                 out.append(TableEntry(s, float("nan"), float("nan"), {d: 1.0 for d in s}, False,
                                       reasons[g], {"global_rise_time_s": None}))
@@ -79,12 +82,13 @@ def _entries(problem: TuningProblem, groups: list[PlantGroup], kp_n, ki_n, feasi
     scale = _back_off(problem, gains, kp, ki)
     kp, ki = kp * np.nan_to_num(scale, nan=1.0), ki * np.nan_to_num(scale, nan=1.0)
     fig = problem.figures(gains, kp, ki)
-    for i, ((s, _, _, grise, drise), w) in enumerate(zip(rows, weights)):
+    for i, ((s, _, _, grise, drise, by), w) in enumerate(zip(rows, weights)):
         row = fig.row(i)
         figures = {k: row[k] for k in FIGURE_KEYS}
         figures["settling_time_2pct_s"] = row["settling_time_2pct_s"]
         figures["global_rise_time_s"] = None if not np.isfinite(grise) else float(grise)
         figures["design_rise_time_s"] = float(drise)
+        figures["tuned_by"] = by
         figures["gain_back_off"] = float(scale[i]) if np.isfinite(scale[i]) else None
         ok = bool(usable[i] and np.isfinite(scale[i]) and row["stable"]
                   and row["disk_margin"] >= problem.disk_margin_min
@@ -127,12 +131,19 @@ def _tune_chunk(args) -> list[TableEntry]:
     glob = tune_global(problem, fractions, kp0, ki0)
     if method == "global":
         kp, ki, feas, rise = glob.kp, glob.ki, glob.feasible, glob.rise_time_s
+        tuned_by = ["global"] * len(groups)
     else:
         res = tune_paper(problem, fractions)
-        kp, ki, feas, rise = res.kp, res.ki, res.feasible, res.rise_time_s
+        # where the paper's path never met the feasible set, the global search's pair is used
+        lost = ~res.feasible & glob.feasible
+        kp = np.where(lost, glob.kp, res.kp)
+        ki = np.where(lost, glob.ki, res.ki)
+        rise = np.where(lost, glob.rise_time_s, res.rise_time_s)
+        feas = res.feasible | glob.feasible
+        tuned_by = [PAPER_FALLBACK if x else "paper" for x in lost]
     reasons = ["no feasible pair: every candidate violates the disk margin or overshoot limit"
                if not f else None for f in feas]
-    return _entries(problem, groups, kp, ki, feas, reasons, glob.rise_time_s, rise)
+    return _entries(problem, groups, kp, ki, feas, reasons, glob.rise_time_s, rise, tuned_by)
 
 
 def tune_table(config, method: str = "paper", workers: int = 1, out: Path | None = None,
@@ -215,8 +226,7 @@ def _static_entry(problem: TuningProblem, ids: list[str]) -> TableEntry:
     tot = powers.sum(axis=1)
     f = powers / tot[:, None]
     kp0, _ = initial_values(problem, f)
-    hint = float(np.min(kp0 / tot))
-    res = static_controller(problem, f, tot, hint)
+    res = static_controller(problem, f, tot, kp0)
     if not res.feasible:
         return TableEntry(tuple(ids), float("nan"), float("nan"), {d: 1.0 for d in ids}, False,
                           "no pair is feasible on every subset", {})
@@ -250,7 +260,7 @@ def tune_subset(config, der_ids: Sequence[str], constraints: dict | None = None)
     reasons = [None if glob.feasible[0] else "no feasible pair on the global grid"]
     group = PlantGroup(fractions, (ders,))
     return _entries(problem, [group], glob.kp, glob.ki, glob.feasible, reasons,
-                    glob.rise_time_s, glob.rise_time_s)[0]
+                    glob.rise_time_s, glob.rise_time_s, ["global"])[0]
 
 
 def paper_path(config, der_ids: Sequence[str]) -> list[tuple[float, float, bool]]:
@@ -265,7 +275,8 @@ def paper_path(config, der_ids: Sequence[str]) -> list[tuple[float, float, bool]
 def write_csv(table: SchedulingTable, path: Path) -> None:
     """One row per entry: ders, gains, weights, feasibility and the figures."""
     path = Path(path)
-    keys = list(FIGURE_KEYS) + ["settling_time_2pct_s", "global_rise_time_s"]
+    keys = list(FIGURE_KEYS) + ["settling_time_2pct_s", "design_rise_time_s",
+                                "global_rise_time_s", "tuned_by"]
     tmp = path.with_suffix(path.suffix + ".tmp")
     with open(tmp, "w", newline="") as fh:
         w = csv.writer(fh)

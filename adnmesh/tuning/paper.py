@@ -16,6 +16,12 @@ Path search
     walking into the feasible set); it is reset to 0 whenever a feasible point improves the best
     rise time; the run stops when ES reaches 20, or after 5000 moves. The run's result is the
     best feasible point seen. The second run (s = 0.001) starts at the first run's result.
+Start too aggressive in K_I
+    For some plants (a slow CHP share with a small fast PV share) even ``0.01 ki_init`` is
+    infeasible for every ``kp``: the first run then walks ``kp`` to zero without ever meeting
+    the feasible set. Such a run is repeated with ``K_I,Start`` divided by 10, at most three
+    times (down to ``1e-5 ki_init``). A plant whose path never becomes feasible is reported
+    infeasible here; the table builder then takes the global search's pair and says so.
 Area search (only if ``I_conv >= 1``)
     From the path result, K_I is raised once by the step rule, then the rectangle between that
     point, ``kp -> 0`` (down to 1 % of the path's kp, in 10 % steps) and ``ki = ki_init`` (in 5 %
@@ -35,6 +41,9 @@ __all__ = ["initial_values", "path_search", "area_search", "PaperResult", "tune_
 ES_LIMIT = 20
 MAX_MOVES = 5000
 STEPS = (0.01, 0.001)
+KI_START_RETRIES = 3
+#: moves of the approach to the feasible set checked at once (see :func:`_approach`)
+APPROACH_BLOCK = 32
 AREA_KP_STEP = 0.10
 AREA_KI_STEP = 0.05
 AREA_KP_FLOOR = 0.01
@@ -84,24 +93,64 @@ def initial_values(problem: TuningProblem, fractions: np.ndarray):
     return kp, ki
 
 
+def _approach(problem: TuningProblem, fractions, plants, kp, ki, step: float):
+    """First feasible move of paths that have not met the feasible set yet, in blocks.
+
+    Before its first feasible point a path only lowers ``kp`` by ``1 - step`` per move (``ki``
+    fixed), so the next ``APPROACH_BLOCK`` moves are known in advance and are checked at once.
+    Returns, per plant in ``plants``, the number of infeasible moves before the first feasible
+    one (``APPROACH_BLOCK`` if none in the block), and the block's kp values (P, B).
+    """
+    factors = (1.0 - step) ** np.arange(APPROACH_BLOCK)
+    kps = kp[plants, None] * factors[None, :]
+    rows = np.repeat(plants, APPROACH_BLOCK)
+    ok = problem.check(fractions[rows], kps.ravel(), np.repeat(ki[plants], APPROACH_BLOCK))
+    feas = ok.feasible.reshape(plants.size, APPROACH_BLOCK)
+    first = np.where(feas.any(axis=1), np.argmax(feas, axis=1), APPROACH_BLOCK)
+    return first, kps
+
+
 def path_search(problem: TuningProblem, fractions, kp, ki, step: float, record: bool = False):
-    """One Path Search run per plant from ``(kp, ki)``; returns (best kp, ki, rise, min rise,
-    evaluations, paths). Plants that never become feasible return NaN."""
+    """One Path Search run per plant from ``(kp, ki)``; returns (best kp, ki, rise,
+    evaluations, paths). Plants that never become feasible return NaN.
+
+    The moves are exactly those of the rule in the module docstring; the approach to the
+    feasible set (``kp`` lowered with ``ki`` fixed) is evaluated in blocks (:func:`_approach`).
+    """
     fractions = np.atleast_2d(fractions)
     n = fractions.shape[0]
     kp, ki = np.array(kp, float), np.array(ki, float)
     best = np.full((3, n), np.nan)            # kp, ki, rise
     es = np.zeros(n, int)
+    moves = np.zeros(n, int)
     seen = np.zeros(n, bool)
     active = np.ones(n, bool)
     paths = [[] for _ in range(n)] if record else []
     evaluations = 0
-    for _ in range(MAX_MOVES):
+    while True:
         idx = np.nonzero(active)[0]
         if idx.size == 0:
             break
+        new = idx[~seen[idx]]
+        if new.size:
+            first, kps = _approach(problem, fractions, new, kp, ki, step)
+            evaluations += kps.size
+            if record:
+                for i, j, row in zip(new, first, kps):
+                    paths[i].extend((float(k), float(ki[i]), False) for k in row[:j])
+            moves[new] += first
+            kp[new] = np.where(first < APPROACH_BLOCK, kps[np.arange(new.size),
+                                                            np.minimum(first, APPROACH_BLOCK - 1)],
+                               kps[:, -1] * (1.0 - step))
+            lost = new[(first == APPROACH_BLOCK)
+                       & ((kp[new] < 1e-9) | (moves[new] >= MAX_MOVES))]
+            active[lost] = False
+            idx = np.concatenate([idx[seen[idx]], new[first < APPROACH_BLOCK]])
+            if idx.size == 0:
+                continue
         chk = problem.check(fractions[idx], kp[idx], ki[idx])
         evaluations += idx.size
+        moves[idx] += 1
         if record:
             for j, i in enumerate(idx):
                 paths[i].append((float(kp[i]), float(ki[i]), bool(chk.feasible[j])))
@@ -115,7 +164,7 @@ def path_search(problem: TuningProblem, fractions, kp, ki, step: float, record: 
         ki[idx[feas]] *= 1.0 + step
         kp[idx[~feas]] *= 1.0 - step
         active[idx[es[idx] >= ES_LIMIT]] = False
-        active[idx[kp[idx] < 1e-9]] = False
+        active[idx[(kp[idx] < 1e-9) | (moves[idx] >= MAX_MOVES)]] = False
     return best[0], best[1], best[2], evaluations, paths
 
 
@@ -163,6 +212,19 @@ def tune_paper(problem: TuningProblem, fractions, record: bool = False) -> Paper
         if record:
             for acc, new in zip(paths, pth):
                 acc.extend(new)
+        if step == STEPS[0]:
+            # paths that never met the feasible set start again with a lower K_I
+            for retry in range(1, KI_START_RETRIES + 1):
+                lost = np.nonzero(~np.isfinite(br))[0]
+                if lost.size == 0:
+                    break
+                rk, ri, rr, ev, pth = path_search(problem, fractions[lost], kp0[lost],
+                                                  ki[lost] * 0.1**retry, step, record)
+                evaluations += ev
+                bk[lost], bi[lost], br[lost] = rk, ri, rr
+                if record:
+                    for j, new in zip(lost, pth):
+                        paths[j].extend(new)
         improved = np.isfinite(br) & ~(br >= best_rise)
         best_kp = np.where(improved, bk, best_kp)
         best_ki = np.where(improved, bi, best_ki)

@@ -18,7 +18,10 @@ import numpy as np
 from ..loop import LoopFigures, evaluate
 from ..plant import RISE_PER_LAG, Actuator, Plant
 
-__all__ = ["TuningProblem", "Check", "all_subsets"]
+__all__ = ["TuningProblem", "Check", "all_subsets", "T_MAX_S"]
+
+#: longest simulated step response in a constraint check, s
+T_MAX_S = 20000.0
 
 
 @dataclass(frozen=True)
@@ -32,7 +35,7 @@ class Check:
     disk_margin: np.ndarray
     overshoot_pct: np.ndarray
     rise_time_s: np.ndarray
-    reason: np.ndarray            # "", "unstable", "disk margin", "overshoot"
+    reason: np.ndarray            # "", "unstable", "disk margin", "overshoot", "slow"
 
 
 def all_subsets(ids: Sequence[str]) -> list[tuple[str, ...]]:
@@ -104,7 +107,8 @@ class TuningProblem:
         """All figures of merit (full step info, no shortcuts) — for reporting."""
         return evaluate(self.plant(gains), kp, ki, band_pct=self.band_pct, classical=classical)
 
-    def check(self, gains: np.ndarray, kp, ki, simulate=None) -> Check:
+    def check(self, gains: np.ndarray, kp, ki, simulate=None,
+              t_max_s: float = T_MAX_S) -> Check:
         """Constraint check of M candidates; rise time of the feasible ones.
 
         ``gains`` (M, G) or (G,) are group gains (fractions for normalised gains). Candidates
@@ -112,16 +116,22 @@ class TuningProblem:
         overshoot limit is exceeded. ``simulate`` (bool, shape (M,)) restricts the step
         responses to some candidates: the others get only the frequency-domain verdict
         (``feasible`` False, ``reason`` "" if they meet the disk margin — not yet decided).
+        A response that has not settled within ``t_max_s`` (s) is not feasible either (its
+        overshoot is not known): reason ``slow``.
         """
         f = evaluate(self.plant(gains), kp, ki, band_pct=self.band_pct, classical=False,
                      overshoot_stop_pct=self.overshoot_max_pct,
-                     disk_margin_min=self.disk_margin_min, time_mask=simulate)
+                     disk_margin_min=self.disk_margin_min, time_mask=simulate,
+                     t_max_s=t_max_s)
         dm_ok = f.stable & (f.disk_margin >= self.disk_margin_min)
-        os_ok = dm_ok & (f.overshoot_pct < self.overshoot_max_pct) & np.isfinite(f.rise_time_s)
+        over = dm_ok & ~(f.overshoot_pct < self.overshoot_max_pct)
+        os_ok = (dm_ok & ~over & np.isfinite(f.rise_time_s)
+                 & np.isfinite(f.settling_time_s))
         undecided = (np.zeros_like(dm_ok) if simulate is None
                      else dm_ok & ~np.asarray(simulate, bool))
         reason = np.where(~f.stable, "unstable",
                           np.where(~dm_ok, "disk margin",
-                                   np.where(os_ok | undecided, "", "overshoot")))
+                                   np.where(os_ok | undecided, "",
+                                            np.where(over, "overshoot", "slow"))))
         return Check(os_ok, f.disk_margin, f.overshoot_pct,
                      np.where(os_ok, f.rise_time_s, np.nan), reason)

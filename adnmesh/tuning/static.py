@@ -1,11 +1,24 @@
 """The static controller: one (K_P, K_I) feasible for every subset (w = 1), best worst case.
 
-Absolute gains meet subset A as normalised gains ``K * sum_A P_inst``, so a pair that suits the
-largest subsets is slow on the smallest. The search runs along rays ``K_I = rho K_P``
-(``rho`` log-spaced over 0.01 ... 10 1/s): on each ray the largest gain scale feasible for all
-subsets is found by bisection in log K_P (assuming feasibility is monotone in the scale along a
-ray — the result is re-checked on every subset, so a wrong assumption can only cost optimality,
-never feasibility), then the ray with the best worst-case rise time wins.
+Absolute gains meet subset A as normalised gains ``K * P_A`` (``P_A = sum_A P_inst``), so a pair
+that suits the largest subsets is slow on the smallest. The search runs along rays
+``K_I = rho K_P``: a ray in absolute gains is the same ray in every subset's normalised plane,
+so on ray ``rho`` subset A is feasible up to ``K_P <= s_A(rho) / P_A``, where ``s_A(rho)`` is
+the largest feasible normalised ``kp_n`` of A's plant on that ray (feasibility is taken to be
+monotone along a ray: lower gains, more margin). The static pair of a ray is the largest
+``K_P`` below every subset's limit:
+
+1. the limits ``s_A`` of the largest subsets (which bind first) are found by bisection in
+   ``log kp_n`` and their minimum gives a candidate ``K_P``;
+2. every subset is checked at that ``K_P`` in one batch; the limits of those that fail are
+   bisected too and ``K_P`` lowered to their minimum, until every subset passes;
+3. the passing batch gives the ray's worst-case rise time (the smallest subsets are the
+   slowest). The middle ray is done first; the others are simulated for at most 10 x the best
+   worst case so far, and a ray with a subset slower than that is out.
+
+Rays are first spread log-evenly over ``rho`` in 0.01 ... 10 1/s, then the best one is refined
+by golden-section search in ``log rho``. The result is verified on every subset (step 2), so a
+wrong monotonicity assumption can only cost optimality, never feasibility.
 """
 from __future__ import annotations
 
@@ -13,12 +26,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .problem import TuningProblem
+from .problem import T_MAX_S, TuningProblem
 
-__all__ = ["StaticResult", "static_controller"]
+__all__ = ["StaticResult", "static_controller", "RATIOS"]
 
+#: initial rays K_I / K_P, 1/s
 RATIOS = np.geomspace(0.01, 10.0, 13)
+#: subsets (largest installed power first) whose limits seed every ray
+SEED_SUBSETS = 24
 BISECTIONS = 14
+GOLDEN_STEPS = 8
+_VERIFY_ROUNDS = 6
+#: a ray's responses are simulated for at most this many times the best worst case so far
+CAP_FACTOR = 10.0
 
 
 @dataclass
@@ -32,44 +52,127 @@ class StaticResult:
     feasible: bool
 
 
-def _all_feasible(problem, fractions, totals, kp, ki):
-    """Per ray: feasible on every plant, and the worst rise time (inf if infeasible)."""
-    n_rays, n_plants = kp.size, fractions.shape[0]
-    rows = np.tile(np.arange(n_plants), n_rays)
-    kpn = np.repeat(kp, n_plants) * totals[rows]
-    kin = np.repeat(ki, n_plants) * totals[rows]
-    chk = problem.check(fractions[rows], kpn, kin)
-    feas = chk.feasible.reshape(n_rays, n_plants)
-    rise = np.where(feas, chk.rise_time_s.reshape(n_rays, n_plants), np.inf)
-    ok = feas.all(axis=1)
-    worst = np.where(ok, rise.max(axis=1), np.inf)
-    return ok, worst, np.argmax(rise, axis=1)
+@dataclass
+class _Ray:
+    """Outcome of one ray: absolute K_P (1/W), worst rise time (s) and its plant."""
+
+    kp: float
+    worst_rise_time_s: float
+    worst_plant: int
 
 
-def static_controller(problem: TuningProblem, fractions, totals, kp_hint: float) -> StaticResult:
+def _limits(problem: TuningProblem, fractions, rho, lo, hi, plants, t_max_s) -> np.ndarray:
+    """Largest feasible normalised ``kp_n`` on rays ``rho`` (per row) by bisection in log.
+
+    ``plants`` (K,) index ``fractions``; ``rho``, ``lo``, ``hi`` (K,) are the rays and the
+    log-``kp_n`` bracket. Returns ``exp(lo)`` after bisection (``lo`` assumed feasible). A
+    response too slow to settle within ``t_max_s`` counts as below the limit: the limit is
+    where the margin or overshoot constraint breaks.
+    """
+    lo, hi = lo.copy(), hi.copy()
+    for _ in range(BISECTIONS):
+        mid = 0.5 * (lo + hi)
+        chk = problem.check(fractions[plants], np.exp(mid), rho * np.exp(mid), t_max_s=t_max_s)
+        ok = chk.feasible | (chk.reason == "slow")
+        lo = np.where(ok, mid, lo)
+        hi = np.where(ok, hi, mid)
+    return np.exp(lo)
+
+
+def _rays(problem: TuningProblem, fractions, totals, kp_init, rhos, t_max_s) -> list[_Ray]:
+    """The static pair of every ray in ``rhos`` (1/s), lock-step over rays.
+
+    Step responses are simulated for at most ``t_max_s`` (s): a ray with a subset too slow
+    to settle by then gets an infinite worst-case rise time.
+    """
+    n_rays, n_plants = rhos.size, fractions.shape[0]
+    seeds = np.argsort(-totals)[:SEED_SUBSETS]
+    lo0 = np.log(kp_init * 1e-4)
+    hi0 = np.log(kp_init * 4.0)
+    r_idx = np.repeat(np.arange(n_rays), seeds.size)
+    p_idx = np.tile(seeds, n_rays)
+    s = _limits(problem, fractions, rhos[r_idx], lo0[p_idx], hi0[p_idx], p_idx, t_max_s)
+    kp = np.full(n_rays, np.inf)
+    np.minimum.at(kp, r_idx, s / totals[p_idx])
+    worst = np.full(n_rays, np.inf)
+    worst_plant = np.zeros(n_rays, int)
+    pending = np.arange(n_rays)
+    for _ in range(_VERIFY_ROUNDS):
+        if pending.size == 0:
+            break
+        r_idx = np.repeat(pending, n_plants)
+        p_idx = np.tile(np.arange(n_plants), pending.size)
+        kpn = kp[r_idx] * totals[p_idx]
+        chk = problem.check(fractions[p_idx], kpn, rhos[r_idx] * kpn, t_max_s=t_max_s)
+        slow = chk.reason == "slow"
+        fail = ~chk.feasible & ~slow
+        if fail.any():
+            # lower the failing rays to the least limit of their failing subsets
+            fr, fp = r_idx[fail], p_idx[fail]
+            lim = _limits(problem, fractions, rhos[fr], lo0[fp], np.log(kpn[fail]), fp,
+                          t_max_s)
+            np.minimum.at(kp, fr, lim / totals[fp] * (1.0 - 1e-9))
+        ok_rays = np.ones(n_rays, bool)
+        ok_rays[np.unique(r_idx[fail])] = False
+        too_slow = np.unique(r_idx[slow & ~np.isin(r_idx, r_idx[fail])])
+        ok_rays[too_slow] = False              # settled: worst-case rise time stays inf
+        pending = np.setdiff1d(pending, too_slow)
+        for r in pending[ok_rays[pending]]:
+            rise = chk.rise_time_s[r_idx == r]
+            worst[r] = float(np.max(rise))
+            worst_plant[r] = int(np.argmax(rise))
+        pending = pending[~ok_rays[pending]]
+    return [_Ray(float(kp[r]), float(worst[r]), int(worst_plant[r])) for r in range(n_rays)]
+
+
+def static_controller(problem: TuningProblem, fractions, totals, kp_init) -> StaticResult:
     """Search the static pair for plants ``fractions`` (P, G) with powers ``totals`` (P,) in W.
 
-    ``kp_hint`` (1/W) sets the bisection bracket: [kp_hint / 1e4, kp_hint * 10].
+    ``kp_init`` (P,) are the plants' initial (too aggressive) normalised ``kp_n``; they set
+    the bisection brackets ``[1e-4, 4] x kp_init``.
     """
     fractions = np.atleast_2d(fractions)
     totals = np.asarray(totals, float)
-    lo = np.full(RATIOS.size, np.log(kp_hint / 1e4))
-    hi = np.full(RATIOS.size, np.log(kp_hint * 10.0))
-    best_worst = np.full(RATIOS.size, np.inf)
-    best_kp = np.full(RATIOS.size, np.nan)
-    best_plant = np.zeros(RATIOS.size, int)
-    for _ in range(BISECTIONS):
-        mid = 0.5 * (lo + hi)
-        ok, worst, plant = _all_feasible(problem, fractions, totals, np.exp(mid),
-                                         RATIOS * np.exp(mid))
-        lo = np.where(ok, mid, lo)
-        hi = np.where(ok, hi, mid)
-        better = ok & (worst <= best_worst)
-        best_worst = np.where(better, worst, best_worst)
-        best_kp = np.where(better, np.exp(mid), best_kp)
-        best_plant = np.where(better, plant, best_plant)
-    if not np.isfinite(best_worst).any():
+    kp_init = np.asarray(kp_init, float)
+    log_rho = np.log(RATIOS)
+    # the middle ray first: its worst case bounds how long the others need simulating
+    mid = RATIOS.size // 2
+    seen = {float(log_rho[mid]): _rays(problem, fractions, totals, kp_init, RATIOS[[mid]],
+                                       T_MAX_S)[0]}
+
+    def cap() -> float:
+        best = min(r.worst_rise_time_s for r in seen.values())
+        return min(T_MAX_S, CAP_FACTOR * best) if np.isfinite(best) else T_MAX_S
+
+    rest = np.delete(RATIOS, mid)
+    for lr, ray in zip(np.log(rest), _rays(problem, fractions, totals, kp_init, rest, cap())):
+        seen[float(lr)] = ray
+    cost = np.array([seen[float(lr)].worst_rise_time_s for lr in log_rho])
+    if not np.isfinite(cost).any():
         return StaticResult(float("nan"), float("nan"), float("inf"), -1, False)
-    r = int(np.argmin(best_worst))
-    return StaticResult(float(best_kp[r]), float(best_kp[r] * RATIOS[r]), float(best_worst[r]),
-                        int(best_plant[r]), True)
+    i = int(np.argmin(cost))
+
+    def worst_at(x: float) -> float:
+        if x not in seen:
+            seen[x] = _rays(problem, fractions, totals, kp_init, np.exp(np.array([x])), cap())[0]
+        return seen[x].worst_rise_time_s
+
+    # golden-section search in log rho between the best ray's neighbours (one ray per step)
+    a = float(log_rho[max(i - 1, 0)])
+    b = float(log_rho[min(i + 1, log_rho.size - 1)])
+    g = (np.sqrt(5.0) - 1.0) / 2.0
+    c, d = b - g * (b - a), a + g * (b - a)
+    fc, fd = worst_at(c), worst_at(d)
+    for _ in range(GOLDEN_STEPS):
+        if fc <= fd:
+            b, d, fd = d, c, fc
+            c = b - g * (b - a)
+            fc = worst_at(c)
+        else:
+            a, c, fc = c, d, fd
+            d = a + g * (b - a)
+            fd = worst_at(d)
+    best_lr = min(seen, key=lambda x: seen[x].worst_rise_time_s)
+    best = seen[best_lr]
+    return StaticResult(best.kp, best.kp * float(np.exp(best_lr)), best.worst_rise_time_s,
+                        best.worst_plant, True)
