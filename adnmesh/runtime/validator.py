@@ -8,7 +8,10 @@ or a list), ``const``, ``enum``, ``minimum``, ``maximum``, ``exclusiveMinimum``,
 or schema), ``propertyNames``, ``minProperties``, ``prefixItems``, ``items``, ``minItems``,
 ``maxItems``; annotations (``$schema``, ``$id``, ``title``, ``description``) are ignored and any
 other keyword is refused when compiling. Numbers follow JSON: ``number`` is a finite int or float
-(not a bool), ``integer`` also accepts floats with no fractional part. The test suite checks the
+(not a bool), ``integer`` also accepts floats with no fractional part. Each check first tries
+one expression true for the usual valid value (an object with exactly the fields of its schema,
+a string already known to match its pattern) and runs the detailed checks, which raise with the
+path of the problem, only when that fails. The test suite checks the
 compiled functions against the reference implementation (``jsonschema``) on valid and invalid
 payloads.
 """
@@ -52,6 +55,26 @@ class SchemaViolation(ValueError):
         super().__init__(f"{path}: {problem}")
         self.path = path
         self.problem = problem
+
+
+class _Matches(dict):
+    """Whether strings match one pattern, ``matches[text] -> bool``: searched once per string,
+    then remembered (at most :data:`_MEMO_SIZE` strings of at most :data:`_MEMO_CHARS`
+    characters). Bus messages repeat a few short strings (senders, DER ids) millions of times."""
+
+    def __init__(self, pattern: str) -> None:
+        super().__init__()
+        self._search = re.compile(pattern).search
+
+    def __missing__(self, text: str) -> bool:
+        found = self._search(text) is not None
+        if len(self) < _MEMO_SIZE and len(text) <= _MEMO_CHARS:
+            self[text] = found
+        return found
+
+
+_MEMO_SIZE = 4096
+_MEMO_CHARS = 64
 
 
 def _show(value: Any) -> str:
@@ -107,8 +130,8 @@ class _Generator:
             return f"({x} is True or {x} is False)"
         if types == "string":
             if "pattern" in schema:
-                search = self.const(re.compile(schema["pattern"]).search)
-                return f"type({x}) is str and {search}({x}) is not None"
+                matches = self.const(_Matches(schema["pattern"]))
+                return f"type({x}) is str and {matches}[{x}]"
             return f"type({x}) is str"
         return None
 
@@ -161,6 +184,14 @@ class _Generator:
         indent += 1
         self.emit(indent, "pass")
         required = schema.get("required", ())
+        properties = schema.get("properties", {})
+        extra = schema.get("additionalProperties", True)
+        exact = extra is False and set(required) == set(properties) \
+            and "minProperties" not in schema
+        if exact:   # the usual case first: exactly the fields of the schema
+            self.emit(indent, f"if {x}.keys() != {self.const(frozenset(required))}:")
+            indent += 1
+            self.emit(indent, "pass")
         if required:
             c = self.const(frozenset(required))
             self.emit(indent, f"if not {c} <= {x}.keys():")
@@ -169,14 +200,14 @@ class _Generator:
         if schema.get("minProperties"):
             self.emit(indent, f"if len({x}) < {int(schema['minProperties'])}:")
             self.fail(indent + 1, path, f"'needs at least {schema['minProperties']} field(s)'")
-        properties = schema.get("properties", {})
-        extra = schema.get("additionalProperties", True)
         names = schema.get("propertyNames")
         if extra is False:
             c = self.const(frozenset(properties))
             self.emit(indent, f"if not {x}.keys() <= {c}:")
             self.fail(indent + 1, f"{path} + '.' + sorted({x}.keys() - {c})[0]",
                       "'unknown field'")
+        if exact:
+            indent -= 1
         for name, sub in properties.items():
             v = self.var()
             if name in required:   # present: checked above
