@@ -124,6 +124,7 @@ class DERController:
             available = self._availability.pop(0)[1]
             heartbeat_now |= available != self.available
             self.available = available
+        setpoint_inputs_changed = heartbeat_now   # availability changed
         while self._offline_changes and self._offline_changes[0][0] <= t_ns:
             offline = self._offline_changes.pop(0)[1]
             if offline != self.offline:
@@ -135,7 +136,9 @@ class DERController:
         if not self.watchdog_expired and t_ns >= self.watchdog_deadline_ns:
             self.watchdog_expired = True
             self.stats["watchdog_trips"] += 1
-        self._update_setpoint(t_ns)
+            setpoint_inputs_changed = True
+        if setpoint_inputs_changed:   # else on_message has set it from the same inputs
+            self._update_setpoint(t_ns)
         if t_ns == self.next_sample_ns:
             p_w = infeed_at(self.params, self.state, t_ns)
             out.append(Outgoing(self._state_key, {"p_w": p_w, "setpoint_w": self.setpoint_w,
