@@ -373,6 +373,23 @@ def test_node_orders_messages_before_timers_and_rejects_bad_input(config: Config
     assert node.report().sent == {}
 
 
+def test_node_takes_a_duplicate_message_in_arrival_order(config: Config) -> None:
+    """Two envelopes with the same key, seq and time (a sender repeating itself) are both
+    delivered, first the first received: nothing compares their bodies."""
+    topo = Topology.from_config(config)
+    keys = topo.keys
+    agent = Ticker(keys.p_ip)
+    node = Node(agent, topo, seed=0)
+    for p_w in (1.0, 2.0):
+        node.receive(keys.der_state("SGen1"), encode(
+            "der_state", "der/SGen1", 0, 10, 10, {"p_w": p_w, "setpoint_w": 1.0,
+                                                  "mode": "control"}))
+    seen = []
+    agent.on_message = lambda t_ns, message: seen.append(message.body["p_w"]) or []
+    node.advance(11)
+    assert seen == [1.0, 2.0]
+
+
 def test_node_crashes_at_the_injected_time(config: Config) -> None:
     node = Node(Ticker(Topology.from_config(config).keys.p_ip), Topology.from_config(config),
                 seed=0, crash_ns=25)

@@ -9,7 +9,7 @@ same everywhere:
   message is counted in ``rejected`` and dropped, never raised) and holds it until its delivery
   time;
 - :meth:`Node.advance` processes every event before a time: at equal times delivered messages
-  first, ordered by (delivery time, key, seq), then the agent's timers;
+  first, ordered by (delivery time, key, seq) and then by arrival, then the agent's timers;
 - what the agent returns goes through the sender side of its ICT link (fate and delivery time,
   :class:`~adnmesh.runtime.links.Link`), gets its envelope (``seq`` per key, counted also for
   lost messages so that receivers see the gap) and is returned as ``(key, payload)`` to publish;
@@ -18,7 +18,6 @@ same everywhere:
 
 from __future__ import annotations
 
-import heapq
 from dataclasses import dataclass, field
 
 from adnmesh.control.base import Agent
@@ -27,7 +26,6 @@ from adnmesh.runtime.links import Link
 from adnmesh.runtime.messages import MessageError, decode, encode, message_type
 from adnmesh.runtime.topology import Topology
 
-_heappop, _heappush = heapq.heappop, heapq.heappush
 
 __all__ = ["AgentCrash", "Node", "NodeCounts"]
 
@@ -105,7 +103,10 @@ class Node:
                                             agent.agent_id), message_type(key))
                           for key in topology.publishes(agent.agent_id)}
         self._window_keys: list[str] = []   # keys sent on in this window, in first-send order
+        # held messages (t_deliver, key, seq, receive count, message); sorted latest first
+        # (timsort merges the senders' runs; pop() takes the next) when _inbox_sorted
         self._inbox: list = []
+        self._inbox_sorted = True
         self.crash_ns = crash_ns
         self.strict = strict
         self.now_ns = 0
@@ -143,7 +144,8 @@ class Node:
                 return
             counts.late += 1
             t = self.now_ns
-        _heappush(self._inbox, (t, key, message.seq, message))
+        self._inbox.append((t, key, message.seq, counts.received, message))
+        self._inbox_sorted = False
 
     # -- time ----------------------------------------------------------------------------------
 
@@ -151,9 +153,16 @@ class Node:
         """Time of the next event (delivered message or timer), or None."""
         timer = self.agent.next_timer_ns()
         if self._inbox:
-            t = self._inbox[0][0]
+            t = self._held()[-1][0]
             return t if timer is None or t < timer else timer
         return timer
+
+    def _held(self) -> list:
+        """The held messages, latest first."""
+        if not self._inbox_sorted:
+            self._inbox.sort(reverse=True)
+            self._inbox_sorted = True
+        return self._inbox
 
     def advance(self, until_ns: int) -> list[tuple[str, bytes]]:
         """Process every event with ``t < until_ns``; return the ``(key, payload)`` to publish.
@@ -164,19 +173,19 @@ class Node:
             If the next event is at or after the injected crash time.
         """
         out: list[tuple[str, bytes]] = []
-        inbox, agent, emit = self._inbox, self.agent, self._emit
+        inbox, agent, emit = self._held(), self.agent, self._emit
         next_timer_ns, on_message, on_timer = agent.next_timer_ns, agent.on_message, \
             agent.on_timer
         crash_ns = self.crash_ns
         while True:
             timer = next_timer_ns()
-            if inbox and (timer is None or inbox[0][0] <= timer):
-                t = inbox[0][0]
+            if inbox and (timer is None or inbox[-1][0] <= timer):
+                t = inbox[-1][0]
                 if t >= until_ns:
                     break
                 if crash_ns is not None and t >= crash_ns:
                     self._crash()
-                message = _heappop(inbox)[3]
+                message = inbox.pop()[4]
                 self.now_ns = t
                 outgoing = on_message(t, message)
             elif timer is not None and timer < until_ns:
