@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import time
 from pathlib import Path
 
@@ -28,7 +29,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     add_config_argument(parser)
     parser.add_argument("--method", choices=("paper", "global"), default="paper",
                         help="the paper's path/area search (default) or the global search")
-    parser.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
+    parser.add_argument("--workers", type=int, default=os.cpu_count() or 1,
+                        help="worker processes (default: the number of CPUs, here %(default)s)")
     parser.add_argument("--out", type=Path, help="table path (JSON); the CSV goes beside it")
     parser.add_argument("--resume", action="store_true",
                         help="continue an interrupted run's partial table at --out")
