@@ -16,9 +16,11 @@ Schema and channel records are written lazily, on the first message of their typ
 Messages are grouped in zstd-compressed chunks (each followed by its message indexes, with a
 chunk index, statistics and summary offsets in the summary section, as ``mcap.writer.Writer``
 lays them out); the message records and message indexes, written once per message, are packed
-here with :mod:`struct` (:class:`_McapStream`), every other record by :mod:`mcap.records`; every ``flush_interval_s`` of wall time the
-chunk in progress is closed and written, and the file is flushed and fsync'ed, so that a
-recorder killed at any moment (even by SIGKILL) leaves a file whose complete chunks
+here with :mod:`struct` (:class:`_McapStream`), every other record by :mod:`mcap.records`, and
+closed chunks are compressed and written by a background thread, in order. Every
+``flush_interval_s`` of wall time the chunk in progress is closed and written, and the file is
+flushed and fsync'ed, so that a recorder killed at any moment (even by SIGKILL) leaves a file
+whose complete chunks
 :func:`adnmesh.recording.read_recording` recovers: all messages written more than about one
 flush interval before the kill.
 """
@@ -31,6 +33,7 @@ import struct
 import threading
 import zlib
 from collections.abc import Iterable, Mapping
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import BinaryIO
 
@@ -112,7 +115,11 @@ class _McapStream:
     statistics, summary offsets, CRCs of chunks and summary), for the recorder's lock to drive.
 
     Messages go into the chunk in progress through :meth:`add_messages`, a batch at a time, as
-    packed bytes; :meth:`close_chunk` compresses and writes it with its message indexes.
+    packed bytes. :meth:`close_chunk` seals it: one background thread compresses and writes
+    sealed chunks with their message indexes, in order, so that whoever records is not held up
+    by zstd (tens of ms per chunk); :meth:`wait` waits for it, and every other record is written
+    after it. The first error of a background write is :attr:`failure`, and raised by
+    :meth:`wait`.
     """
 
     def __init__(self, stream: BinaryIO, library: str, chunk_size: int) -> None:
@@ -126,6 +133,10 @@ class _McapStream:
         self._channel_counts: dict[int, int] = {}
         self._message_count = self._metadata_count = 0
         self._start_ns = self._end_ns = 0           # over the file
+        self._chunk_writer = ThreadPoolExecutor(max_workers=1,
+                                                thread_name_prefix="adnmesh-recorder-chunks")
+        self._written: Future | None = None         # the last sealed chunk's write
+        self.failure: BaseException | None = None
         self._new_chunk()
         stream.write(MCAP0_MAGIC)
         Header(profile="", library=library).write(self._records)
@@ -173,7 +184,8 @@ class _McapStream:
         return count
 
     def add_metadata(self, name: str, data: Mapping[str, str]) -> None:
-        """Write a metadata record now (outside any chunk) and index it."""
+        """Write a metadata record after the sealed chunks (outside any chunk) and index it."""
+        self.wait()
         offset = self._stream.tell()
         Metadata(name=name, metadata=dict(data)).write(self._records)
         self._metadata_indexes.append(MetadataIndex(offset=offset, length=self._records.count,
@@ -182,37 +194,56 @@ class _McapStream:
         self._write_records()
 
     def close_chunk(self) -> None:
-        """Compress and write the chunk in progress and its message indexes (if it holds a
-        message; schema and channel records alone wait for the next one)."""
+        """Seal the chunk in progress (if it holds a message; schema and channel records alone
+        wait for the next one): it is compressed and written in the background."""
         if not self._chunk_messages:
             return
-        data = bytes(self._chunk)
-        compressed = zstandard.compress(data)
-        start, end = self._chunk_start_ns, self._chunk_end_ns
-        chunk_offset = self._stream.tell()
-        Chunk(compression="zstd", data=compressed, message_start_time=start,
-              message_end_time=end, uncompressed_crc=zlib.crc32(data),
-              uncompressed_size=len(data)).write(self._records)
-        chunk_length = self._records.count
-        self._write_records()
-        offsets, indexes = self._message_indexes(chunk_offset + chunk_length)
-        self._stream.write(indexes)
+        sealed = (self._chunk, self._index, self._chunk_start_ns, self._chunk_end_ns)
+        if not self._message_count:
+            self._start_ns = self._chunk_start_ns
+        self._start_ns = min(self._start_ns, self._chunk_start_ns)
+        self._end_ns = max(self._end_ns, self._chunk_end_ns)
+        self._message_count += self._chunk_messages
+        self._new_chunk()
+        self._written = self._chunk_writer.submit(self._write_chunk, *sealed)
+
+    def wait(self) -> None:
+        """Wait until every sealed chunk is written; raise the first error in writing one."""
+        written = self._written
+        if written is not None:
+            written.result()   # one worker: it ran after every chunk sealed before
+
+    def _write_chunk(self, data: bytearray, index: dict[int, list[int]], start: int,
+                     end: int) -> None:
+        """Compress and write one sealed chunk and its message indexes (background thread)."""
+        if self.failure is not None:   # the file stops at the first failure
+            raise self.failure
+        try:
+            compressed = zstandard.compress(data)
+            chunk_offset = self._stream.tell()
+            records = RecordBuilder()
+            Chunk(compression="zstd", data=compressed, message_start_time=start,
+                  message_end_time=end, uncompressed_crc=zlib.crc32(data),
+                  uncompressed_size=len(data)).write(records)
+            chunk_length = records.count
+            self._stream.write(records.end())
+            offsets, indexes = _message_indexes(index, chunk_offset + chunk_length)
+            self._stream.write(indexes)
+        except BaseException as exc:
+            self.failure = exc
+            raise
         self._chunk_indexes.append(ChunkIndex(
             message_start_time=start, message_end_time=end, chunk_start_offset=chunk_offset,
             chunk_length=chunk_length, message_index_offsets=offsets,
             message_index_length=len(indexes), compression="zstd",
             compressed_size=len(compressed), uncompressed_size=len(data)))
-        if not self._message_count:
-            self._start_ns = start
-        self._start_ns, self._end_ns = min(self._start_ns, start), max(self._end_ns, end)
-        self._message_count += self._chunk_messages
-        self._new_chunk()
 
     # -- summary section -------------------------------------------------------------------
 
     def finish(self) -> None:
         """Close the chunk in progress, write the data end, the summary and the footer."""
         self.close_chunk()
+        self.wait()
         DataEnd(data_section_crc=0).write(self._records)
         self._write_records()
         summary_start = self._stream.tell()
@@ -262,22 +293,25 @@ class _McapStream:
         record.write(builder)
         self._chunk += builder.end()
 
-    def _message_indexes(self, start: int) -> tuple[dict[int, int], bytes]:
-        """The message index records of the chunk in progress, written at file offset
-        ``start``: ``({channel: offset}, bytes)``."""
-        offsets, parts, at = {}, [], start
-        for channel_id, entries in self._index.items():
-            record = _INDEX_HEAD.pack(Opcode.MESSAGE_INDEX, 2 + 4 + 8 * len(entries),
-                                      channel_id, 8 * len(entries)) \
-                + struct.pack(f"<{len(entries)}Q", *entries)
-            offsets[channel_id] = at
-            at += len(record)
-            parts.append(record)
-        return offsets, b"".join(parts)
+    def close(self) -> None:
+        """Stop the background thread (after the chunks it has)."""
+        self._chunk_writer.shutdown(wait=True)
 
     def _write_records(self) -> None:
         self._stream.write(self._records.end())
 
+
+def _message_indexes(index: dict[int, list[int]], start: int) -> tuple[dict[int, int], bytes]:
+    """The message index records of a chunk (``index``: channel -> [log_time, offset, ...]),
+    written at file offset ``start``: ``({channel: offset}, bytes)``."""
+    offsets, parts, at = {}, [], start
+    for channel_id, entries in index.items():
+        record = _INDEX_HEAD.pack(Opcode.MESSAGE_INDEX, 2 + 4 + 8 * len(entries), channel_id,
+                                  8 * len(entries)) + struct.pack(f"<{len(entries)}Q", *entries)
+        offsets[channel_id] = at
+        at += len(record)
+        parts.append(record)
+    return offsets, b"".join(parts)
 
 
 class Recorder:
@@ -440,11 +474,15 @@ class Recorder:
         self._flusher.join()
         with self._lock:
             try:
+                self._failure = self._failure or self._writer.failure
                 if self._failure is None:
                     self._writer.finish()
                     self._file.flush()
                     os.fsync(self._file.fileno())
+            except OSError as exc:
+                self._failure = exc
             finally:
+                self._writer.close()
                 self._file.close()
             if self._failure is not None:
                 raise RuntimeError(f"{self.path}: recording failed") from self._failure
@@ -458,8 +496,9 @@ class Recorder:
     # -- internals (called with the lock held) ---------------------------------------------
 
     def _check_open(self) -> None:
-        if self._failure is not None:
-            raise RuntimeError(f"{self.path}: recording failed") from self._failure
+        failure = self._failure or self._writer.failure
+        if failure is not None:
+            raise RuntimeError(f"{self.path}: recording failed") from failure
         if self._closed:
             raise RuntimeError(f"{self.path}: recorder is closed")
 
@@ -474,6 +513,7 @@ class Recorder:
     def _flush_file(self) -> None:
         """Write the chunk in progress and flush the file's buffer (no fsync)."""
         self._writer.close_chunk()
+        self._writer.wait()
         self._file.flush()
 
     def _sync(self) -> None:
@@ -483,20 +523,19 @@ class Recorder:
         self._dirty = False
 
     def _flush_loop(self) -> None:
-        # the fsync happens outside the lock, so that writers are not held up by the disk;
-        # close() stops this thread before it closes the file
+        # the chunk is sealed under the lock; its compression, the write and the fsync happen
+        # outside it, so that writers are not held up by zstd or the disk; close() stops this
+        # thread before it closes the file
         while not self._stop.wait(self._flush_interval_s):
             with self._lock:
                 if self._closed or self._failure is not None or not self._dirty:
                     continue
-                try:
-                    self._flush_file()
-                    self._dirty = False
-                except BaseException as exc:  # noqa: BLE001 -- reported by write()/close()
-                    self._failure = exc
-                    continue
+                self._writer.close_chunk()
+                self._dirty = False
             try:
+                self._writer.wait()
+                self._file.flush()
                 os.fsync(self._file.fileno())
-            except OSError as exc:
+            except BaseException as exc:  # noqa: BLE001 -- reported by write()/close()
                 with self._lock:
                     self._failure = exc
