@@ -12,7 +12,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["advance", "advance_exact"]
+__all__ = ["advance", "advance_exact", "accumulate"]
 
 #: below this many candidates the serial kernel wins (no thread start-up)
 PARALLEL_FROM = 64
@@ -128,3 +128,72 @@ def _advance_exact(steps, k0, ring, h, kp, ki, kc, phi, gl, gr, x, p_y, y_hist, 
 
 _exact_parallel = numba.njit(cache=True, parallel=True)(_advance_exact)
 _exact_serial = numba.njit(cache=True, parallel=False)(_advance_exact)
+
+
+def _accumulate(t0, h, chunk, last, t10, t90, peak, peak_t, bands, settle, curvature):
+    """Step-info figures of one block of samples per candidate, updated in place.
+
+    ``chunk`` (M, n) holds y at ``t0 + h, ..., t0 + n h``; ``last`` (M,) y at ``t0``. Exactly
+    the arithmetic of :meth:`adnmesh.stepresp._InfoAccumulator.add`: first crossings of 10 %
+    and 90 % (linear interpolation), the block's peak if higher (parabolic interpolation
+    inside the block), the last exit from each band (``inf`` if the block ends outside).
+    ``curvature[m]`` receives the block's largest ``|y[k] - 2 y[k-1] + y[k-2]|``.
+    """  # pragma: no cover - compiled
+    m_count, n = chunk.shape
+    for m in numba.prange(m_count):
+        prev = last[m]
+        for store, level in ((t10, 0.1), (t90, 0.9)):
+            if not np.isnan(store[m]):
+                continue
+            if prev >= level:
+                continue                    # first sample already above: no crossing here
+            for k in range(n):
+                if chunk[m, k] >= level:
+                    y0 = prev if k == 0 else chunk[m, k - 1]
+                    store[m] = t0 + h * (k + (level - y0) / (chunk[m, k] - y0))
+                    break
+        # peak of the block (sample 0 = prev)
+        j = 0
+        yc = prev
+        for k in range(n):
+            if chunk[m, k] > yc:
+                yc = chunk[m, k]
+                j = k + 1
+        if yc > peak[m]:
+            ym = prev if j <= 1 else chunk[m, j - 2]
+            yp = chunk[m, j] if j < n else chunk[m, n - 1]
+            den = ym - 2.0 * yc + yp
+            off = 0.0
+            if 0 < j < n and den < 0.0:
+                off = 0.5 * (ym - yp) / den
+            peak[m] = yc - 0.25 * (ym - yp) * off
+            peak_t[m] = t0 + h * (j + off)
+        for b in range(bands.size):
+            band = bands[b]
+            # last sample (0 = prev, k + 1 = chunk[k]) outside the band
+            last_out = -1
+            for k in range(n - 1, -1, -1):
+                if abs(chunk[m, k] - 1.0) > band:
+                    last_out = k + 1
+                    break
+            if last_out < 0 and abs(prev - 1.0) > band:
+                last_out = 0
+            if last_out < 0:
+                continue
+            if last_out == n:
+                settle[b, m] = np.inf
+                continue
+            y0 = prev if last_out == 0 else chunk[m, last_out - 1]
+            y1 = chunk[m, last_out]
+            target = 1.0 + band if y0 > 1.0 else 1.0 - band
+            settle[b, m] = t0 + h * (last_out + (target - y0) / (y1 - y0))
+        c = 0.0
+        for k in range(2, n):
+            d = abs(chunk[m, k] - 2.0 * chunk[m, k - 1] + chunk[m, k - 2])
+            if d > c:
+                c = d
+        curvature[m] = c
+        last[m] = chunk[m, n - 1]
+
+
+accumulate = numba.njit(cache=True, parallel=False)(_accumulate)

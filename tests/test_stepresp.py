@@ -4,12 +4,12 @@ from math import factorial
 import numpy as np
 import pytest
 
-from adnmesh.plant import RISE_PER_LAG
+from adnmesh.plant import RISE_PER_LAG, Plant
 from adnmesh.stability import nyquist_stability
 from adnmesh.margins import disk_margin
 from adnmesh.stepresp import choose_step, simulate_step, step_info, step_info_from_samples
 
-from loops import LOOPS, gains
+from loops import CONFIG, LOOPS, gains, plant
 from pade_reference import reference_figures
 from test_stability import integrator_with_delay
 
@@ -96,3 +96,24 @@ def test_adaptive_horizon_and_coarsening_keep_accuracy():
     assert fast.horizon_s[0] > 100
     for key in ("rise_time_s", "settling_time_s", "settling_time_2pct_s", "overshoot_pct"):
         assert getattr(fast, key)[0] == pytest.approx(getattr(ref, key)[0], rel=1e-4, abs=1e-4)
+
+
+def test_compiled_step_info_accumulator_equals_the_numpy_reference():
+    from adnmesh.stepresp import _InfoAccumulator, _Simulator
+    rng = np.random.default_rng(0)
+    m = 60
+    lags = plant(list(CONFIG.der_ids()))
+    gains = rng.dirichlet(np.ones(len(lags.actuators)), m) * 1e6
+    sim = _Simulator(Plant(lags.actuators, gains, lags.t_com_s, lags.t_meas_s),
+                     rng.uniform(0.05, 1.5, m) / 1e6, rng.uniform(0.02, 3.0, m) / 1e6, 0.01)
+    fast, ref = (_InfoAccumulator(m, (0.05, 0.02, 0.005)) for _ in range(2))
+    t0 = 0.0
+    for n in (1, 2, 3, 50, 700, 2000, 3000):
+        y = sim.run(n)
+        curvature = fast.add(t0, 0.01, y)
+        ref.add_numpy(t0, 0.01, y)
+        if n > 2:
+            assert curvature.max() == np.abs(np.diff(y, 2, axis=1)).max()
+        t0 += n * 0.01
+    for name in ("t10", "t90", "peak", "peak_t", "last", "settle"):
+        assert np.array_equal(getattr(fast, name), getattr(ref, name), equal_nan=True), name
