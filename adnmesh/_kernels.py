@@ -24,6 +24,22 @@ def advance(steps, k0, ring, h, kp, *rest):
     kernel(steps, k0, ring, h, kp, *rest)
 
 
+@numba.njit(cache=True, inline="always")
+def _lag_step(phi, gl, gr, kc, x, tmp, u_l, u_r):  # pragma: no cover - compiled
+    """One exact FOH step ``x <- Phi x + gl u_l + gr u_r`` of a group; returns its output."""
+    n = x.size
+    for a in range(n):
+        acc = gl[a] * u_l + gr[a] * u_r
+        for b in range(n):
+            acc += phi[a, b] * x[b]
+        tmp[a] = acc
+    y = 0.0
+    for a in range(n):
+        x[a] = tmp[a]
+        y += kc[a] * tmp[a]
+    return y
+
+
 def _advance(steps, k0, ring, h, kp, ki, kc, phi, gl, gr, x, p_y, y_hist, x_int, err,
             l0, l1, lw, r0, r1, rw, m0, m1, mw, out):  # pragma: no cover - compiled
     """Advance every candidate ``steps`` samples; writes ``out[m, i]`` = y at sample k0+i+1.
@@ -43,14 +59,7 @@ def _advance(steps, k0, ring, h, kp, ki, kc, phi, gl, gr, x, p_y, y_hist, x_int,
             for g in range(g_count):
                 u_l = p_y[m, l0[i, g]] * (1.0 - lw[i, g]) + p_y[m, l1[i, g]] * lw[i, g]
                 u_r = p_y[m, r0[i, g]] * (1.0 - rw[i, g]) + p_y[m, r1[i, g]] * rw[i, g]
-                for a in range(n):
-                    acc = gl[g, a] * u_l + gr[g, a] * u_r
-                    for b in range(n):
-                        acc += phi[g, a, b] * xm[g, b]
-                    tmp[a] = acc
-                for a in range(n):
-                    xm[g, a] = tmp[a]
-                    y += kc[m, g, a] * tmp[a]
+                y += _lag_step(phi[g], gl[g], gr[g], kc[m, g], xm[g], tmp, u_l, u_r)
             col = (k0 + i + 1) % ring
             y_hist[m, col] = y
             y_meas = y_hist[m, m0[i]] * (1.0 - mw[i]) + y_hist[m, m1[i]] * mw[i]
@@ -102,14 +111,7 @@ def _advance_exact(steps, k0, ring, h, kp, ki, kc, phi, gl, gr, x, p_y, y_hist, 
                 c_r = c_l + 1 if c_l + 1 < ring else 0
                 u_l = p_y[m, c_l] if j - d >= 0 else 0.0
                 u_r = p_y[m, c_r] if j + 1 - d > 0 else 0.0
-                for a in range(n):
-                    acc = gl[g, a] * u_l + gr[g, a] * u_r
-                    for b in range(n):
-                        acc += phi[g, a, b] * xm[g, b]
-                    tmp[a] = acc
-                for a in range(n):
-                    xm[g, a] = tmp[a]
-                    y += kc[m, g, a] * tmp[a]
+                y += _lag_step(phi[g], gl[g], gr[g], kc[m, g], xm[g], tmp, u_l, u_r)
             y_hist[m, nxt] = y
             c_m = nxt - n_meas
             if c_m < 0:
