@@ -373,3 +373,15 @@ def test_build_agent_knows_every_agent(config, table) -> None:
 def test_der_defaults_follow_the_config_dataclass() -> None:
     der = DER("X", "PV", 1e5, 0.0, 0.1, "s")
     assert PT1DelayParams.from_der(der).t_delay_ns == 0
+
+
+def test_pi_switch_to_a_narrower_range_continues_from_its_limit() -> None:
+    # P_Y slightly negative, the new actuators all saturate below 0: start from the limit
+    pi = SampledPI(2e-8, 6e-8, 0.01, y_min=-0.5, y_max=0.5)
+    for e in (-1e3, -2e3, -3e3):
+        pi.update(e)
+    assert pi.output < 0
+    pi.set_limits(0.0, 1.0)
+    record = pi.switch(5e-7, 7e-8)
+    assert record.p_y_limited == 0.0 and record.p_y_after == pytest.approx(0.0, abs=1e-15)
+    assert pi.kp * pi.e_prev + pi.ki * pi.x_i == pytest.approx(0.0, abs=1e-15)  # not wound up

@@ -202,6 +202,7 @@ class CPFC:
             if record is not None:
                 body.update(p_y=record.p_y_after, kp=self.pi.kp, ki=self.pi.ki,
                             switch={"p_y_before": record.p_y_before,
+                                    "p_y_limited": record.p_y_limited,
                                     "kp_before": record.kp_before,
                                     "ki_before": record.ki_before})
                 self._next_weights_ns = t_ns

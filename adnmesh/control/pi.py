@@ -18,7 +18,8 @@ and the error pushes further out, the integrator holds.
 **Bumpless switching**: :meth:`SampledPI.switch` replaces the gains at sample ``k`` after the
 output has been computed with the old ones, and sets ``x_I' = (P_Y[k] - K_P' e[k]) / K_I'`` so that
 ``K_P' e[k] + K_I' x_I' = P_Y[k]``: the whole output stays continuous, not only the integral part
-(for ``K_P' = K_P`` this is the paper's ``K_I' x_I' = K_I x_I``).
+(for ``K_P' = K_P`` this is the paper's ``K_I' x_I' = K_I x_I``). An output outside the new
+actuators' range is first limited to it.
 """
 
 from __future__ import annotations
@@ -37,15 +38,18 @@ class SwitchRecord:
     ----------
     p_y_before, p_y_after : float
         Output with the old gains and with the new gains at the switching sample (equal up to
-        rounding).
+        rounding unless the old output lies outside the new limits).
     kp_before, ki_before : float
         The old gains, 1/W and 1/(W s).
+    p_y_limited : float
+        The old output limited to the new output range: what the new gains continue from.
     """
 
     p_y_before: float
     p_y_after: float
     kp_before: float
     ki_before: float
+    p_y_limited: float
 
 
 class SampledPI:
@@ -94,14 +98,18 @@ class SampledPI:
     def switch(self, kp: float, ki: float) -> SwitchRecord:
         """Switch to new gains right after :meth:`update`, keeping ``P_Y`` continuous.
 
-        Uses the error of the last sample: ``x_I' = (P_Y - K_P' e) / K_I'``.
+        Uses the error of the last sample: ``x_I' = (P_Y - K_P' e) / K_I'``. If the limits
+        changed with the switch (other actuators) and ``P_Y`` lies outside the new range, the
+        new gains continue from the nearest limit (every new actuator was saturated there
+        anyway), so the integrator never starts wound up.
         """
         if not (kp > 0 and ki > 0):
             raise ValueError("need kp > 0 and ki > 0")
         before = self.output
+        limited = min(max(before, self.y_min), self.y_max)
         record_kp, record_ki = self.kp, self.ki
         self.kp, self.ki = float(kp), float(ki)
-        self.x_i = (before - self.kp * self.e_prev) / self.ki
+        self.x_i = (limited - self.kp * self.e_prev) / self.ki
         after = self.kp * self.e_prev + self.ki * self.x_i
-        self.output = min(max(after, self.y_min), self.y_max)
-        return SwitchRecord(before, self.output, record_kp, record_ki)
+        self.output = min(max(after, self.y_min), self.y_max) + 0.0       # no -0.0
+        return SwitchRecord(before, self.output, record_kp, record_ki, limited)

@@ -125,6 +125,7 @@ SCHEMAS: dict[str, dict] = {
                 "type": "object",
                 "properties": {
                     "p_y_before": _NUMBER,
+                    "p_y_limited": _NUMBER,
                     "kp_before": {"type": "number", "exclusiveMinimum": 0},
                     "ki_before": {"type": "number", "exclusiveMinimum": 0},
                 },

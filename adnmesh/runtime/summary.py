@@ -13,7 +13,9 @@ a DER's availability change, an injected fault) or the end:
 For every gain switch (``cpfc/p_y`` messages with a ``switch`` record): the largest
 ``|P_IP - P_ref|`` in the ``window_s`` (10 s) after it, and the jump of ``P_Y`` at the switch
 (output with the new gains minus output with the old ones at the switching sample; 0 when the
-switch is bumpless). Plus wall time, simulated time and their ratio, the speed factor.
+switch is bumpless). An old output outside the new DERs' range (where every one of them is
+saturated) is limited to that range first; the jump is counted from the limited value and the
+limiting reported apart (``p_y_limited_by``). Plus wall time, simulated time and their ratio, the speed factor.
 """
 
 from __future__ import annotations
@@ -45,7 +47,8 @@ class RunSeries:
     p_ref_t_ns, p_ref_w : list
         Instants at which ``P_ref`` took a new value, and the value (the first is the initial one).
     switches : list of dict
-        One per gain switch: ``t_ns``, ``p_y_before``, ``p_y_after``, ``available`` (DER ids).
+        One per gain switch: ``t_ns``, ``p_y_before``, ``p_y_limited`` (limited to the new
+        output range), ``p_y_after``, ``available`` (DER ids).
     disturbances_ns : list of int
         Instants of other events that disturb ``P_IP`` (a DER's availability changes, an
         injected fault starts or ends); a step's window ends at the next one.
@@ -68,8 +71,10 @@ class RunSeries:
             self.p_ref_t_ns.append(body["t_send_ns"])
             self.p_ref_w.append(body["p_ref_w"])
         elif message_type == "p_y" and "switch" in body:
+            switch = body["switch"]
             self.switches.append({"t_ns": body["t_send_ns"],
-                                  "p_y_before": body["switch"]["p_y_before"],
+                                  "p_y_before": switch["p_y_before"],
+                                  "p_y_limited": switch.get("p_y_limited", switch["p_y_before"]),
                                   "p_y_after": body["p_y"],
                                   "available": sorted(body.get("w", {}))})
         elif message_type == "heartbeat":
@@ -102,6 +107,7 @@ class SwitchFigures:
     available: tuple[str, ...]
     max_deviation_w: float | None
     p_y_jump: float
+    p_y_limited_by: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -231,9 +237,11 @@ def summarize(series: RunSeries, *, end_ns: int, band_pct: float = 5.0,
     for s in series.switches:
         inside = (t_ip >= s["t_ns"]) & (t_ip <= s["t_ns"] + int(window_s * 1e9))
         deviation = np.abs(p_ip[inside] - _p_ref_at(series, t_ip[inside]))
+        limited = s.get("p_y_limited", s["p_y_before"])
         switches.append(SwitchFigures(s["t_ns"] * 1e-9, tuple(s["available"]),
                                       float(np.nanmax(deviation)) if deviation.size else None,
-                                      float(s["p_y_after"] - s["p_y_before"])))
+                                      float(s["p_y_after"] - limited),
+                                      float(limited - s["p_y_before"])))
     sim_s = end_ns * 1e-9
     speed = sim_s / wall_time_s if wall_time_s else None
     return RunSummary(tuple(steps), tuple(switches), band_pct, sim_s, wall_time_s, speed,
@@ -271,6 +279,10 @@ def format_summary(summary: RunSummary):
     if not summary.switches:
         switches.add_row("", "no switches", "", "")
     out.append(switches)
+    for s in summary.switches:
+        if s.p_y_limited_by:
+            out.append(f"  at {s.t_s:.2f} s P_Y lay outside the new DERs' output range (every "
+                       f"one saturated) and was limited by {s.p_y_limited_by:.3g} first")
     line = f"run: {summary.sim_time_s:g} s simulated"
     if summary.wall_time_s is not None:
         line += f" in {summary.wall_time_s:.2f} s wall"
