@@ -333,3 +333,55 @@ def test_speed_needs_the_realtime_clock(capsys) -> None:
 
     assert main(["up", str(CASE), "--speed", "2"]) == 2
     assert capsys.readouterr().err == "adnmesh: error: --speed needs --clock realtime\n"
+
+
+def test_an_agent_closes_its_session_only_after_up_has_its_goodbye() -> None:
+    # `up` played by the test: a router session with the liveliness token of `up`; the agent
+    # (the availability monitor's node) is served on a client session in this main thread
+    import threading
+
+    import zenoh
+
+    from adnmesh.control.availability import AvailabilityMonitor
+    from adnmesh.runtime.bus import free_port, router_config
+    from adnmesh.runtime.messages import Keys, encode
+    from adnmesh.runtime.node import Node
+    from adnmesh.runtime.process import serve
+
+    config = load_config(CASE)
+    keys = Keys(config.grid)
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    client = zenoh.Config()
+    client.insert_json5("mode", '"client"')
+    client.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    client.insert_json5("scouting/multicast/enabled", "false")
+    reported, said_bye, returned = threading.Event(), threading.Event(), threading.Event()
+    closed_early: list[bool] = []
+
+    with zenoh.open(router_config([endpoint])) as router:
+        token = router.liveliness().declare_token(keys.liveliness("up"))
+        subs = [router.declare_subscriber(keys.report("availability"),
+                                          lambda s: reported.set()),
+                router.declare_subscriber(keys.bye("availability"),
+                                          lambda s: said_bye.set())]
+
+        def play_up() -> None:
+            assert reported.wait(30)
+            router.put(keys.stop, encode("clock_stop", "up", 0, 0, 0, {"reason": "test"}))
+            assert said_bye.wait(30)
+            # the goodbye is in; the agent must still hold its session until up withdraws
+            closed_early.append(returned.wait(0.5))
+            token.undeclare()
+
+        player = threading.Thread(target=play_up, daemon=True)
+        player.start()
+        node = Node.for_config(AvailabilityMonitor(config), config)
+        t0 = time.monotonic()
+        with zenoh.open(client) as session:
+            assert serve(session, node, config.grid) == 0
+        returned.set()
+        player.join(10)
+        for sub in subs:
+            sub.undeclare()
+    assert closed_early == [False]
+    assert time.monotonic() - t0 < 30

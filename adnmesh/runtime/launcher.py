@@ -238,10 +238,17 @@ class _Run:
         self.own_seq: dict[str, int] = {}
         self.publishers: dict[str, zenoh.Publisher] = {}
         self.session: zenoh.Session | None = None
+        self.up_token = None              # liveliness token of `up` (withdrawn at the end)
         self.coordinator: Coordinator | None = None
         self.finished = False
         self.clock_error: str | None = None
         self.end_ns = ns(options.config.scenario.duration_s)
+
+    def withdraw_liveliness(self) -> None:
+        """Withdraw ``up``'s liveliness token (once): agents waiting after their goodbye close."""
+        token, self.up_token = self.up_token, None
+        if token is not None:
+            token.undeclare()
 
     # -- publishing (callers hold self.lock) ---------------------------------------------------
 
@@ -411,11 +418,11 @@ def run(options: UpOptions) -> UpResult:
                 session.liveliness().declare_subscriber(f"{keys.root}/alive/**",
                                                         state.on_alive, history=True),
             ]
-            token = session.liveliness().declare_token(keys.liveliness("up"))
+            state.up_token = session.liveliness().declare_token(keys.liveliness("up"))
             try:
                 _drive(options, state, children, topology, endpoint, result, interrupted)
             finally:
-                token.undeclare()
+                state.withdraw_liveliness()
                 for handle in handles:
                     handle.undeclare()
         with state.lock:
@@ -555,6 +562,7 @@ def _drive(options: UpOptions, state: _Run, children: _Children, topology: Topol
             waiting = {a for a in agents if a not in state.byes}
         running = {a for a, p in children.procs.items() if p.poll() is None}
         if not waiting & running:
+            state.withdraw_liveliness()   # every running agent's goodbye is in: they may close
             break
         state.event.wait(0.05)
         state.event.clear()

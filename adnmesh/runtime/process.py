@@ -18,7 +18,9 @@
 
 4. on ``clock/stop`` (or when ``adnmesh up`` disappears, or on SIGTERM/SIGINT) sends
    ``clock/bye`` with what it published per key, what it rejected and lost, its stats and CPU
-   time, and returns; the caller closes the session.
+   time, waits (5 s at most) until ``adnmesh up`` withdraws its liveliness — it does so once it
+   has every goodbye, so no goodbye is dropped by a session closed too early — and returns;
+   the caller closes the session.
 
 Everything an agent sends in one window for one key goes out as one sample
 (:func:`~adnmesh.runtime.messages.frames`). An injected crash (``runtime.faults.crash``) records
@@ -55,6 +57,7 @@ EXIT_CRASH = 70
 """Exit code of an agent that crashed on purpose (injected fault)."""
 
 _WAIT_S = 1.0  # longest sleep between checks of the stop flag, s
+_BYE_WAIT_S = 5.0  # longest wait after the goodbye for `up` to confirm it, s
 
 
 def load_config_or_exit(path: str):
@@ -80,6 +83,7 @@ class _Inbox:
         self.sim = False          # running on the sim clock: callbacks process grants
         self.realtime = False     # running on the wall clock: data wakes the main thread
         self.window_cpu_s = 0.0   # CPU time spent processing grants (this agent's own work)
+        self.up_gone = False      # adnmesh up withdrew its liveliness (it has every goodbye)
 
 
 def die_with_parent() -> None:
@@ -190,6 +194,7 @@ def serve(session: zenoh.Session, node: Node, grid: str) -> int:
     def on_up_alive(sample: zenoh.Sample) -> None:
         if sample.kind == zenoh.SampleKind.DELETE:
             with cond:
+                inbox.up_gone = True
                 inbox.stop = inbox.stop or "adnmesh up is gone"
                 cond.notify()
 
@@ -239,6 +244,11 @@ def serve(session: zenoh.Session, node: Node, grid: str) -> int:
             send_own(bye_key, {"published": published,
                                "rejected": node.counts.rejected + inbox.rejected,
                                "lost": node.counts.lost, "stats": stats})
+            # closing the session at once could drop the goodbye before it is on the wire:
+            # `up` withdraws its liveliness once it has every goodbye (bounded wait)
+            deadline = time.monotonic() + _BYE_WAIT_S
+            while not inbox.up_gone and time.monotonic() < deadline:
+                cond.wait(min(_WAIT_S, max(0.0, deadline - time.monotonic())))
     finally:
         token.undeclare()
         for subscriber in subscribers:
