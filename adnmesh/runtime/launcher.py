@@ -336,12 +336,18 @@ class _Run:
             for payload in envelopes:
                 self.on_bye(key, payload)
 
-    def on_report(self, key: str, payload: bytes) -> None:
+    def _decoded(self, key: str, payload: bytes, what: str):
+        """The message, or None after noting why ``what`` was rejected."""
         try:
-            message = decode(key, payload)
+            return decode(key, payload)
         except MessageError as exc:
             with self.lock:
-                self.problems.append(f"{key}: rejected clock report: {exc}")
+                self.problems.append(f"{key}: rejected {what}: {exc}")
+            return None
+
+    def on_report(self, key: str, payload: bytes) -> None:
+        message = self._decoded(key, payload, "clock report")
+        if message is None:
             return
         body = message.body
         report = Report(message.src, body["next_ns"], body["received"],
@@ -357,11 +363,8 @@ class _Run:
                 self.event.set()
 
     def on_bye(self, key: str, payload: bytes) -> None:
-        try:
-            message = decode(key, payload)
-        except MessageError as exc:
-            with self.lock:
-                self.problems.append(f"{key}: rejected goodbye: {exc}")
+        message = self._decoded(key, payload, "goodbye")
+        if message is None:
             return
         with self.lock:
             self.byes[message.src] = message.body

@@ -237,7 +237,7 @@ def summarize(series: RunSeries, *, end_ns: int, band_pct: float = 5.0,
     for s in series.switches:
         inside = (t_ip >= s["t_ns"]) & (t_ip <= s["t_ns"] + int(window_s * 1e9))
         deviation = np.abs(p_ip[inside] - _p_ref_at(series, t_ip[inside]))
-        limited = s.get("p_y_limited", s["p_y_before"])
+        limited = s["p_y_limited"]
         switches.append(SwitchFigures(s["t_ns"] * 1e-9, tuple(s["available"]),
                                       float(np.nanmax(deviation)) if deviation.size else None,
                                       float(s["p_y_after"] - limited),

@@ -112,16 +112,15 @@ def _rays(problem: TuningProblem, fractions, totals, kp_init, rhos, t_max_s) -> 
             lim = _limits(problem, fractions, rhos[fr], lo0[fp], np.log(kpn[fail]), fp,
                           t_max_s)
             np.minimum.at(kp, fr, lim / totals[fp] * (1.0 - 1e-9))
-        ok_rays = np.ones(n_rays, bool)
-        ok_rays[np.unique(r_idx[fail])] = False
-        too_slow = np.unique(r_idx[slow & ~np.isin(r_idx, r_idx[fail])])
-        ok_rays[too_slow] = False              # settled: worst-case rise time stays inf
-        pending = np.setdiff1d(pending, too_slow)
-        for r in pending[ok_rays[pending]]:
+        # a lowered ray is checked again; a ray with a subset too slow to settle is out (its
+        # worst case stays inf); every other ray is done
+        failed = np.unique(r_idx[fail])
+        slowed = np.unique(r_idx[slow])
+        for r in np.setdiff1d(pending, np.union1d(failed, slowed)):
             rise = chk.rise_time_s[r_idx == r]
             worst[r] = float(np.max(rise))
             worst_plant[r] = int(np.argmax(rise))
-        pending = pending[~ok_rays[pending]]
+        pending = failed
     return [_Ray(float(kp[r]), float(worst[r]), int(worst_plant[r])) for r in range(n_rays)]
 
 
