@@ -2,8 +2,6 @@
 
     python agents/availability.py CONFIG --connect tcp/127.0.0.1:7447
 
-A DER is available while its last heartbeat said so and is younger than
-runtime.heartbeat_timeout_s; SI goes to the CPFC when it changes.
 Logic: adnmesh.control.availability.AvailabilityMonitor.
 """
 
@@ -12,21 +10,23 @@ import sys
 
 import zenoh
 
-from adnmesh.control.availability import AvailabilityMonitor
+from adnmesh.control.registry import build_agent
 from adnmesh.runtime.bus import add_connection_arguments, session_config
-from adnmesh.runtime.node import Node
-from adnmesh.runtime.process import load_config_or_exit, serve
+from adnmesh.runtime.process import AgentProcess, load_config_or_exit
+from adnmesh.sim.node import Node
 
-# --- arguments ------------------------------------------------------------------------------
-parser = argparse.ArgumentParser(prog="availability", description="adnmesh availability monitor")
-parser.add_argument("config", metavar="CONFIG", help="adnmesh config file (YAML)")
-add_connection_arguments(parser)
-args = parser.parse_args()
 
-config = load_config_or_exit(args.config)
-node = Node.for_config(AvailabilityMonitor(config), config)
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="availability", description="adnmesh availability agent")
+    parser.add_argument("config", metavar="CONFIG", help="adnmesh config file (YAML)")
+    add_connection_arguments(parser)
+    args = parser.parse_args(argv)
 
-# --- run ------------------------------------------------------------------------------------
-with zenoh.open(session_config(args)) as session:
-    code = serve(session, node, config.grid)
-sys.exit(code)
+    config = load_config_or_exit(args.config)
+    node = Node.for_config(build_agent("availability", config), config)
+    with zenoh.open(session_config(args)) as session:
+        return AgentProcess(session, node, config.grid).serve()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

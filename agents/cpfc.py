@@ -4,7 +4,7 @@
 
 PI on P_err = P_ref - P_meas; bumpless gain switch when SI changes; sends P_Y (and the weights W
 on a switch) to the DERs. Gains: the table matching CONFIG (default
-tables/<name>.<sha256[:12]>.json), tuning missing subsets on demand when adnmesh.tuning exists.
+tables/<name>.<sha256[:12]>.json), tuning missing subsets on demand.
 Logic: adnmesh.control.cpfc.CPFC.
 """
 
@@ -13,29 +13,33 @@ import sys
 
 import zenoh
 
-from adnmesh.control.cpfc import CPFC, GainSchedule
+from adnmesh.control.cpfc import GainSchedule
+from adnmesh.control.registry import build_agent
 from adnmesh.errors import ConfigError
 from adnmesh.runtime.bus import add_connection_arguments, session_config
-from adnmesh.runtime.node import Node
-from adnmesh.runtime.process import load_config_or_exit, serve
+from adnmesh.runtime.process import AgentProcess, load_config_or_exit
+from adnmesh.sim.node import Node
 from adnmesh.table import default_table_path, load_table
 
-# --- arguments ------------------------------------------------------------------------------
-parser = argparse.ArgumentParser(prog="cpfc", description="adnmesh CPFC agent")
-parser.add_argument("config", metavar="CONFIG", help="adnmesh config file (YAML)")
-parser.add_argument("--table", metavar="PATH",
-                    help="gain-scheduling table (default: the one matching CONFIG)")
-add_connection_arguments(parser)
-args = parser.parse_args()
 
-config = load_config_or_exit(args.config)
-try:
-    table = load_table(args.table or default_table_path(config), config)
-except ConfigError as exc:
-    sys.exit(f"adnmesh agent: error: {exc}")
-node = Node.for_config(CPFC(config, GainSchedule(config, table)), config)
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="cpfc", description="adnmesh CPFC agent")
+    parser.add_argument("config", metavar="CONFIG", help="adnmesh config file (YAML)")
+    parser.add_argument("--table", metavar="PATH",
+                        help="gain-scheduling table (default: the one matching CONFIG)")
+    add_connection_arguments(parser)
+    args = parser.parse_args(argv)
 
-# --- run ------------------------------------------------------------------------------------
-with zenoh.open(session_config(args)) as session:
-    code = serve(session, node, config.grid)
-sys.exit(code)
+    config = load_config_or_exit(args.config)
+    try:
+        table = load_table(args.table or default_table_path(config), config)
+    except ConfigError as exc:
+        print(f"adnmesh agent: error: {exc}", file=sys.stderr)
+        return 2
+    node = Node.for_config(build_agent("cpfc", config, GainSchedule(config, table)), config)
+    with zenoh.open(session_config(args)) as session:
+        return AgentProcess(session, node, config.grid).serve()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -11,25 +11,27 @@ import sys
 
 import zenoh
 
-from adnmesh.control.der import DERController
+from adnmesh.control.registry import build_agent
 from adnmesh.runtime.bus import add_connection_arguments, session_config
-from adnmesh.runtime.node import Node
-from adnmesh.runtime.process import load_config_or_exit, serve
+from adnmesh.runtime.process import AgentProcess, load_config_or_exit
+from adnmesh.sim.node import Node
+from adnmesh.wire.keys import der_agent_id
 
-# --- arguments ------------------------------------------------------------------------------
-parser = argparse.ArgumentParser(prog="der", description="adnmesh DER agent")
-parser.add_argument("config", metavar="CONFIG", help="adnmesh config file (YAML)")
-parser.add_argument("--der", required=True, metavar="ID", help="id of the DER in the config")
-add_connection_arguments(parser)
-args = parser.parse_args()
 
-config = load_config_or_exit(args.config)
-if args.der not in config.der_ids():
-    parser.error(f"unknown DER id {args.der!r} (known: {', '.join(config.der_ids())})")
-(der,) = config.ders_by_id([args.der])
-node = Node.for_config(DERController(der, config), config)
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="der", description="adnmesh DER agent")
+    parser.add_argument("config", metavar="CONFIG", help="adnmesh config file (YAML)")
+    parser.add_argument("--der", required=True, metavar="ID", help="id of the DER in the config")
+    add_connection_arguments(parser)
+    args = parser.parse_args(argv)
 
-# --- run ------------------------------------------------------------------------------------
-with zenoh.open(session_config(args)) as session:
-    code = serve(session, node, config.grid)
-sys.exit(code)
+    config = load_config_or_exit(args.config)
+    if args.der not in config.der_ids():
+        parser.error(f"unknown DER id {args.der!r} (known: {', '.join(config.der_ids())})")
+    node = Node.for_config(build_agent(der_agent_id(args.der), config), config)
+    with zenoh.open(session_config(args)) as session:
+        return AgentProcess(session, node, config.grid).serve()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -2,8 +2,7 @@
 
     python agents/measurement.py CONFIG --connect tcp/127.0.0.1:7447
 
-P_IP = sum of the DER infeeds + runtime.rest_of_grid_w, every runtime.measurement_period_s,
-delivered after T_meas. Logic: adnmesh.control.measurement.Measurement.
+Logic: adnmesh.control.measurement.Measurement.
 """
 
 import argparse
@@ -11,21 +10,23 @@ import sys
 
 import zenoh
 
-from adnmesh.control.measurement import Measurement
+from adnmesh.control.registry import build_agent
 from adnmesh.runtime.bus import add_connection_arguments, session_config
-from adnmesh.runtime.node import Node
-from adnmesh.runtime.process import load_config_or_exit, serve
+from adnmesh.runtime.process import AgentProcess, load_config_or_exit
+from adnmesh.sim.node import Node
 
-# --- arguments ------------------------------------------------------------------------------
-parser = argparse.ArgumentParser(prog="measurement", description="adnmesh measurement agent")
-parser.add_argument("config", metavar="CONFIG", help="adnmesh config file (YAML)")
-add_connection_arguments(parser)
-args = parser.parse_args()
 
-config = load_config_or_exit(args.config)
-node = Node.for_config(Measurement(config), config)
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="measurement", description="adnmesh measurement agent")
+    parser.add_argument("config", metavar="CONFIG", help="adnmesh config file (YAML)")
+    add_connection_arguments(parser)
+    args = parser.parse_args(argv)
 
-# --- run ------------------------------------------------------------------------------------
-with zenoh.open(session_config(args)) as session:
-    code = serve(session, node, config.grid)
-sys.exit(code)
+    config = load_config_or_exit(args.config)
+    node = Node.for_config(build_agent("measurement", config), config)
+    with zenoh.open(session_config(args)) as session:
+        return AgentProcess(session, node, config.grid).serve()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -11,16 +11,17 @@ from pathlib import Path
 import pytest
 
 from adnmesh.config import DER, Config, DEROffline, Faults, load_config
-from adnmesh.control import build_agent
+from adnmesh.control.registry import build_agent
 from adnmesh.control.availability import AvailabilityMonitor
 from adnmesh.control.cpfc import CPFC, GainSchedule, initial_p_ref_w, output_limits
 from adnmesh.control.der import DERController
 from adnmesh.control.dynamics import PT1DelayParams, PT1DelayState, infeed_at, set_point
 from adnmesh.control.measurement import Measurement
 from adnmesh.control.pi import SampledPI
-from adnmesh.runtime.messages import Keys, decode, encode, message_type
-from adnmesh.runtime.node import Node
-from adnmesh.runtime.topology import Topology
+from adnmesh.sim.node import Node
+from adnmesh.sim.topology import Topology
+from adnmesh.wire.keys import Keys
+from payloads import message, payload
 from adnmesh.table import SchedulingTable, TableEntry
 
 MS = 1_000_000  # ns
@@ -38,11 +39,6 @@ def table(config: Config) -> SchedulingTable:
     table.add(TableEntry(("SGen1", "SGen2"), 5e-8, 1.92e-7, {"SGen1": 1.0, "SGen2": 0.8}))
     table.add(TableEntry(("SGen1",), 1e-7, 3.84e-7, {"SGen1": 1.0}))
     return table
-
-
-def message(key: str, t_ns: int, body: dict, *, src: str = "cpfc", seq: int = 0):
-    """A decoded message as the runtime would deliver it."""
-    return decode(key, encode(message_type(key), src, seq, t_ns, t_ns, body))
 
 
 # --- DER dynamics -------------------------------------------------------------------------------
@@ -157,7 +153,7 @@ def test_der_ignores_p_y_of_an_entry_whose_weights_it_lacks(config: Config) -> N
     command(der, 100 * MS, 0.2, entry=0, w={"SGen1": 0.5})
     command(der, 110 * MS, 0.9, entry=1, seq=1)            # switch message lost: stale entry
     assert der.setpoint_w == pytest.approx(0.2 * 0.5 * 2e6)
-    assert der.stats["stale_commands"] == 1
+    assert der.counts["stale_commands"] == 1
     command(der, 120 * MS, 0.9, entry=1, w={"SGen2": 1.0}, seq=2)  # entry without this DER
     assert der.setpoint_w == 0.0 and der.weight == 0.0
 
@@ -171,7 +167,7 @@ def test_der_falls_back_to_its_schedule_after_the_watchdog(config: Config) -> No
     while t < deadline:
         t = der.next_timer_ns()
         der.on_timer(t)
-    assert (der.mode, der.setpoint_w, der.stats["watchdog_trips"]) == ("watchdog", 0.5e6, 1)
+    assert (der.mode, der.setpoint_w, der.counts["watchdog_trips"]) == ("watchdog", 0.5e6, 1)
     command(der, deadline + 5 * MS, 0.25, seq=1)           # contact is back
     assert der.mode == "control" and der.setpoint_w == pytest.approx(1e6)
 
@@ -209,7 +205,7 @@ def test_der_offline_drops_commands_and_heartbeats(config: Config) -> None:
     assert faults == [(2000 * MS, True), (3500 * MS, False)]
     beats = [t for t, o in sent if o.key.endswith("/heartbeat")]
     assert 2000 * MS not in beats and 3000 * MS not in beats and 3500 * MS in beats
-    assert der.stats["dropped_offline"] == 15 and der.stats["commands"] == 0
+    assert der.counts["dropped_offline"] == 15 and der.counts["commands"] == 0
 
 
 # --- measurement and availability ---------------------------------------------------------------
@@ -266,9 +262,9 @@ def test_availability_monitor_sends_one_si_for_simultaneous_changes(configs_dir:
         t_ns = second * 1000 * MS
         for der_id in simbench.der_ids():
             available = second < change.t_s or der_id not in change.ders
-            node.receive(keys.heartbeat(der_id), encode(
-                "heartbeat", f"der/{der_id}", second, t_ns, t_ns + 100 * MS,
-                {"available": available}))
+            node.receive(keys.heartbeat(der_id), payload(
+                keys.heartbeat(der_id), {"available": available}, seq=second, t_send_ns=t_ns,
+                t_deliver_ns=t_ns + 100 * MS))
         sent += [json.loads(payload) for _, payload in node.advance(t_ns + 500 * MS)]
     assert [(m["t_send_ns"], m["si"]) for m in sent] == [
         (0, dict.fromkeys(simbench.der_ids(), True)),
@@ -313,10 +309,10 @@ def test_cpfc_switch_is_bumpless_with_a_nonzero_integrator(config, table) -> Non
     (t_switch, switched), = [(t, o.body) for t, o in out if "switch" in o.body]
     assert t_switch == 4500 * MS
     assert cpfc.pi.x_i != 0.0
-    assert switched["p_y"] - switched["switch"]["p_y_before"] == 0.0
+    assert switched["p_y"] - switched["switch"].p_y_before == 0.0
     assert (switched["kp"], switched["ki"]) == (1e-7, 3.84e-7)
     assert switched["w"] == {"SGen1": 1.0} and switched["entry"] == 1
-    assert (switched["switch"]["kp_before"], switched["switch"]["ki_before"]) == (5e-8, 1.92e-7)
+    assert (switched["switch"].kp_before, switched["switch"].ki_before) == (5e-8, 1.92e-7)
     (event,) = cpfc.switches
     assert event.available == ("SGen1",) and event.source == "table"
 

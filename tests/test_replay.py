@@ -224,32 +224,35 @@ def test_plot_of_a_truncated_recording_notes_it(fake, tmp_path: Path, capsys) ->
 
 
 def test_the_series_table_understands_the_runtimes_messages(tmp_path: Path) -> None:
-    messages = pytest.importorskip("adnmesh.runtime.messages")
     from adnmesh.recording import Recorder, validate_recording
+    from adnmesh.wire.envelope import decode
+    from adnmesh.wire.keys import Keys, route
+    from adnmesh.wire.messages import Switch
+    from adnmesh.wire.schemas import message_schemas
+    from payloads import payload
 
-    keys = messages.Keys("g")
-    switch = {"p_y_before": 0.1, "kp_before": 1e-7, "ki_before": 2e-7}
+    keys = Keys("g")
+    switch = Switch(p_y_before=0.1, p_y_limited=0.1, kp_before=1e-7, ki_before=2e-7)
     sent = [
-        (keys.p_ref, "cpfc", {"p_ref_w": 2.0e6}),
-        (keys.p_ip, "measurement", {"p_ip_w": 1.5e6}),
-        (keys.p_y, "cpfc", {"p_y": 0.1, "p_ref_w": 2e6, "kp": 1e-7, "ki": 2e-7, "entry": 3}),
-        (keys.p_y, "cpfc", {"p_y": 0.1, "p_ref_w": 2e6, "kp": 3e-7, "ki": 4e-7, "entry": 1,
-                            "w": {"SGen1": 1.0}, "switch": switch}),
-        (keys.der_state("SGen1"), "der/SGen1", {"p_w": 1e6, "setpoint_w": 1.1e6,
-                                                "mode": "control"}),
-        (keys.heartbeat("SGen1"), "der/SGen1", {"available": True}),
-        (keys.si, "availability", {"si": {"SGen1": True, "SGen2": False}}),
-        (keys.fault("der/SGen2"), "der/SGen2", {"fault": "der_offline", "agent": "der/SGen2",
-                                                "active": True}),
+        (keys.p_ref, {"p_ref_w": 2.0e6}),
+        (keys.p_ip, {"p_ip_w": 1.5e6}),
+        (keys.p_y, {"p_y": 0.1, "p_ref_w": 2e6, "kp": 1e-7, "ki": 2e-7, "entry": 3}),
+        (keys.p_y, {"p_y": 0.1, "p_ref_w": 2e6, "kp": 3e-7, "ki": 4e-7, "entry": 1,
+                    "w": {"SGen1": 1.0}, "switch": switch}),
+        (keys.der_state("SGen1"), {"p_w": 1e6, "setpoint_w": 1.1e6, "mode": "control"}),
+        (keys.heartbeat("SGen1"), {"available": True}),
+        (keys.si, {"si": {"SGen1": True, "SGen2": False}}),
+        (keys.fault("der/SGen2"), {"fault": "der_offline", "agent": "der/SGen2",
+                                   "active": True}),
     ]
     path = tmp_path / "runtime.mcap"
-    with Recorder(path, metadata={}, schemas=messages.SCHEMAS) as recorder:
-        for i, (key, src, body) in enumerate(sent):
+    with Recorder(path, metadata={}, schemas=message_schemas()) as recorder:
+        for i, (key, body) in enumerate(sent):
             t_ns = i * 100_000_000
-            kind = messages.message_type(key)
-            payload = messages.encode(kind, src, i, t_ns, t_ns + 1, body)
-            messages.decode(key, payload)  # a valid message of the runtime
-            recorder.write(key, kind, payload, log_time_ns=t_ns + 1, publish_time_ns=t_ns)
+            data = payload(key, body, seq=i, t_send_ns=t_ns, t_deliver_ns=t_ns + 1)
+            decode(key, data)  # a valid message of the runtime
+            recorder.write(key, route(key).type, data, log_time_ns=t_ns + 1,
+                           publish_time_ns=t_ns)
     recording = read_recording(path)
     assert validate_recording(recording) == []
     run = extract(recording)

@@ -24,7 +24,7 @@ import yaml
 from adnmesh.config import load_config
 from adnmesh.control.cpfc import GainSchedule
 from adnmesh.plant import plant_from_ders
-from adnmesh.runtime.local import run_local
+from adnmesh.sim.local import run_local
 from adnmesh.stepresp import simulate_step
 from adnmesh.table import SchedulingTable, TableEntry, load_table, save_table
 
@@ -145,7 +145,8 @@ def test_recording_holds_every_published_message(reference_run) -> None:
     assert count_differences(published, recorded) == []
     assert validate_recording(recording, limit=5) == []
     assert recording.run["clock"] == "sim" and recording.run["seed"] == "7"
-    assert summary["extra"]["rejected"] == 0 and summary["extra"]["agents"] == 5
+    assert summary["extra"]["rejected_by_agents"] == 0 and summary["extra"]["agents"] == 5
+    assert summary["extra"]["rejected_by_recorder"] == 0
 
 
 def test_summary_of_the_run(reference_run) -> None:
@@ -344,9 +345,10 @@ def test_an_agent_closes_its_session_only_after_up_has_its_goodbye() -> None:
 
     from adnmesh.control.availability import AvailabilityMonitor
     from adnmesh.runtime.bus import free_port, router_config
-    from adnmesh.runtime.messages import Keys, encode
-    from adnmesh.runtime.node import Node
-    from adnmesh.runtime.process import serve
+    from adnmesh.runtime.process import AgentProcess
+    from adnmesh.sim.node import Node
+    from adnmesh.wire.keys import Keys
+    from payloads import payload
 
     config = load_config(CASE)
     keys = Keys(config.grid)
@@ -367,7 +369,7 @@ def test_an_agent_closes_its_session_only_after_up_has_its_goodbye() -> None:
 
         def play_up() -> None:
             assert reported.wait(30)
-            router.put(keys.stop, encode("clock_stop", "up", 0, 0, 0, {"reason": "test"}))
+            router.put(keys.stop, payload(keys.stop, {"reason": "test"}))
             assert said_bye.wait(30)
             # the goodbye is in; the agent must still hold its session until up withdraws
             closed_early.append(returned.wait(0.5))
@@ -378,7 +380,7 @@ def test_an_agent_closes_its_session_only_after_up_has_its_goodbye() -> None:
         node = Node.for_config(AvailabilityMonitor(config), config)
         t0 = time.monotonic()
         with zenoh.open(client) as session:
-            assert serve(session, node, config.grid) == 0
+            assert AgentProcess(session, node, config.grid).serve() == 0
         returned.set()
         player.join(10)
         for sub in subs:

@@ -114,7 +114,8 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--speed must be positive, got {args.speed:g}")
     if args.seed is not None and args.seed < 0:
         raise UsageError(f"--seed must be >= 0, got {args.seed}")
-    from adnmesh.runtime.launcher import AGENTS_DIR, UpOptions
+    from adnmesh.runtime.children import AGENTS_DIR
+    from adnmesh.runtime.launcher import UpOptions
     from adnmesh.runtime.launcher import run as launch
     from adnmesh.runtime.summary import format_summary, summarize
 
@@ -144,15 +145,18 @@ def run(args: argparse.Namespace) -> int:
     log(f"recording: {out} ({sum(result.recorded.values())} messages)")
     if result.reason != "finished":
         return result.exit_code
-    received = sum(int(b.get("stats", {}).get("received", 0)) for b in result.byes.values())
+    received = sum(int(b.stats.get("received", 0)) for b in result.byes.values())
+    rejected_by_agents = sum(sum(r.values()) for b in result.byes.values()
+                             for r in b.rejected.values())
     extra = {
         "run_id": run_id,
         "clock": args.clock,
         "agents": len(result.byes),
         "messages_recorded": sum(result.recorded.values()),
         "messages_received_by_agents": received,
-        "rejected": sum(b["rejected"] for b in result.byes.values()),
-        "lost_on_links": sum(b["lost"] for b in result.byes.values()),
+        "rejected_by_agents": rejected_by_agents,
+        "rejected_by_recorder": sum(sum(r.values()) for r in result.rejected.values()),
+        "lost_on_links": sum(b.lost for b in result.byes.values()),
         "startup_s": round(result.startup_s, 3),
     }
     if args.clock == "sim":

@@ -15,14 +15,15 @@ one change, not one SI per heartbeat.
 from __future__ import annotations
 
 from adnmesh.config import Config
-from adnmesh.control.base import Outgoing
-from adnmesh.runtime.links import ns
-from adnmesh.runtime.messages import Keys, Message
+from adnmesh.control.base import Agent, Outgoing
+from adnmesh.wire.keys import Keys, der_id_of
+from adnmesh.wire.messages import Envelope
+from adnmesh.wire.units import ns
 
 __all__ = ["AvailabilityMonitor"]
 
 
-class AvailabilityMonitor:
+class AvailabilityMonitor(Agent):
     """Builds SI from heartbeats (agent id ``availability``; see the module docstring)."""
 
     agent_id = "availability"
@@ -32,7 +33,6 @@ class AvailabilityMonitor:
         self._si_key = keys.si
         self.timeout_ns = ns(config.runtime.heartbeat_timeout_s)
         self.der_ids = config.der_ids()
-        self._by_key = {keys.heartbeat(d): d for d in self.der_ids}
         self.flag = dict.fromkeys(self.der_ids, True)
         self.deadline_ns = dict.fromkeys(self.der_ids, self.timeout_ns)
         self.expired: set[str] = set()
@@ -50,11 +50,11 @@ class AvailabilityMonitor:
             times.append(self._send_ns)
         return min(times) if times else None
 
-    def on_message(self, t_ns: int, message: Message) -> list[Outgoing]:
-        der_id = self._by_key.get(message.key)
-        if der_id is None:
+    def on_message(self, t_ns: int, message: Envelope) -> list[Outgoing]:
+        der_id = der_id_of(message.src)
+        if der_id not in self.flag:
             return []
-        self.flag[der_id] = message.body["available"]
+        self.flag[der_id] = message.available
         self.deadline_ns[der_id] = t_ns + self.timeout_ns
         self.expired.discard(der_id)
         if self.si() != self._sent:

@@ -25,10 +25,11 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from adnmesh.config import Config
-from adnmesh.control.base import Outgoing
+from adnmesh.control.base import Agent, Outgoing
 from adnmesh.control.pi import SampledPI, SwitchRecord
-from adnmesh.runtime.links import ns
-from adnmesh.runtime.messages import Keys, Message
+from adnmesh.wire.keys import Keys
+from adnmesh.wire.messages import Envelope, Switch
+from adnmesh.wire.units import ns
 from adnmesh.table import SchedulingTable, TableEntry
 
 __all__ = ["CPFC", "GainSchedule", "SwitchEvent", "initial_p_ref_w", "output_limits"]
@@ -128,7 +129,7 @@ class SwitchEvent:
     record: SwitchRecord
 
 
-class CPFC:
+class CPFC(Agent):
     """The CPFC state machine (agent id ``cpfc``; see the module docstring).
 
     Parameters
@@ -166,20 +167,24 @@ class CPFC:
         self._next_weights_ns = 0
         self._p_ref_sent: float | None = None
         self.switches: list[SwitchEvent] = []
-        self.stats: dict[str, float] = {"samples": 0, "no_gains": 0, "rejected_si": 0}
+        self.counts: dict[str, int] = {"samples": 0, "no_gains": 0, "rejected_si": 0}
 
     # -- agent interface -----------------------------------------------------------------------
 
     def next_timer_ns(self) -> int:
         return self.next_sample_ns
 
-    def on_message(self, t_ns: int, message: Message) -> list[Outgoing]:
+    def stats(self) -> dict[str, float]:
+        return {**{k: float(v) for k, v in self.counts.items()},
+                **{f"gains_{k}": float(v) for k, v in self.schedule.sources.items()}}
+
+    def on_message(self, t_ns: int, message: Envelope) -> list[Outgoing]:
         if message.type == "p_ip":
-            self.p_meas_w = message.body["p_ip_w"]
+            self.p_meas_w = message.p_ip_w
         elif message.type == "si":
-            si = message.body["si"]
+            si = message.si
             if not set(si) <= set(self._ids):
-                self.stats["rejected_si"] += 1
+                self.counts["rejected_si"] += 1
                 return []
             available = frozenset(d for d in self._ids if si.get(d, False))
             self._pending = None if available == self.available else available
@@ -201,17 +206,15 @@ class CPFC:
             self._pending = None
             if record is not None:
                 body.update(p_y=record.p_y_after, kp=self.pi.kp, ki=self.pi.ki,
-                            switch={"p_y_before": record.p_y_before,
-                                    "p_y_limited": record.p_y_limited,
-                                    "kp_before": record.kp_before,
-                                    "ki_before": record.ki_before})
+                            switch=Switch(record.p_y_before, record.p_y_limited,
+                                          record.kp_before, record.ki_before))
                 self._next_weights_ns = t_ns
         body["entry"] = self.entry_index
         if t_ns >= self._next_weights_ns:
             body["w"] = dict(self.weights)
             self._next_weights_ns = t_ns + self.weights_period_ns
         out.append(Outgoing(self.keys.p_y, body))
-        self.stats["samples"] += 1
+        self.counts["samples"] += 1
         self.next_sample_ns += self.period_ns
         return out
 
@@ -222,7 +225,7 @@ class CPFC:
         entry, source = self.schedule.lookup(available) if available else (None, "none")
         if entry is None:
             # no actuators or no gains: keep the gains, hold the output where it is
-            self.stats["no_gains"] += 1
+            self.counts["no_gains"] += 1
             self.weights = self._weights(self.entry, available)
             if not self.weights:
                 self.pi.set_limits(self.pi.output, self.pi.output)

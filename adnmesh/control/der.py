@@ -28,18 +28,20 @@ no heartbeats, and records the fault's start and end on ``fault/der/<id>``.
 from __future__ import annotations
 
 from adnmesh.config import DER, Config
-from adnmesh.control.base import Outgoing
+from msgspec import UNSET
+
+from adnmesh.control.base import Agent, Outgoing
 from adnmesh.control.dynamics import PT1DelayParams, PT1DelayState, infeed_at, set_point
-from adnmesh.runtime.links import ns
-from adnmesh.runtime.messages import Keys, Message
-from adnmesh.runtime.topology import der_agent_id
+from adnmesh.wire.keys import Keys, der_agent_id
+from adnmesh.wire.messages import Envelope
+from adnmesh.wire.units import ns
 
 __all__ = ["DERController"]
 
 _NEVER = 1 << 62
 
 
-class DERController:
+class DERController(Agent):
     """Local controller of DER ``der`` (agent id ``der/<id>``; see the module docstring)."""
 
     def __init__(self, der: DER, config: Config) -> None:
@@ -75,8 +77,8 @@ class DERController:
         self.p_y = 0.0
         self.setpoint_w = der.p_sched_w
         self.mode = "control"
-        self.stats = {"commands": 0, "stale_commands": 0, "dropped_offline": 0,
-                      "watchdog_trips": 0}
+        self.counts = {"commands": 0, "stale_commands": 0, "dropped_offline": 0,
+                       "watchdog_trips": 0}
         self._plan()
 
     # -- agent interface -----------------------------------------------------------------------
@@ -95,22 +97,21 @@ class DERController:
             t = self._offline_changes[0][0]
         self._next_timer_ns = t
 
-    def on_message(self, t_ns: int, message: Message) -> list[Outgoing]:
+    def on_message(self, t_ns: int, message: Envelope) -> list[Outgoing]:
         if message.type != "p_y":
             return []
+        counts = self.counts
         if self.offline:
-            self.stats["dropped_offline"] += 1
+            counts["dropped_offline"] += 1
             return []
-        body = message.body
-        weights = body.get("w")
-        if weights is not None:
-            self.weight = float(weights.get(self.der.id, 0.0))
-            self.entry = body["entry"]
-        if body["entry"] != self.entry:
-            self.stats["stale_commands"] += 1
+        if message.w is not UNSET:
+            self.weight = float(message.w.get(self.der.id, 0.0))
+            self.entry = message.entry
+        if message.entry != self.entry:
+            counts["stale_commands"] += 1
             return []
-        self.stats["commands"] += 1
-        self.p_y = body["p_y"]
+        counts["commands"] += 1
+        self.p_y = message.p_y
         self.watchdog_deadline_ns = t_ns + self.watchdog_ns
         self.watchdog_expired = False
         self._update_setpoint(t_ns)
@@ -135,7 +136,7 @@ class DERController:
                                                       "active": offline}))
         if not self.watchdog_expired and t_ns >= self.watchdog_deadline_ns:
             self.watchdog_expired = True
-            self.stats["watchdog_trips"] += 1
+            self.counts["watchdog_trips"] += 1
             setpoint_inputs_changed = True
         if setpoint_inputs_changed:   # else on_message has set it from the same inputs
             self._update_setpoint(t_ns)
@@ -151,6 +152,9 @@ class DERController:
             out.append(Outgoing(self._heartbeat_key, {"available": self.available}))
         self._plan()
         return out
+
+    def stats(self) -> dict[str, float]:
+        return {k: float(v) for k, v in self.counts.items()}
 
     # -- internals -----------------------------------------------------------------------------
 

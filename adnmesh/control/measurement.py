@@ -14,14 +14,15 @@ SimBench grid replaces the sum in the grid issue.
 from __future__ import annotations
 
 from adnmesh.config import Config
-from adnmesh.control.base import Outgoing
-from adnmesh.runtime.links import ns
-from adnmesh.runtime.messages import Keys, Message
+from adnmesh.control.base import Agent, Outgoing
+from adnmesh.wire.keys import Keys
+from adnmesh.wire.messages import Envelope
+from adnmesh.wire.units import ns
 
 __all__ = ["Measurement"]
 
 
-class Measurement:
+class Measurement(Agent):
     """Samples ``P_IP`` (agent id ``measurement``; see the module docstring)."""
 
     agent_id = "measurement"
@@ -31,16 +32,16 @@ class Measurement:
         self._p_ip_key = keys.p_ip
         self.period_ns = ns(config.runtime.measurement_period_s)
         self.rest_of_grid_w = config.runtime.rest_of_grid_w
-        # infeed per DER state key, in config order (fixed summation order: reproducible sums)
-        self.infeed_w = {keys.der_state(d.id): d.p_sched_w for d in config.ders}
+        # infeed per DER agent, in config order (fixed summation order: reproducible sums)
+        self.infeed_w = {f"der/{d.id}": d.p_sched_w for d in config.ders}
         self.next_sample_ns = 0
 
     def next_timer_ns(self) -> int:
         return self.next_sample_ns
 
-    def on_message(self, t_ns: int, message: Message) -> list[Outgoing]:
-        if message.key in self.infeed_w:
-            self.infeed_w[message.key] = message.body["p_w"]
+    def on_message(self, t_ns: int, message: Envelope) -> list[Outgoing]:
+        if message.src in self.infeed_w:
+            self.infeed_w[message.src] = message.p_w
         return []
 
     def on_timer(self, t_ns: int) -> list[Outgoing]:

@@ -1,14 +1,15 @@
-"""The distributed runtime behind ``adnmesh up`` (see README, section Runtime).
+"""The distributed runtime behind ``adnmesh up``: the only package that talks to Zenoh.
 
-- :mod:`~adnmesh.runtime.messages`: bus keys, JSON Schemas, envelopes, framing;
-  :mod:`~adnmesh.runtime.validator`: the schema validator generated for them;
-- :mod:`~adnmesh.runtime.links`: the ICT channel model (delay, jitter, loss, outages);
-- :mod:`~adnmesh.runtime.topology`: who sends what to whom, and the lookahead between agents;
-- :mod:`~adnmesh.runtime.clock`: the sim clock's coordinator (conservative time advance);
-- :mod:`~adnmesh.runtime.node`: one agent's event order, envelopes, links and counts, bus-free;
-- :mod:`~adnmesh.runtime.process`: a node on a Zenoh session (what ``agents/*.py`` run);
 - :mod:`~adnmesh.runtime.bus`: Zenoh session configuration and the shared connection flags;
-- :mod:`~adnmesh.runtime.launcher`: router, agent processes, clock, recorder, shutdown;
-- :mod:`~adnmesh.runtime.local`: every agent in one process, for tests and analyses;
+- :mod:`~adnmesh.runtime.process`: an agent process (:class:`AgentProcess`: startup, run,
+  goodbye) around a :class:`~adnmesh.sim.node.Node`; what ``agents/*.py`` run;
+- :mod:`~adnmesh.runtime.children`: starting the agent processes and tracking them by PID;
+- :mod:`~adnmesh.runtime.roster`: who is alive, ready, said goodbye, gone;
+- :mod:`~adnmesh.runtime.tap`: the recorder tap (validate, then record; rejects apart);
+- :mod:`~adnmesh.runtime.launcher_bus`: ``up``'s own messages and the sim clock's grants;
+- :mod:`~adnmesh.runtime.launcher`: ``adnmesh up`` as phases: startup, run, shutdown, verify;
 - :mod:`~adnmesh.runtime.summary`: the end-of-run figures, from the recorded series.
+
+Below it: :mod:`adnmesh.sim` (node, links, topology, sim clock, in-process runner; bus-free),
+:mod:`adnmesh.control` (the agents' state machines), :mod:`adnmesh.wire` (the protocol).
 """

@@ -1,34 +1,30 @@
 """``adnmesh up`` behind the command line: router, agents, clock, recorder, shutdown.
 
-:func:`run` does, in this order:
+:func:`run` goes through four named phases:
 
-1. opens the embedded Zenoh router (a session in mode ``router``, ``tcp/127.0.0.1:<free port>``
-   unless told otherwise) and, on that session, one subscriber on ``adn/<grid>/**`` for what
-   the agents send — every envelope to MCAP (``log_time`` = delivery time, ``publish_time`` =
-   send time), clock reports to the sim clock's coordinator (grants out), goodbyes to the
-   shutdown — and liveliness subscriptions that tell when an agent's session appears or dies;
-   what ``up`` publishes itself (grants, start, stop) it records as it sends it;
-2. spawns one process per agent with ``sys.executable agents/<kind>.py`` as Zenoh clients
-   (own session so Ctrl-C reaches only ``up``; told to die with ``up`` on Linux), tracked by PID;
-3. waits until every agent is ready (liveliness token and first clock report), announces the
-   start on ``clock/start`` and runs the clock (sim: grants; realtime: the wall clock);
-4. stops at the end of the scenario, on Ctrl-C / SIGTERM, or when an agent dies: announces
-   ``clock/stop``, collects every agent's goodbye (what it published per key), waits for the
-   processes and kills by PID whatever is left, closes the router;
-5. compares what the agents (and ``up`` itself) published with what was recorded, per key, and
-   fails loudly on any difference.
+1. :func:`startup`: spawn one process per agent (:mod:`adnmesh.runtime.children`) as Zenoh
+   clients of the embedded router and wait until every agent is ready (liveliness token and
+   first clock report);
+2. :func:`run_clock`: announce ``clock/start`` and run the clock — sim: grants from the
+   coordinator (:class:`~adnmesh.runtime.launcher_bus.SimClockDriver`); realtime: the wall
+   clock — until the scenario's end, Ctrl-C / SIGTERM, or an agent's death;
+3. :func:`shutdown`: announce ``clock/stop``, collect every agent's goodbye (what it published
+   per key), withdraw ``up``'s liveliness so the agents may close, wait for the processes and
+   kill by PID whatever is left;
+4. :func:`verify`: compare what the agents (and ``up`` itself) published with what was
+   recorded, per key, and fail loudly on any difference.
 
-The result (:class:`UpResult`) carries the exit status and the series for the summary.
+Around them, the embedded router (a Zenoh session in mode ``router``, ``tcp/127.0.0.1:<free
+port>`` unless told otherwise) carries one subscriber on ``adn/<grid>/**`` whose samples go
+through the recorder tap (:class:`~adnmesh.runtime.tap.RecorderTap`: validated, then recorded;
+clock reports on to the clock, goodbyes to the roster) and a liveliness subscriber that tells
+the :class:`~adnmesh.runtime.roster.Roster` when a session appears or ends.
 """
 
 from __future__ import annotations
 
-import json
-import os
-import re
 import signal
 import subprocess
-import sys
 import threading
 import time
 from collections.abc import Callable
@@ -39,48 +35,22 @@ import zenoh
 
 from adnmesh import __version__
 from adnmesh.config import Config
+from adnmesh.recording import PUBLISHED_METADATA, Recorder
 from adnmesh.runtime.bus import DEFAULT_HOST, free_port, router_config
-from adnmesh.runtime.clock import ClockError, Coordinator, Report
-from adnmesh.runtime.links import ns
-from adnmesh.runtime.messages import (
-    SCHEMAS,
-    MessageError,
-    decode,
-    encode,
-    message_type,
-    parse_json,
-    split_frame,
-)
+from adnmesh.runtime.children import AgentProcesses, agent_argv
+from adnmesh.runtime.launcher_bus import LauncherOutbox, SimClockDriver
+from adnmesh.runtime.roster import Roster
 from adnmesh.runtime.summary import RunSeries
-from adnmesh.runtime.topology import Topology
+from adnmesh.runtime.tap import RecorderTap, recording_schemas
+from adnmesh.sim.clock import Coordinator
+from adnmesh.sim.topology import Topology
+from adnmesh.wire.units import ns
 
-__all__ = ["AGENTS_DIR", "AGENT_ZENOH_RUNTIME", "UpOptions", "UpResult", "agent_argv", "run"]
-
-AGENTS_DIR = Path(__file__).resolve().parents[2] / "agents"
-"""Where the agent programs are (``agents/`` of the source tree)."""
-
-PARENT_ENV = "ADNMESH_PARENT_PID"
-"""Environment variable with the PID of ``adnmesh up``; agents die with that process."""
-
-AGENT_ZENOH_RUNTIME = "(rx: (worker_threads: 1))"
-"""Zenoh's thread pools in the agent processes (environment ``ZENOH_RUNTIME``, unless it is
-set): one receive worker instead of two. An agent has a single link, to the router; the second
-worker was woken for work it seldom found, which cost a fifth of a run's context switches and
-about 8 % of its CPU time on two cores."""
+__all__ = ["EXIT_FAILED", "EXIT_OK", "UpOptions", "UpResult", "run"]
 
 EXIT_OK, EXIT_FAILED, EXIT_SIGINT, EXIT_SIGTERM = 0, 1, 130, 143
 
-_SUMMARY_TYPES = frozenset({"p_ip", "p_ref", "p_y", "heartbeat", "fault"})
-_TIMES = re.compile(rb'"t_send_ns":(\d+),"t_deliver_ns":(\d+)[,}]')
-
-
-def _loads(payload: bytes):
-    """The JSON value of a recorded payload (NaN and Infinity allowed: the recorder records
-    whatever comes and the summary takes what it can)."""
-    try:
-        return parse_json(payload)
-    except MessageError:
-        return json.loads(payload)
+_POLL_S = 0.1   # longest wait between checks of the processes, s
 
 
 @dataclass
@@ -139,10 +109,14 @@ class UpResult:
         Wall time from the start announcement to the end of the clock, s.
     startup_s : float
         Wall time to get every agent ready, s.
+    end_ns : int
+        The scenario's end, ns.
     published, recorded : dict
         Messages per key: what the agents and ``up`` said they published, what was recorded.
     byes : dict
-        Agent id -> its goodbye body.
+        Agent id -> its goodbye (an ``agent_bye`` message).
+    rejected : dict
+        ``key -> {reason -> count}`` of what the recorder tap rejected.
     grants : int
         Clock grants issued (sim).
     problems : list of str
@@ -158,431 +132,243 @@ class UpResult:
     published: dict = field(default_factory=dict)
     recorded: dict = field(default_factory=dict)
     byes: dict = field(default_factory=dict)
+    rejected: dict = field(default_factory=dict)
     grants: int = 0
     problems: list = field(default_factory=list)
 
 
-def agent_argv(agent_id: str, config_path: Path, endpoint: str, table_path: Path) -> list[str]:
-    """Command line of the process of ``agent_id``."""
-    kind = "der" if agent_id.startswith("der/") else agent_id
-    argv = [sys.executable, str(AGENTS_DIR / f"{kind}.py"), str(config_path),
-            "--connect", endpoint]
-    if kind == "der":
-        argv += ["--der", agent_id[4:]]
-    if kind == "cpfc":
-        argv += ["--table", str(table_path)]
-    return argv
+class _Launch:
+    """Everything one run of ``up`` holds, shared by the phases and the Zenoh callbacks."""
 
-
-class _Children:
-    """The agent processes, by PID."""
-
-    def __init__(self) -> None:
-        self.procs: dict[str, subprocess.Popen] = {}
-
-    def spawn(self, agent_id: str, argv: list[str]) -> None:
-        env = dict(os.environ, **{PARENT_ENV: str(os.getpid())})
-        env.setdefault("ZENOH_RUNTIME", AGENT_ZENOH_RUNTIME)
-        self.procs[agent_id] = subprocess.Popen(argv, env=env, start_new_session=True,
-                                                stdin=subprocess.DEVNULL)
-
-    def dead(self) -> list[tuple[str, int]]:
-        return [(a, p.returncode) for a, p in self.procs.items() if p.poll() is not None]
-
-    def wait_all(self, timeout_s: float) -> None:
-        deadline = time.monotonic() + timeout_s
-        for proc in self.procs.values():
-            try:
-                proc.wait(timeout=max(0.0, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                pass
-
-    def kill_all(self) -> list[str]:
-        """SIGKILL every child still running (by PID); return their agent ids."""
-        killed = []
-        for agent_id, proc in self.procs.items():
-            if proc.poll() is None:
-                try:
-                    os.kill(proc.pid, signal.SIGKILL)
-                except ProcessLookupError:
-                    pass
-                killed.append(agent_id)
-        for proc in self.procs.values():
-            proc.wait()
-        return killed
-
-
-class _Run:
-    """State shared by the router session's callbacks and the main thread."""
-
-    def __init__(self, options: UpOptions, topology: Topology, recorder) -> None:
+    def __init__(self, options: UpOptions) -> None:
         self.options = options
-        self.topology = topology
-        self.keys = topology.keys
-        self.recorder = recorder
-        # two locks: `lock` for the clock and the agents' state (held while publishing grants),
-        # `record_lock` for the recording and the series; `record_lock` may be taken while
-        # holding `lock` (`send` records what it publishes), never the other way round.
-        self.lock = threading.Lock()
-        self.record_lock = threading.Lock()
-        self.event = threading.Event()
-        self.series = RunSeries()
-        self.alive: set[str] = set()
-        self.reported: set[str] = set()
-        self.byes: dict[str, dict] = {}
-        self.gone: list[str] = []
-        self.problems: list[str] = []
-        self.foreign = 0
-        self.record_errors = 0
-        self.own: dict[str, int] = {}
-        self.own_seq: dict[str, int] = {}
-        self.publishers: dict[str, zenoh.Publisher] = {}
-        self.session: zenoh.Session | None = None
-        self.up_token = None              # liveliness token of `up` (withdrawn at the end)
-        self.coordinator: Coordinator | None = None
-        self.finished = False
-        self.clock_error: str | None = None
-        self.end_ns = ns(options.config.scenario.duration_s)
+        self.config = options.config
+        self.topology = Topology.from_config(self.config)
+        self.keys = self.topology.keys
+        self.endpoint = options.listen or f"tcp/{DEFAULT_HOST}:{free_port()}"
+        self.result = UpResult(end_ns=ns(self.config.scenario.duration_s))
+        self.roster = Roster(self.topology.agents)
+        self.children = AgentProcesses()
+        self.interrupted: list[int] = []
+        self.recorder = Recorder(options.out, metadata=_metadata(options),
+                                 schemas=recording_schemas())
+        self.clock: SimClockDriver | None = None
+        self.tap = RecorderTap(self.recorder, self.topology, self.result.series,
+                               lambda: self.clock.now_ns() if self.clock else 0)
+        self.outbox: LauncherOutbox | None = None
+        self._handles: list = []
+        self._token = None
+
+    # -- the router session --------------------------------------------------------------------
+
+    def open(self, session: zenoh.Session) -> None:
+        """Declare the recorder's subscriber, the liveliness subscriber and ``up``'s token."""
+        self.outbox = LauncherOutbox(session, self.tap)
+        if self.options.clock == "sim":
+            self.clock = SimClockDriver(Coordinator(self.topology, self.result.end_ns),
+                                        self.keys, self.outbox, self.roster.changed.set)
+        self._handles = [
+            session.declare_subscriber(self.keys.all, self.on_sample,
+                                       allowed_origin=zenoh.Locality.REMOTE),
+            session.liveliness().declare_subscriber(f"{self.keys.root}/alive/**",
+                                                    self.roster.on_alive, history=True),
+        ]
+        self._token = session.liveliness().declare_token(self.keys.liveliness("up"))
 
     def withdraw_liveliness(self) -> None:
         """Withdraw ``up``'s liveliness token (once): agents waiting after their goodbye close."""
-        token, self.up_token = self.up_token, None
+        token, self._token = self._token, None
         if token is not None:
             token.undeclare()
 
-    # -- publishing (callers hold self.lock) ---------------------------------------------------
-
-    def send(self, key: str, body: dict, t_ns: int) -> None:
-        """Publish a message of ``up`` itself at sim time ``t_ns`` and record it (the recorder's
-        subscriber takes only what comes from the agents)."""
-        seq = self.own_seq.get(key, 0)
-        self.own_seq[key] = seq + 1
-        self.own[key] = self.own.get(key, 0) + 1
-        pub = self.publishers.get(key)
-        if pub is None:
-            pub = self.publishers[key] = self.session.declare_publisher(
-                key, congestion_control=zenoh.CongestionControl.BLOCK,
-                allowed_destination=zenoh.Locality.REMOTE)
-        type_name = message_type(key)
-        payload = encode(type_name, "up", seq, t_ns, t_ns, body)
-        pub.put(payload)
-        with self.record_lock:
-            self._record(key, type_name, [(payload, t_ns, t_ns)])
-
-    def grant(self, grants) -> None:
-        t = self.coordinator.now_ns() if grants else 0
-        for g in grants:
-            self.send(self.keys.grant(g.agent), {"until_ns": g.until_ns, "expect": g.expect}, t)
-        if self.coordinator.finished and not self.finished:
-            self.finished = True
-            self.event.set()
-
-    # -- recording (callers hold self.record_lock) ---------------------------------------------
-
-    def _record(self, key: str, type_name: str, records: list[tuple[bytes, int, int]]) -> bool:
-        """Write ``(payload, log_time_ns, publish_time_ns)`` envelopes of one key; False if the
-        recorder refused them."""
-        try:
-            self.recorder.write_many(key, type_name, records)
-        except (ValueError, RuntimeError) as exc:   # reported at the end of the run
-            if not self.record_errors:
-                self.problems.append(f"recording failed: {exc}")
-            self.record_errors += len(records)
-            return False
-        return True
-
-    def _record_frame(self, key: str, type_name: str, envelopes: list[bytes]) -> None:
-        """Record the envelopes of one sample from an agent; feed the summary's series with
-        what it needs (P_IP, P_ref, switches, heartbeats, faults)."""
-        summary = type_name in _SUMMARY_TYPES
-        records, bodies = [], []
-        for payload in envelopes:
-            wanted = summary and (type_name != "p_y" or b'"switch"' in payload)
-            times = None if wanted else _TIMES.search(payload)  # our encoder's field order
-            if times is not None:
-                records.append((payload, int(times[2]), int(times[1])))
-                continue
-            try:
-                body = _loads(payload)
-                t_send, t_deliver = int(body["t_send_ns"]), int(body["t_deliver_ns"])
-            except (ValueError, TypeError, KeyError):
-                body, t_send, t_deliver = None, 0, 0
-            records.append((payload, max(t_deliver, 0), max(t_send, 0)))
-            if wanted and body is not None:
-                bodies.append(body)
-        if self._record(key, type_name, records):
-            for body in bodies:
-                self.series.add(type_name, body)
-
-    # -- callbacks (Zenoh threads) -------------------------------------------------------------
+    def close(self) -> None:
+        self.withdraw_liveliness()
+        for handle in self._handles:
+            handle.undeclare()
+        self._handles = []
 
     def on_sample(self, sample: zenoh.Sample) -> None:
-        """Every sample an agent sends: record its envelopes; clock reports and goodbyes also
-        go to the clock and the shutdown."""
-        key = str(sample.key_expr)
-        try:
-            type_name = message_type(key)
-        except ValueError:
-            with self.record_lock:
-                self.foreign += 1
-            return
-        envelopes = split_frame(sample.payload.to_bytes())
-        with self.record_lock:
-            self._record_frame(key, type_name, envelopes)
-        if type_name == "clock_report":
-            for payload in envelopes:
-                self.on_report(key, payload)
-        elif type_name == "agent_bye":
-            for payload in envelopes:
-                self.on_bye(key, payload)
+        """Every sample an agent sends: through the tap; reports and goodbyes onwards."""
+        for message in self.tap.take(str(sample.key_expr), sample.payload.to_bytes()):
+            if message.type == "clock_report":
+                self.roster.note_report(message.src)
+                if self.clock is not None:
+                    self.clock.on_report(message)
+            elif message.type == "agent_bye":
+                self.roster.note_bye(message)
 
-    def _decoded(self, key: str, payload: bytes, what: str):
-        """The message, or None after noting why ``what`` was rejected."""
-        try:
-            return decode(key, payload)
-        except MessageError as exc:
-            with self.lock:
-                self.problems.append(f"{key}: rejected {what}: {exc}")
-            return None
+    # -- reasons to stop -----------------------------------------------------------------------
 
-    def on_report(self, key: str, payload: bytes) -> None:
-        message = self._decoded(key, payload, "clock report")
-        if message is None:
-            return
-        body = message.body
-        report = Report(message.src, body["next_ns"], body["received"],
-                        {k: (v[0], v[1]) for k, v in body["sent"].items()})
-        with self.lock:
-            self.reported.add(message.src)
-            if self.coordinator is None or self.clock_error:
-                return
-            try:
-                self.grant(self.coordinator.on_report(report))
-            except ClockError as exc:
-                self.clock_error = str(exc)
-                self.event.set()
+    def failure(self) -> str | None:
+        """Why the run must stop now (interrupted, an agent died, the clock failed), or None."""
+        if self.interrupted:
+            return "SIGINT" if self.interrupted[0] == signal.SIGINT else "SIGTERM"
+        byes = self.roster.without_bye()
+        dead = [(a, c) for a, c in self.children.dead() if a in byes]
+        if dead:
+            return self.children.describe_death(*dead[0])
+        gone = self.roster.first_gone()
+        if gone is not None:
+            proc = self.children.procs.get(gone)
+            if proc is not None:   # its session ended: most likely the process, say how
+                try:
+                    return self.children.describe_death(gone, proc.wait(timeout=1.0))
+                except subprocess.TimeoutExpired:   # still running: only its session was lost
+                    pass
+            return f"agent {gone} lost its session"
+        if self.clock is not None and self.clock.error:
+            return f"clock: {self.clock.error}"
+        return None
 
-    def on_bye(self, key: str, payload: bytes) -> None:
-        message = self._decoded(key, payload, "goodbye")
-        if message is None:
-            return
-        with self.lock:
-            self.byes[message.src] = message.body
-            self.event.set()
 
-    def on_alive(self, sample: zenoh.Sample) -> None:
-        agent = str(sample.key_expr).split("/alive/", 1)[1]
-        if agent == "up":
-            return
-        with self.lock:
-            if sample.kind == zenoh.SampleKind.PUT:
-                self.alive.add(agent)
-            else:
-                self.alive.discard(agent)
-                if agent not in self.byes:
-                    self.gone.append(agent)
-            self.event.set()
+def _metadata(options: UpOptions) -> dict[str, str]:
+    config = options.config
+    return {"config": Path(config.path).read_text(), "config_path": str(config.path),
+            "config_sha256": config.sha256, "adnmesh_version": __version__,
+            "seed": str(options.seed), "clock": options.clock, "t0_ns": "0",
+            **{k: str(v) for k, v in options.metadata.items()}}
+
+
+# -- phases ------------------------------------------------------------------------------------
+
+
+def startup(launch: _Launch) -> str | None:
+    """Spawn every agent and wait until all are ready; return why that failed, or None."""
+    options, t0 = launch.options, time.monotonic()
+    for agent_id in launch.topology.agents:
+        launch.children.spawn(agent_id, agent_argv(agent_id, Path(launch.config.path),
+                                                   launch.endpoint, options.table_path))
+    options.log(f"router on {launch.endpoint}; started {len(launch.topology.agents)} agents "
+                f"(pids {launch.children.pids()})")
+    deadline = t0 + options.startup_timeout_s
+    reason = None
+    while reason is None and launch.roster.not_ready():
+        reason = launch.failure()
+        if reason is None and time.monotonic() > deadline:
+            reason = (f"agents not ready after {options.startup_timeout_s:g} s: "
+                      f"{', '.join(launch.roster.not_ready())}")
+        launch.roster.wait(_POLL_S)
+    launch.result.startup_s = time.monotonic() - t0
+    return reason
+
+
+def run_clock(launch: _Launch) -> str:
+    """Announce the start and run the clock to the end; return why it ended."""
+    options, result = launch.options, launch.result
+    options.log(f"{len(launch.topology.agents)} agents ready in {result.startup_s:.2f} s; "
+                f"running {launch.config.scenario.duration_s:g} s of {options.clock} time")
+    t_start = time.perf_counter()
+    epoch_ns = time.time_ns() + 200_000_000
+    launch.outbox.send(launch.keys.start, 0, clock=options.clock, epoch_ns=epoch_ns,
+                       speed=float(options.speed), end_ns=result.end_ns, seed=options.seed)
+    if launch.clock is not None:
+        launch.clock.start()
+    else:
+        t_start += (epoch_ns - time.time_ns()) * 1e-9   # the run starts at the epoch
+    end_wall_ns = epoch_ns + result.end_ns / options.speed
+    reason = None
+    while reason is None:
+        done = launch.clock.finished if launch.clock is not None else \
+            time.time_ns() >= end_wall_ns
+        reason = "finished" if done else launch.failure()
+        if reason is None:
+            launch.roster.wait(_POLL_S)
+    result.wall_time_s = time.perf_counter() - t_start
+    return reason
+
+
+def shutdown(launch: _Launch, reason: str) -> None:
+    """Announce the stop, collect the goodbyes, end every process (see the module docstring)."""
+    options, roster, children = launch.options, launch.roster, launch.children
+    t_stop = launch.clock.now_ns() if launch.clock is not None else 0
+    launch.outbox.send(launch.keys.stop, t_stop, reason=reason)
+    deadline = time.monotonic() + options.shutdown_timeout_s
+    while time.monotonic() < deadline:
+        if not roster.without_bye() & children.running():
+            break
+        roster.wait(0.05)
+    launch.withdraw_liveliness()   # every running agent's goodbye is in: they may close
+    children.wait_all(max(0.5, deadline - time.monotonic()))
+    killed = children.kill_all()
+    if killed:
+        launch.result.problems.append(f"killed after the shutdown timeout: {', '.join(killed)}")
+    # wait (bounded) until the recorder has everything the agents say they published
+    deadline = time.monotonic() + 2.0
+    while time.monotonic() < deadline:
+        expected = roster.published(launch.outbox.counts())
+        recorded = launch.recorder.counts()
+        if all(recorded.get(k, 0) >= v for k, v in expected.items()):
+            break
+        roster.wait(0.01)
+
+
+def verify(launch: _Launch) -> None:
+    """Compare published and recorded counts per key; record the agents' counts."""
+    result = launch.result
+    result.published = launch.roster.published(launch.outbox.counts())
+    result.recorded = {k: v for k, v in launch.recorder.counts().items()
+                       if k != launch.tap.rejected_key}
+    missing = sorted(launch.roster.without_bye())
+    if result.exit_code == EXIT_OK and missing:
+        result.exit_code = EXIT_FAILED
+        result.problems.append(f"no goodbye from {', '.join(missing)}")
+    differences = sorted(k for k in set(result.published) | set(result.recorded)
+                         if result.published.get(k, 0) != result.recorded.get(k, 0))
+    if result.exit_code == EXIT_OK and differences:
+        shown = "; ".join(f"{k}: published {result.published.get(k, 0)}, recorded "
+                          f"{result.recorded.get(k, 0)}" for k in differences[:3])
+        result.problems.append(f"recording incomplete on {len(differences)} key(s): {shown}")
+        result.exit_code = EXIT_FAILED
+    if launch.tap.record_errors and result.exit_code == EXIT_OK:
+        result.exit_code = EXIT_FAILED
+    launch.recorder.add_metadata(PUBLISHED_METADATA,
+                                 {k: str(v) for k, v in result.published.items()})
 
 
 def run(options: UpOptions) -> UpResult:
     """Run the scenario of ``options.config`` as processes; see the module docstring."""
-    from adnmesh.recording import PUBLISHED_METADATA, Recorder
-
-    config = options.config
-    topology = Topology.from_config(config)
-    keys = topology.keys
-    endpoint = options.listen or f"tcp/{DEFAULT_HOST}:{free_port()}"
-    result = UpResult(end_ns=ns(config.scenario.duration_s))
-    metadata = {"config": Path(config.path).read_text(), "config_path": str(config.path),
-                "config_sha256": config.sha256, "adnmesh_version": __version__,
-                "seed": str(options.seed), "clock": options.clock, "t0_ns": "0",
-                **{k: str(v) for k, v in options.metadata.items()}}
-    recorder = Recorder(options.out, metadata=metadata, schemas=SCHEMAS)
-    state = _Run(options, topology, recorder)
-    children = _Children()
-    interrupted: list[int] = []
-    previous = {}
-
-    def on_signal(signum, frame):
-        interrupted.append(signum)
-        state.event.set()
-
-    if threading.current_thread() is threading.main_thread():
-        for signum in (signal.SIGINT, signal.SIGTERM):
-            previous[signum] = signal.signal(signum, on_signal)
+    launch = _Launch(options)
+    result = launch.result
+    previous = _catch_signals(launch.interrupted, launch.roster.changed)
     try:
-        with zenoh.open(router_config([endpoint])) as session:
-            state.session = session
-            if options.clock == "sim":
-                state.coordinator = Coordinator(topology, result.end_ns)
-            handles = [
-                session.declare_subscriber(keys.all, state.on_sample,
-                                           allowed_origin=zenoh.Locality.REMOTE),
-                session.liveliness().declare_subscriber(f"{keys.root}/alive/**",
-                                                        state.on_alive, history=True),
-            ]
-            state.up_token = session.liveliness().declare_token(keys.liveliness("up"))
+        with zenoh.open(router_config([launch.endpoint])) as session:
+            launch.open(session)
             try:
-                _drive(options, state, children, topology, endpoint, result, interrupted)
+                reason = startup(launch) or run_clock(launch)
+                _stopped(result, reason)
+                shutdown(launch, reason)
             finally:
-                state.withdraw_liveliness()
-                for handle in handles:
-                    handle.undeclare()
-        with state.lock:
-            result.published = _published(state)
-        result.recorded = recorder.counts()
-        differences = sorted(k for k in set(result.published) | set(result.recorded)
-                             if result.published.get(k, 0) != result.recorded.get(k, 0))
-        if result.exit_code == EXIT_OK and differences:
-            shown = "; ".join(f"{k}: published {result.published.get(k, 0)}, recorded "
-                              f"{result.recorded.get(k, 0)}" for k in differences[:3])
-            result.problems.append(f"recording incomplete on {len(differences)} key(s): {shown}")
-            result.exit_code = EXIT_FAILED
-        if state.foreign:
-            result.problems.append(f"{state.foreign} message(s) on unknown keys were not recorded")
-        if state.record_errors and result.exit_code == EXIT_OK:
-            result.exit_code = EXIT_FAILED
-        recorder.add_metadata(PUBLISHED_METADATA, {k: str(v) for k, v in result.published.items()})
+                launch.close()
+        verify(launch)
     finally:
-        children.kill_all()
-        recorder.close()
+        launch.children.kill_all()
+        launch.recorder.close()
         for signum, handler in previous.items():
             signal.signal(signum, handler)
-    result.series = state.series
-    result.byes = state.byes
-    result.problems = state.problems + result.problems
-    if state.coordinator is not None:
-        result.grants = state.coordinator.grants_issued
+    result.byes = dict(launch.roster.byes)
+    result.rejected = launch.tap.rejected
+    result.problems = launch.tap.problems + result.problems
+    if launch.clock is not None:
+        result.grants = launch.clock.grants_issued
     return result
 
 
-def _published(state: _Run) -> dict[str, int]:
-    total: dict[str, int] = dict(state.own)
-    for bye in state.byes.values():
-        for key, count in bye["published"].items():
-            total[key] = total.get(key, 0) + count
-    return total
-
-
-def _drive(options: UpOptions, state: _Run, children: _Children, topology: Topology,
-           endpoint: str, result: UpResult, interrupted: list[int]) -> None:
-    """Spawn, start, wait for the end, stop. Sets ``result.exit_code`` and ``reason``."""
-    log = options.log
-    config = options.config
-    t0 = time.monotonic()
-    for agent_id in topology.agents:
-        children.spawn(agent_id, agent_argv(agent_id, Path(config.path), endpoint,
-                                            options.table_path))
-    log(f"router on {endpoint}; started {len(topology.agents)} agents "
-        f"(pids {' '.join(str(p.pid) for p in children.procs.values())})")
-    agents = set(topology.agents)
-
-    def died(agent: str, code: int) -> str:
-        how = f"signal {-code}" if code < 0 else f"exit code {code}"
-        return f"agent {agent} (pid {children.procs[agent].pid}) died ({how})"
-
-    def failure() -> str | None:
-        if interrupted:
-            return "SIGINT" if interrupted[0] == signal.SIGINT else "SIGTERM"
-        dead = [(a, c) for a, c in children.dead() if a not in state.byes]
-        if dead:
-            return died(*dead[0])
-        with state.lock:
-            gone = state.gone[0] if state.gone else None
-            clock_error = state.clock_error
-        if gone is not None:
-            proc = children.procs.get(gone)
-            if proc is not None:   # its session died: most likely the process, say how
-                try:
-                    return died(gone, proc.wait(timeout=1.0))
-                except subprocess.TimeoutExpired:
-                    pass
-            return f"agent {gone} lost its session"
-        if clock_error:
-            return f"clock: {clock_error}"
-        return None
-
-    # -- startup: every agent alive and reported ----------------------------------------------
-    deadline = t0 + options.startup_timeout_s
-    reason = None
-    while reason is None:
-        with state.lock:
-            ready = agents <= state.alive and agents <= state.reported
-        if ready:
-            break
-        reason = failure()
-        if reason is None and time.monotonic() > deadline:
-            with state.lock:
-                missing = sorted(agents - (state.alive & state.reported))
-            reason = f"agents not ready after {options.startup_timeout_s:g} s: " \
-                     f"{', '.join(missing)}"
-        state.event.wait(0.05)
-        state.event.clear()
-    result.startup_s = time.monotonic() - t0
-
-    # -- run ----------------------------------------------------------------------------------
-    t_start = time.perf_counter()
-    if reason is None:
-        log(f"{len(agents)} agents ready in {result.startup_s:.2f} s; running "
-            f"{config.scenario.duration_s:g} s of {options.clock} time")
-        epoch_ns = time.time_ns() + 200_000_000
-        with state.lock:
-            state.send(state.keys.start, {"clock": options.clock, "epoch_ns": epoch_ns,
-                                          "speed": float(options.speed),
-                                          "end_ns": result.end_ns, "seed": options.seed}, 0)
-            if state.coordinator is not None:
-                state.grant(state.coordinator.start())
-        end_wall = epoch_ns + result.end_ns / options.speed
-        if options.clock == "realtime":
-            t_start += (epoch_ns - time.time_ns()) * 1e-9   # the run starts at the epoch
-        while reason is None:
-            if options.clock == "sim":
-                with state.lock:
-                    done = state.finished
-            else:
-                done = time.time_ns() >= end_wall
-            if done:
-                reason = "finished"
-                break
-            reason = failure()
-            if reason is None:
-                state.event.wait(0.1)
-                state.event.clear()
-    result.wall_time_s = time.perf_counter() - t_start
+def _stopped(result: UpResult, reason: str) -> None:
     result.reason = reason
     if reason != "finished":
         result.exit_code = (EXIT_SIGINT if reason == "SIGINT" else
                             EXIT_SIGTERM if reason == "SIGTERM" else EXIT_FAILED)
         result.problems.append(f"run stopped: {reason}")
 
-    # -- shutdown -----------------------------------------------------------------------------
-    with state.lock:
-        t_stop = state.coordinator.now_ns() if state.coordinator is not None else 0
-        state.send(state.keys.stop, {"reason": reason}, t_stop)
-    deadline = time.monotonic() + options.shutdown_timeout_s
-    while time.monotonic() < deadline:
-        with state.lock:
-            waiting = {a for a in agents if a not in state.byes}
-        running = {a for a, p in children.procs.items() if p.poll() is None}
-        if not waiting & running:
-            state.withdraw_liveliness()   # every running agent's goodbye is in: they may close
-            break
-        state.event.wait(0.05)
-        state.event.clear()
-    children.wait_all(max(0.5, deadline - time.monotonic()))
-    killed = children.kill_all()
-    if killed:
-        result.problems.append(f"killed after the shutdown timeout: {', '.join(killed)}")
-    with state.lock:
-        missing = sorted(agents - set(state.byes))
-    if result.exit_code == EXIT_OK and missing:
-        result.exit_code = EXIT_FAILED
-        result.problems.append(f"no goodbye from {', '.join(missing)}")
-    # wait (bounded) until the recorder has everything the agents say they published
-    deadline = time.monotonic() + 2.0
-    while time.monotonic() < deadline:
-        with state.lock:
-            expected = _published(state)
-        if all(state.recorder.counts().get(k, 0) >= v for k, v in expected.items()):
-            break
-        time.sleep(0.01)
+
+def _catch_signals(interrupted: list[int], wake: threading.Event) -> dict:
+    """Note SIGINT/SIGTERM in ``interrupted`` (main thread only); return the old handlers."""
+    if threading.current_thread() is not threading.main_thread():
+        return {}
+
+    def on_signal(signum, frame):
+        interrupted.append(signum)
+        wake.set()
+
+    return {signum: signal.signal(signum, on_signal) for signum in (signal.SIGINT,
+                                                                    signal.SIGTERM)}

@@ -1,31 +1,32 @@
-"""An agent process: one :class:`~adnmesh.runtime.node.Node` on a Zenoh session.
+"""An agent process: one :class:`~adnmesh.sim.node.Node` on a Zenoh session.
 
-:func:`serve` is what every program in ``agents/`` runs after opening its session. It
+:class:`AgentProcess` is what every program in ``agents/`` runs once its session is open, in
+three named phases:
 
-1. subscribes to the agent's keys, to its clock grants, to ``clock/start`` and ``clock/stop``,
-   and to the liveliness of ``adnmesh up``;
-2. declares its liveliness token ``alive/<agent>`` and sends its first clock report: the agent is
-   ready;
-3. waits for ``clock/start``, then runs on the announced clock:
+1. :meth:`~AgentProcess.startup`: subscribe to the agent's keys, to its clock grants, to
+   ``clock/start`` and ``clock/stop`` and to the liveliness of ``adnmesh up``; declare the
+   liveliness token ``alive/<agent>`` and send the first clock report: the agent is ready;
+2. :meth:`~AgentProcess.run`: wait for ``clock/start``, then run on the announced clock:
 
    - ``sim``: a grant is processed as soon as the agent has received the messages it expects —
-     every event before ``until_ns``, then a report (:mod:`adnmesh.runtime.clock`) — by the
-     Zenoh callback that completes it (the grant, or the last expected message), under the
-     inbox lock: no hand-over to another thread on the critical path;
+     every event before ``until_ns``, then a report (:mod:`adnmesh.sim.clock`) — by the Zenoh
+     callback that completes it (the grant, or the last expected message), under the lock: no
+     hand-over to another thread on the critical path;
    - ``realtime``: sim time is ``(wall - epoch) * speed``; the main thread sleeps until the next
-     event or message and processes what is due (messages that arrive after their delivery time
-     are processed at once and counted as late);
+     event or message and processes what is due (a message that arrives after its delivery time
+     is processed at once and counted as late);
 
-4. on ``clock/stop`` (or when ``adnmesh up`` disappears, or on SIGTERM/SIGINT) sends
-   ``clock/bye`` with what it published per key, what it rejected and lost, its stats and CPU
-   time, waits (5 s at most) until ``adnmesh up`` withdraws its liveliness — it does so once it
-   has every goodbye, so no goodbye is dropped by a session closed too early — and returns;
-   the caller closes the session.
+   until ``clock/stop``, the disappearance of ``adnmesh up``, or SIGTERM/SIGINT;
+3. :meth:`~AgentProcess.goodbye`: send what the agent wants sent at the end
+   (:meth:`Agent.finish <adnmesh.control.base.Agent.finish>`), then ``clock/bye`` with what it
+   published per key, what it rejected per key and reason, what its links lost, its stats and
+   CPU time; wait (5 s at most) until ``adnmesh up`` withdraws its liveliness — it does so once it
+   has every goodbye, so no goodbye is dropped by a session closed too early.
 
-Everything an agent sends in one window for one key goes out as one sample
-(:func:`~adnmesh.runtime.messages.frames`). An injected crash (``runtime.faults.crash``) records
-a ``fault`` message and ends the process at once with exit code :data:`EXIT_CRASH`, without a
-goodbye.
+:meth:`~AgentProcess.close` undeclares everything; the caller closes the session. Everything an
+agent sends in one window for one key goes out as one sample (:func:`adnmesh.wire.frames`). An
+injected crash (``runtime.faults.crash``) records a ``fault`` message and ends the process at
+once with exit code :data:`EXIT_CRASH`, without a goodbye.
 """
 
 from __future__ import annotations
@@ -40,24 +41,18 @@ from collections import deque
 
 import zenoh
 
-from adnmesh.runtime.messages import (
-    Keys,
-    MessageError,
-    decode,
-    encode,
-    frames,
-    message_type,
-    split_frame,
-)
-from adnmesh.runtime.node import AgentCrash, Node
+from adnmesh.sim.node import AgentCrash, Node
+from adnmesh.wire.envelope import MessageError, decode, encode, frames, split_frame
+from adnmesh.wire.keys import Keys, route
+from adnmesh.wire.messages import MESSAGE_TYPES, MESSAGE_VERSION
 
-__all__ = ["EXIT_CRASH", "die_with_parent", "load_config_or_exit", "serve"]
+__all__ = ["EXIT_CRASH", "AgentProcess", "die_with_parent", "load_config_or_exit"]
 
 EXIT_CRASH = 70
 """Exit code of an agent that crashed on purpose (injected fault)."""
 
-_WAIT_S = 1.0  # longest sleep between checks of the stop flag, s
-_BYE_WAIT_S = 5.0  # longest wait after the goodbye for `up` to confirm it, s
+_WAIT_S = 1.0       # longest sleep between checks of the stop flag, s
+_BYE_WAIT_S = 5.0   # longest wait after the goodbye for `up` to confirm it, s
 
 
 def load_config_or_exit(path: str):
@@ -67,23 +62,8 @@ def load_config_or_exit(path: str):
     try:
         return load_config(path)
     except ConfigError as exc:
-        raise SystemExit(f"adnmesh agent: error: {exc}") from None
-
-
-class _Inbox:
-    """What the Zenoh callbacks and the main thread share (guarded by ``cond``)."""
-
-    def __init__(self) -> None:
-        self.cond = threading.Condition()
-        self.received = 0
-        self.grants: deque = deque()
-        self.start: dict | None = None
-        self.stop: str | None = None
-        self.rejected = 0
-        self.sim = False          # running on the sim clock: callbacks process grants
-        self.realtime = False     # running on the wall clock: data wakes the main thread
-        self.window_cpu_s = 0.0   # CPU time spent processing grants (this agent's own work)
-        self.up_gone = False      # adnmesh up withdrew its liveliness (it has every goodbye)
+        print(f"adnmesh agent: error: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
 
 
 def die_with_parent() -> None:
@@ -101,177 +81,219 @@ def die_with_parent() -> None:
         os._exit(1)
 
 
-def serve(session: zenoh.Session, node: Node, grid: str) -> int:
-    """Run ``node`` on ``session`` until the run stops; return the exit code (0).
+class AgentProcess:
+    """Runs ``node`` on ``session`` (see the module docstring).
 
-    On the sim clock, the callback that completes a grant (the grant itself, or the message that
-    brings the received count to what the grant expects) processes the window at once, on its
-    own thread, under the inbox lock: no hand-over to the main thread on the critical path.
+    Parameters
+    ----------
+    session : zenoh.Session
+    node : Node
+        The agent, its links and counts.
+    grid : str
+        The config's grid (bus keys ``adn/<grid>/...``).
     """
-    die_with_parent()
-    keys = Keys(grid)
-    agent = node.agent_id
-    inbox = _Inbox()
-    cond = inbox.cond
-    block = zenoh.CongestionControl.BLOCK
-    publishers: dict[str, zenoh.Publisher] = {}
-    own: dict[str, int] = {}     # what this wrapper publishes itself (clock traffic)
-    own_seq: dict[str, int] = {}
 
-    def publish(key: str, payload: bytes) -> None:
-        pub = publishers.get(key)
-        if pub is None:
-            pub = publishers[key] = session.declare_publisher(key, congestion_control=block)
-        pub.put(payload)
+    def __init__(self, session: zenoh.Session, node: Node, grid: str) -> None:
+        self.session = session
+        self.node = node
+        self.keys = Keys(grid)
+        self.agent = node.agent_id
+        self.lock = threading.Condition()    # guards everything below and the node
+        self.grants: deque = deque()
+        self.start: object | None = None     # the clock_start message
+        self.stop: str | None = None         # why the run stopped
+        self.mode: str | None = None         # "sim" / "realtime" once started
+        self.up_gone = False                 # adnmesh up withdrew its liveliness
+        self.window_cpu_s = 0.0              # CPU time spent processing grants
+        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._own: dict[str, int] = {}       # what this wrapper published itself, per key
+        self._handles: list = []
+        self._signals: dict = {}
 
-    def send_own(key: str, body: dict) -> None:
-        seq = own_seq.get(key, 0)
-        own_seq[key] = seq + 1
-        own[key] = own.get(key, 0) + 1
-        publish(key, encode(message_type(key), agent, seq, node.now_ns, node.now_ns, body))
+    # -- phases ------------------------------------------------------------------------------
 
-    def report() -> None:
-        r = node.report()
-        send_own(keys.report(agent), {"next_ns": r.next_ns, "granted_ns": node.granted_ns,
-                                      "received": r.received,
-                                      "sent": {k: list(v) for k, v in r.sent.items()}})
-
-    def run_until(until_ns: int) -> None:  # with cond held
+    def serve(self) -> int:
+        """Startup, run, goodbye, close; return the exit code (0)."""
+        die_with_parent()
+        self.startup()
         try:
-            out = node.advance(until_ns)
-        except AgentCrash:
-            for key, payload in node.emit_now(keys.fault(agent), {
-                    "fault": "crash", "agent": agent, "active": True}):
-                publish(key, payload)
-            os._exit(EXIT_CRASH)
-        for key, frame in frames(out):
-            publish(key, frame)
+            self.run()
+            self.goodbye()
+        finally:
+            self.close()
+        return 0
 
-    def run_granted() -> None:  # with cond held: every grant whose messages are all here
-        grants = inbox.grants
-        while inbox.sim and grants and inbox.stop is None \
-                and inbox.received >= grants[0]["expect"]:
-            cpu = time.thread_time()
-            grant = grants.popleft()
-            run_until(grant["until_ns"])
-            report()
-            inbox.window_cpu_s += time.thread_time() - cpu
+    def startup(self) -> None:
+        """Subscribe, declare liveliness and send the first report (see the module docstring)."""
+        if threading.current_thread() is threading.main_thread():  # Ctrl-C stops it too
+            self._signals = {s: signal.signal(s, self._on_signal)
+                             for s in (signal.SIGTERM, signal.SIGINT)}
+        keys, session = self.keys, self.session
+        self._handles = [session.declare_subscriber(key, self._on_data)
+                         for key in self.node.subscriptions]
+        self._handles += [session.declare_subscriber(key, self._on_clock)
+                          for key in (keys.grant(self.agent), keys.start, keys.stop)]
+        self._handles.append(session.liveliness().declare_subscriber(
+            keys.liveliness("up"), self._on_up_alive))
+        self._handles.append(session.liveliness().declare_token(keys.liveliness(self.agent)))
+        with self.lock:
+            self._report()
 
-    def on_data(sample: zenoh.Sample) -> None:
+    def run(self) -> None:
+        """Wait for the start, then run on its clock until the run stops."""
+        with self.lock:
+            while self.start is None and self.stop is None:
+                self.lock.wait(_WAIT_S)
+            if self.stop is not None:
+                return
+            self.node.reseed(self.start.seed)
+            self.mode = self.start.clock
+            if self.mode == "sim":
+                self._run_granted()
+                while self.stop is None:
+                    self.lock.wait(_WAIT_S)
+            else:
+                self.node.strict = False
+        if self.mode == "realtime":
+            self._run_realtime()
+
+    def goodbye(self) -> None:
+        """Send the agent's last messages and the goodbye; wait (bounded) for ``up``'s ack."""
+        with self.lock:
+            self.mode = None
+            self._publish_all(self.node.finish())
+            node, counts = self.node, self.node.counts
+            bye_key = self.keys.bye(self.agent)
+            published = {**counts.published, **self._own}
+            published[bye_key] = published.get(bye_key, 0) + 1
+            stats = {**node.agent.stats(), "cpu_s": time.process_time(),
+                     "window_cpu_s": self.window_cpu_s, "late": float(counts.late),
+                     "received": float(counts.received)}
+            self._send_own(bye_key, published=published, rejected=counts.rejected,
+                           lost=counts.lost, stats=stats)
+            deadline = time.monotonic() + _BYE_WAIT_S
+            while not self.up_gone and time.monotonic() < deadline:
+                self.lock.wait(min(_WAIT_S, max(0.0, deadline - time.monotonic())))
+
+    def close(self) -> None:
+        """Undeclare subscribers and the liveliness token; restore the signal handlers."""
+        for handle in reversed(self._handles):
+            handle.undeclare()
+        self._handles = []
+        for signum, handler in self._signals.items():
+            signal.signal(signum, handler)
+        self._signals = {}
+
+    # -- Zenoh callbacks -----------------------------------------------------------------------
+
+    def _on_data(self, sample: zenoh.Sample) -> None:
         # decoded and queued in the node at once, while other agents still run: a window later
         # only processes events (the node orders them by delivery time, not by arrival)
         key = str(sample.key_expr)
         envelopes = split_frame(sample.payload.to_bytes())
-        with cond:
+        with self.lock:
             for payload in envelopes:
-                node.receive(key, payload)
-            inbox.received += len(envelopes)
-            if inbox.sim:
-                if inbox.grants:
-                    run_granted()
-            elif inbox.realtime:
-                cond.notify()
+                self.node.receive(key, payload)
+            if self.mode == "sim":
+                if self.grants:
+                    self._run_granted()
+            elif self.mode == "realtime":
+                self.lock.notify()
 
-    def on_clock(sample: zenoh.Sample) -> None:
+    def _on_clock(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
-        try:
-            message = decode(key, sample.payload.to_bytes())
-        except MessageError:
-            with cond:
-                inbox.rejected += 1
+        for payload in split_frame(sample.payload.to_bytes()):
+            try:
+                message = decode(key, payload)
+            except MessageError as exc:
+                with self.lock:
+                    self.node.counts.reject(key, exc.reason)
+                continue
+            with self.lock:
+                self._take_clock(message)
+
+    def _take_clock(self, message) -> None:   # with the lock held
+        if message.type == "clock_grant":      # processed here: the main thread sleeps on
+            self.grants.append(message)
+            self._run_granted()
             return
-        with cond:
-            if message.type == "clock_grant":   # processed here: the main thread sleeps on
-                inbox.grants.append(message.body)
-                run_granted()
-                return
-            if message.type == "clock_start":
-                inbox.start = message.body
-            elif message.type == "clock_stop":
-                inbox.stop = inbox.stop or message.body["reason"]
-            cond.notify()   # what the main thread waits for
+        if message.type == "clock_start" and self.start is None:
+            self.start = message
+        elif message.type == "clock_stop":
+            self.stop = self.stop or message.reason
+        self.lock.notify()
 
-    def on_up_alive(sample: zenoh.Sample) -> None:
+    def _on_up_alive(self, sample: zenoh.Sample) -> None:
         if sample.kind == zenoh.SampleKind.DELETE:
-            with cond:
-                inbox.up_gone = True
-                inbox.stop = inbox.stop or "adnmesh up is gone"
-                cond.notify()
+            with self.lock:
+                self.up_gone = True
+                self.stop = self.stop or "adnmesh up is gone"
+                self.lock.notify()
 
-    def on_signal(signum, frame) -> None:
+    def _on_signal(self, signum, frame) -> None:
         # no lock in a signal handler: the main thread wakes within _WAIT_S and sees the flag
-        inbox.stop = inbox.stop or signal.Signals(signum).name
+        self.stop = self.stop or signal.Signals(signum).name
 
-    signal.signal(signal.SIGTERM, on_signal)
-    signal.signal(signal.SIGINT, on_signal)   # run by hand: Ctrl-C stops it the same way
-    subscribers = [session.declare_subscriber(key, on_data) for key in node.subscriptions]
-    subscribers += [session.declare_subscriber(key, on_clock)
-                    for key in (keys.grant(agent), keys.start, keys.stop)]
-    subscribers.append(session.liveliness().declare_subscriber(keys.liveliness("up"),
-                                                               on_up_alive))
-    token = session.liveliness().declare_token(keys.liveliness(agent))
-    with cond:
-        report()
-    try:
-        with cond:
-            while inbox.start is None and inbox.stop is None:
-                cond.wait(_WAIT_S)
-            start = inbox.start
-            if start is not None and inbox.stop is None:
-                node.reseed(start["seed"])
-                if start["clock"] == "sim":
-                    inbox.sim = True
-                    run_granted()
+    # -- internals (with the lock held) --------------------------------------------------------
+
+    def _publish(self, key: str, payload: bytes) -> None:
+        publisher = self._publishers.get(key)
+        if publisher is None:
+            publisher = self._publishers[key] = self.session.declare_publisher(
+                key, congestion_control=zenoh.CongestionControl.BLOCK)
+        publisher.put(payload)
+
+    def _publish_all(self, out: list[tuple[str, bytes]]) -> None:
+        for key, frame in frames(out):
+            self._publish(key, frame)
+
+    def _send_own(self, key: str, **body) -> None:
+        """Send a clock-protocol message of this wrapper (report, goodbye) at the node's time."""
+        seq = self._own.get(key, 0)
+        self._own[key] = seq + 1
+        now = self.node.now_ns
+        type_name = route(key).type
+        message = MESSAGE_TYPES[type_name](MESSAGE_VERSION, type_name, self.agent, seq, now,
+                                           now, **body)
+        self._publish(key, encode(message))
+
+    def _report(self) -> None:
+        r = self.node.report()
+        self._send_own(self.keys.report(self.agent), next_ns=r.next_ns,
+                       granted_ns=self.node.granted_ns, received=r.received,
+                       sent={k: tuple(v) for k, v in r.sent.items()})
+
+    def _run_until(self, until_ns: int) -> None:
+        try:
+            out = self.node.advance(until_ns)
+        except AgentCrash:
+            self._publish_all(self.node.emit_now(self.keys.fault(self.agent), {
+                "fault": "crash", "agent": self.agent, "active": True}))
+            os._exit(EXIT_CRASH)
+        self._publish_all(out)
+
+    def _run_granted(self) -> None:
+        """Every grant whose expected messages are all here: process its window, report."""
+        grants = self.grants
+        while (self.mode == "sim" and grants and self.stop is None
+               and self.node.counts.received >= grants[0].expect):
+            cpu = time.thread_time()
+            self._run_until(grants.popleft().until_ns)
+            self._report()
+            self.window_cpu_s += time.thread_time() - cpu
+
+    def _run_realtime(self) -> None:
+        start = self.start
+        epoch_ns, speed, end_ns = start.epoch_ns, float(start.speed), start.end_ns
+        with self.lock:
+            while self.stop is None:
+                now = int((time.time_ns() - epoch_ns) * speed)
+                if now >= 0:
+                    self._run_until(min(now, end_ns) + 1)
+                next_ns = self.node.next_event_ns()
+                if next_ns is None or next_ns > end_ns:
+                    wait_s = _WAIT_S
                 else:
-                    node.strict = False
-                    inbox.realtime = True
-        if start is not None and start["clock"] == "sim":
-            with cond:
-                while inbox.stop is None:
-                    cond.wait(_WAIT_S)
-        elif start is not None:
-            _run_realtime(inbox, node, run_until, start)
-        with cond:
-            inbox.sim = inbox.realtime = False
-            bye_key = keys.bye(agent)
-            published = {**node.counts.published, **own}
-            published[bye_key] = published.get(bye_key, 0) + 1
-            stats = {k: float(v) for k, v in getattr(node.agent, "stats", {}).items()}
-            stats["cpu_s"] = time.process_time()
-            stats["window_cpu_s"] = inbox.window_cpu_s
-            stats["late"] = float(node.counts.late)
-            stats["received"] = float(node.counts.received)
-            send_own(bye_key, {"published": published,
-                               "rejected": node.counts.rejected + inbox.rejected,
-                               "lost": node.counts.lost, "stats": stats})
-            # closing the session at once could drop the goodbye before it is on the wire:
-            # `up` withdraws its liveliness once it has every goodbye (bounded wait)
-            deadline = time.monotonic() + _BYE_WAIT_S
-            while not inbox.up_gone and time.monotonic() < deadline:
-                cond.wait(min(_WAIT_S, max(0.0, deadline - time.monotonic())))
-    finally:
-        token.undeclare()
-        for subscriber in subscribers:
-            subscriber.undeclare()
-    return 0
-
-
-def _run_realtime(inbox: _Inbox, node: Node, run_until, start: dict) -> None:
-    cond = inbox.cond
-    epoch_ns, speed, end_ns = start["epoch_ns"], float(start["speed"]), start["end_ns"]
-
-    def sim_now() -> int:
-        return int((time.time_ns() - epoch_ns) * speed)
-
-    with cond:
-        while inbox.stop is None:
-            now = sim_now()
-            if now >= 0:
-                run_until(min(now, end_ns) + 1)
-            next_ns = node.next_event_ns()
-            if next_ns is None or next_ns > end_ns:
-                wait_s = _WAIT_S
-            else:
-                wait_s = min(_WAIT_S, (next_ns / speed + epoch_ns - time.time_ns()) * 1e-9)
-            if wait_s > 0:
-                cond.wait(wait_s)
+                    wait_s = min(_WAIT_S, (next_ns / speed + epoch_ns - time.time_ns()) * 1e-9)
+                if wait_s > 0:
+                    self.lock.wait(wait_s)

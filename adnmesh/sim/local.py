@@ -1,8 +1,8 @@
 """Run every agent of a config in one process, with the same nodes and the same sim clock.
 
 The in-process runner drives exactly what the distributed runtime drives — one
-:class:`~adnmesh.runtime.node.Node` per agent, granted time by the same
-:class:`~adnmesh.runtime.clock.Coordinator` — but hands payloads from sender to receivers
+:class:`~adnmesh.sim.node.Node` per agent, granted time by the same
+:class:`~adnmesh.sim.clock.Coordinator` — but hands payloads from sender to receivers
 directly instead of over Zenoh. Because a sim run is deterministic, it produces the same messages,
 byte for byte, as ``adnmesh up`` with the same config and seed; tests use it as the reference of
 the distributed runtime, and analyses can use it to run scenarios without processes.
@@ -14,11 +14,11 @@ from collections import deque
 from dataclasses import dataclass, field
 
 from adnmesh.config import Config
-from adnmesh.control import build_agent
-from adnmesh.runtime.clock import Coordinator
-from adnmesh.runtime.links import ns
-from adnmesh.runtime.node import Node
-from adnmesh.runtime.topology import Topology
+from adnmesh.control.registry import build_agent
+from adnmesh.sim.clock import Coordinator
+from adnmesh.sim.node import Node
+from adnmesh.sim.topology import Topology
+from adnmesh.wire.units import ns
 
 __all__ = ["LocalRun", "run_local"]
 

@@ -23,13 +23,9 @@ import random
 from dataclasses import dataclass
 
 from adnmesh.config import LinkSettings
+from adnmesh.wire.units import ns
 
-__all__ = ["Link", "LinkParams", "ns", "stream_seed"]
-
-
-def ns(seconds: float) -> int:
-    """Seconds to integer nanoseconds (rounded to the nearest ns)."""
-    return int(round(seconds * 1e9))
+__all__ = ["Link", "LinkParams", "stream_seed"]
 
 
 def stream_seed(seed: int, *names: str) -> int:

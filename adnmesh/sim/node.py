@@ -1,17 +1,19 @@
 """One agent's runtime without the bus: inbox, event order, ICT links, envelopes, counts.
 
-A :class:`Node` wraps an agent state machine (:class:`adnmesh.control.base.Agent`). The process
-wrapper (:mod:`adnmesh.runtime.process`), the in-process runner (:mod:`adnmesh.runtime.local`)
+A :class:`Node` wraps an agent state machine (:class:`adnmesh.control.base.Agent`). The agent
+process (:mod:`adnmesh.runtime.process`), the in-process runner (:mod:`adnmesh.sim.local`)
 and tests all drive agents through it, so the order in which an agent sees its events is the
 same everywhere:
 
-- :meth:`Node.receive` takes a payload from the bus, validates it (a malformed or out-of-range
-  message is counted in ``rejected`` and dropped, never raised) and holds it until its delivery
-  time;
+- :meth:`Node.receive` takes a payload from the bus and decodes it (validating every field and
+  that ``src`` is the key's sender, :func:`adnmesh.wire.decode`) **before anything counts it**:
+  a payload that fails, arrives on a key the agent does not subscribe to, or repeats a
+  (send time, seq) already seen on its key is rejected, counted per key and reason, and dropped,
+  never raised; only genuine messages count toward what the sim clock expects;
 - :meth:`Node.advance` processes every event before a time: at equal times delivered messages
   first, ordered by (delivery time, key, seq) and then by arrival, then the agent's timers;
 - what the agent returns goes through the sender side of its ICT link (fate and delivery time,
-  :class:`~adnmesh.runtime.links.Link`), gets its envelope (``seq`` per key, counted also for
+  :class:`~adnmesh.sim.links.Link`), gets its envelope (``seq`` per key, counted also for
   lost messages so that receivers see the gap) and is returned as ``(key, payload)`` to publish;
 - :meth:`Node.report` summarises the window for the sim clock.
 """
@@ -21,11 +23,12 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from adnmesh.control.base import Agent
-from adnmesh.runtime.clock import Report
-from adnmesh.runtime.links import Link
-from adnmesh.runtime.messages import MessageError, decode, encode, message_type
-from adnmesh.runtime.topology import Topology
-
+from adnmesh.sim.clock import Report
+from adnmesh.sim.links import Link
+from adnmesh.sim.topology import Topology
+from adnmesh.wire.envelope import MessageError, decode, encode
+from adnmesh.wire.keys import route
+from adnmesh.wire.messages import MESSAGE_TYPES, MESSAGE_VERSION
 
 __all__ = ["AgentCrash", "Node", "NodeCounts"]
 
@@ -43,9 +46,9 @@ class NodeCounts:
     published : dict
         Messages handed to the bus per key.
     received : int
-        Payloads received from the bus (valid or not).
-    rejected : int
-        Payloads rejected: malformed, out of range, or delivered in the past.
+        Genuine messages received (valid, from the key's sender): what the sim clock counts.
+    rejected : dict
+        ``key -> {reason -> count}`` of payloads rejected (see :meth:`Node.receive`).
     lost : int
         Messages the ICT link model dropped (never published).
     late : int
@@ -54,20 +57,34 @@ class NodeCounts:
 
     published: dict[str, int] = field(default_factory=dict)
     received: int = 0
-    rejected: int = 0
+    rejected: dict[str, dict[str, int]] = field(default_factory=dict)
     lost: int = 0
     late: int = 0
 
+    def reject(self, key: str, reason: str) -> None:
+        """Count one rejected payload on ``key`` (at most 256 distinct keys are told apart)."""
+        rejected = self.rejected
+        if key not in rejected and len(rejected) >= 256:
+            key = "(other keys)"
+        per_key = rejected.setdefault(key, {})
+        per_key[reason] = per_key.get(reason, 0) + 1
+
+    @property
+    def rejected_total(self) -> int:
+        """Every rejected payload."""
+        return sum(sum(r.values()) for r in self.rejected.values())
+
 
 class _Outbox:
-    """A node's sender side of one key: its link, message type and next ``seq``, and what it
+    """A node's sender side of one key: its link, message struct and next ``seq``, and what it
     sent on the key in the current clock window (count, earliest delivery, ns)."""
 
-    __slots__ = ("link", "type", "seq", "window_count", "window_earliest_ns")
+    __slots__ = ("link", "type", "cls", "seq", "window_count", "window_earliest_ns")
 
     def __init__(self, link: Link, type_name: str) -> None:
         self.link = link
         self.type = type_name
+        self.cls = MESSAGE_TYPES[type_name]
         self.seq = 0
         self.window_count = 0
         self.window_earliest_ns = 0
@@ -100,8 +117,10 @@ class Node:
         self._topology = topology
         self.seed = seed
         self._outboxes = {key: _Outbox(Link(topology.link(agent.agent_id, key), seed,
-                                            agent.agent_id), message_type(key))
+                                            agent.agent_id), route(key).type)
                           for key in topology.publishes(agent.agent_id)}
+        self._subscribed = frozenset(self.subscriptions)
+        self._last: dict[str, tuple[int, int]] = {}   # key -> (t_send, seq) last accepted
         self._window_keys: list[str] = []   # keys sent on in this window, in first-send order
         # held messages (t_deliver, key, seq, receive count, message); sorted latest first
         # (timsort merges the senders' runs; pop() takes the next) when _inbox_sorted
@@ -129,18 +148,28 @@ class Node:
     # -- input ---------------------------------------------------------------------------------
 
     def receive(self, key: str, payload: bytes) -> None:
-        """Take one payload from the bus (counts it; rejects it if invalid or in the past)."""
+        """Take one payload from the bus; reject (count, drop) anything that is not a genuine
+        message of a subscribed key, or that repeats one already accepted on the key."""
         counts = self.counts
-        counts.received += 1
+        if key not in self._subscribed:
+            counts.reject(key, "not_subscribed")
+            return
         try:
             message = decode(key, payload)
-        except MessageError:
-            counts.rejected += 1
+        except MessageError as exc:
+            counts.reject(key, exc.reason)
             return
+        stamp = (message.t_send_ns, message.seq)
+        last = self._last.get(key)
+        if last is not None and stamp <= last:
+            counts.reject(key, "replayed")
+            return
+        self._last[key] = stamp
+        counts.received += 1
         t = message.t_deliver_ns
         if t < self.now_ns:
             if self.strict:
-                counts.rejected += 1
+                counts.reject(key, "past")
                 return
             counts.late += 1
             t = self.now_ns
@@ -212,7 +241,8 @@ class Node:
         if t_deliver is None:
             self.counts.lost += 1
             return
-        out.append((key, encode(outbox.type, self.agent_id, seq, t, t_deliver, body)))
+        out.append((key, encode(outbox.cls(MESSAGE_VERSION, outbox.type, self.agent_id, seq, t,
+                                           t_deliver, **body))))
         published = self.counts.published
         published[key] = published.get(key, 0) + 1
         if not outbox.window_count:
@@ -221,6 +251,13 @@ class Node:
         elif t_deliver < outbox.window_earliest_ns:
             outbox.window_earliest_ns = t_deliver
         outbox.window_count += 1
+
+    def finish(self) -> list[tuple[str, bytes]]:
+        """The agent's last messages at the stop (:meth:`Agent.finish`), ready to publish."""
+        out: list[tuple[str, bytes]] = []
+        for key, body in self.agent.finish(self.now_ns):
+            self._emit(self.now_ns, key, body, out)
+        return out
 
     def emit_now(self, key: str, body: dict) -> list[tuple[str, bytes]]:
         """Send one message at the current time outside :meth:`advance` (e.g. a fault record)."""

@@ -27,18 +27,13 @@ import math
 from dataclasses import dataclass, field
 
 from adnmesh.config import Config, LinkSettings
-from adnmesh.runtime.links import LinkParams
-from adnmesh.runtime.messages import Keys
+from adnmesh.sim.links import LinkParams
+from adnmesh.wire.keys import Keys, der_agent_id
 
-__all__ = ["INF_NS", "Topology", "der_agent_id"]
+__all__ = ["INF_NS", "Topology"]
 
 INF_NS = math.inf
 """'Never' on the nanosecond time axis."""
-
-
-def der_agent_id(der_id: str) -> str:
-    """Agent id of the local controller of DER ``der_id``: ``der/<id>``."""
-    return f"der/{der_id}"
 
 
 @dataclass(frozen=True)

@@ -12,7 +12,7 @@ may go:
   that its report may not account for (*messages in flight*: counted by their senders after its
   last grant, and not yet received when it reported).
 - A message chain from ``p`` to ``b`` takes at least ``lookahead(p, b)`` (the least total link
-  delay, :class:`~adnmesh.runtime.topology.Topology`), so nothing can reach ``b`` before
+  delay, :class:`~adnmesh.sim.topology.Topology`), so nothing can reach ``b`` before
   ``LBTS(b) = min_p (E_p + lookahead(p, b))`` (lower bound on time stamps; ``p = b`` covers
   cycles through ``b``).
 - The coordinator **grants** ``b`` the time ``until_ns = min(LBTS(b), end + 1 ns)`` together
@@ -45,7 +45,7 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-from adnmesh.runtime.topology import Topology
+from adnmesh.sim.topology import Topology
 
 __all__ = ["ClockError", "Coordinator", "Grant", "Report"]
 

@@ -1,0 +1,48 @@
+"""The one place that makes an agent state machine from an agent id.
+
+The sim layer, the agent processes and the tests build agents through :func:`build_agent`, so
+which class runs as which agent is decided once.
+"""
+
+from __future__ import annotations
+
+from adnmesh.config import Config
+from adnmesh.control.availability import AvailabilityMonitor
+from adnmesh.control.base import Agent
+from adnmesh.control.cpfc import CPFC, GainSchedule
+from adnmesh.control.der import DERController
+from adnmesh.control.measurement import Measurement
+from adnmesh.wire.keys import der_agent_id, der_id_of
+
+__all__ = ["AGENT_KINDS", "agent_ids", "build_agent"]
+
+AGENT_KINDS = ("cpfc", "measurement", "availability", "der")
+"""The kinds of agent; ``der`` runs once per DER (agent id ``der/<id>``)."""
+
+
+def agent_ids(config: Config) -> tuple[str, ...]:
+    """Every agent of ``config``: ``cpfc``, ``measurement``, ``availability``, then the DERs."""
+    return ("cpfc", "measurement", "availability", *(der_agent_id(d.id) for d in config.ders))
+
+
+def build_agent(agent_id: str, config: Config, schedule: GainSchedule | None = None) -> Agent:
+    """The state machine of ``agent_id`` for ``config``; the CPFC needs its gain schedule.
+
+    Raises
+    ------
+    ValueError
+        Unknown agent id, or the CPFC without a schedule.
+    """
+    if agent_id == "cpfc":
+        if schedule is None:
+            raise ValueError("the CPFC needs a gain schedule")
+        return CPFC(config, schedule)
+    if agent_id == "measurement":
+        return Measurement(config)
+    if agent_id == "availability":
+        return AvailabilityMonitor(config)
+    der_id = der_id_of(agent_id)
+    if der_id is not None and der_id in config.der_ids():
+        (der,) = config.ders_by_id([der_id])
+        return DERController(der, config)
+    raise ValueError(f"unknown agent id {agent_id!r}")

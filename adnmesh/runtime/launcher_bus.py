@@ -1,0 +1,117 @@
+"""What ``adnmesh up`` itself puts on the bus: its own messages and the sim clock's grants.
+
+:class:`LauncherOutbox` publishes ``up``'s messages (grants, start, stop) with their envelope
+(sender ``up``, ``seq`` per key) and records each as it sends it (the recorder's subscriber
+takes only what comes from the agents). :class:`SimClockDriver` feeds clock reports to the
+:class:`~adnmesh.sim.clock.Coordinator` and publishes the grants that follow.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import zenoh
+
+from adnmesh.runtime.tap import RecorderTap
+from adnmesh.sim.clock import ClockError, Coordinator, Report
+from adnmesh.wire.envelope import encode
+from adnmesh.wire.keys import LAUNCHER, Keys, route
+from adnmesh.wire.messages import MESSAGE_TYPES, MESSAGE_VERSION
+
+__all__ = ["LauncherOutbox", "SimClockDriver"]
+
+
+class LauncherOutbox:
+    """Publishes and records ``up``'s own messages (thread-safe)."""
+
+    def __init__(self, session: zenoh.Session, tap: RecorderTap) -> None:
+        self._session = session
+        self._tap = tap
+        self._lock = threading.Lock()
+        self._publishers: dict[str, zenoh.Publisher] = {}
+        self.published: dict[str, int] = {}
+
+    def send(self, key: str, t_ns: int, **body) -> None:
+        """Publish a message of ``up`` at sim time ``t_ns`` and record it."""
+        type_name = route(key).type
+        with self._lock:
+            seq = self.published.get(key, 0)
+            self.published[key] = seq + 1
+            publisher = self._publishers.get(key)
+            if publisher is None:
+                publisher = self._publishers[key] = self._session.declare_publisher(
+                    key, congestion_control=zenoh.CongestionControl.BLOCK,
+                    allowed_destination=zenoh.Locality.REMOTE)
+            message = MESSAGE_TYPES[type_name](MESSAGE_VERSION, type_name, LAUNCHER, seq, t_ns,
+                                               t_ns, **body)
+            payload = encode(message)
+            publisher.put(payload)
+            self._tap.record_own(key, message, payload)
+
+    def counts(self) -> dict[str, int]:
+        """Messages sent per key."""
+        with self._lock:
+            return dict(self.published)
+
+
+class SimClockDriver:
+    """The sim clock of a run: reports in, grants out (thread-safe).
+
+    Parameters
+    ----------
+    coordinator : Coordinator
+    keys : Keys
+    outbox : LauncherOutbox
+        Where grants go.
+    on_change : callable
+        Called when the run finished or the clock failed.
+    """
+
+    def __init__(self, coordinator: Coordinator, keys: Keys, outbox: LauncherOutbox,
+                 on_change) -> None:
+        self.coordinator = coordinator
+        self._keys = keys
+        self._outbox = outbox
+        self._on_change = on_change
+        self._lock = threading.Lock()
+        self._started = False
+        self.finished = False
+        self.error: str | None = None
+
+    def on_report(self, message) -> None:
+        """Take an agent's clock report; publish the grants that follow."""
+        report = Report(message.src, message.next_ns, message.received,
+                        {k: (v[0], v[1]) for k, v in message.sent.items()})
+        with self._lock:
+            if self.error is not None:
+                return
+            try:
+                grants = self.coordinator.on_report(report)
+                if self._started:
+                    self._send(grants)
+            except ClockError as exc:
+                self.error = str(exc)
+                self._on_change()
+
+    def start(self) -> None:
+        """Begin granting (every agent has reported)."""
+        with self._lock:
+            self._started = True
+            self._send(self.coordinator.start())
+
+    def now_ns(self) -> int:
+        """The time before which every agent has processed everything, ns."""
+        with self._lock:
+            return self.coordinator.now_ns()
+
+    @property
+    def grants_issued(self) -> int:
+        return self.coordinator.grants_issued
+
+    def _send(self, grants) -> None:   # with the lock held
+        t = self.coordinator.now_ns() if grants else 0
+        for g in grants:
+            self._outbox.send(self._keys.grant(g.agent), t, until_ns=g.until_ns, expect=g.expect)
+        if self.coordinator.finished and not self.finished:
+            self.finished = True
+            self._on_change()

@@ -1,0 +1,92 @@
+"""Who takes part in a run of ``adnmesh up``: alive, ready, said goodbye, gone.
+
+The roster is filled by the router session's callbacks (liveliness tokens ``alive/<agent>``,
+first clock reports, goodbyes) and read by the launcher's phases; every change sets
+:attr:`Roster.changed` so that the main thread waits on one event, never polls blindly.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import zenoh
+
+from adnmesh.wire.keys import LAUNCHER
+
+__all__ = ["Roster"]
+
+
+class Roster:
+    """The agents of a run and what is known of each (thread-safe).
+
+    Parameters
+    ----------
+    agents : iterable of str
+        Every agent id of the run.
+    """
+
+    def __init__(self, agents) -> None:
+        self.agents = frozenset(agents)
+        self.lock = threading.Lock()
+        self.changed = threading.Event()
+        self.alive: set[str] = set()
+        self.reported: set[str] = set()
+        self.byes: dict[str, object] = {}     # agent -> its agent_bye message
+        self.gone: list[str] = []             # sessions that ended without a goodbye
+
+    def on_alive(self, sample: zenoh.Sample) -> None:
+        """Liveliness callback: an agent's session appeared or ended."""
+        agent = str(sample.key_expr).split("/alive/", 1)[1]
+        if agent == LAUNCHER or agent not in self.agents:
+            return
+        with self.lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self.alive.add(agent)
+            else:
+                self.alive.discard(agent)
+                if agent not in self.byes:
+                    self.gone.append(agent)
+        self.changed.set()
+
+    def note_report(self, agent: str) -> None:
+        """An agent's clock report arrived (the first one makes it ready)."""
+        with self.lock:
+            if agent in self.reported:
+                return
+            self.reported.add(agent)
+        self.changed.set()
+
+    def note_bye(self, message) -> None:
+        """An agent's goodbye arrived."""
+        with self.lock:
+            self.byes[message.src] = message
+        self.changed.set()
+
+    def not_ready(self) -> list[str]:
+        """Agents without a liveliness token or a first report, sorted."""
+        with self.lock:
+            return sorted(self.agents - (self.alive & self.reported))
+
+    def first_gone(self) -> str | None:
+        """The first agent whose session ended without a goodbye, if any."""
+        with self.lock:
+            return self.gone[0] if self.gone else None
+
+    def without_bye(self) -> set[str]:
+        """Agents that have not said goodbye."""
+        with self.lock:
+            return set(self.agents - set(self.byes))
+
+    def published(self, own: dict[str, int]) -> dict[str, int]:
+        """What the agents say they published per key, plus ``own`` (``up``'s messages)."""
+        total = dict(own)
+        with self.lock:
+            for bye in self.byes.values():
+                for key, count in bye.published.items():
+                    total[key] = total.get(key, 0) + count
+        return total
+
+    def wait(self, timeout_s: float) -> None:
+        """Wait until something changes (at most ``timeout_s``), then clear the flag."""
+        self.changed.wait(timeout_s)
+        self.changed.clear()

@@ -1,0 +1,166 @@
+"""The recorder tap of ``adnmesh up``: every envelope on the bus into the MCAP recording.
+
+The tap takes every sample the agents publish (one subscriber on ``adn/<grid>/**``) and every
+message ``up`` sends itself, and writes one MCAP message per envelope. It decodes and validates
+each envelope first (:func:`adnmesh.wire.decode`: every field in range, the key's own sender,
+a key of this run's topology, no (send time, seq) repeated on a key), so that only genuine
+messages reach their channel, the summary's series and the caller (clock reports and goodbyes
+go on to the clock and the shutdown). Anything else is **rejected**: counted per key and reason
+and recorded apart on the channel ``adn/<grid>/rejected`` (type ``rejected``: the key, the
+reason, what was wrong, the payload's size and sha256 and its first
+:data:`REJECTED_PREFIX_BYTES` bytes in base64), so that nothing received is lost and nothing
+invalid is taken for a message.
+"""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+import threading
+from collections.abc import Callable
+from typing import Annotated
+
+import msgspec
+from msgspec import Meta, Struct
+
+from adnmesh.runtime.summary import RunSeries
+from adnmesh.sim.topology import Topology
+from adnmesh.wire.envelope import MessageError, decode, encode, envelope_times, split_frame
+from adnmesh.wire.messages import Envelope
+from adnmesh.wire.schemas import SCHEMA_DIALECT, message_schemas
+
+__all__ = ["REJECTED_PREFIX_BYTES", "REJECTED_TYPE", "RecorderTap", "Rejected",
+           "recording_schemas"]
+
+REJECTED_TYPE = "rejected"
+"""Message type (schema name) of the rejected-payload records."""
+
+REJECTED_PREFIX_BYTES = 4096
+"""How much of a rejected payload is kept in its record."""
+
+_SUMMARY_TYPES = frozenset({"p_ip", "p_ref", "heartbeat", "fault"})
+
+
+class Rejected(Struct, forbid_unknown_fields=True):
+    """A payload the recorder rejected: on which key, why, and what it held."""
+
+    key: Annotated[str, Meta(max_length=512)]
+    reason: str
+    detail: Annotated[str, Meta(max_length=1000)]
+    size_bytes: int
+    sha256: str
+    payload_prefix_b64: str
+
+
+def recording_schemas() -> dict[str, dict]:
+    """The JSON Schemas of a recording: every message type and the rejected records."""
+    generated = msgspec.json.schema(Rejected)
+    schema = generated["$defs"]["Rejected"]
+    return {**message_schemas(),
+            REJECTED_TYPE: {"$schema": SCHEMA_DIALECT, **schema, "title": REJECTED_TYPE}}
+
+
+class RecorderTap:
+    """Validates and records envelopes (thread-safe; see the module docstring).
+
+    Parameters
+    ----------
+    recorder : adnmesh.recording.Recorder
+        Where the messages go.
+    topology : Topology
+        The run's keys and who sends them.
+    series : RunSeries
+        Fed with what the summary needs.
+    now_ns : callable
+        The run's current time, ns, for rejected payloads that carry no usable times.
+    """
+
+    def __init__(self, recorder, topology: Topology, series: RunSeries,
+                 now_ns: Callable[[], int]) -> None:
+        self.recorder = recorder
+        self.series = series
+        self._now_ns = now_ns
+        keys = topology.keys
+        self.rejected_key = f"{keys.root}/rejected"
+        self._known = {key for _, key in topology.links}
+        for agent in topology.agents:
+            self._known |= {keys.report(agent), keys.bye(agent)}
+        self._last: dict[str, tuple[int, int]] = {}
+        self._lock = threading.Lock()
+        self.rejected: dict[str, dict[str, int]] = {}
+        self.record_errors = 0
+        self.problems: list[str] = []
+
+    def take(self, key: str, sample: bytes) -> list[Envelope]:
+        """Record the envelopes of one sample from an agent; return the genuine messages."""
+        accepted, records, rejects = [], [], []
+        with self._lock:
+            for payload in split_frame(sample):
+                message = self._check(key, payload, rejects)
+                if message is not None:
+                    accepted.append(message)
+                    records.append((payload, message.t_deliver_ns, message.t_send_ns))
+            if records and self._write(key, accepted[0].type, records):
+                for message in accepted:
+                    self._feed(message)
+            if rejects:
+                self._write(self.rejected_key, REJECTED_TYPE, rejects)
+        return accepted
+
+    def record_own(self, key: str, message: Envelope, payload: bytes) -> None:
+        """Record a message ``up`` sent itself."""
+        with self._lock:
+            self._write(key, message.type, [(payload, message.t_deliver_ns, message.t_send_ns)])
+
+    def rejected_total(self) -> int:
+        """Every rejected payload so far."""
+        with self._lock:
+            return sum(sum(r.values()) for r in self.rejected.values())
+
+    # -- internals (with the lock held) ----------------------------------------------------------
+
+    def _check(self, key: str, payload: bytes, rejects: list) -> Envelope | None:
+        try:
+            if key not in self._known:
+                raise MessageError("unknown_key", "not a key of this run's agents")
+            message = decode(key, payload)
+            stamp = (message.t_send_ns, message.seq)
+            if key in self._last and stamp <= self._last[key]:
+                raise MessageError("replayed", f"(t_send_ns, seq) {stamp} already seen")
+        except MessageError as exc:
+            self._count(key, exc.reason)
+            rejects.append(self._rejected_record(key, payload, exc))
+            return None
+        self._last[key] = stamp
+        return message
+
+    def _count(self, key: str, reason: str) -> None:
+        if key not in self.rejected and len(self.rejected) >= 256:
+            key = "(other keys)"
+        per_key = self.rejected.setdefault(key, {})
+        per_key[reason] = per_key.get(reason, 0) + 1
+
+    def _rejected_record(self, key: str, payload: bytes, exc: MessageError):
+        record = Rejected(key=key[:512], reason=exc.reason, detail=exc.detail[:1000],
+                          size_bytes=len(payload),
+                          sha256=hashlib.sha256(payload).hexdigest(),
+                          payload_prefix_b64=base64.b64encode(
+                              payload[:REJECTED_PREFIX_BYTES]).decode())
+        times = envelope_times(payload)
+        t_send, t_deliver = times if times is not None else (self._now_ns(),) * 2
+        return encode(record), max(t_send, t_deliver), t_send
+
+    def _feed(self, message: Envelope) -> None:
+        kind = message.type
+        if kind in _SUMMARY_TYPES or (kind == "p_y" and message.switch is not msgspec.UNSET):
+            self.series.add(kind, msgspec.to_builtins(message))
+
+    def _write(self, key: str, type_name: str, records: list) -> bool:
+        try:
+            self.recorder.write_many(key, type_name, records)
+        except (ValueError, RuntimeError) as exc:   # reported at the end of the run
+            if not self.record_errors:
+                self.problems.append(f"recording failed: {exc}")
+            self.record_errors += len(records)
+            return False
+        return True

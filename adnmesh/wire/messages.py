@@ -1,0 +1,213 @@
+"""The message types on the bus: one msgspec struct each, envelope fields first.
+
+Every payload is one flat JSON object, the **envelope** (version ``v`` = 1) followed by the
+body of its type::
+
+    {"v": 1, "type": "p_ip", "src": "measurement", "seq": 41,
+     "t_send_ns": 4100000000, "t_deliver_ns": 4200000000, "p_ip_w": 1000012.5}
+
+``type`` is fixed by the key (:func:`adnmesh.wire.keys.route`), ``src`` is the sending agent,
+``seq`` counts one sender's messages on one key from 0, and the two times are ns of sim time
+(:mod:`adnmesh.wire.units`): when the sender sent it and when the ICT channel model delivers it.
+
+The structs are the single description of the format: decoding with them validates every field
+(:mod:`adnmesh.wire.envelope`) and the JSON Schemas published with recordings are generated from
+them (:mod:`adnmesh.wire.schemas`), so code, validation and schemas cannot drift apart. Every
+number is bounded (finite, in a physical range, integers that fit the recorder's 64-bit
+fields), every string and mapping has a length limit, and unknown fields are refused.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from msgspec import UNSET, Meta, Struct, UnsetType
+
+from adnmesh.wire.keys import AGENT_PATTERN, ID_MAX_CHARS, ID_PATTERN
+from adnmesh.wire.units import NS_MAX
+
+__all__ = [
+    "MESSAGE_TYPES",
+    "MESSAGE_VERSION",
+    "AgentBye",
+    "ClockGrant",
+    "ClockReport",
+    "ClockStart",
+    "ClockStop",
+    "DERState",
+    "Envelope",
+    "Fault",
+    "Heartbeat",
+    "PIP",
+    "PRef",
+    "PY",
+    "SI",
+    "Switch",
+]
+
+MESSAGE_VERSION = 1
+"""Version ``v`` of the envelope and of every body defined here."""
+
+MAX_DERS = 1000
+"""Most DERs a mapping in a message (weights, SI) may name."""
+
+NS = Annotated[int, Meta(ge=0, le=NS_MAX, description="ns of sim time")]
+Count = Annotated[int, Meta(ge=0, le=NS_MAX)]
+Power = Annotated[float, Meta(ge=-1e15, le=1e15, description="W")]
+Ratio = Annotated[float, Meta(ge=-1e9, le=1e9, description="dimensionless")]
+Gain = Annotated[float, Meta(gt=0.0, le=1e3)]
+Weight = Annotated[float, Meta(ge=0.0, le=1.0)]
+DERId = Annotated[str, Meta(pattern=f"^{ID_PATTERN}$", max_length=ID_MAX_CHARS)]
+Sender = Annotated[str, Meta(max_length=2 * ID_MAX_CHARS,
+                             extra_json_schema={"pattern": f"^(up|{AGENT_PATTERN})$"})]
+Agent = Annotated[str, Meta(pattern=f"^{AGENT_PATTERN}$", max_length=2 * ID_MAX_CHARS)]
+Key = Annotated[str, Meta(max_length=256)]
+Text = Annotated[str, Meta(max_length=500)]
+Stat = Annotated[float, Meta(ge=-1e300, le=1e300)]
+
+
+class Envelope(Struct, forbid_unknown_fields=True, omit_defaults=True):
+    """Fields every payload carries before its body."""
+
+    v: Literal[1]
+    type: str
+    src: Sender
+    seq: Count
+    t_send_ns: NS
+    t_deliver_ns: NS
+
+
+class Switch(Struct, forbid_unknown_fields=True):
+    """A bumpless gain switch: the output with the old gains, limited to the new range."""
+
+    p_y_before: Ratio
+    p_y_limited: Ratio
+    kp_before: Gain
+    ki_before: Gain
+
+
+class PY(Envelope):
+    """CPFC output P_Y (dimensionless) with the gains in use (K_P 1/W, K_I 1/(W s)) and the
+    number of the table entry; the entry's weights W on a switch and periodically."""
+
+    type: Literal["p_y"]
+    p_y: Ratio
+    p_ref_w: Power
+    kp: Gain
+    ki: Gain
+    entry: Count
+    w: Annotated[dict[DERId, Weight], Meta(max_length=MAX_DERS)] | UnsetType = UNSET
+    switch: Switch | UnsetType = UNSET
+
+
+class PRef(Envelope):
+    """Reference P_ref at the interconnection point, W."""
+
+    type: Literal["p_ref"]
+    p_ref_w: Power
+
+
+class DERState(Envelope):
+    """A DER's infeed and setpoint at a sampling instant, W, and where its setpoint comes from."""
+
+    type: Literal["der_state"]
+    p_w: Power
+    setpoint_w: Power
+    mode: Literal["control", "schedule", "watchdog"]
+
+
+class Heartbeat(Envelope):
+    """A DER's heartbeat with its availability flag."""
+
+    type: Literal["heartbeat"]
+    available: bool
+
+
+class PIP(Envelope):
+    """Measured active power at the interconnection point, W (MV -> HV positive)."""
+
+    type: Literal["p_ip"]
+    p_ip_w: Power
+
+
+class SI(Envelope):
+    """The availability vector SI: one boolean per DER."""
+
+    type: Literal["si"]
+    si: Annotated[dict[DERId, bool], Meta(min_length=1, max_length=MAX_DERS)]
+
+
+class Fault(Envelope):
+    """An injected fault starting (active) or ending at an agent."""
+
+    type: Literal["fault"]
+    fault: Literal["der_offline", "crash"]
+    agent: Agent
+    active: bool
+
+
+class ClockReport(Envelope):
+    """Sim clock: an agent's next event, how far it was granted, what it received so far and,
+    per key, how many messages it sent in the window and the earliest delivery among them."""
+
+    type: Literal["clock_report"]
+    next_ns: NS | None
+    granted_ns: NS
+    received: Count
+    sent: Annotated[dict[Key, tuple[Annotated[int, Meta(ge=1, le=NS_MAX)], NS]],
+                    Meta(max_length=64)]
+
+
+class ClockGrant(Envelope):
+    """Sim clock: process every event before ``until_ns`` once ``expect`` messages arrived."""
+
+    type: Literal["clock_grant"]
+    until_ns: NS
+    expect: Count
+
+
+class ClockStart(Envelope):
+    """The run starts (realtime: sim time = (wall - epoch_ns) * speed) with this ICT seed."""
+
+    type: Literal["clock_start"]
+    clock: Literal["sim", "realtime"]
+    epoch_ns: NS
+    speed: Annotated[float, Meta(gt=0.0, le=1e6)]
+    end_ns: NS
+    seed: Count
+
+
+class ClockStop(Envelope):
+    """The run ends; agents say goodbye and exit."""
+
+    type: Literal["clock_stop"]
+    reason: Text
+
+
+class AgentBye(Envelope):
+    """An agent's final counts: messages published per key, rejected per key and reason, lost
+    on its links, and its statistics."""
+
+    type: Literal["agent_bye"]
+    published: Annotated[dict[Key, Count], Meta(max_length=4096)]
+    rejected: Annotated[dict[Key, Annotated[dict[Text, Count], Meta(max_length=64)]],
+                        Meta(max_length=4096)]
+    lost: Count
+    stats: Annotated[dict[Annotated[str, Meta(max_length=64)], Stat], Meta(max_length=256)]
+
+
+MESSAGE_TYPES: dict[str, type[Envelope]] = {
+    "p_y": PY,
+    "p_ref": PRef,
+    "der_state": DERState,
+    "heartbeat": Heartbeat,
+    "p_ip": PIP,
+    "si": SI,
+    "fault": Fault,
+    "clock_report": ClockReport,
+    "clock_grant": ClockGrant,
+    "clock_start": ClockStart,
+    "clock_stop": ClockStop,
+    "agent_bye": AgentBye,
+}
+"""Message type name -> its struct."""
