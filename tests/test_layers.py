@@ -109,3 +109,14 @@ def test_the_check_sees_a_cycle_and_an_upward_import(tmp_path: Path, monkeypatch
         test_no_package_imports_one_above_it()
     with pytest.raises(pytest.fail.Exception, match="control -> runtime -> control"):
         test_no_cycle_between_packages()
+
+
+def test_no_function_in_the_runtime_is_longer_than_60_lines() -> None:
+    long = []
+    for path in (PACKAGE / "runtime").rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+                length = node.end_lineno - node.lineno + 1
+                if length > 60:
+                    long.append(f"{path.name}:{node.lineno} {node.name}: {length} lines")
+    assert not long, "\n".join(long)
