@@ -322,6 +322,7 @@ class Runtime:
     heartbeat_timeout_s: float = 2.5
     watchdog_timeout_s: float = 1.0
     weights_period_s: float = 1.0
+    measurement_timeout_s: float = 0.25
     links: Links = Links()
     faults: Faults = Faults()
 
@@ -539,6 +540,7 @@ _RUNTIME = Record(
         "heartbeat_timeout_s": Field(_PERIOD, required=False),
         "watchdog_timeout_s": Field(_PERIOD, required=False),
         "weights_period_s": Field(_PERIOD, required=False),
+        "measurement_timeout_s": Field(_PERIOD, required=False),
         "links": Field(_LINKS, required=False),
         "faults": Field(_FAULTS, required=False),
     },

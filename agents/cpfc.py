@@ -16,8 +16,8 @@ import zenoh
 from adnmesh.control.cpfc import GainSchedule
 from adnmesh.control.registry import build_agent
 from adnmesh.errors import ConfigError
-from adnmesh.runtime.bus import add_connection_arguments, session_config
-from adnmesh.runtime.process import AgentProcess, load_config_or_exit
+from adnmesh.runtime.bus import session_config
+from adnmesh.runtime.process import AgentProcess, add_agent_arguments, load_config_or_exit
 from adnmesh.sim.node import Node
 from adnmesh.table import default_table_path, load_table
 
@@ -27,7 +27,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("config", metavar="CONFIG", help="adnmesh config file (YAML)")
     parser.add_argument("--table", metavar="PATH",
                         help="gain-scheduling table (default: the one matching CONFIG)")
-    add_connection_arguments(parser)
+    add_agent_arguments(parser)
     args = parser.parse_args(argv)
 
     config = load_config_or_exit(args.config)
@@ -36,7 +36,8 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as exc:
         print(f"adnmesh agent: error: {exc}", file=sys.stderr)
         return 2
-    node = Node.for_config(build_agent("cpfc", config, GainSchedule(config, table)), config)
+    node = Node.for_config(build_agent("cpfc", config, GainSchedule(config, table)), config,
+                          start_ns=args.resume_at_ns)
     with zenoh.open(session_config(args)) as session:
         return AgentProcess(session, node, config.grid).serve()
 

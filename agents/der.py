@@ -12,8 +12,8 @@ import sys
 import zenoh
 
 from adnmesh.control.registry import build_agent
-from adnmesh.runtime.bus import add_connection_arguments, session_config
-from adnmesh.runtime.process import AgentProcess, load_config_or_exit
+from adnmesh.runtime.bus import session_config
+from adnmesh.runtime.process import AgentProcess, add_agent_arguments, load_config_or_exit
 from adnmesh.sim.node import Node
 from adnmesh.wire.keys import der_agent_id
 
@@ -22,13 +22,14 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="der", description="adnmesh DER agent")
     parser.add_argument("config", metavar="CONFIG", help="adnmesh config file (YAML)")
     parser.add_argument("--der", required=True, metavar="ID", help="id of the DER in the config")
-    add_connection_arguments(parser)
+    add_agent_arguments(parser)
     args = parser.parse_args(argv)
 
     config = load_config_or_exit(args.config)
     if args.der not in config.der_ids():
         parser.error(f"unknown DER id {args.der!r} (known: {', '.join(config.der_ids())})")
-    node = Node.for_config(build_agent(der_agent_id(args.der), config), config)
+    node = Node.for_config(build_agent(der_agent_id(args.der), config), config,
+                          start_ns=args.resume_at_ns)
     with zenoh.open(session_config(args)) as session:
         return AgentProcess(session, node, config.grid).serve()
 

@@ -11,19 +11,20 @@ import sys
 import zenoh
 
 from adnmesh.control.registry import build_agent
-from adnmesh.runtime.bus import add_connection_arguments, session_config
-from adnmesh.runtime.process import AgentProcess, load_config_or_exit
+from adnmesh.runtime.bus import session_config
+from adnmesh.runtime.process import AgentProcess, add_agent_arguments, load_config_or_exit
 from adnmesh.sim.node import Node
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="measurement", description="adnmesh measurement agent")
     parser.add_argument("config", metavar="CONFIG", help="adnmesh config file (YAML)")
-    add_connection_arguments(parser)
+    add_agent_arguments(parser)
     args = parser.parse_args(argv)
 
     config = load_config_or_exit(args.config)
-    node = Node.for_config(build_agent("measurement", config), config)
+    node = Node.for_config(build_agent("measurement", config), config,
+                          start_ns=args.resume_at_ns)
     with zenoh.open(session_config(args)) as session:
         return AgentProcess(session, node, config.grid).serve()
 

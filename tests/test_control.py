@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from adnmesh.config import DER, Config, DEROffline, Faults, load_config
+from adnmesh.config import DER, Config, load_config
 from adnmesh.control.registry import build_agent
 from adnmesh.control.availability import AvailabilityMonitor
 from adnmesh.control.cpfc import CPFC, GainSchedule, initial_p_ref_w, output_limits
@@ -190,24 +190,6 @@ def test_der_availability_change_sends_a_heartbeat_and_runs_on_schedule(config: 
     assert len(states) == 801                              # every 10 ms from 0 to 8 s
 
 
-def test_der_offline_drops_commands_and_heartbeats(config: Config) -> None:
-    faulty = dataclasses.replace(config, runtime=dataclasses.replace(
-        config.runtime, faults=Faults(der_offline=(DEROffline("SGen1", 2.0, 1.5),))))
-    der = DERController(faulty.ders[0], faulty)
-    sent = []
-    t = 0
-    while t < 4000 * MS:
-        t = der.next_timer_ns()
-        sent += [(t, o) for o in der.on_timer(t)]
-        if 2000 * MS <= t < 3500 * MS and t % (100 * MS) == 0:
-            command(der, t, 0.3, w={"SGen1": 1.0}, seq=t // MS)
-    faults = [(t, o.body["active"]) for t, o in sent if "/fault/" in o.key]
-    assert faults == [(2000 * MS, True), (3500 * MS, False)]
-    beats = [t for t, o in sent if o.key.endswith("/heartbeat")]
-    assert 2000 * MS not in beats and 3000 * MS not in beats and 3500 * MS in beats
-    assert der.counts["dropped_offline"] == 15 and der.counts["commands"] == 0
-
-
 # --- measurement and availability ---------------------------------------------------------------
 
 
@@ -227,25 +209,37 @@ def test_measurement_sums_the_infeeds_and_the_rest_of_the_grid(config: Config) -
 def test_availability_monitor_builds_si_from_heartbeats(config: Config) -> None:
     monitor = AvailabilityMonitor(config)
     keys = Keys(config.grid)
-    (first,) = monitor.on_timer(monitor.next_timer_ns())
-    assert first.body == {"si": {"SGen1": True, "SGen2": True}}
 
-    def beat(der_id: str, t_ns: int, available: bool):
+    def si_of(out):
+        return [o.body["si"] for o in out if o.key == keys.si]
+
+    assert si_of(monitor.on_timer(monitor.next_timer_ns())) == [{"SGen1": True, "SGen2": True}]
+
+    def beat(der_id: str, t_ns: int, available: bool, mode: str = "control"):
         """Deliver a heartbeat at ``t_ns``, then end the instant; return what was sent."""
         assert monitor.on_message(t_ns, message(keys.heartbeat(der_id), t_ns,
-                                                {"available": available},
+                                                {"available": available, "mode": mode},
                                                 src=f"der/{der_id}")) == []
         return monitor.on_timer(t_ns) if monitor.next_timer_ns() == t_ns else []
 
     assert beat("SGen1", 100 * MS, True) == []                  # no change, nothing sent
-    (change,) = beat("SGen2", 150 * MS, False)
-    assert change.body["si"] == {"SGen1": True, "SGen2": False}
+    out = beat("SGen2", 150 * MS, False)
+    assert si_of(out) == [{"SGen1": True, "SGen2": False}]
+    assert [(o.body["kind"], o.body["subject"]) for o in out if o.key != keys.si] == [
+        ("unavailable", "der/SGen2")]
+    assert si_of(monitor.on_timer(monitor.next_timer_ns())) == [      # repeated every second
+        {"SGen1": True, "SGen2": False}]
+    assert monitor.next_timer_ns() == 2000 * MS
+    monitor.on_timer(2000 * MS)
     timeout = int(config.runtime.heartbeat_timeout_s * 1e9)
     assert monitor.next_timer_ns() == 100 * MS + timeout         # SGen1's heartbeat expires
-    (lost,) = monitor.on_timer(100 * MS + timeout)
-    assert lost.body["si"] == {"SGen1": False, "SGen2": False}
-    (back,) = beat("SGen1", 100 * MS + timeout + 1, True)
-    assert back.body["si"]["SGen1"] is True
+    out = monitor.on_timer(100 * MS + timeout)
+    assert si_of(out) == [{"SGen1": False, "SGen2": False}]
+    assert "no heartbeat for 2.5 s" in out[1].body["text"]
+    assert si_of(beat("SGen1", 100 * MS + timeout + 1, True))[0]["SGen1"] is True
+    out = beat("SGen1", 100 * MS + timeout + 2, True, mode="watchdog")
+    assert si_of(out)[0]["SGen1"] is False                       # a fallback: not available
+    assert "in watchdog fallback" in out[1].body["text"]
 
 
 def test_availability_monitor_sends_one_si_for_simultaneous_changes(configs_dir: Path) -> None:
@@ -265,8 +259,10 @@ def test_availability_monitor_sends_one_si_for_simultaneous_changes(configs_dir:
             node.receive(keys.heartbeat(der_id), payload(
                 keys.heartbeat(der_id), {"available": available}, seq=second, t_send_ns=t_ns,
                 t_deliver_ns=t_ns + 100 * MS))
-        sent += [json.loads(payload) for _, payload in node.advance(t_ns + 500 * MS)]
-    assert [(m["t_send_ns"], m["si"]) for m in sent] == [
+        sent += [json.loads(payload) for key, payload in node.advance(t_ns + 500 * MS)
+                 if key == keys.si]
+    changes = [m for i, m in enumerate(sent) if i == 0 or m["si"] != sent[i - 1]["si"]]
+    assert [(m["t_send_ns"], m["si"]) for m in changes] == [
         (0, dict.fromkeys(simbench.der_ids(), True)),
         (170_100 * MS, {d: d not in change.ders for d in simbench.der_ids()})]
 
@@ -291,7 +287,7 @@ def run_cpfc(cpfc: CPFC, until_ns: int, p_meas=None, si_at=None):
 def test_cpfc_starts_at_the_operating_point_and_follows_the_scenario(config, table) -> None:
     cpfc = CPFC(config, GainSchedule(config, table))
     assert initial_p_ref_w(config) == -3e6 + 0.5e6
-    out = run_cpfc(cpfc, 1010 * MS)
+    out = run_cpfc(cpfc, 1010 * MS, p_meas=lambda t: -2.5e6)
     refs = [(t, o.body["p_ref_w"]) for t, o in out if o.key.endswith("/p_ref")]
     assert refs == [(0, -2.5e6), (1000 * MS, -1.5e6)]
     p_y = [o.body for t, o in out if o.key.endswith("/p_y")]

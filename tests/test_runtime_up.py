@@ -9,75 +9,29 @@ by PID, never by name.
 from __future__ import annotations
 
 import json
-import os
-import selectors
 import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 
 from adnmesh.config import load_config
 from adnmesh.control.cpfc import GainSchedule
 from adnmesh.plant import plant_from_ders
 from adnmesh.sim.local import run_local
 from adnmesh.stepresp import simulate_step
-from adnmesh.table import SchedulingTable, TableEntry, load_table, save_table
-
-REPO = Path(__file__).resolve().parent.parent
-CASE = REPO / "configs" / "examples" / "runtime-step.yaml"
-KP2, KI2 = 5e-8, 1.92e-7      # both WTs (see tests/test_runtime.py: stable, alpha 1.51, 0 %)
-RUN_TIMEOUT_S = 120
-
-
-def write_case(tmp_path: Path, name: str = "case", **changes) -> tuple[Path, Path]:
-    """Copy the runtime test case (with ``changes`` merged into its document) to ``tmp_path``,
-    with a gain table tuned for exactly that file; return (config path, table path)."""
-    document = yaml.safe_load(CASE.read_text())
-    for section, values in changes.items():
-        if isinstance(values, dict):
-            document.setdefault(section, {}).update(values)
-        else:
-            document[section] = values
-    config_path = tmp_path / f"{name}.yaml"
-    config_path.write_text(yaml.safe_dump(document, sort_keys=False))
-    config = load_config(config_path)
-    table = SchedulingTable(config.sha256, {}, "test", config.der_ids())
-    table.add(TableEntry(("SGen1", "SGen2"), KP2, KI2, {"SGen1": 1.0, "SGen2": 1.0}))
-    table.add(TableEntry(("SGen1",), 2 * KP2, 2 * KI2, {"SGen1": 1.0}))
-    table_path = tmp_path / f"{name}.table.json"
-    save_table(table, table_path)
-    return config_path, table_path
-
-
-def up_argv(config: Path, table: Path, out: Path, *extra: str) -> list[str]:
-    return [sys.executable, "-m", "adnmesh", "up", str(config), "--table", str(table),
-            "--out", str(out), *extra]
-
-
-def run_up(tmp_path: Path, config: Path, table: Path, name: str, *extra: str):
-    """Run ``adnmesh up`` to the end; return (completed process, recording, summary)."""
-    from adnmesh.recording import read_recording
-
-    out = tmp_path / f"{name}.mcap"
-    summary = tmp_path / f"{name}.summary.json"
-    result = subprocess.run(up_argv(config, table, out, "--summary-json", str(summary), *extra),
-                            cwd=tmp_path, capture_output=True, text=True,
-                            timeout=RUN_TIMEOUT_S, check=False)
-    assert result.returncode == 0, result.stderr
-    return result, read_recording(out), json.loads(summary.read_text())
-
-
-def data_messages(recording) -> list[tuple[str, bytes]]:
-    """The data plane (everything but the clock's own traffic), in a fixed order."""
-    messages = [m for m in recording.messages if "/clock/" not in m.topic]
-    messages.sort(key=lambda m: (m.log_time_ns, m.topic, json.loads(m.data)["seq"]))
-    return [(m.topic, bytes(m.data)) for m in messages]
-
+from adnmesh.table import load_table
+from up_runs import (
+    CASE,
+    KP2,
+    KI2,
+    data_messages,
+    finish,
+    run_up,
+    start_long_run,
+    write_case,
+)
 
 @pytest.fixture(scope="module")
 def reference_run(tmp_path_factory):
@@ -211,83 +165,6 @@ def test_realtime_run_follows_the_step(tmp_path: Path) -> None:
 # --- 7d: nothing is left behind -------------------------------------------------------------------
 
 
-def children_of(pid: int) -> set[int]:
-    """PIDs of the direct children of ``pid`` (from /proc)."""
-    found = set()
-    for tid in os.listdir(f"/proc/{pid}/task"):
-        try:
-            found |= {int(c) for c in Path(f"/proc/{pid}/task/{tid}/children").read_text().split()}
-        except FileNotFoundError:
-            continue
-    return found
-
-
-def alive(pid: int) -> bool:
-    """True if ``pid`` exists and is not a zombie."""
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except FileNotFoundError:
-        return False
-    return stat.rsplit(")", 1)[1].split()[0] != "Z"
-
-
-def processes_mentioning(text: str) -> list[int]:
-    """PIDs whose command line contains ``text`` (to find strays; never used to kill)."""
-    found = []
-    for entry in os.listdir("/proc"):
-        if entry.isdigit():
-            try:
-                cmdline = Path(f"/proc/{entry}/cmdline").read_bytes()
-            except OSError:
-                continue
-            if text.encode() in cmdline and alive(int(entry)):
-                found.append(int(entry))
-    return found
-
-
-def start_long_run(tmp_path: Path, name: str, **changes):
-    """Start ``adnmesh up`` on a long sim scenario; return (process, agent pids, config path)
-    once every agent is ready."""
-    changes.setdefault("scenario", {"duration_s": 3600})
-    config, table = write_case(tmp_path, name, **changes)
-    proc = subprocess.Popen(up_argv(config, table, tmp_path / f"{name}.mcap"), cwd=tmp_path,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    lines = []
-    with selectors.DefaultSelector() as selector:
-        selector.register(proc.stderr, selectors.EVENT_READ)
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline:
-            if not selector.select(timeout=max(0.0, deadline - time.monotonic())):
-                break
-            line = proc.stderr.readline()
-            lines.append(line)
-            if "agents ready" in line or not line:
-                break
-    if not any("agents ready" in line for line in lines):
-        proc.kill()
-        proc.wait()
-        pytest.fail("adnmesh up did not get ready: " + "".join(lines))
-    agents = children_of(proc.pid)
-    assert len(agents) == 5
-    return proc, agents, config
-
-
-def finish(proc: subprocess.Popen, agents: set[int], config: Path) -> tuple[int, str]:
-    """Wait (bounded) for ``adnmesh up`` to exit; check nothing of the run is left."""
-    try:
-        _, err = proc.communicate(timeout=60)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        for pid in agents:
-            if alive(pid):
-                os.kill(pid, signal.SIGKILL)
-        proc.communicate()
-        pytest.fail("adnmesh up did not exit within 60 s")
-    assert [pid for pid in agents if alive(pid)] == []
-    assert processes_mentioning(str(config)) == []
-    return proc.returncode, err
-
-
 @pytest.mark.parametrize("signum, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
 def test_interrupt_leaves_no_process(tmp_path: Path, signum: int, code: int) -> None:
     proc, agents, config = start_long_run(tmp_path, f"sig{signum}")
@@ -295,23 +172,6 @@ def test_interrupt_leaves_no_process(tmp_path: Path, signum: int, code: int) -> 
     returncode, err = finish(proc, agents, config)
     assert returncode == code, err
     assert "run stopped: SIG" in err
-
-
-def test_killed_agent_stops_the_run_and_leaves_no_process(tmp_path: Path) -> None:
-    proc, agents, config = start_long_run(tmp_path, "killed")
-    victim = max(agents)
-    os.kill(victim, signal.SIGKILL)
-    returncode, err = finish(proc, agents, config)
-    assert returncode == 1
-    assert f"(pid {victim}) died (signal 9)" in err
-
-
-def test_injected_crash_stops_the_run(tmp_path: Path) -> None:
-    proc, agents, config = start_long_run(
-        tmp_path, "crash", runtime={"faults": {"crash": [{"agent": "der/SGen2", "t_s": 30}]}})
-    returncode, err = finish(proc, agents, config)
-    assert returncode == 1
-    assert "agent der/SGen2" in err and "died (exit code 70)" in err
 
 
 # --- user errors ---------------------------------------------------------------------------------

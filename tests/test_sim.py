@@ -15,11 +15,12 @@ import pytest
 from adnmesh.config import Config, LinkSettings, Outage, load_config
 from adnmesh.control.base import Agent, Outgoing
 from adnmesh.control.cpfc import GainSchedule
+from adnmesh.control.registry import build_agent
 from adnmesh.plant import plant_from_ders
 from adnmesh.sim.clock import ClockError, Coordinator, Report
-from adnmesh.sim.links import Link, LinkParams, stream_seed
+from adnmesh.sim.links import Impairment, Link, LinkParams, stream_seed
 from adnmesh.sim.local import run_local
-from adnmesh.sim.node import AgentCrash, Node
+from adnmesh.sim.node import Node
 from adnmesh.sim.topology import Topology
 from adnmesh.stepresp import simulate_step
 from adnmesh.table import SchedulingTable, TableEntry
@@ -98,7 +99,9 @@ def test_topology_routes_and_lookahead(config: Config) -> None:
     keys = topo.keys
     assert topo.agents == ("cpfc", "measurement", "availability", "der/SGen1", "der/SGen2")
     assert topo.receivers[keys.p_y] == ("der/SGen1", "der/SGen2")
-    assert topo.subscriptions["measurement"] == (keys.der_state("SGen1"), keys.der_state("SGen2"))
+    assert topo.subscriptions["measurement"] == (keys.der_state("SGen1"), keys.der_state("SGen2"),
+                                                 keys.faults)
+    assert topo.receivers[keys.heartbeat("SGen1")] == ("availability", "cpfc")
     assert topo.link("cpfc", keys.p_y).delay_ns == ns(config.t_com_s)
     look = topo.lookahead_ns
     assert look[("der/SGen1", "measurement")] == 0
@@ -256,12 +259,87 @@ def test_node_counts_at_most_256_rejecting_keys_apart(config: Config) -> None:
     assert node.counts.rejected["(other keys)"] == {"not_subscribed": 44}
 
 
-def test_node_crashes_at_the_injected_time(config: Config) -> None:
-    node = Node(Ticker(Topology.from_config(config).keys.p_ip), Topology.from_config(config),
-                seed=0, crash_ns=25)
-    node.advance(25)
-    with pytest.raises(AgentCrash):
-        node.advance(100)
+def fault(key: str, seq: int, kind: str, start_s: float, end_s: float | None, t_send: int = 0,
+          **target) -> bytes:
+    from payloads import payload
+    body = {"fault_id": seq + 1, "kind": kind, "start_ns": ns(start_s),
+            "end_ns": None if end_s is None else ns(end_s), **target}
+    return payload(key, body, seq=seq, t_send_ns=t_send, t_deliver_ns=ns(start_s))
+
+
+def test_node_stops_for_good_at_an_injected_kill(config: Config) -> None:
+    topo = Topology.from_config(config)
+    agent = Ticker(topo.keys.p_ip)
+    node = Node(agent, topo, seed=0)
+    node.receive(topo.keys.faults, fault(topo.keys.faults, 0, "kill", 25e-9, None,
+                                         agent="measurement"))
+    node.receive(topo.keys.faults, fault(topo.keys.faults, 1, "kill", 1.0, None, agent="cpfc"))
+    node.advance(21)
+    assert not node.killed and [t for _, t in agent.seen] == [0, 10, 20]
+    node.advance(100)
+    assert node.killed and node.now_ns == 25 and [t for _, t in agent.seen] == [0, 10, 20]
+    report = node.report()
+    assert report.killed_ns == 25 and report.next_ns is None
+    assert node.advance(1000) == []
+
+
+def test_node_impairs_its_own_links_and_drops_while_offline(config: Config) -> None:
+    topo = Topology.from_config(config)
+    keys = topo.keys
+    der = Node(build_agent("der/SGen1", config), topo, seed=0)
+    der.receive(keys.faults, fault(keys.faults, 0, "der_offline", 1.0, 2.0, der="SGen1"))
+    der.receive(keys.faults, fault(keys.faults, 1, "der_offline", 1.0, 2.0, der="SGen2"))
+    der.receive(keys.faults, fault(keys.faults, 0, "der_offline", 1.0, 2.0, der="SGen1"))
+    assert der.counts.rejected[keys.faults] == {"replayed": 1}
+    for t_ms in range(0, 3000, 10):   # a command every 10 ms, delivered 0.1 s later
+        der.receive(keys.p_y, payload_p_y(t_ms, w=t_ms == 0))
+    sent = der.advance(ns(3.0))
+    heartbeats = [decode(k, p).t_send_ns for k, p in sent if k.endswith("/heartbeat")]
+    states = [decode(k, p).t_send_ns for k, p in sent if k.endswith("/state")]
+    # due at 0, 1.0 (lost), 1.99 (the watchdog fallback; lost), 2.0 (back in control)
+    assert heartbeats == [0, ns(2.0)] and der.counts.lost == 2
+    assert len(states) == 300                          # physics: never lost
+    assert der.counts.dropped_offline == 100           # commands delivered in [1, 2) s
+    assert der.agent.counts["watchdog_trips"] == 1
+
+
+def payload_p_y(t_ms: int, w: bool = False) -> bytes:
+    from payloads import payload
+    body = {"p_y": 0.1, "p_ref_w": 0.0, "kp": 1e-7, "ki": 1e-7, "entry": 0}
+    if w:
+        body["w"] = {"SGen1": 1.0, "SGen2": 1.0}
+    return payload("adn/runtime-test/cpfc/p_y", body, seq=t_ms, t_send_ns=t_ms * 1_000_000,
+                   t_deliver_ns=t_ms * 1_000_000 + ns(0.1))
+
+
+def test_link_impairments_lose_delay_and_keep_the_own_stream() -> None:
+    params = LinkParams("l", delay_ns=100, jitter_ns=50, loss=0.1, fifo=False)
+    plain, impaired = Link(params, 3, "x"), Link(params, 3, "x")
+    impaired.impair(Impairment(1, "delay", 1000, 2000, 500))
+    impaired.impair(Impairment(2, "loss", 3000, 4000, 0.5))
+    impaired.impair(Impairment(3, "outage", 5000, None))
+    times = range(0, 6000, 10)
+    pairs = [(t, plain.transmit(t), impaired.transmit(t)) for t in times]
+    assert all(x == y for t, x, y in pairs if t < 1000 or 2000 <= t < 3000 or 4000 <= t < 5000)
+    assert all(y == x + 500 for t, x, y in pairs if 1000 <= t < 2000 and x is not None)
+    assert all(y is None for t, x, y in pairs if t >= 5000)
+    in_window = [(x, y) for t, x, y in pairs if 3000 <= t < 4000 and x is not None]
+    extra_lost = sum(y is None for x, y in in_window)
+    assert all(y == x for x, y in in_window if y is not None)
+    n = len(in_window)
+    assert abs(extra_lost - n / 2) < 4 * math.sqrt(n / 4)     # loss 0.5 on its own stream
+
+
+def test_a_restarted_node_begins_late_and_rejects_older_messages(config: Config) -> None:
+    topo = Topology.from_config(config)
+    keys = topo.keys
+    agent = build_agent("measurement", config)
+    node = Node(agent, topo, seed=0, start_ns=ns(2.005))
+    assert agent.next_timer_ns() == ns(2.01) and node.now_ns == ns(2.005)
+    node.receive(keys.der_state("SGen1"), state("SGen1", ns(2.0), 0))
+    node.receive(keys.der_state("SGen1"), state("SGen1", ns(2.01), 1))
+    assert node.counts.rejected == {keys.der_state("SGen1"): {"before_start": 1}}
+    assert node.counts.received == 1
 
 
 # --- the in-process runner: determinism and agreement with the numerics -------------------------

@@ -27,7 +27,8 @@ from adnmesh.wire.units import NS_MAX, ns
 KEYS = Keys("g")
 SENDER = {KEYS.p_y: "cpfc", KEYS.p_ref: "cpfc", KEYS.der_state("SGen1"): "der/SGen1",
           KEYS.heartbeat("SGen1"): "der/SGen1", KEYS.p_ip: "measurement",
-          KEYS.si: "availability", KEYS.fault("der/SGen1"): "der/SGen1",
+          KEYS.si: "availability", KEYS.faults: "up", KEYS.event("der/SGen1"): "der/SGen1",
+          KEYS.event("up"): "up", KEYS.fault_request: "operator", KEYS.kill("cpfc"): "up",
           KEYS.report("der/SGen1"): "der/SGen1", KEYS.grant("cpfc"): "up", KEYS.start: "up",
           KEYS.stop: "up", KEYS.bye("measurement"): "measurement"}
 EXAMPLES = {
@@ -36,12 +37,17 @@ EXAMPLES = {
                                                "kp_before": 1e-7, "ki_before": 3e-7}},
     KEYS.p_ref: {"p_ref_w": -2.5e6},
     KEYS.der_state("SGen1"): {"p_w": 1e5, "setpoint_w": 2e5, "mode": "watchdog"},
-    KEYS.heartbeat("SGen1"): {"available": False},
+    KEYS.heartbeat("SGen1"): {"available": False, "mode": "watchdog", "p_y": 0.0, "entry": 2},
     KEYS.p_ip: {"p_ip_w": 3.5},
     KEYS.si: {"si": {"SGen1": True, "SGen2": False}},
-    KEYS.fault("der/SGen1"): {"fault": "der_offline", "agent": "der/SGen1", "active": True},
+    KEYS.faults: {"fault_id": 3, "kind": "link_loss", "start_ns": 10, "end_ns": 20,
+                  "link": "cpfc_to_der", "probability": 0.5, "origin": "command"},
+    KEYS.event("der/SGen1"): {"level": "WARNING", "kind": "watchdog_fallback", "text": "x",
+                              "subject": "der/SGen1"},
+    KEYS.fault_request: {"request_id": "ab12", "kind": "kill", "at_ns": None, "for_ns": 5,
+                         "agent": "cpfc"},
     KEYS.report("der/SGen1"): {"next_ns": None, "granted_ns": 5, "received": 3,
-                               "sent": {KEYS.p_ip: [2, 100]}},
+                               "sent": {KEYS.p_ip: [2, 100]}, "killed_ns": 5},
     KEYS.grant("cpfc"): {"until_ns": 10, "expect": 4},
     KEYS.start: {"clock": "sim", "epoch_ns": 0, "speed": 1.0, "end_ns": 9, "seed": 3},
     KEYS.stop: {"reason": "finished"},
@@ -69,6 +75,13 @@ BAD = [
     (KEYS.report("der/SGen1"), {"sent": {KEYS.p_y: [1]}}),
     (KEYS.report("der/SGen1"), {"granted_ns": 2**63}),
     (KEYS.start, {"clock": "lunar"}),
+    (KEYS.faults, {"kind": "meteor"}),
+    (KEYS.faults, {"fault_id": 0}),
+    (KEYS.faults, {"link": "carrier_pigeon"}),
+    (KEYS.faults, {"probability": 1.5}),
+    (KEYS.event("der/SGen1"), {"kind": "Not A Kind"}),
+    (KEYS.event("der/SGen1"), {"level": "PANIC"}),
+    (KEYS.heartbeat("SGen1"), {"mode": "dancing"}),
     (KEYS.start, {"speed": 0}),
     (KEYS.stop, {"reason": "x" * 501}),
 ]
@@ -156,12 +169,13 @@ def test_keys_route_to_their_type_and_one_sender() -> None:
         assert route(key) == Route(route(key).type, sender)
     assert route(KEYS.grant("der/SGen1")) == Route("clock_grant", "up")
     assert route(KEYS.bye("der/SGen1")) == Route("agent_bye", "der/SGen1")
+    assert route(KEYS.kill("der/SGen1")) == Route("clock_stop", "up")
 
 
 @pytest.mark.parametrize("key", ["adn/g/cpfc", "adn/g/der/x/y/state", "other/g/cpfc/p_y",
                                  "adn/g/clock/report/x", "adn/1g/cpfc/p_y", "adn/g/der/1/state",
                                  "adn/g/der/" + "x" * 65 + "/state", "adn/g/clock/grant/up",
-                                 "adn/g/fault/grid", "adn"])
+                                 "adn/g/fault/cpfc", "adn/g/event/grid", "adn/g/control/x", "adn"])
 def test_unknown_keys_are_rejected(key: str) -> None:
     assert route(key) is None
     with pytest.raises(MessageError) as info:

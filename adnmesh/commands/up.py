@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import hashlib
 import json
 import os
 import sys
@@ -105,19 +106,24 @@ def _table(args, config: Config, run_dir: Path, run_id: str, log) -> Path:
     return path
 
 
-def run(args: argparse.Namespace) -> int:
-    """Run the scenario; print the summary; return the exit code."""
-    config = load_config(args.config)
+def _check_arguments(args: argparse.Namespace) -> None:
     if args.speed is not None and args.clock != "realtime":
         raise UsageError("--speed needs --clock realtime")
-    if args.speed is not None and not args.speed > 0:
-        raise UsageError(f"--speed must be positive, got {args.speed:g}")
-    if args.seed is not None and args.seed < 0:
-        raise UsageError(f"--seed must be >= 0, got {args.seed}")
+    if args.speed is not None and not 0 < args.speed <= 1e6:
+        raise UsageError(f"--speed must be in (0, 1e6], got {args.speed:g}")
+    if args.seed is not None and not 0 <= args.seed < 2**63:
+        raise UsageError(f"--seed must be in [0, 2**63), got {args.seed}")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the scenario; print the summary (also of a run that stopped early); return the
+    exit code."""
+    config = load_config(args.config)
+    _check_arguments(args)
+    from adnmesh.commands.fault import run_file_path
     from adnmesh.runtime.children import AGENTS_DIR
     from adnmesh.runtime.launcher import UpOptions
     from adnmesh.runtime.launcher import run as launch
-    from adnmesh.runtime.summary import format_summary, summarize
 
     if not AGENTS_DIR.is_dir():
         raise UsageError(f"agent programs not found in {AGENTS_DIR} (run from a source checkout "
@@ -130,12 +136,11 @@ def run(args: argparse.Namespace) -> int:
     run_id = f"{Path(config.path).stem}-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"
     out = Path(args.out) if args.out else Path("logs") / f"{run_id}.mcap"
     table_path = _table(args, config, out.parent, run_id, log)
-    import hashlib
     options = UpOptions(
         config=config, table_path=table_path, out=out, clock=args.clock,
         speed=args.speed or 1.0,
         seed=config.runtime.seed if args.seed is None else args.seed,
-        listen=args.listen, log=log,
+        listen=args.listen, log=log, run_id=run_id, run_file=run_file_path(out),
         metadata={"run_id": run_id, "table_sha256":
                   hashlib.sha256(table_path.read_bytes()).hexdigest()},
     )
@@ -143,27 +148,32 @@ def run(args: argparse.Namespace) -> int:
     for problem in result.problems:
         log(problem)
     log(f"recording: {out} ({sum(result.recorded.values())} messages)")
-    if result.reason != "finished":
-        return result.exit_code
-    received = sum(int(b.stats.get("received", 0)) for b in result.byes.values())
-    rejected_by_agents = sum(sum(r.values()) for b in result.byes.values()
-                             for r in b.rejected.values())
+    _print_summary(args, config, run_id, result)
+    return result.exit_code
+
+
+def _print_summary(args: argparse.Namespace, config: Config, run_id: str, result) -> None:
+    """The summary on stdout (and as JSON with ``--summary-json``)."""
+    from adnmesh.runtime.summary import format_summary, summarize
+
+    byes = result.byes.values()
     extra = {
         "run_id": run_id,
         "clock": args.clock,
-        "agents": len(result.byes),
+        "ended": result.reason,
+        "agents": len(byes),
         "messages_recorded": sum(result.recorded.values()),
-        "messages_received_by_agents": received,
-        "rejected_by_agents": rejected_by_agents,
+        "messages_received_by_agents": sum(int(b.stats.get("received", 0)) for b in byes),
+        "rejected_by_agents": sum(sum(r.values()) for b in byes for r in b.rejected.values()),
         "rejected_by_recorder": sum(sum(r.values()) for r in result.rejected.values()),
-        "lost_on_links": sum(b.lost for b in result.byes.values()),
+        "lost_on_links": sum(b.lost for b in byes),
         "startup_s": round(result.startup_s, 3),
     }
     if args.clock == "sim":
         extra["clock_grants"] = result.grants
         extra["grants_per_s"] = round(result.grants / result.wall_time_s, 1) \
             if result.wall_time_s else None
-    summary = summarize(result.series, end_ns=result.end_ns,
+    summary = summarize(result.series, end_ns=result.reached_ns,
                         band_pct=config.constraints.settling_band_pct,
                         wall_time_s=result.wall_time_s, extra=extra)
     console = Console(highlight=False, markup=False, soft_wrap=True)
@@ -174,4 +184,3 @@ def run(args: argparse.Namespace) -> int:
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps(summary.to_json(), indent=1) + "\n")
     sys.stdout.flush()
-    return result.exit_code

@@ -5,9 +5,10 @@ delivered messages and timer expiries in time order and sends what it returns. T
 integer nanoseconds of sim time (scaled wall time on the realtime clock); an agent never reads a
 clock itself, so the same agent runs unchanged on both clocks and in tests.
 
-Lifecycle, in this order: construction (from the config) → any number of :meth:`on_message`
-and :meth:`on_timer` calls, in time order, at equal times messages first → :meth:`finish` once
-the run stops (what to send before the goodbye) → :meth:`stats` for the goodbye.
+Lifecycle, in this order: construction (from the config) → :meth:`resume` if the agent is a
+restarted one that begins later than 0 → any number of :meth:`on_message` and :meth:`on_timer`
+calls, in time order, at equal times messages first → :meth:`finish` once the run stops (what to
+send before the goodbye) → :meth:`stats` for the goodbye.
 """
 
 from __future__ import annotations
@@ -45,6 +46,10 @@ class Agent(ABC):
     @abstractmethod
     def on_message(self, t_ns: int, message: Envelope) -> list[Outgoing]:
         """Handle ``message`` (validated, from the key's sender) delivered at ``t_ns``."""
+
+    def resume(self, t_ns: int) -> None:
+        """Start at ``t_ns`` instead of 0: a restarted agent (called before any event)."""
+        raise NotImplementedError(f"{type(self).__name__} cannot be restarted")
 
     def finish(self, t_ns: int) -> list[Outgoing]:
         """The run stops at ``t_ns``: return what to send before saying goodbye."""

@@ -3,9 +3,8 @@
 Every ``pi_period_s`` the CPFC samples ``P_ref`` (from the scenario: the initial operating point
 plus the steps so far) and the last ``P_IP`` delivered by the measurement, updates its PI
 (:class:`~adnmesh.control.pi.SampledPI`) and sends ``P_Y`` to the DERs on ``cpfc/p_y``. When the
-availability vector SI names a new set of available DERs, it switches at its next sample to the
-table entry of that set without a bump (the output stays continuous) and sends the entry's weights
-W with that ``P_Y``; it repeats W every ``weights_period_s`` so that a DER that missed them
+set of available DERs changes, it switches at its next sample to the table entry of the new set
+without a bump and sends the entry's weights W with that ``P_Y``; it repeats W every ``weights_period_s`` so that a DER that missed them
 recovers. Every ``P_Y`` carries the number of the entry in use (``entry``, counted from 0 per run):
 a DER applies ``P_Y`` only with the weights of the same entry.
 
@@ -13,14 +12,49 @@ The output is limited to the range where at least one available DER is not satur
 setpoint ``P_Y w_d P_inst,d + P_sched,d`` inside ``[0, P_inst,d]``); the PI's anti-windup holds
 the integrator beyond it.
 
+**Which DERs are available**: those SI names, less those whose own latest acknowledgement (a
+heartbeat, which the CPFC receives too) says they are in their watchdog fallback — so the CPFC
+learns a fallback 0.1 s after it happened, before the availability monitor's SI follows.
+
+**Bumpless switching** keeps the DERs' total commanded power ``P_Y Σ w_d P_inst,d`` continuous
+over the DERs that carry the output: before the switch those of the old entry that are still
+available (a DER that left has already stopped following), after it those of the new entry.
+So ``P_Y' = P_Y · Σ_before / Σ_after`` (``scale`` in the switch record). When DERs only leave and
+the weights stay, the scale is 1 and ``P_Y`` itself is continuous (SPEC §5); when DERs return,
+the others hand them their share instead of all of them adding it at once; after a hold without
+any DER (nothing carried the output), the held output continues unscaled.
+
+**Undoing wind-up.** The CPFC keeps its PI state of the last seconds. When a DER's
+acknowledgement says it fell back at ``t``, or measurements stop, the samples computed from
+measurements that already showed the fault (after ``t + T_meas``; after the last measurement)
+are undone: the PI goes back to its state then, so that an outage leaves no trace in the
+integrator, whatever its length.
+
 Gains come from a :class:`GainSchedule`: the table entry of the subset, else an entry tuned on
 demand (:func:`adnmesh.tuning.tune_subset`, when that module exists), else the table's static
 controller with unit weights; if none exists the CPFC keeps its gains and says so in its stats.
+
+**Holding** (SPEC §5: no wind-up, no jump). The CPFC holds its output and its integrator —
+``P_Y`` stays as it was and carries ``hold`` — while
+
+- no measurement has arrived for ``measurement_timeout_s`` (``hold: measurement``); when
+  measurements return, the integrator is re-initialised so that the output continues from the
+  held value (:meth:`SampledPI.reenter <adnmesh.control.pi.SampledPI.reenter>`);
+- no DER is available (``hold: actuators``), e.g. every DER in its watchdog fallback after an
+  outage of the CPFC → DER link (the availability monitor counts a DER in fallback as
+  unavailable); the switch back to an available set is bumpless;
+- it has just been restarted (``hold: resuming``; it sends nothing then): it waits for SI and a
+  heartbeat of every available DER (their acknowledgement of the P_Y they apply, 0 for a DER in
+  fallback), at most ``heartbeat_timeout_s``, and resumes from the latest acknowledged P_Y, so
+  that the DERs' setpoints do not jump when its commands return.
+
+Each start and end of a hold is an event on ``event/cpfc``.
 """
 
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -146,13 +180,25 @@ class CPFC(Agent):
         self.keys = Keys(config.grid)
         rt = config.runtime
         self.schedule = schedule
+        self._ids = config.der_ids()
+        self._p_inst = {d.id: d.p_inst_w for d in config.ders}
         self.period_ns = ns(rt.pi_period_s)
         self.weights_period_ns = ns(rt.weights_period_s)
         self.p_ref_w = initial_p_ref_w(config)
         self.p_meas_w = self.p_ref_w          # the run starts in the operating point
+        self.meas_timeout_ns = ns(rt.measurement_timeout_s)
+        self.ack_timeout_ns = ns(rt.heartbeat_timeout_s)
+        self.last_meas_ns = 0
+        self.hold: str | None = None          # measurement, actuators, resuming
+        self._resume_ns: int | None = None
+        self._si_seen = False
+        self.acks: dict[str, tuple[int, str, float]] = {}   # DER -> (t, mode, p_y applied)
+        self.si_available = frozenset(self._ids)            # as SI last said
+        self._t_meas_ns = ns(config.t_meas_s)
+        self._history: deque = deque(maxlen=max(2, int(5 * ns(1.0) // self.period_ns)))
+        self._rollback_to: int | None = None    # undo the samples after this time
         self._steps = [(ns(s.t_s), s.delta_w) for s in config.scenario.p_ref_steps]
         self._next_step = 0
-        self._ids = config.der_ids()
         self.available = frozenset(self._ids)
         self._pending: frozenset[str] | None = None
         entry, source = schedule.lookup(self.available)
@@ -166,8 +212,10 @@ class CPFC(Agent):
         self.next_sample_ns = 0
         self._next_weights_ns = 0
         self._p_ref_sent: float | None = None
+        self._event_key = self.keys.event(self.agent_id)
         self.switches: list[SwitchEvent] = []
-        self.counts: dict[str, int] = {"samples": 0, "no_gains": 0, "rejected_si": 0}
+        self.counts: dict[str, int] = {"samples": 0, "no_gains": 0, "rejected_si": 0,
+                                       "held_samples": 0, "rollbacks": 0}
 
     # -- agent interface -----------------------------------------------------------------------
 
@@ -178,45 +226,158 @@ class CPFC(Agent):
         return {**{k: float(v) for k, v in self.counts.items()},
                 **{f"gains_{k}": float(v) for k, v in self.schedule.sources.items()}}
 
+    def resume(self, t_ns: int) -> None:
+        """A restarted CPFC at ``t_ns``: hold until the DERs' acknowledgements are in."""
+        self.next_sample_ns = self._next_weights_ns = -(-t_ns // self.period_ns) * self.period_ns
+        self.last_meas_ns = self._resume_ns = t_ns
+        self.hold = "resuming"
+
     def on_message(self, t_ns: int, message: Envelope) -> list[Outgoing]:
         if message.type == "p_ip":
             self.p_meas_w = message.p_ip_w
+            self.last_meas_ns = t_ns
+        elif message.type == "heartbeat":
+            self._ack(t_ns, message)
         elif message.type == "si":
             si = message.si
             if not set(si) <= set(self._ids):
                 self.counts["rejected_si"] += 1
                 return []
-            available = frozenset(d for d in self._ids if si.get(d, False))
-            self._pending = None if available == self.available else available
+            self._si_seen = True
+            self.si_available = frozenset(d for d in self._ids if si.get(d, False))
+            self._update_available()
         return []
 
+    def _ack(self, t_ns: int, message) -> None:
+        """A DER's acknowledgement; a new fallback undoes the samples it disturbed."""
+        der = message.src[4:]
+        before = self.acks.get(der)
+        self.acks[der] = (t_ns, message.mode, message.p_y)
+        fell_back = message.mode == "watchdog" and (before is None or before[1] != "watchdog")
+        if fell_back and der in self.weights and self.hold is None:
+            self._undo_after(message.t_send_ns + self._t_meas_ns)
+        self._update_available()
+
+    def _update_available(self) -> None:
+        """The available set: SI less the DERs whose own acknowledgement says fallback."""
+        available = frozenset(d for d in self.si_available
+                              if self.acks.get(d, (0, "control"))[1] != "watchdog")
+        self._pending = None if available == self.available else available
+
+    def _undo_after(self, t_ns: int) -> None:
+        """Ask the next sample to take the PI back to its state at ``t_ns`` (see above)."""
+        if self._rollback_to is None or t_ns < self._rollback_to:
+            self._rollback_to = t_ns
+
     def on_timer(self, t_ns: int) -> list[Outgoing]:
-        out = []
-        while self._next_step < len(self._steps) and self._steps[self._next_step][0] <= t_ns:
-            self.p_ref_w += self._steps[self._next_step][1]
-            self._next_step += 1
-        if self.p_ref_w != self._p_ref_sent:
-            out.append(Outgoing(self.keys.p_ref, {"p_ref_w": self.p_ref_w}))
-            self._p_ref_sent = self.p_ref_w
+        out = self._reference()
+        self.next_sample_ns += self.period_ns
+        if self.hold == "resuming" and not self._try_resume(t_ns, out):
+            return out
         error_w = self.p_ref_w - self.p_meas_w
-        p_y = self.pi.update(error_w)
+        self._watch_measurement(t_ns, error_w, out)
+        rolled_back = self._rollback_to is not None and self._roll_back()
+        if self.hold is None and not rolled_back:
+            p_y = self.pi.update(error_w)
+        else:
+            p_y = self.pi.output
+            self.counts["held_samples"] += 1
         body = {"p_y": p_y, "p_ref_w": self.p_ref_w, "kp": self.pi.kp, "ki": self.pi.ki}
         if self._pending is not None:
-            record = self._switch(t_ns, self._pending)
-            self._pending = None
-            if record is not None:
-                body.update(p_y=record.p_y_after, kp=self.pi.kp, ki=self.pi.ki,
-                            switch=Switch(record.p_y_before, record.p_y_limited,
-                                          record.kp_before, record.ki_before))
-                self._next_weights_ns = t_ns
+            self._apply_switch(t_ns, body, out)
         body["entry"] = self.entry_index
         if t_ns >= self._next_weights_ns:
             body["w"] = dict(self.weights)
             self._next_weights_ns = t_ns + self.weights_period_ns
+        if self.hold is not None:
+            body["hold"] = self.hold
         out.append(Outgoing(self.keys.p_y, body))
         self.counts["samples"] += 1
-        self.next_sample_ns += self.period_ns
+        self._history.append((t_ns, self.pi.snapshot()))
         return out
+
+    def _roll_back(self) -> bool:
+        """Take the PI back to its state after the last sample at or before the rollback
+        time (the samples after it were computed from disturbed measurements)."""
+        t_back, self._rollback_to = self._rollback_to, None
+        while self._history and self._history[-1][0] > t_back:
+            self._history.pop()
+        if not self._history:
+            return False
+        self.pi.restore(self._history[-1][1])
+        self.counts["rollbacks"] += 1
+        return True
+
+    # -- the steps of a sample -----------------------------------------------------------------
+
+    def _reference(self) -> list[Outgoing]:
+        """Apply the P_ref steps due; the p_ref message when it changed."""
+        t_ns = self.next_sample_ns
+        while self._next_step < len(self._steps) and self._steps[self._next_step][0] <= t_ns:
+            self.p_ref_w += self._steps[self._next_step][1]
+            self._next_step += 1
+        if self.p_ref_w == self._p_ref_sent:
+            return []
+        self._p_ref_sent = self.p_ref_w
+        return [Outgoing(self.keys.p_ref, {"p_ref_w": self.p_ref_w})]
+
+    def _watch_measurement(self, t_ns: int, error_w: float, out: list) -> None:
+        """Hold while measurements are missing; re-enter without a jump when they return."""
+        stale = t_ns - self.last_meas_ns > self.meas_timeout_ns
+        if stale and self.hold is None:
+            self.hold = "measurement"
+            self._undo_after(self.last_meas_ns)
+            out.append(self._event("WARNING", "hold", "no measurement for "
+                                   f"{self.meas_timeout_ns / 1e9:g} s: output and integrator "
+                                   "held"))
+        elif not stale and self.hold == "measurement":
+            self.hold = None if self.weights else "actuators"
+            self.pi.reenter(error_w)
+            out.append(self._event("INFO", "resume", "measurements back: control resumed "
+                                   f"from P_Y {self.pi.output:.6g} without a jump"))
+
+    def _apply_switch(self, t_ns: int, body: dict, out: list) -> None:
+        record = self._switch(t_ns, self._pending)
+        self._pending = None
+        if not self.weights and self.hold is None:
+            self.hold = "actuators"
+            out.append(self._event("WARNING", "hold", "no DER available: output and "
+                                   "integrator held"))
+        if record is None:
+            return
+        if self.hold == "actuators":
+            self.hold = None
+            out.append(self._event("INFO", "resume", "DERs available again: control resumed"))
+        body.update(p_y=record.p_y_after, kp=self.pi.kp, ki=self.pi.ki,
+                    switch=Switch(record.p_y_before, record.p_y_limited, record.kp_before,
+                                  record.ki_before, record.scale))
+        self._next_weights_ns = t_ns
+
+    def _try_resume(self, t_ns: int, out: list) -> bool:
+        """A restarted CPFC: resume once SI and every available DER's acknowledgement are in
+        (or the heartbeat timeout passed); the output continues from the acknowledged P_Y."""
+        since = self._resume_ns
+        available = self._pending if self._pending is not None else self.available
+        fresh = {d: a for d, a in self.acks.items() if a[0] >= since}
+        waiting = not self._si_seen or not set(available) <= set(fresh)
+        if waiting and t_ns - since < self.ack_timeout_ns:
+            return False
+        applying = [a for a in fresh.values() if a[1] == "control"]
+        acked = max(applying)[2] if applying else 0.0
+        self._pending = None
+        self.available = frozenset()      # the switch below sets gains, weights and limits
+        self.pi.output = acked
+        record = self._switch(t_ns, available)
+        self.hold = None if record is not None else "actuators"
+        self.pi.reenter(self.p_ref_w - self.p_meas_w)
+        self._next_weights_ns = t_ns
+        out.append(self._event("INFO", "resume", f"restarted: resumed from the acknowledged P_Y "
+                               f"{acked:.6g} of {len(applying)} DER(s) in control"))
+        return True
+
+    def _event(self, level: str, kind: str, text: str) -> Outgoing:
+        return Outgoing(self._event_key, {"level": level, "kind": kind, "text": text,
+                                          "subject": self.agent_id})
 
     # -- internals -----------------------------------------------------------------------------
 
@@ -230,14 +391,21 @@ class CPFC(Agent):
             if not self.weights:
                 self.pi.set_limits(self.pi.output, self.pi.output)
             return None
+        carried = self._commanded_gain(self.weights, available)
         self.entry = entry
         self.entry_index += 1
         self.weights = self._weights(entry, available)
         self.pi.set_limits(*self._limits())
-        record = self.pi.switch(entry.kp, entry.ki)
+        after = self._commanded_gain(self.weights, available)
+        scale = carried / after if carried > 0 and after > 0 else 1.0
+        record = self.pi.switch(entry.kp, entry.ki, scale)
         self.switches.append(SwitchEvent(t_ns, tuple(d for d in self._ids if d in available),
                                          source, record))
         return record
+
+    def _commanded_gain(self, weights: dict[str, float], available: frozenset[str]) -> float:
+        """``Σ w_d P_inst,d`` over the weighted DERs in ``available``, W per unit P_Y."""
+        return sum(w * self._p_inst[d] for d, w in weights.items() if w > 0 and d in available)
 
     def _weights(self, entry: TableEntry, available: frozenset[str]) -> dict[str, float]:
         return {d: float(entry.w.get(d, 1.0)) for d in self._ids

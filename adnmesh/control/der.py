@@ -20,16 +20,19 @@ from:
 A ``P_Y`` is valid if its ``entry`` matches the entry whose weights the DER holds (weights come
 with the switch and are repeated periodically). Every ``measurement_period_s`` the DER reports its
 infeed and setpoint on ``der/<id>/state`` (exact at that instant); every ``heartbeat_period_s``,
-and at once when its availability changes, it sends a heartbeat with its availability flag.
-During an injected ICT fault (``runtime.faults.der_offline``) it receives no commands and sends
-no heartbeats, and records the fault's start and end on ``fault/der/<id>``.
+and at once when its availability or its mode changes, it sends a heartbeat with its
+availability flag, its mode and the P_Y it applies (0 unless in ``control``) with its entry:
+the availability monitor counts a DER in ``watchdog`` as unavailable, and a restarted CPFC
+resumes from the acknowledged P_Y. A watchdog fallback is also an event (``event/der/<id>``).
+Injected ICT faults are the node's business (:mod:`adnmesh.sim.node`): the DER only notices that
+commands stop.
 """
 
 from __future__ import annotations
 
-from adnmesh.config import DER, Config
 from msgspec import UNSET
 
+from adnmesh.config import DER, Config
 from adnmesh.control.base import Agent, Outgoing
 from adnmesh.control.dynamics import PT1DelayParams, PT1DelayState, infeed_at, set_point
 from adnmesh.wire.keys import Keys, der_agent_id
@@ -38,7 +41,9 @@ from adnmesh.wire.units import ns
 
 __all__ = ["DERController"]
 
-_NEVER = 1 << 62
+
+def _first_at_or_after(t_ns: int, period_ns: int) -> int:
+    return -(-t_ns // period_ns) * period_ns
 
 
 class DERController(Agent):
@@ -50,24 +55,18 @@ class DERController(Agent):
         keys = Keys(config.grid)
         self._state_key = keys.der_state(der.id)
         self._heartbeat_key = keys.heartbeat(der.id)
-        self._fault_key = keys.fault(self.agent_id)
+        self._event_key = keys.event(self.agent_id)
         rt = config.runtime
         self.params = PT1DelayParams.from_der(der)
         self.state = PT1DelayState.steady(der.p_sched_w)
         self.sample_period_ns = ns(rt.measurement_period_s)
         self.heartbeat_period_ns = ns(rt.heartbeat_period_s)
         self.watchdog_ns = ns(rt.watchdog_timeout_s)
-        # scheduled changes of availability and of the ICT fault state: (t_ns, new value)
+        # scheduled changes of availability: (t_ns, new value)
         changes = [(ns(c.t_s), c.available) for c in config.scenario.availability
                    if der.id in c.ders]
         self._availability = sorted(changes, key=lambda c: c[0])
-        offline = []
-        for fault in config.runtime.faults.der_offline:
-            if fault.der == der.id:
-                offline += [(ns(fault.t_s), True), (ns(fault.t_s + fault.duration_s), False)]
-        self._offline_changes = sorted(offline, key=lambda c: c[0])
         self.available = True
-        self.offline = False
         self.next_sample_ns = 0
         self.next_heartbeat_ns = 0
         self.watchdog_deadline_ns = self.watchdog_ns
@@ -77,14 +76,25 @@ class DERController(Agent):
         self.p_y = 0.0
         self.setpoint_w = der.p_sched_w
         self.mode = "control"
-        self.counts = {"commands": 0, "stale_commands": 0, "dropped_offline": 0,
-                       "watchdog_trips": 0}
+        self._inputs = (True, False)     # (available, watchdog expired) of the setpoint
+        self.counts = {"commands": 0, "stale_commands": 0, "watchdog_trips": 0}
         self._plan()
 
     # -- agent interface -----------------------------------------------------------------------
 
     def next_timer_ns(self) -> int:
         return self._next_timer_ns
+
+    def resume(self, t_ns: int) -> None:
+        """A restarted controller at ``t_ns``: the plant at its schedule, no command yet."""
+        while self._availability and self._availability[0][0] < t_ns:
+            self.available = self._availability.pop(0)[1]
+        self.state = PT1DelayState.steady(self.der.p_sched_w, t_ns)
+        self.next_sample_ns = _first_at_or_after(t_ns, self.sample_period_ns)
+        self.next_heartbeat_ns = t_ns
+        self.watchdog_deadline_ns = t_ns + self.watchdog_ns
+        self.mode = "control" if self.available else "schedule"
+        self._plan()
 
     def _plan(self) -> None:
         """Recompute the next timer (after every change of the state it depends on)."""
@@ -93,17 +103,12 @@ class DERController(Agent):
             t = self.watchdog_deadline_ns
         if self._availability and self._availability[0][0] < t:
             t = self._availability[0][0]
-        if self._offline_changes and self._offline_changes[0][0] < t:
-            t = self._offline_changes[0][0]
         self._next_timer_ns = t
 
     def on_message(self, t_ns: int, message: Envelope) -> list[Outgoing]:
         if message.type != "p_y":
             return []
         counts = self.counts
-        if self.offline:
-            counts["dropped_offline"] += 1
-            return []
         if message.w is not UNSET:
             self.weight = float(message.w.get(self.der.id, 0.0))
             self.entry = message.entry
@@ -114,42 +119,36 @@ class DERController(Agent):
         self.p_y = message.p_y
         self.watchdog_deadline_ns = t_ns + self.watchdog_ns
         self.watchdog_expired = False
+        mode = self.mode
         self._update_setpoint(t_ns)
         self._plan()
+        if self.mode != mode:      # back from the watchdog: say so at once
+            self.next_heartbeat_ns = t_ns
+            self._plan()
         return []
 
     def on_timer(self, t_ns: int) -> list[Outgoing]:
         out: list[Outgoing] = []
-        heartbeat_now = False
+        mode, available = self.mode, self.available
         while self._availability and self._availability[0][0] <= t_ns:
-            available = self._availability.pop(0)[1]
-            heartbeat_now |= available != self.available
-            self.available = available
-        setpoint_inputs_changed = heartbeat_now   # availability changed
-        while self._offline_changes and self._offline_changes[0][0] <= t_ns:
-            offline = self._offline_changes.pop(0)[1]
-            if offline != self.offline:
-                self.offline = offline
-                heartbeat_now |= not offline
-                out.append(Outgoing(self._fault_key, {"fault": "der_offline",
-                                                      "agent": self.agent_id,
-                                                      "active": offline}))
+            self.available = self._availability.pop(0)[1]
         if not self.watchdog_expired and t_ns >= self.watchdog_deadline_ns:
             self.watchdog_expired = True
             self.counts["watchdog_trips"] += 1
-            setpoint_inputs_changed = True
-        if setpoint_inputs_changed:   # else on_message has set it from the same inputs
-            self._update_setpoint(t_ns)
+            out.append(Outgoing(self._event_key, {
+                "level": "WARNING", "kind": "watchdog_fallback", "subject": self.agent_id,
+                "text": f"{self.der.id}: no valid command for "
+                        f"{self.watchdog_ns / 1e9:g} s, back to its schedule"}))
+        if (self.available, self.watchdog_expired) != self._inputs:
+            self._update_setpoint(t_ns)   # else on_message has set it from the same inputs
         if t_ns == self.next_sample_ns:
             p_w = infeed_at(self.params, self.state, t_ns)
             out.append(Outgoing(self._state_key, {"p_w": p_w, "setpoint_w": self.setpoint_w,
                                                   "mode": self.mode}))
             self.next_sample_ns += self.sample_period_ns
-        if t_ns == self.next_heartbeat_ns:
-            heartbeat_now = True
-            self.next_heartbeat_ns += self.heartbeat_period_ns
-        if heartbeat_now and not self.offline:
-            out.append(Outgoing(self._heartbeat_key, {"available": self.available}))
+        if t_ns >= self.next_heartbeat_ns or self.mode != mode or self.available != available:
+            out.append(Outgoing(self._heartbeat_key, self._heartbeat()))
+            self.next_heartbeat_ns = _first_at_or_after(t_ns + 1, self.heartbeat_period_ns)
         self._plan()
         return out
 
@@ -158,8 +157,14 @@ class DERController(Agent):
 
     # -- internals -----------------------------------------------------------------------------
 
+    def _heartbeat(self) -> dict:
+        applying = self.mode == "control"
+        return {"available": self.available, "mode": self.mode,
+                "p_y": self.p_y if applying else 0.0, "entry": self.entry}
+
     def _update_setpoint(self, t_ns: int) -> None:
         der = self.der
+        self._inputs = (self.available, self.watchdog_expired)
         if not self.available:
             setpoint, mode = der.p_sched_w, "schedule"
         elif self.watchdog_expired:

@@ -39,6 +39,10 @@ class Measurement(Agent):
     def next_timer_ns(self) -> int:
         return self.next_sample_ns
 
+    def resume(self, t_ns: int) -> None:
+        """A restarted measurement at ``t_ns``: samples from the next sampling instant on."""
+        self.next_sample_ns = -(-t_ns // self.period_ns) * self.period_ns
+
     def on_message(self, t_ns: int, message: Envelope) -> list[Outgoing]:
         if message.src in self.infeed_w:
             self.infeed_w[message.src] = message.p_w

@@ -42,7 +42,11 @@ class SwitchRecord:
     kp_before, ki_before : float
         The old gains, 1/W and 1/(W s).
     p_y_limited : float
-        The old output limited to the new output range: what the new gains continue from.
+        The old output, scaled, limited to the new output range: what the new gains continue
+        from.
+    scale : float
+        Factor applied to the old output first (1: the output itself is continuous; see the
+        CPFC for when it differs).
     """
 
     p_y_before: float
@@ -50,6 +54,7 @@ class SwitchRecord:
     kp_before: float
     ki_before: float
     p_y_limited: float
+    scale: float = 1.0
 
 
 class SampledPI:
@@ -91,25 +96,42 @@ class SampledPI:
         self.output = min(max(u, self.y_min), self.y_max)
         return self.output
 
+    def reenter(self, error_w: float) -> None:
+        """Continue after a hold from the held output, with the error of this sample: set
+        ``x_I = (P_Y - K_P e) / K_I`` and the previous error to ``e``, so that the output does
+        not jump when control resumes (the same rule as a gain switch)."""
+        self.output = min(max(self.output, self.y_min), self.y_max) + 0.0
+        self.x_i = (self.output - self.kp * error_w) / self.ki
+        self.e_prev = error_w
+
     def set_limits(self, y_min: float, y_max: float) -> None:
         """Change the output limits (they depend on the actuators in use)."""
         self.y_min, self.y_max = float(y_min), float(y_max)
 
-    def switch(self, kp: float, ki: float) -> SwitchRecord:
-        """Switch to new gains right after :meth:`update`, keeping ``P_Y`` continuous.
+    def switch(self, kp: float, ki: float, scale: float = 1.0) -> SwitchRecord:
+        """Switch to new gains right after :meth:`update`, continuing from ``scale`` times the
+        output (``scale`` 1: ``P_Y`` continuous).
 
-        Uses the error of the last sample: ``x_I' = (P_Y - K_P' e) / K_I'``. If the limits
-        changed with the switch (other actuators) and ``P_Y`` lies outside the new range, the
+        Uses the error of the last sample: ``x_I' = (s P_Y - K_P' e) / K_I'``. If the limits
+        changed with the switch (other actuators) and ``s P_Y`` lies outside the new range, the
         new gains continue from the nearest limit (every new actuator was saturated there
         anyway), so the integrator never starts wound up.
         """
-        if not (kp > 0 and ki > 0):
-            raise ValueError("need kp > 0 and ki > 0")
+        if not (kp > 0 and ki > 0 and scale >= 0):
+            raise ValueError("need kp > 0, ki > 0 and scale >= 0")
         before = self.output
-        limited = min(max(before, self.y_min), self.y_max)
+        limited = min(max(before * scale, self.y_min), self.y_max)
         record_kp, record_ki = self.kp, self.ki
         self.kp, self.ki = float(kp), float(ki)
         self.x_i = (limited - self.kp * self.e_prev) / self.ki
         after = self.kp * self.e_prev + self.ki * self.x_i
         self.output = min(max(after, self.y_min), self.y_max) + 0.0       # no -0.0
-        return SwitchRecord(before, self.output, record_kp, record_ki, limited)
+        return SwitchRecord(before, self.output, record_kp, record_ki, limited, float(scale))
+
+    def snapshot(self) -> tuple[float, float, float]:
+        """The state ``(x_I, previous error, output)``, for :meth:`restore`."""
+        return self.x_i, self.e_prev, self.output
+
+    def restore(self, state: tuple[float, float, float]) -> None:
+        """Go back to a state taken by :meth:`snapshot` (undo the samples since)."""
+        self.x_i, self.e_prev, self.output = state

@@ -15,8 +15,8 @@ import socket
 
 import zenoh
 
-__all__ = ["DEFAULT_ENDPOINT", "DEFAULT_HOST", "add_connection_arguments", "free_port",
-           "router_config", "session_config"]
+__all__ = ["DEFAULT_ENDPOINT", "DEFAULT_HOST", "add_connection_arguments", "client_config",
+           "free_port", "router_config", "session_config"]
 
 DEFAULT_HOST = "127.0.0.1"
 """The only address adnmesh uses unless told otherwise."""
@@ -51,6 +51,15 @@ def session_config(args: argparse.Namespace) -> zenoh.Config:
         config.insert_json5("connect/endpoints", json.dumps(connect))
     if args.listen:
         config.insert_json5("listen/endpoints", json.dumps(args.listen))
+    config.insert_json5("scouting/multicast/enabled", "false")
+    return config
+
+
+def client_config(connect: list[str]) -> zenoh.Config:
+    """The Zenoh config of a client session connecting to ``connect``."""
+    config = zenoh.Config()
+    config.insert_json5("mode", json.dumps("client"))
+    config.insert_json5("connect/endpoints", json.dumps(connect))
     config.insert_json5("scouting/multicast/enabled", "false")
     return config
 

@@ -5,9 +5,11 @@
 1. :func:`startup`: spawn one process per agent (:mod:`adnmesh.runtime.children`) as Zenoh
    clients of the embedded router and wait until every agent is ready (liveliness token and
    first clock report);
-2. :func:`run_clock`: announce ``clock/start`` and run the clock — sim: grants from the
-   coordinator (:class:`~adnmesh.runtime.launcher_bus.SimClockDriver`); realtime: the wall
-   clock — until the scenario's end, Ctrl-C / SIGTERM, or an agent's death;
+2. :func:`run_clock`: send the config's faults, announce ``clock/start`` and run the clock —
+   sim: grants from the coordinator (:class:`~adnmesh.runtime.launcher_bus.SimClockDriver`);
+   realtime: the wall clock — until the scenario's end or Ctrl-C / SIGTERM; faults requested
+   meanwhile, injected kills and restarts, and agents that die on their own are the
+   :class:`~adnmesh.runtime.injector.FaultInjector`'s (the run goes on without a dead agent);
 3. :func:`shutdown`: announce ``clock/stop``, collect every agent's goodbye (what it published
    per key), withdraw ``up``'s liveliness so the agents may close, wait for the processes and
    kill by PID whatever is left;
@@ -23,14 +25,17 @@ the :class:`~adnmesh.runtime.roster.Roster` when a session appears or ends.
 
 from __future__ import annotations
 
+import contextlib
+import json
+import os
 import signal
-import subprocess
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import msgspec
 import zenoh
 
 from adnmesh import __version__
@@ -38,6 +43,7 @@ from adnmesh.config import Config
 from adnmesh.recording import PUBLISHED_METADATA, Recorder
 from adnmesh.runtime.bus import DEFAULT_HOST, free_port, router_config
 from adnmesh.runtime.children import AgentProcesses, agent_argv
+from adnmesh.runtime.injector import FaultInjector
 from adnmesh.runtime.launcher_bus import LauncherOutbox, SimClockDriver
 from adnmesh.runtime.roster import Roster
 from adnmesh.runtime.summary import RunSeries
@@ -78,6 +84,11 @@ class UpOptions:
         Bounds for the agents to become ready and to say goodbye, wall s.
     log : callable
         Receives one-line progress messages.
+    run_id : str
+        The run's id (for ``adnmesh fault``).
+    run_file : Path, optional
+        Where to describe the running run (endpoint, grid, pid) for ``adnmesh fault``;
+        removed when the run ends.
     """
 
     config: Config
@@ -91,6 +102,8 @@ class UpOptions:
     startup_timeout_s: float = 60.0
     shutdown_timeout_s: float = 10.0
     log: Callable[[str], None] = lambda line: None
+    run_id: str = ""
+    run_file: Path | None = None
 
 
 @dataclass
@@ -111,6 +124,8 @@ class UpResult:
         Wall time to get every agent ready, s.
     end_ns : int
         The scenario's end, ns.
+    reached_ns : int
+        How far the run got, ns (the end, unless it stopped early).
     published, recorded : dict
         Messages per key: what the agents and ``up`` said they published, what was recorded.
     byes : dict
@@ -129,6 +144,7 @@ class UpResult:
     wall_time_s: float = 0.0
     startup_s: float = 0.0
     end_ns: int = 0
+    reached_ns: int = 0
     published: dict = field(default_factory=dict)
     recorded: dict = field(default_factory=dict)
     byes: dict = field(default_factory=dict)
@@ -156,6 +172,9 @@ class _Launch:
         self.tap = RecorderTap(self.recorder, self.topology, self.result.series,
                                lambda: self.clock.now_ns() if self.clock else 0)
         self.outbox: LauncherOutbox | None = None
+        self.injector = FaultInjector(self)
+        self.epoch_ns = 0
+        self._start_body: dict | None = None
         self._handles: list = []
         self._token = None
 
@@ -165,8 +184,10 @@ class _Launch:
         """Declare the recorder's subscriber, the liveliness subscriber and ``up``'s token."""
         self.outbox = LauncherOutbox(session, self.tap)
         if self.options.clock == "sim":
-            self.clock = SimClockDriver(Coordinator(self.topology, self.result.end_ns),
-                                        self.keys, self.outbox, self.roster.changed.set)
+            coordinator = Coordinator(self.topology, self.result.end_ns,
+                                      on_rejoin=self.injector.on_rejoin)
+            self.clock = SimClockDriver(coordinator, self.keys, self.outbox,
+                                        self.roster.changed.set)
         self._handles = [
             session.declare_subscriber(self.keys.all, self.on_sample,
                                        allowed_origin=zenoh.Locality.REMOTE),
@@ -174,6 +195,11 @@ class _Launch:
                                                     self.roster.on_alive, history=True),
         ]
         self._token = session.liveliness().declare_token(self.keys.liveliness("up"))
+        if self.options.run_file is not None:
+            self.options.run_file.parent.mkdir(parents=True, exist_ok=True)
+            self.options.run_file.write_text(json.dumps({
+                "run_id": self.options.run_id, "endpoint": self.endpoint,
+                "grid": self.config.grid, "pid": os.getpid(), "clock": self.options.clock}))
 
     def withdraw_liveliness(self) -> None:
         """Withdraw ``up``'s liveliness token (once): agents waiting after their goodbye close."""
@@ -182,43 +208,64 @@ class _Launch:
             token.undeclare()
 
     def close(self) -> None:
+        if self.options.run_file is not None:
+            self.options.run_file.unlink(missing_ok=True)
         self.withdraw_liveliness()
         for handle in self._handles:
             handle.undeclare()
         self._handles = []
 
     def on_sample(self, sample: zenoh.Sample) -> None:
-        """Every sample an agent sends: through the tap; reports and goodbyes onwards."""
+        """Every sample an agent sends: through the tap; reports, goodbyes and fault requests
+        onwards."""
         for message in self.tap.take(str(sample.key_expr), sample.payload.to_bytes()):
             if message.type == "clock_report":
                 self.roster.note_report(message.src)
                 if self.clock is not None:
                     self.clock.on_report(message)
+                if message.killed_ns is not msgspec.UNSET:
+                    self.injector.on_killed(message)
             elif message.type == "agent_bye":
                 self.roster.note_bye(message)
+            elif message.type == "fault_request":
+                self.injector.on_request(message)
+
+    # -- for the phases and the injector -------------------------------------------------------
+
+    def spawn(self, agent_id: str, resume_ns: int = 0) -> None:
+        """Start the process of ``agent_id`` (a restarted one begins at ``resume_ns``)."""
+        argv = agent_argv(agent_id, Path(self.config.path), self.endpoint,
+                          self.options.table_path)
+        if resume_ns:
+            argv += ["--resume-at-ns", str(resume_ns)]
+        self.children.spawn(agent_id, argv)
+
+    def announce_start(self) -> None:
+        """Publish ``clock/start`` (again, for an agent that restarted)."""
+        self.outbox.send(self.keys.start, 0, **self._start_body)
+
+    def clock_lock(self):
+        """The sim clock's lock (held while a fault is injected), or a dummy one."""
+        return self.clock.lock if self.clock is not None else contextlib.nullcontext()
 
     # -- reasons to stop -----------------------------------------------------------------------
 
     def failure(self) -> str | None:
-        """Why the run must stop now (interrupted, an agent died, the clock failed), or None."""
+        """Why the run must stop now (interrupted, the clock failed), or None. A dead agent is
+        not a reason: the injector notes it and the run goes on."""
         if self.interrupted:
             return "SIGINT" if self.interrupted[0] == signal.SIGINT else "SIGTERM"
-        byes = self.roster.without_bye()
-        dead = [(a, c) for a, c in self.children.dead() if a in byes]
-        if dead:
-            return self.children.describe_death(*dead[0])
-        gone = self.roster.first_gone()
-        if gone is not None:
-            proc = self.children.procs.get(gone)
-            if proc is not None:   # its session ended: most likely the process, say how
-                try:
-                    return self.children.describe_death(gone, proc.wait(timeout=1.0))
-                except subprocess.TimeoutExpired:   # still running: only its session was lost
-                    pass
-            return f"agent {gone} lost its session"
         if self.clock is not None and self.clock.error:
             return f"clock: {self.clock.error}"
         return None
+
+    def startup_failure(self) -> str | None:
+        """Why the startup must stop: as :meth:`failure`, or an agent died before it was
+        ready."""
+        dead = [(a, c) for a, c in self.children.dead() if a in self.roster.not_ready()]
+        if dead:
+            return self.children.describe_death(*dead[0])
+        return self.failure()
 
 
 def _metadata(options: UpOptions) -> dict[str, str]:
@@ -236,14 +283,13 @@ def startup(launch: _Launch) -> str | None:
     """Spawn every agent and wait until all are ready; return why that failed, or None."""
     options, t0 = launch.options, time.monotonic()
     for agent_id in launch.topology.agents:
-        launch.children.spawn(agent_id, agent_argv(agent_id, Path(launch.config.path),
-                                                   launch.endpoint, options.table_path))
+        launch.spawn(agent_id)
     options.log(f"router on {launch.endpoint}; started {len(launch.topology.agents)} agents "
                 f"(pids {launch.children.pids()})")
     deadline = t0 + options.startup_timeout_s
     reason = None
     while reason is None and launch.roster.not_ready():
-        reason = launch.failure()
+        reason = launch.startup_failure()
         if reason is None and time.monotonic() > deadline:
             reason = (f"agents not ready after {options.startup_timeout_s:g} s: "
                       f"{', '.join(launch.roster.not_ready())}")
@@ -257,10 +303,13 @@ def run_clock(launch: _Launch) -> str:
     options, result = launch.options, launch.result
     options.log(f"{len(launch.topology.agents)} agents ready in {result.startup_s:.2f} s; "
                 f"running {launch.config.scenario.duration_s:g} s of {options.clock} time")
+    launch.injector.start_faults()
     t_start = time.perf_counter()
-    epoch_ns = time.time_ns() + 200_000_000
-    launch.outbox.send(launch.keys.start, 0, clock=options.clock, epoch_ns=epoch_ns,
-                       speed=float(options.speed), end_ns=result.end_ns, seed=options.seed)
+    epoch_ns = launch.epoch_ns = time.time_ns() + 200_000_000
+    launch._start_body = {"clock": options.clock, "epoch_ns": epoch_ns,
+                          "speed": float(options.speed), "end_ns": result.end_ns,
+                          "seed": options.seed}
+    launch.announce_start()
     if launch.clock is not None:
         launch.clock.start()
     else:
@@ -272,8 +321,15 @@ def run_clock(launch: _Launch) -> str:
             time.time_ns() >= end_wall_ns
         reason = "finished" if done else launch.failure()
         if reason is None:
+            launch.injector.supervise()
             launch.roster.wait(_POLL_S)
     result.wall_time_s = time.perf_counter() - t_start
+    if reason == "finished":
+        result.reached_ns = result.end_ns
+    elif launch.clock is not None:
+        result.reached_ns = launch.clock.now_ns()
+    else:
+        result.reached_ns = min(result.end_ns, launch.injector.realtime_ns())
     return reason
 
 
@@ -305,10 +361,18 @@ def shutdown(launch: _Launch, reason: str) -> None:
 def verify(launch: _Launch) -> None:
     """Compare published and recorded counts per key; record the agents' counts."""
     result = launch.result
-    result.published = launch.roster.published(launch.outbox.counts())
+    unverified = _keys_of(launch, launch.injector.killed)
+    not_counted = unverified | {launch.keys.fault_request}   # a person's commands: uncounted
+    result.published = {k: v for k, v in launch.roster.published(launch.outbox.counts()).items()
+                        if k not in not_counted}
     result.recorded = {k: v for k, v in launch.recorder.counts().items()
-                       if k != launch.tap.rejected_key}
-    missing = sorted(launch.roster.without_bye())
+                       if k != launch.tap.rejected_key and k not in not_counted}
+    if launch.injector.killed:
+        result.problems.append(f"counts not verified on the {len(unverified)} key(s) of "
+                               f"{', '.join(sorted(launch.injector.killed))} (a process of "
+                               "theirs died and could not say what it sent)")
+    missing = sorted(launch.roster.without_bye() - launch.injector.killed
+                     - set(launch.injector.lost))
     if result.exit_code == EXIT_OK and missing:
         result.exit_code = EXIT_FAILED
         result.problems.append(f"no goodbye from {', '.join(missing)}")
@@ -321,8 +385,21 @@ def verify(launch: _Launch) -> None:
         result.exit_code = EXIT_FAILED
     if launch.tap.record_errors and result.exit_code == EXIT_OK:
         result.exit_code = EXIT_FAILED
+    if launch.injector.lost and result.exit_code == EXIT_OK:
+        result.exit_code = EXIT_FAILED     # the run went on, but an agent died unplanned
+        result.problems.append(f"agent(s) lost during the run: "
+                               f"{', '.join(sorted(set(launch.injector.lost)))}")
     launch.recorder.add_metadata(PUBLISHED_METADATA,
                                  {k: str(v) for k, v in result.published.items()})
+
+
+def _keys_of(launch: _Launch, agents) -> set[str]:
+    keys = launch.keys
+    found = set()
+    for agent in agents:
+        found |= set(launch.topology.publishes(agent))
+        found |= {keys.report(agent), keys.bye(agent)}
+    return found
 
 
 def run(options: UpOptions) -> UpResult:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import threading
 
 import zenoh
+from msgspec import UNSET
 
 from adnmesh.runtime.tap import RecorderTap
 from adnmesh.sim.clock import ClockError, Coordinator, Report
@@ -27,14 +28,15 @@ class LauncherOutbox:
     def __init__(self, session: zenoh.Session, tap: RecorderTap) -> None:
         self._session = session
         self._tap = tap
-        self._lock = threading.Lock()
+        self.lock = threading.Lock()
         self._publishers: dict[str, zenoh.Publisher] = {}
         self.published: dict[str, int] = {}
 
-    def send(self, key: str, t_ns: int, **body) -> None:
-        """Publish a message of ``up`` at sim time ``t_ns`` and record it."""
+    def send(self, key: str, t_ns: int, t_deliver_ns: int | None = None, **body) -> None:
+        """Publish a message of ``up`` sent at sim time ``t_ns`` (delivered then, or at
+        ``t_deliver_ns``) and record it."""
         type_name = route(key).type
-        with self._lock:
+        with self.lock:
             seq = self.published.get(key, 0)
             self.published[key] = seq + 1
             publisher = self._publishers.get(key)
@@ -43,14 +45,15 @@ class LauncherOutbox:
                     key, congestion_control=zenoh.CongestionControl.BLOCK,
                     allowed_destination=zenoh.Locality.REMOTE)
             message = MESSAGE_TYPES[type_name](MESSAGE_VERSION, type_name, LAUNCHER, seq, t_ns,
-                                               t_ns, **body)
+                                               t_ns if t_deliver_ns is None else t_deliver_ns,
+                                               **body)
             payload = encode(message)
             publisher.put(payload)
             self._tap.record_own(key, message, payload)
 
     def counts(self) -> dict[str, int]:
         """Messages sent per key."""
-        with self._lock:
+        with self.lock:
             return dict(self.published)
 
 
@@ -73,16 +76,17 @@ class SimClockDriver:
         self._keys = keys
         self._outbox = outbox
         self._on_change = on_change
-        self._lock = threading.Lock()
+        self.lock = threading.RLock()
         self._started = False
         self.finished = False
         self.error: str | None = None
 
     def on_report(self, message) -> None:
         """Take an agent's clock report; publish the grants that follow."""
+        killed = None if message.killed_ns is UNSET else message.killed_ns
         report = Report(message.src, message.next_ns, message.received,
-                        {k: (v[0], v[1]) for k, v in message.sent.items()})
-        with self._lock:
+                        {k: (v[0], v[1]) for k, v in message.sent.items()}, killed)
+        with self.lock:
             if self.error is not None:
                 return
             try:
@@ -95,14 +99,36 @@ class SimClockDriver:
 
     def start(self) -> None:
         """Begin granting (every agent has reported)."""
-        with self._lock:
+        with self.lock:
             self._started = True
             self._send(self.coordinator.start())
 
     def now_ns(self) -> int:
         """The time before which every agent has processed everything, ns."""
-        with self._lock:
+        with self.lock:
             return self.coordinator.now_ns()
+
+    def earliest_unprocessed_ns(self) -> int:
+        """The earliest time no live agent may have processed yet, ns (for a fault to take
+        effect there for all of them)."""
+        with self.lock:
+            c = self.coordinator
+            granted = [c.granted_ns(a) for a in c.agents if not c.is_dead(a)]
+            return max([c.now_ns(), *granted])
+
+    def inject(self, agents) -> None:
+        """``up`` sends one message to each of ``agents`` (count it)."""
+        with self.lock:
+            self.coordinator.inject(agents)
+
+    def kill(self, agent: str) -> None:
+        """``agent``'s process ended without a last report: it is dead; grants follow."""
+        with self.lock:
+            self._send(self.coordinator.kill(agent))
+
+    def cancel_restart(self, agent: str) -> None:
+        with self.lock:
+            self._send(self.coordinator.cancel_restart(agent))
 
     @property
     def grants_issued(self) -> int:

@@ -24,9 +24,13 @@ three named phases:
    has every goodbye, so no goodbye is dropped by a session closed too early.
 
 :meth:`~AgentProcess.close` undeclares everything; the caller closes the session. Everything an
-agent sends in one window for one key goes out as one sample (:func:`adnmesh.wire.frames`). An
-injected crash (``runtime.faults.crash``) records a ``fault`` message and ends the process at
-once with exit code :data:`EXIT_CRASH`, without a goodbye.
+agent sends in one window for one key goes out as one sample (:func:`adnmesh.wire.frames`).
+
+An injected **kill** (a ``fault`` of kind ``kill``, applied by the node) ends the agent at its
+sim time: the window is processed up to it, its messages published, the last clock report sent
+with ``killed_ns``; once ``up`` has acknowledged that report on ``clock/kill/<agent>`` (so
+that nothing it sent is lost with the process; 2 s at most), the process SIGKILLs itself. A
+restarted agent is started with ``--resume-at-ns`` and begins at that sim time.
 """
 
 from __future__ import annotations
@@ -41,18 +45,26 @@ from collections import deque
 
 import zenoh
 
-from adnmesh.sim.node import AgentCrash, Node
+from adnmesh.sim.node import Node
 from adnmesh.wire.envelope import MessageError, decode, encode, frames, split_frame
 from adnmesh.wire.keys import Keys, route
 from adnmesh.wire.messages import MESSAGE_TYPES, MESSAGE_VERSION
 
-__all__ = ["EXIT_CRASH", "AgentProcess", "die_with_parent", "load_config_or_exit"]
-
-EXIT_CRASH = 70
-"""Exit code of an agent that crashed on purpose (injected fault)."""
+__all__ = ["AgentProcess", "add_agent_arguments", "die_with_parent", "load_config_or_exit"]
 
 _WAIT_S = 1.0       # longest sleep between checks of the stop flag, s
 _BYE_WAIT_S = 5.0   # longest wait after the goodbye for `up` to confirm it, s
+_KILL_WAIT_S = 2.0  # longest wait for `up` to acknowledge the last report before a kill, s
+
+
+def add_agent_arguments(parser) -> None:
+    """The arguments every agent program takes besides its own: the connection flags
+    (:func:`adnmesh.runtime.bus.add_connection_arguments`) and ``--resume-at-ns`` (set by
+    ``adnmesh up`` for a restarted agent)."""
+    from adnmesh.runtime.bus import add_connection_arguments
+    add_connection_arguments(parser)
+    parser.add_argument("--resume-at-ns", type=int, default=0, metavar="NS",
+                        help="begin at this sim time, ns (a restarted agent; set by adnmesh up)")
 
 
 def load_config_or_exit(path: str):
@@ -104,6 +116,8 @@ class AgentProcess:
         self.stop: str | None = None         # why the run stopped
         self.mode: str | None = None         # "sim" / "realtime" once started
         self.up_gone = False                 # adnmesh up withdrew its liveliness
+        self.dying = False                   # an injected kill was reached
+        self.kill_acked = False              # ... and up has the last report
         self.window_cpu_s = 0.0              # CPU time spent processing grants
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._own: dict[str, int] = {}       # what this wrapper published itself, per key
@@ -132,7 +146,8 @@ class AgentProcess:
         self._handles = [session.declare_subscriber(key, self._on_data)
                          for key in self.node.subscriptions]
         self._handles += [session.declare_subscriber(key, self._on_clock)
-                          for key in (keys.grant(self.agent), keys.start, keys.stop)]
+                          for key in (keys.grant(self.agent), keys.start, keys.stop,
+                                      keys.kill(self.agent))]
         self._handles.append(session.liveliness().declare_subscriber(
             keys.liveliness("up"), self._on_up_alive))
         self._handles.append(session.liveliness().declare_token(keys.liveliness(self.agent)))
@@ -150,12 +165,22 @@ class AgentProcess:
             self.mode = self.start.clock
             if self.mode == "sim":
                 self._run_granted()
-                while self.stop is None:
+                while self.stop is None and not self.dying:
                     self.lock.wait(_WAIT_S)
             else:
                 self.node.strict = False
         if self.mode == "realtime":
             self._run_realtime()
+        if self.dying:
+            self._die()
+
+    def _die(self) -> None:
+        """The injected kill: wait (bounded) until ``up`` has the last report, then SIGKILL."""
+        deadline = time.monotonic() + _KILL_WAIT_S
+        with self.lock:
+            while not self.kill_acked and time.monotonic() < deadline:
+                self.lock.wait(max(0.0, deadline - time.monotonic()))
+        os.kill(os.getpid(), signal.SIGKILL)
 
     def goodbye(self) -> None:
         """Send the agent's last messages and the goodbye; wait (bounded) for ``up``'s ack."""
@@ -210,15 +235,17 @@ class AgentProcess:
                     self.node.counts.reject(key, exc.reason)
                 continue
             with self.lock:
-                self._take_clock(message)
+                self._take_clock(key, message)
 
-    def _take_clock(self, message) -> None:   # with the lock held
+    def _take_clock(self, key: str, message) -> None:   # with the lock held
         if message.type == "clock_grant":      # processed here: the main thread sleeps on
             self.grants.append(message)
             self._run_granted()
             return
         if message.type == "clock_start" and self.start is None:
             self.start = message
+        elif message.type == "clock_stop" and key == self.keys.kill(self.agent):
+            self.kill_acked = True
         elif message.type == "clock_stop":
             self.stop = self.stop or message.reason
         self.lock.notify()
@@ -259,23 +286,21 @@ class AgentProcess:
 
     def _report(self) -> None:
         r = self.node.report()
+        extra = {} if r.killed_ns is None else {"killed_ns": r.killed_ns}
         self._send_own(self.keys.report(self.agent), next_ns=r.next_ns,
                        granted_ns=self.node.granted_ns, received=r.received,
-                       sent={k: tuple(v) for k, v in r.sent.items()})
+                       sent={k: tuple(v) for k, v in r.sent.items()}, **extra)
 
     def _run_until(self, until_ns: int) -> None:
-        try:
-            out = self.node.advance(until_ns)
-        except AgentCrash:
-            self._publish_all(self.node.emit_now(self.keys.fault(self.agent), {
-                "fault": "crash", "agent": self.agent, "active": True}))
-            os._exit(EXIT_CRASH)
-        self._publish_all(out)
+        self._publish_all(self.node.advance(until_ns))
+        if self.node.killed:
+            self.dying = True
+            self.lock.notify()
 
     def _run_granted(self) -> None:
         """Every grant whose expected messages are all here: process its window, report."""
         grants = self.grants
-        while (self.mode == "sim" and grants and self.stop is None
+        while (self.mode == "sim" and grants and self.stop is None and not self.dying
                and self.node.counts.received >= grants[0].expect):
             cpu = time.thread_time()
             self._run_until(grants.popleft().until_ns)
@@ -290,6 +315,9 @@ class AgentProcess:
                 now = int((time.time_ns() - epoch_ns) * speed)
                 if now >= 0:
                     self._run_until(min(now, end_ns) + 1)
+                if self.dying:
+                    self._report()
+                    return
                 next_ns = self.node.next_event_ns()
                 if next_ns is None or next_ns > end_ns:
                     wait_s = _WAIT_S

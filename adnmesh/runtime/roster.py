@@ -67,6 +67,11 @@ class Roster:
         with self.lock:
             return sorted(self.agents - (self.alive & self.reported))
 
+    def alive_now(self) -> set[str]:
+        """Agents whose session is up."""
+        with self.lock:
+            return set(self.alive)
+
     def first_gone(self) -> str | None:
         """The first agent whose session ended without a goodbye, if any."""
         with self.lock:

@@ -82,7 +82,8 @@ class RunSeries:
                 self.disturbances_ns.append(body["t_send_ns"])
             self._flags[body["src"]] = body["available"]
         elif message_type == "fault":
-            self.disturbances_ns.append(body["t_send_ns"])
+            self.disturbances_ns += [t for t in (body["start_ns"], body["end_ns"])
+                                     if t is not None]
 
 
 @dataclass(frozen=True)

@@ -85,6 +85,7 @@ class RecorderTap:
         self._known = {key for _, key in topology.links}
         for agent in topology.agents:
             self._known |= {keys.report(agent), keys.bye(agent)}
+        self._known.add(keys.fault_request)
         self._last: dict[str, tuple[int, int]] = {}
         self._lock = threading.Lock()
         self.rejected: dict[str, dict[str, int]] = {}
@@ -110,7 +111,14 @@ class RecorderTap:
     def record_own(self, key: str, message: Envelope, payload: bytes) -> None:
         """Record a message ``up`` sent itself."""
         with self._lock:
-            self._write(key, message.type, [(payload, message.t_deliver_ns, message.t_send_ns)])
+            if self._write(key, message.type, [(payload, message.t_deliver_ns,
+                                                message.t_send_ns)]):
+                self._feed(message)
+
+    def count_rejected(self, key: str, reason: str) -> None:
+        """Count a payload rejected elsewhere in ``up`` (e.g. a malformed fault request)."""
+        with self._lock:
+            self._count(key, reason)
 
     def rejected_total(self) -> int:
         """Every rejected payload so far."""

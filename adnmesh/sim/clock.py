@@ -37,6 +37,16 @@ an event at or before ``end_ns``.
 The coordinator is deterministic given the reports, but the *sequence* of grants depends on the
 order in which reports arrive; the agents' messages (what they send, and when in sim time) do
 not: every agent processes exactly the events with ``t < until_ns`` in a fixed order.
+
+**Agents that die and come back.** An agent killed by an injected fault reports its last window
+with ``killed_ns``; one that dies otherwise is declared dead by :meth:`Coordinator.kill`. A dead
+agent has no events, receives nothing (messages to it are not expected) and bounds nobody. A
+restart planned at ``R`` (:meth:`Coordinator.plan_restart`) is a **barrier**: no grant reaches
+beyond ``R`` until the restarted process has reported, and its first report is taken only
+once every live agent has processed everything before ``R``; a restarted node rejects
+messages sent before ``R``. So whatever the wall-clock time a new process needs to start, every
+message of the run is the same. Messages that ``up`` sends to the agents (injected faults) are
+counted with :meth:`Coordinator.inject`.
 """
 
 from __future__ import annotations
@@ -79,12 +89,15 @@ class Report:
         Messages received so far (all keys it subscribes to, valid or not).
     sent : dict
         ``key -> (count, earliest delivery ns)`` of the messages it sent since its last report.
+    killed_ns : int or None
+        Set when an injected kill ended the agent at that time (this is its last report).
     """
 
     agent: str
     next_ns: int | None
     received: int
     sent: Mapping[str, tuple[int, int]]
+    killed_ns: int | None = None
 
 
 class Coordinator:
@@ -96,10 +109,17 @@ class Coordinator:
         Agents, receivers of every key, lookahead between agents.
     end_ns : int
         Last instant of the run, ns; events at ``end_ns`` are still processed.
+    window_factor : float
+        Scales the window a grant must at least give (see :meth:`_grants`).
+    on_rejoin : callable, optional
+        ``on_rejoin(agent, restart_ns)``, called when a restarted agent is taken back and before
+        any grant to it, so that what ``up`` sends it then (:meth:`inject`) is expected.
     """
 
-    def __init__(self, topology: Topology, end_ns: int, window_factor: float = 1.0) -> None:
+    def __init__(self, topology: Topology, end_ns: int, window_factor: float = 1.0,
+                 on_rejoin=None) -> None:
         self.topology = topology
+        self._on_rejoin = on_rejoin   # (agent, restart ns) -> None, before the next grants
         self.end_ns = int(end_ns)
         self.agents = topology.agents
         index = {a: i for i, a in enumerate(self.agents)}
@@ -124,6 +144,12 @@ class Coordinator:
         self._granted = [0] * n           # until_ns of its last grant
         self._idle = [False] * n          # reported since its last grant
         self._reported = [False] * n
+        self._dead = [False] * n
+        self._restarts: dict[int, int] = {}       # agent -> planned restart time, ns
+        self._rejoining: dict[int, Report] = {}   # first reports of restarted agents, held
+        self.sent_totals: list[dict[str, int]] = [{} for _ in range(n)]
+        self.killed_at: dict[str, int] = {}
+        self.rejoined: list[tuple[str, int]] = []   # (agent, restart ns) taken back since
         self._started = False
         self.grants_issued = 0
         self.grants_per_agent = [0] * n
@@ -136,6 +162,11 @@ class Coordinator:
         i = self._index.get(report.agent)
         if i is None:
             raise ClockError(f"report from unknown agent {report.agent!r}")
+        if self._dead[i]:
+            if i in self._restarts and i not in self._rejoining:
+                self._rejoining[i] = report      # the restarted process: taken at the barrier
+                return self._after_change()
+            return []                             # a dead process's late report
         if self._reported[i] and self._idle[i]:
             raise ClockError(f"{report.agent}: second report without a grant")
         self.reports_received += 1
@@ -148,14 +179,57 @@ class Coordinator:
         # most the messages counted after its grant (those before it waited for and processed
         # or holds in next_ns); these are never earlier than its grant, so E stays exact
         pending[i] = _INF if self._received[i] >= expected[i] else pending_new[i]
+        dead, totals = self._dead, self.sent_totals[i]
         for key, (count, earliest) in report.sent.items():
+            totals[key] = totals.get(key, 0) + count
             for r in self._receivers.get(key, ()):
+                if dead[r]:
+                    continue
                 expected[r] += count
                 if earliest < pending[r]:
                     pending[r] = earliest
                 if earliest < pending_new[r]:
                     pending_new[r] = earliest
-        return self._grants() if self._started else []
+        if report.killed_ns is not None:
+            self._die(i, report.killed_ns)
+        return self._after_change()
+
+    def kill(self, agent: str, at_ns: int | None = None) -> list[Grant]:
+        """Declare ``agent`` dead (its process ended without a last report); return grants."""
+        i = self._index[agent]
+        if not self._dead[i]:
+            self._die(i, self.now_ns() if at_ns is None else at_ns)
+        return self._after_change()
+
+    def plan_restart(self, agent: str, at_ns: int) -> None:
+        """A new process of ``agent`` will start at sim time ``at_ns`` (a barrier until then)."""
+        self._restarts[self._index[agent]] = int(at_ns)
+
+    def cancel_restart(self, agent: str) -> list[Grant]:
+        """The restart of ``agent`` will not happen (e.g. its process failed to start)."""
+        i = self._index[agent]
+        self._restarts.pop(i, None)
+        self._rejoining.pop(i, None)
+        return self._after_change()
+
+    def inject(self, agents) -> None:
+        """``up`` sent one message to each of ``agents``: they must receive it (live ones)."""
+        for agent in agents:
+            i = self._index[agent]
+            if not self._dead[i]:
+                self._expected[i] += 1
+
+    def take_rejoined(self) -> list[tuple[str, int]]:
+        """``(agent, restart ns)`` of the agents taken back since the last call."""
+        taken, self.rejoined = self.rejoined, []
+        return taken
+
+    def is_dead(self, agent: str) -> bool:
+        return self._dead[self._index[agent]]
+
+    def granted_ns(self, agent: str) -> int:
+        """How far ``agent`` has been granted, ns."""
+        return self._granted[self._index[agent]]
 
     def start(self) -> list[Grant]:
         """Begin granting (after every agent's first report); return the first grants.
@@ -173,8 +247,11 @@ class Coordinator:
 
     @property
     def finished(self) -> bool:
-        """True when every agent is idle and none has an event at or before ``end_ns``."""
+        """True when every agent is idle, none has an event at or before ``end_ns`` and no
+        restart is due by then."""
         if not self._started or not all(self._idle):
+            return False
+        if any(t <= self.end_ns for t in self._restarts.values()):
             return False
         return min(self._effective()) > self.end_ns
 
@@ -184,6 +261,44 @@ class Coordinator:
         return int(min(max(earliest, 0), self.end_ns + 1))
 
     # -- internals ---------------------------------------------------------------------------
+
+    def _die(self, i: int, at_ns: int) -> None:
+        self._dead[i] = True
+        self._idle[i] = True
+        self._next[i] = self._pending[i] = self._pending_new[i] = _INF
+        self.killed_at[self.agents[i]] = int(at_ns)
+
+    def _barrier(self) -> float:
+        return min(self._restarts.values(), default=_INF)
+
+    def _after_change(self) -> list[Grant]:
+        if not self._started:
+            return []
+        self._take_rejoins()
+        return self._grants()
+
+    def _take_rejoins(self) -> None:
+        """Take a restarted agent's first report once every live agent has reached its
+        restart time (see the module docstring)."""
+        for i, report in sorted(self._rejoining.items()):
+            at = self._restarts[i]
+            live = [b for b in range(len(self.agents)) if not self._dead[b]]
+            if not all(self._idle[b] for b in live):
+                return
+            e = self._effective()
+            if any(e[b] < at for b in live):
+                continue
+            del self._rejoining[i], self._restarts[i]
+            self._dead[i] = False
+            self._next[i] = _INF if report.next_ns is None else report.next_ns
+            self._pending[i] = self._pending_new[i] = _INF
+            self._expected[i] = self._received[i] = report.received
+            self._granted[i] = at
+            self._idle[i] = self._reported[i] = True
+            self.reports_received += 1
+            self.rejoined.append((self.agents[i], at))
+            if self._on_rejoin is not None:
+                self._on_rejoin(self.agents[i], at)
 
     def _effective(self) -> list:
         return [n if n < p else p for n, p in zip(self._next, self._pending)]
@@ -200,11 +315,12 @@ class Coordinator:
 
     def _grants(self) -> list[Grant]:
         e = self._effective()
-        horizon = self.end_ns + 1
-        granted = self._granted
+        barrier = self._barrier()
+        horizon = int(min(self.end_ns + 1, barrier))
+        granted, dead = self._granted, self._dead
         candidates = []
         for b, idle in enumerate(self._idle):
-            if not idle:
+            if not idle or dead[b]:
                 continue
             eb = e[b]
             if eb >= horizon:
@@ -228,7 +344,7 @@ class Coordinator:
             self._pending_new[b] = _INF
             out.append(Grant(self.agents[b], until, self._expected[b]))
         self.grants_issued += len(out)
-        if not out and all(self._idle) and not self.finished:
+        if not out and all(self._idle) and not self.finished and barrier > self.end_ns:
             raise ClockError(
                 "deadlock: every agent is idle, none may advance "
                 f"(earliest event {min(e)} ns, end {self.end_ns} ns)")

@@ -14,6 +14,11 @@ Fate of a message sent at ``t`` (in this order):
 2. lost with probability ``loss``,
 3. otherwise delivered at ``t + delay + floor(U * jitter)`` (``U`` uniform in [0, 1)), and with
    ``fifo`` (the default) never before the previous message delivered on the link.
+
+Injected faults (:class:`Impairment`, added at run time) act after that, while ``t`` is in their
+window: an outage loses the message, a loss probability loses it with that probability (drawn
+from a stream of its own, so that the link's own stream is the same as in a run without the
+fault), a delay spike delays it further (FIFO still holds).
 """
 
 from __future__ import annotations
@@ -25,7 +30,7 @@ from dataclasses import dataclass
 from adnmesh.config import LinkSettings
 from adnmesh.wire.units import ns
 
-__all__ = ["Link", "LinkParams", "stream_seed"]
+__all__ = ["Impairment", "Link", "LinkParams", "stream_seed"]
 
 
 def stream_seed(seed: int, *names: str) -> int:
@@ -77,6 +82,22 @@ class LinkParams:
         return self.delay_ns
 
 
+@dataclass(frozen=True)
+class Impairment:
+    """An injected fault on a link: ``kind`` ``outage``, ``loss`` (``value`` the probability) or
+    ``delay`` (``value`` the extra delay, ns) for messages sent in ``[start_ns, end_ns)``
+    (``end_ns`` None: to the end of the run)."""
+
+    fault_id: int
+    kind: str
+    start_ns: int
+    end_ns: int | None
+    value: float = 0.0
+
+    def covers(self, t_ns: int) -> bool:
+        return self.start_ns <= t_ns and (self.end_ns is None or t_ns < self.end_ns)
+
+
 class Link:
     """Sender side of one link for one sender: decides each message's fate.
 
@@ -95,7 +116,21 @@ class Link:
         self._last_deliver_ns = -1
         self._draws = params.loss > 0 or params.jitter_ns > 0
         self._ideal = not (self._draws or params.outages_ns)
+        self._seed, self._sender = seed, sender
+        self._impairments: list[tuple[Impairment, random.Random]] = []
         self.lost = 0
+
+    @property
+    def impairments(self) -> list[Impairment]:
+        """The injected faults on this link, in the order they came."""
+        return [impairment for impairment, _ in self._impairments]
+
+    def impair(self, impairment: Impairment) -> None:
+        """Add an injected fault (see the module docstring)."""
+        stream = random.Random(stream_seed(self._seed, self.params.name, self._sender,
+                                           f"fault{impairment.fault_id}"))
+        self._impairments.append((impairment, stream))
+        self._ideal = False
 
     def transmit(self, t_send_ns: int) -> int | None:
         """Return the delivery time (ns) of a message sent at ``t_send_ns``, or None if lost."""
@@ -114,6 +149,15 @@ class Link:
             self.lost += 1
             return None
         t_deliver = t_send_ns + p.delay_ns + int(u_jitter * p.jitter_ns)
+        for impairment, stream in self._impairments:
+            if not impairment.covers(t_send_ns):
+                continue
+            if impairment.kind == "outage" or (impairment.kind == "loss"
+                                               and stream.random() < impairment.value):
+                self.lost += 1
+                return None
+            if impairment.kind == "delay":
+                t_deliver += int(impairment.value)
         if p.fifo and t_deliver < self._last_deliver_ns:
             t_deliver = self._last_deliver_ns
         self._last_deliver_ns = t_deliver

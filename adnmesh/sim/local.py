@@ -16,8 +16,12 @@ from dataclasses import dataclass, field
 from adnmesh.config import Config
 from adnmesh.control.registry import build_agent
 from adnmesh.sim.clock import Coordinator
+from adnmesh.sim.faults import FaultPlan, PlannedFault, fault_events, resend_body
 from adnmesh.sim.node import Node
 from adnmesh.sim.topology import Topology
+from adnmesh.wire.envelope import encode
+from adnmesh.wire.keys import LAUNCHER, route
+from adnmesh.wire.messages import MESSAGE_TYPES, MESSAGE_VERSION
 from adnmesh.wire.units import ns
 
 __all__ = ["LocalRun", "run_local"]
@@ -30,9 +34,11 @@ class LocalRun:
     Attributes
     ----------
     messages : list of (str, bytes)
-        Every published ``(key, payload)``, in the order the agents sent them.
+        Every published ``(key, payload)``, in the order the agents (and, for injected faults
+        and their events, ``up``) sent them.
     nodes : dict
-        Agent id -> its :class:`Node` (counts, and the agent state machine as ``node.agent``).
+        Agent id -> its :class:`Node` (counts, and the agent state machine as ``node.agent``);
+        for a restarted agent, its last node.
     coordinator : Coordinator
         The clock, with its grant and report counts.
     """
@@ -42,8 +48,95 @@ class LocalRun:
     coordinator: Coordinator | None = None
 
 
+class _LocalRunner:
+    """What ``adnmesh up`` does, in one process: nodes, clock, faults, restarts."""
+
+    def __init__(self, config: Config, schedule, end_ns: int) -> None:
+        self.config, self.schedule = config, schedule
+        self.topology = Topology.from_config(config)
+        self.run = LocalRun()
+        self.plan = FaultPlan(config, self.topology.agents)
+        self.coordinator = self.run.coordinator = Coordinator(self.topology, end_ns,
+                                                              on_rejoin=self._rejoined)
+        self._seq: dict[str, int] = {}
+        for agent_id in self.topology.agents:
+            self.run.nodes[agent_id] = self._node(agent_id, 0)
+
+    def _node(self, agent_id: str, start_ns: int) -> Node:
+        return Node(build_agent(agent_id, self.config, self.schedule), self.topology,
+                    self.config.runtime.seed, start_ns=start_ns)
+
+    def send_own(self, key: str, t_send: int, body: dict, t_deliver: int | None = None) -> None:
+        """A message of ``up``: recorded, delivered to the key's receivers."""
+        type_name = route(key).type
+        seq = self._seq.get(key, 0)
+        self._seq[key] = seq + 1
+        payload = encode(MESSAGE_TYPES[type_name](MESSAGE_VERSION, type_name, LAUNCHER, seq,
+                                                  t_send, t_send if t_deliver is None
+                                                  else t_deliver, **body))
+        self.deliver(key, payload)
+
+    def deliver(self, key: str, payload: bytes) -> None:
+        self.run.messages.append((key, payload))
+        for receiver in self.topology.receivers.get(key, ()):
+            self.run.nodes[receiver].receive(key, payload)
+
+    def inject(self, planned: PlannedFault, t_send: int, body: dict | None = None) -> None:
+        keys = self.topology.keys
+        body = planned.body if body is None else body
+        self.coordinator.inject(self.topology.agents)
+        self.send_own(keys.faults, t_send, body, max(body["start_ns"], t_send))
+
+    def start(self) -> deque:
+        keys = self.topology.keys
+        for node in self.run.nodes.values():
+            self.coordinator.on_report(node.report())
+        self.plan.from_config(self.config)
+        for planned in self.plan.faults:
+            self.inject(planned, 0)
+            self.send_own(keys.event(LAUNCHER), 0, fault_events(planned))
+        for agent, at in self.plan.restarts():
+            self.coordinator.plan_restart(agent, at)
+        return deque(self.coordinator.start())
+
+    def step(self, grant) -> list:
+        node = self.run.nodes[grant.agent]
+        if node.counts.received < grant.expect:
+            raise RuntimeError(f"{grant.agent}: expected {grant.expect} messages, "
+                               f"received {node.counts.received}")
+        for key, payload in node.advance(grant.until_ns):
+            self.deliver(key, payload)
+        report = node.report()
+        grants = self.coordinator.on_report(report)
+        if report.killed_ns is not None:
+            grants += self._killed(grant.agent, report.killed_ns)
+        return grants
+
+    def _killed(self, agent: str, at_ns: int) -> list:
+        keys = self.topology.keys
+        restart = [t for a, t in self.plan.restarts() if a == agent and t > at_ns]
+        self.send_own(keys.event(LAUNCHER), at_ns, {
+            "level": "WARNING", "kind": "killed", "subject": agent,
+            "text": f"{agent} killed at {at_ns / 1e9:g} s (injected fault)"})
+        if not restart:
+            return []
+        node = self.run.nodes[agent] = self._node(agent, min(restart))
+        return self.coordinator.on_report(node.report())
+
+    def _rejoined(self, agent: str, now: int) -> None:
+        keys = self.topology.keys
+        self.send_own(keys.event(LAUNCHER), now, {
+            "level": "INFO", "kind": "rejoined", "subject": agent,
+            "text": f"{agent} restarted and rejoined at {now / 1e9:g} s"})
+        for planned in self.plan.faults:
+            body = resend_body(planned, now)
+            if body is not None:
+                self.inject(planned, now, body)
+
+
 def run_local(config: Config, schedule, *, end_s: float | None = None) -> LocalRun:
-    """Run the scenario of ``config`` (to ``end_s``, default its duration) in this process.
+    """Run the scenario of ``config`` (to ``end_s``, default its duration) in this process,
+    with the config's faults (kills and restarts included), as ``adnmesh up`` would.
 
     Parameters
     ----------
@@ -53,27 +146,11 @@ def run_local(config: Config, schedule, *, end_s: float | None = None) -> LocalR
     end_s : float, optional
         Last instant, s.
     """
-    topology = Topology.from_config(config)
-    end_ns = ns(config.scenario.duration_s if end_s is None else end_s)
-    run = LocalRun()
-    for agent_id in topology.agents:
-        run.nodes[agent_id] = Node(build_agent(agent_id, config, schedule), topology,
-                                   config.runtime.seed)
-    coordinator = run.coordinator = Coordinator(topology, end_ns)
-    for node in run.nodes.values():
-        coordinator.on_report(node.report())
-    grants = deque(coordinator.start())
+    runner = _LocalRunner(config, schedule,
+                          ns(config.scenario.duration_s if end_s is None else end_s))
+    grants = runner.start()
     while grants:
-        grant = grants.popleft()
-        node = run.nodes[grant.agent]
-        if node.counts.received < grant.expect:
-            raise RuntimeError(f"{grant.agent}: expected {grant.expect} messages, "
-                               f"received {node.counts.received}")
-        for key, payload in node.advance(grant.until_ns):
-            run.messages.append((key, payload))
-            for receiver in topology.receivers.get(key, ()):
-                run.nodes[receiver].receive(key, payload)
-        grants.extend(coordinator.on_report(node.report()))
-    if not coordinator.finished:
+        grants.extend(runner.step(grants.popleft()))
+    if not runner.coordinator.finished:
         raise RuntimeError("the sim clock stopped before the end of the run")
-    return run
+    return runner.run

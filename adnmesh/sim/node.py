@@ -16,6 +16,14 @@ same everywhere:
   :class:`~adnmesh.sim.links.Link`), gets its envelope (``seq`` per key, counted also for
   lost messages so that receivers see the gap) and is returned as ``(key, payload)`` to publish;
 - :meth:`Node.report` summarises the window for the sim clock.
+
+**Injected faults** (``fault`` messages from ``up`` on ``faults``, :mod:`adnmesh.wire.messages`)
+are applied by the node, never seen by the agent: a link fault impairs the node's own sender
+side of that link (:class:`~adnmesh.sim.links.Impairment`), ``ict_outage`` every ICT link it
+sends on, ``der_offline`` of its own DER every ICT link it sends on *and* every ICT message
+delivered to it in the window; ``kill`` of its own agent stops :meth:`Node.advance` at the
+kill time for good (:attr:`Node.killed`; the process then dies). A node started late (``start_ns``, a restarted agent)
+begins at that time and rejects messages sent before it (it did not exist then).
 """
 
 from __future__ import annotations
@@ -24,17 +32,13 @@ from dataclasses import dataclass, field
 
 from adnmesh.control.base import Agent
 from adnmesh.sim.clock import Report
-from adnmesh.sim.links import Link
-from adnmesh.sim.topology import Topology
+from adnmesh.sim.links import Impairment, Link
+from adnmesh.sim.topology import ICT_LINKS, Topology
 from adnmesh.wire.envelope import MessageError, decode, encode
 from adnmesh.wire.keys import route
 from adnmesh.wire.messages import MESSAGE_TYPES, MESSAGE_VERSION
 
-__all__ = ["AgentCrash", "Node", "NodeCounts"]
-
-
-class AgentCrash(Exception):
-    """Raised by :meth:`Node.advance` when the agent reaches its injected crash time."""
+__all__ = ["Node", "NodeCounts"]
 
 
 @dataclass
@@ -51,6 +55,8 @@ class NodeCounts:
         ``key -> {reason -> count}`` of payloads rejected (see :meth:`Node.receive`).
     lost : int
         Messages the ICT link model dropped (never published).
+    dropped_offline : int
+        Messages delivered while the node was offline (an injected fault): not processed.
     late : int
         Realtime only: messages processed after their delivery time.
     """
@@ -59,6 +65,7 @@ class NodeCounts:
     received: int = 0
     rejected: dict[str, dict[str, int]] = field(default_factory=dict)
     lost: int = 0
+    dropped_offline: int = 0
     late: int = 0
 
     def reject(self, key: str, reason: str) -> None:
@@ -101,15 +108,14 @@ class Node:
         For the links of the keys it publishes.
     seed : int
         Seed of the ICT random streams.
-    crash_ns : int, optional
-        Injected crash time: :meth:`advance` raises :class:`AgentCrash` instead of processing an
-        event at or after it.
+    start_ns : int
+        When the node begins (0; later for a restarted agent).
     strict : bool
         Sim clock: reject a message delivered before the node's current time (it would break
         causality). Realtime: process it at once and count it as late.
     """
 
-    def __init__(self, agent: Agent, topology: Topology, seed: int, *, crash_ns: int | None = None,
+    def __init__(self, agent: Agent, topology: Topology, seed: int, *, start_ns: int = 0,
                  strict: bool = True) -> None:
         self.agent = agent
         self.agent_id = agent.agent_id
@@ -126,24 +132,30 @@ class Node:
         # (timsort merges the senders' runs; pop() takes the next) when _inbox_sorted
         self._inbox: list = []
         self._inbox_sorted = True
-        self.crash_ns = crash_ns
+        self._ict_in = frozenset(k for k in self.subscriptions
+                                 if topology.inbound_link(k) in ICT_LINKS)
+        self._offline: list[tuple[int, int | None]] = []   # windows without ICT in and out
+        self._faults_applied: set[int] = set()
+        self.kill_ns: int | None = None
+        self.start_ns = self.now_ns = self.granted_ns = int(start_ns)
         self.strict = strict
-        self.now_ns = 0
-        self.granted_ns = 0
         self.counts = NodeCounts()
+        if start_ns:
+            agent.resume(self.start_ns)
 
     @classmethod
-    def for_config(cls, agent: Agent, config) -> Node:
-        """A node for ``agent`` with the topology, seed and injected crash of ``config``."""
-        crash = [c.t_s for c in config.runtime.faults.crash if c.agent == agent.agent_id]
-        return cls(agent, Topology.from_config(config), config.runtime.seed,
-                   crash_ns=int(round(min(crash) * 1e9)) if crash else None)
+    def for_config(cls, agent: Agent, config, start_ns: int = 0) -> Node:
+        """A node for ``agent`` with the topology and seed of ``config``."""
+        return cls(agent, Topology.from_config(config), config.runtime.seed, start_ns=start_ns)
 
     def reseed(self, seed: int) -> None:
         """Restart the ICT random streams with ``seed`` (before the first event only)."""
         self.seed = seed
         for outbox in self._outboxes.values():
+            impairments = outbox.link.impairments
             outbox.link = Link(outbox.link.params, seed, self.agent_id)
+            for impairment in impairments:
+                outbox.link.impair(impairment)
 
     # -- input ---------------------------------------------------------------------------------
 
@@ -164,8 +176,14 @@ class Node:
         if last is not None and stamp <= last:
             counts.reject(key, "replayed")
             return
+        if message.t_send_ns < self.start_ns:
+            counts.reject(key, "before_start")
+            return
         self._last[key] = stamp
         counts.received += 1
+        if message.type == "fault":
+            self._apply(message)
+            return
         t = message.t_deliver_ns
         if t < self.now_ns:
             if self.strict:
@@ -175,6 +193,35 @@ class Node:
             t = self.now_ns
         self._inbox.append((t, key, message.seq, counts.received, message))
         self._inbox_sorted = False
+
+    def _apply(self, fault) -> None:
+        """Take an injected fault (see the module docstring); a fault sent again (to a
+        restarted agent) is applied once."""
+        if fault.fault_id in self._faults_applied:
+            return
+        self._faults_applied.add(fault.fault_id)
+        kind, me = fault.kind, self.agent_id
+        window = (fault.start_ns, fault.end_ns)
+        if kind == "kill":
+            if fault.agent == me and (self.kill_ns is None or fault.start_ns < self.kill_ns):
+                self.kill_ns = max(fault.start_ns, self.now_ns)
+            return
+        if kind == "der_offline":
+            if me != f"der/{fault.der}":
+                return
+            self._offline.append(window)
+        impairment = Impairment(fault.fault_id, {"link_loss": "loss", "link_delay": "delay"}.get(
+            kind, "outage"), *window,
+            value=fault.probability if kind == "link_loss" else
+            fault.delay_ns if kind == "link_delay" else 0.0)
+        for outbox in self._outboxes.values():
+            name = outbox.link.params.name
+            if name in ICT_LINKS and (kind in ("der_offline", "ict_outage") or name == fault.link):
+                outbox.link.impair(impairment)
+
+    def _is_offline(self, key: str, t_ns: int) -> bool:
+        return key in self._ict_in and any(
+            start <= t_ns and (end is None or t_ns < end) for start, end in self._offline)
 
     # -- time ----------------------------------------------------------------------------------
 
@@ -196,42 +243,44 @@ class Node:
     def advance(self, until_ns: int) -> list[tuple[str, bytes]]:
         """Process every event with ``t < until_ns``; return the ``(key, payload)`` to publish.
 
-        Raises
-        ------
-        AgentCrash
-            If the next event is at or after the injected crash time.
+        At an injected kill nothing at or after the kill time is processed, and
+        :attr:`killed` becomes true.
         """
         out: list[tuple[str, bytes]] = []
         inbox, agent, emit = self._held(), self.agent, self._emit
         next_timer_ns, on_message, on_timer = agent.next_timer_ns, agent.on_message, \
             agent.on_timer
-        crash_ns = self.crash_ns
+        kill_ns = self.kill_ns
+        stop_ns = until_ns if kill_ns is None else min(until_ns, kill_ns)
         while True:
             timer = next_timer_ns()
             if inbox and (timer is None or inbox[-1][0] <= timer):
                 t = inbox[-1][0]
-                if t >= until_ns:
+                if t >= stop_ns:
                     break
-                if crash_ns is not None and t >= crash_ns:
-                    self._crash()
-                message = inbox.pop()[4]
+                _, key, _, _, message = inbox.pop()
                 self.now_ns = t
+                if self._offline and self._is_offline(key, t):
+                    self.counts.dropped_offline += 1
+                    continue
                 outgoing = on_message(t, message)
-            elif timer is not None and timer < until_ns:
-                if crash_ns is not None and timer >= crash_ns:
-                    self._crash()
+            elif timer is not None and timer < stop_ns:
                 self.now_ns = t = timer
                 outgoing = on_timer(timer)
             else:
                 break
             for key, body in outgoing:
                 emit(t, key, body, out)
-        self.granted_ns = max(self.granted_ns, until_ns)
+        if kill_ns is not None and until_ns > kill_ns:
+            self.now_ns = self.granted_ns = kill_ns
+        else:
+            self.granted_ns = max(self.granted_ns, until_ns)
         return out
 
-    def _crash(self) -> None:
-        self.now_ns = self.crash_ns
-        raise AgentCrash(f"{self.agent_id}: injected crash at {self.crash_ns} ns")
+    @property
+    def killed(self) -> bool:
+        """The node reached an injected kill (it processes nothing more)."""
+        return self.kill_ns is not None and self.granted_ns >= self.kill_ns
 
     def _emit(self, t: int, key: str, body: dict, out: list) -> None:
         outbox = self._outboxes[key]
@@ -259,12 +308,6 @@ class Node:
             self._emit(self.now_ns, key, body, out)
         return out
 
-    def emit_now(self, key: str, body: dict) -> list[tuple[str, bytes]]:
-        """Send one message at the current time outside :meth:`advance` (e.g. a fault record)."""
-        out: list[tuple[str, bytes]] = []
-        self._emit(self.now_ns, key, body, out)
-        return out
-
     # -- clock ---------------------------------------------------------------------------------
 
     def report(self) -> Report:
@@ -275,4 +318,6 @@ class Node:
             sent[key] = (outbox.window_count, outbox.window_earliest_ns)
             outbox.window_count = 0
         self._window_keys = []
-        return Report(self.agent_id, self.next_event_ns(), self.counts.received, sent)
+        killed = self.kill_ns if self.killed else None
+        return Report(self.agent_id, None if killed is not None else self.next_event_ns(),
+                      self.counts.received, sent, killed)

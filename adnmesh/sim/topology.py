@@ -11,11 +11,16 @@ sender            key (``adn/<grid>/``)  receivers          link (least delay)
 ``cpfc``          ``cpfc/p_y``           every DER          ``cpfc_to_der`` (T_com)
 ``cpfc``          ``scenario/p_ref``     (recorded only)    ``local`` (0)
 ``der/<id>``      ``der/<id>/state``     ``measurement``    ``physical`` (0)
-``der/<id>``      ``der/<id>/heartbeat`` ``availability``   ``der_to_availability``
+``der/<id>``      ``der/<id>/heartbeat`` availability,      ``der_to_availability``
+                                         ``cpfc`` (acks)
 ``measurement``   ``measurement/p_ip``   ``cpfc``           ``measurement_to_cpfc`` (T_meas)
 ``availability``  ``availability/si``    ``cpfc``           ``availability_to_cpfc``
-any agent         ``fault/<agent>``      (recorded only)    ``local`` (0)
+any agent         ``event/<agent>``      (recorded only)    ``local`` (0)
+``up``            ``faults``             every agent        (``up``'s own, not a link)
 ================  =====================  =================  ===============================
+
+:data:`ICT_LINKS` are the links an injected fault can disturb; ``physical`` (a DER's infeed is
+physics, not communication) and ``local`` (records nobody receives) are not among them.
 
 Every cycle passes CPFC → DERs, whose delay ``t_com_s`` is positive, so the lookahead around
 every cycle is positive and the conservative clock always makes progress.
@@ -30,7 +35,11 @@ from adnmesh.config import Config, LinkSettings
 from adnmesh.sim.links import LinkParams
 from adnmesh.wire.keys import Keys, der_agent_id
 
-__all__ = ["INF_NS", "Topology"]
+__all__ = ["ICT_LINKS", "INF_NS", "Topology"]
+
+ICT_LINKS = frozenset({"cpfc_to_der", "measurement_to_cpfc", "der_to_availability",
+                       "availability_to_cpfc"})
+"""The links that are communication (and can fail)."""
 
 INF_NS = math.inf
 """'Never' on the nanosecond time axis."""
@@ -93,9 +102,10 @@ class Topology:
         for der in config.ders:
             agent = der_agent_id(der.id)
             route(agent, keys.der_state(der.id), physical, ("measurement",))
-            route(agent, keys.heartbeat(der.id), heartbeat, ("availability",))
+            route(agent, keys.heartbeat(der.id), heartbeat, ("availability", "cpfc"))
         for agent in agents:
-            route(agent, keys.fault(agent), local, ())
+            route(agent, keys.event(agent), local, ())
+        receivers[keys.faults] = agents
 
         subscriptions = {a: tuple(k for k, to in receivers.items() if a in to) for a in agents}
         return cls(keys, agents, links, receivers, subscriptions,
@@ -110,6 +120,13 @@ class Topology:
             If ``sender`` does not publish ``key``.
         """
         return self.links[(sender, key)]
+
+    def inbound_link(self, key: str) -> str | None:
+        """Name of the link that brings ``key`` (None for ``up``'s own messages)."""
+        for (_, k), link in self.links.items():
+            if k == key:
+                return link.name
+        return None
 
     def publishes(self, agent: str) -> tuple[str, ...]:
         """Keys ``agent`` publishes."""

@@ -13,12 +13,15 @@ key                          type              sender             to
 ``der/<id>/heartbeat``       ``heartbeat``     ``der/<id>``       availability monitor
 ``measurement/p_ip``         ``p_ip``          ``measurement``    CPFC
 ``availability/si``          ``si``            ``availability``   CPFC
-``fault/<agent>``            ``fault``         ``<agent>``        (recorded)
+``faults``                   ``fault``         ``up``             every agent (injected faults)
+``event/<agent>``            ``event``         ``<agent>``/``up`` (recorded: what it noticed)
+``control/fault``            ``fault_request`` ``operator``       ``up`` (``adnmesh fault``)
 ``clock/report/<agent>``     ``clock_report``  ``<agent>``        ``up`` (sim clock)
 ``clock/grant/<agent>``      ``clock_grant``   ``up``             ``<agent>`` (sim clock)
 ``clock/start``              ``clock_start``   ``up``             every agent
 ``clock/stop``               ``clock_stop``    ``up``             every agent
 ``clock/bye/<agent>``        ``agent_bye``     ``<agent>``        ``up``
+``clock/kill/<agent>``       ``clock_stop``    ``up``             ``<agent>`` (kill noted: die)
 ===========================  ================  =================  ===============================
 
 :func:`route` tells the type and the one legitimate sender of a key; receivers reject a message
@@ -36,6 +39,7 @@ __all__ = [
     "ID_MAX_CHARS",
     "ID_PATTERN",
     "LAUNCHER",
+    "OPERATOR",
     "Keys",
     "Route",
     "der_agent_id",
@@ -54,6 +58,9 @@ AGENT_PATTERN = rf"(?:cpfc|measurement|availability|der/{ID_PATTERN})"
 
 LAUNCHER = "up"
 """The sender id of ``adnmesh up`` itself."""
+
+OPERATOR = "operator"
+"""The sender id of a person's command to a running ``up`` (``adnmesh fault``)."""
 
 _ID = re.compile(rf"^{ID_PATTERN}$")
 _SIMPLE_AGENTS = frozenset({"cpfc", "measurement", "availability"})
@@ -113,8 +120,19 @@ class Keys:
     def si(self) -> str:
         return f"adn/{self.grid}/availability/si"
 
-    def fault(self, agent: str) -> str:
-        return f"adn/{self.grid}/fault/{agent}"
+    @property
+    def faults(self) -> str:
+        return f"adn/{self.grid}/faults"
+
+    def event(self, agent: str) -> str:
+        return f"adn/{self.grid}/event/{agent}"
+
+    @property
+    def fault_request(self) -> str:
+        return f"adn/{self.grid}/control/fault"
+
+    def kill(self, agent: str) -> str:
+        return f"adn/{self.grid}/clock/kill/{agent}"
 
     def report(self, agent: str) -> str:
         return f"adn/{self.grid}/clock/report/{agent}"
@@ -162,6 +180,9 @@ def _route(key: str) -> Route | None:
         ("measurement", "p_ip"): Route("p_ip", "measurement"),
         ("availability", "si"): Route("si", "availability"),
         ("clock", "start"): Route("clock_start", LAUNCHER),
+        ("faults",): Route("fault", LAUNCHER),
+        ("control", "fault"): Route("fault_request", OPERATOR),
+        ("event", LAUNCHER): Route("event", LAUNCHER),
         ("clock", "stop"): Route("clock_stop", LAUNCHER),
     }.get(tuple(rest))
     if fixed is not None:
@@ -169,11 +190,12 @@ def _route(key: str) -> Route | None:
     if len(rest) == 3 and rest[0] == "der" and _is_id(rest[1]) and rest[2] in ("state",
                                                                               "heartbeat"):
         return Route("der_state" if rest[2] == "state" else "heartbeat", f"der/{rest[1]}")
-    if rest[0] == "fault" and (agent := _agent(rest[1:])) is not None:
-        return Route("fault", agent)
+    if rest[0] == "event" and (agent := _agent(rest[1:])) is not None:
+        return Route("event", agent)
     if len(rest) >= 3 and rest[0] == "clock" and (agent := _agent(rest[2:])) is not None:
         return {"report": Route("clock_report", agent), "grant": Route("clock_grant", LAUNCHER),
-                "bye": Route("agent_bye", agent)}.get(rest[1])
+                "bye": Route("agent_bye", agent),
+                "kill": Route("clock_stop", LAUNCHER)}.get(rest[1])
     return None
 
 

@@ -36,7 +36,11 @@ __all__ = [
     "ClockStop",
     "DERState",
     "Envelope",
+    "FAULT_KINDS",
     "Fault",
+    "FaultRequest",
+    "Event",
+    "LINK_NAMES",
     "Heartbeat",
     "PIP",
     "PRef",
@@ -59,7 +63,7 @@ Gain = Annotated[float, Meta(gt=0.0, le=1e3)]
 Weight = Annotated[float, Meta(ge=0.0, le=1.0)]
 DERId = Annotated[str, Meta(pattern=f"^{ID_PATTERN}$", max_length=ID_MAX_CHARS)]
 Sender = Annotated[str, Meta(max_length=2 * ID_MAX_CHARS,
-                             extra_json_schema={"pattern": f"^(up|{AGENT_PATTERN})$"})]
+                             extra_json_schema={"pattern": f"^(up|operator|{AGENT_PATTERN})$"})]
 Agent = Annotated[str, Meta(pattern=f"^{AGENT_PATTERN}$", max_length=2 * ID_MAX_CHARS)]
 Key = Annotated[str, Meta(max_length=256)]
 Text = Annotated[str, Meta(max_length=500)]
@@ -77,18 +81,21 @@ class Envelope(Struct, forbid_unknown_fields=True, omit_defaults=True):
     t_deliver_ns: NS
 
 
-class Switch(Struct, forbid_unknown_fields=True):
-    """A bumpless gain switch: the output with the old gains, limited to the new range."""
+class Switch(Struct, forbid_unknown_fields=True, omit_defaults=True):
+    """A bumpless gain switch: the output with the old gains, scaled (``scale``: so that the
+    DERs' total commanded power stays continuous) and limited to the new range."""
 
     p_y_before: Ratio
     p_y_limited: Ratio
     kp_before: Gain
     ki_before: Gain
+    scale: Annotated[float, Meta(ge=0.0, le=1e9)] = 1.0
 
 
 class PY(Envelope):
     """CPFC output P_Y (dimensionless) with the gains in use (K_P 1/W, K_I 1/(W s)) and the
-    number of the table entry; the entry's weights W on a switch and periodically."""
+    number of the table entry; the entry's weights W on a switch and periodically; ``hold``
+    while output and integrator are held (no measurement, no actuator, resuming)."""
 
     type: Literal["p_y"]
     p_y: Ratio
@@ -98,6 +105,7 @@ class PY(Envelope):
     entry: Count
     w: Annotated[dict[DERId, Weight], Meta(max_length=MAX_DERS)] | UnsetType = UNSET
     switch: Switch | UnsetType = UNSET
+    hold: Literal["measurement", "actuators", "resuming"] | UnsetType = UNSET
 
 
 class PRef(Envelope):
@@ -117,10 +125,15 @@ class DERState(Envelope):
 
 
 class Heartbeat(Envelope):
-    """A DER's heartbeat with its availability flag."""
+    """A DER's heartbeat: its availability flag, where its setpoint comes from (``mode``) and
+    the P_Y it applies (0 unless in ``control``) with the number of the CPFC's table entry
+    (its acknowledgement of the CPFC's commands)."""
 
     type: Literal["heartbeat"]
     available: bool
+    mode: Literal["control", "schedule", "watchdog"] = "control"
+    p_y: Ratio = 0.0
+    entry: Count | None = None
 
 
 class PIP(Envelope):
@@ -137,18 +150,72 @@ class SI(Envelope):
     si: Annotated[dict[DERId, bool], Meta(min_length=1, max_length=MAX_DERS)]
 
 
+FAULT_KINDS = ("link_outage", "link_loss", "link_delay", "der_offline", "ict_outage", "kill")
+"""Kinds of injectable fault (see :class:`Fault`)."""
+
+LINK_NAMES = ("cpfc_to_der", "measurement_to_cpfc", "der_to_availability",
+              "availability_to_cpfc")
+"""The ICT links a fault may name."""
+
+
 class Fault(Envelope):
-    """An injected fault starting (active) or ending at an agent."""
+    """A fault ``up`` injects, sent to every agent (and recorded), delivered at its start.
+
+    ``kind``: ``link_outage`` (every message sent on ``link`` in the window is lost),
+    ``link_loss`` (lost with ``probability``), ``link_delay`` (``delay_ns`` more delay),
+    ``der_offline`` (DER ``der`` neither receives nor sends over ICT), ``ict_outage`` (every ICT
+    link out), ``kill`` (``agent`` is SIGKILLed at ``start_ns``; restarted at ``end_ns`` if set).
+    The window is ``[start_ns, end_ns)``; ``fault_id`` numbers the faults of a run from 1.
+    """
 
     type: Literal["fault"]
-    fault: Literal["der_offline", "crash"]
-    agent: Agent
-    active: bool
+    fault_id: Annotated[int, Meta(ge=1, le=NS_MAX)]
+    kind: Literal[FAULT_KINDS]
+    start_ns: NS
+    end_ns: NS | None
+    link: Literal[LINK_NAMES] | UnsetType = UNSET
+    der: DERId | UnsetType = UNSET
+    agent: Agent | UnsetType = UNSET
+    probability: Annotated[float, Meta(ge=0.0, le=1.0)] | UnsetType = UNSET
+    delay_ns: Annotated[int, Meta(ge=0, le=3_600 * 10**9)] | UnsetType = UNSET
+    origin: Literal["config", "command"] = "config"
+
+
+class FaultRequest(Envelope):
+    """A request (``adnmesh fault``) to inject a fault into a running ``up``: the fields of
+    :class:`Fault` but no number; ``at_ns`` None means as soon as possible, ``for_ns`` None a
+    fault without end (a kill without restart). Targets are any short strings here, so that
+    ``up`` can answer an unknown one with a reason."""
+
+    type: Literal["fault_request"]
+    request_id: Annotated[str, Meta(max_length=64)]
+    kind: Literal[FAULT_KINDS]
+    at_ns: NS | None
+    for_ns: NS | None
+    link: Annotated[str, Meta(max_length=128)] | UnsetType = UNSET
+    der: Annotated[str, Meta(max_length=128)] | UnsetType = UNSET
+    agent: Annotated[str, Meta(max_length=128)] | UnsetType = UNSET
+    probability: Annotated[float, Meta(ge=0.0, le=1.0)] | UnsetType = UNSET
+    delay_ns: Annotated[int, Meta(ge=0, le=3_600 * 10**9)] | UnsetType = UNSET
+
+
+class Event(Envelope):
+    """Something an agent or ``up`` noticed or did: a fault injected, detected or over, a
+    fallback, a hold, an agent lost or back (``kind``), said in one line (``text``)."""
+
+    type: Literal["event"]
+    level: Literal["DEBUG", "INFO", "WARNING", "ERROR"]
+    kind: Annotated[str, Meta(pattern="^[a-z_]+$", max_length=64)]
+    text: Text
+    subject: Annotated[str, Meta(max_length=2 * ID_MAX_CHARS)] | UnsetType = UNSET
+    fault_id: Annotated[int, Meta(ge=1, le=NS_MAX)] | UnsetType = UNSET
+    request_id: Annotated[str, Meta(max_length=64)] | UnsetType = UNSET
 
 
 class ClockReport(Envelope):
     """Sim clock: an agent's next event, how far it was granted, what it received so far and,
-    per key, how many messages it sent in the window and the earliest delivery among them."""
+    per key, how many messages it sent in the window and the earliest delivery among them;
+    ``killed_ns`` when an injected kill ends it there."""
 
     type: Literal["clock_report"]
     next_ns: NS | None
@@ -156,6 +223,7 @@ class ClockReport(Envelope):
     received: Count
     sent: Annotated[dict[Key, tuple[Annotated[int, Meta(ge=1, le=NS_MAX)], NS]],
                     Meta(max_length=64)]
+    killed_ns: NS | UnsetType = UNSET
 
 
 class ClockGrant(Envelope):
@@ -204,6 +272,8 @@ MESSAGE_TYPES: dict[str, type[Envelope]] = {
     "p_ip": PIP,
     "si": SI,
     "fault": Fault,
+    "fault_request": FaultRequest,
+    "event": Event,
     "clock_report": ClockReport,
     "clock_grant": ClockGrant,
     "clock_start": ClockStart,

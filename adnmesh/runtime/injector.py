@@ -1,0 +1,215 @@
+"""Faults in a running ``adnmesh up``: injecting them, killing and restarting agents, and
+surviving agents that die on their own.
+
+:class:`FaultInjector` is ``up``'s side of :mod:`adnmesh.sim.faults`:
+
+- the config's faults are sent (``faults``) before the clock starts, requests from
+  ``adnmesh fault`` (``control/fault``) while it runs — in sim time at the requested instant or,
+  if the run has passed it, at the earliest instant no agent has reached yet; in real time at
+  once — each acknowledged by an event of ``up`` naming the request;
+- an agent that reaches an injected kill reports its last window; ``up`` acknowledges it (the
+  agent then SIGKILLs itself), notes the death in the sim clock and, if the fault has an end,
+  starts a new process at the end's sim time (the clock's barrier keeps the run deterministic);
+- an agent whose process ends otherwise is declared dead in the clock (the others go on) and
+  said to have been lost;
+- a restarted agent gets the run's start announcement and every fault still to come.
+
+Everything it does is an event on ``event/up``.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import threading
+import time
+import uuid
+
+from adnmesh.sim.faults import FaultError, FaultPlan, PlannedFault, fault_events, resend_body
+from adnmesh.wire.keys import LAUNCHER
+
+__all__ = ["FaultInjector", "new_request_id"]
+
+
+def new_request_id() -> str:
+    """A fresh id for a fault request."""
+    return uuid.uuid4().hex[:16]
+
+
+class FaultInjector:
+    """See the module docstring. ``launch`` is the launcher's run state (``_Launch``)."""
+
+    def __init__(self, launch) -> None:
+        self.launch = launch
+        self.keys = launch.keys
+        self.plan = FaultPlan(launch.config, launch.topology.agents)
+        self._lock = threading.Lock()
+        self.dying: dict[str, int] = {}        # agent -> kill ns (a death we expect)
+        self.killed: set[str] = set()          # agents that lost a process (counts unverified)
+        self._restart_at: dict[str, int] = {}  # agent -> restart ns still to come
+        self._spawned: set[str] = set()        # restarted, start not yet re-announced
+        self._attempts: dict[str, int] = {}    # unplanned deaths per agent
+        self.lost: list[str] = []
+
+    # -- before the start ----------------------------------------------------------------------
+
+    def start_faults(self) -> None:
+        """Send the config's faults and plan their restarts (before the clock starts)."""
+        self.plan.from_config(self.launch.config)
+        for planned in self.plan.faults:
+            self._send(planned, 0)
+        for agent, at in self.plan.restarts():
+            self._plan_restart(agent, at)
+
+    # -- Zenoh callbacks -----------------------------------------------------------------------
+
+    def on_request(self, request) -> None:
+        """A fault request from ``adnmesh fault`` (validated by the tap): inject it or say
+        why not."""
+        self._request(request)
+
+    def on_killed(self, message) -> None:
+        """An agent's last report before its injected kill."""
+        agent = message.src
+        with self._lock:
+            self.dying[agent] = message.killed_ns
+            self.killed.add(agent)
+            restart = self._restart_at.get(agent)
+        launch = self.launch
+        launch.outbox.send(self.keys.kill(agent), message.killed_ns, reason="killed")
+        self._event(message.killed_ns, "WARNING", "killed", f"{agent} killed at "
+                    f"{message.killed_ns / 1e9:g} s (injected fault)", subject=agent)
+        if restart is not None and launch.clock is not None:
+            self._respawn(agent, restart)
+
+    def on_rejoin(self, agent: str, at_ns: int) -> None:
+        """The sim clock took a restarted agent back at ``at_ns`` (under the clock's lock)."""
+        with self._lock:
+            self._restart_at.pop(agent, None)
+        self._event(at_ns, "INFO", "rejoined", f"{agent} restarted and rejoined at "
+                    f"{at_ns / 1e9:g} s", subject=agent)
+        for planned in self.plan.faults:
+            body = resend_body(planned, at_ns)
+            if body is not None:
+                self._send(planned, at_ns, body, under_clock_lock=True)
+
+    # -- the main thread -----------------------------------------------------------------------
+
+    def supervise(self) -> None:
+        """Deaths, restarts due (real time), start announcements for restarted agents."""
+        launch = self.launch
+        for agent, code in launch.children.dead():
+            if agent in self.lost or agent in launch.roster.byes:
+                continue
+            with self._lock:
+                expected = agent in self.dying
+            if not expected:
+                self._lost(agent, code)
+        with self._lock:
+            due = [(a, t) for a, t in self._restart_at.items()
+                   if launch.clock is None and a in self.dying and t <= self.realtime_ns()]
+        for agent, at in due:
+            with self._lock:
+                self._restart_at.pop(agent, None)
+            self._respawn(agent, at)
+        for agent in sorted(self._spawned & launch.roster.alive_now()):
+            self._spawned.discard(agent)
+            launch.announce_start()
+
+    # -- internals -----------------------------------------------------------------------------
+
+    def _request(self, request) -> None:
+        rid = request.request_id
+        target = {k: getattr(request, k) for k in ("link", "der", "agent", "probability",
+                                                   "delay_ns")}
+        try:
+            with self.launch.clock_lock():
+                earliest = self._earliest_ns()
+                at = earliest if request.at_ns is None else request.at_ns
+                planned = self.plan.add(request.kind, at, request.for_ns, earliest_ns=earliest,
+                                        **target)
+                self._send(planned, earliest, request_id=rid, under_clock_lock=True)
+                if planned.body["kind"] == "kill" and planned.body["end_ns"] is not None:
+                    self._plan_restart(planned.body["agent"], planned.body["end_ns"])
+        except FaultError as exc:
+            self._event(self._earliest_ns(), "ERROR", "fault_refused",
+                        f"fault request refused: {exc}", request_id=rid)
+            return
+        self.launch.options.log(fault_events(planned)["text"])
+
+    def _send(self, planned: PlannedFault, t_send: int, body: dict | None = None,
+              request_id: str | None = None, under_clock_lock: bool = False) -> None:
+        """Send a fault to every agent (counted by the sim clock) and say so."""
+        launch = self.launch
+        body = planned.body if body is None else body
+        if launch.clock is not None:
+            launch.clock.inject(launch.topology.agents)
+        launch.outbox.send(self.keys.faults, t_send, t_deliver_ns=max(body["start_ns"], t_send),
+                           **body)
+        if body is planned.body:
+            event = fault_events(planned)
+            if request_id is not None:
+                event["request_id"] = request_id
+            launch.outbox.send(self.keys.event(LAUNCHER), t_send, **event)
+
+    def _plan_restart(self, agent: str, at_ns: int) -> None:
+        with self._lock:
+            self._restart_at[agent] = at_ns
+        if self.launch.clock is not None:
+            self.launch.clock.coordinator.plan_restart(agent, at_ns)
+
+    def _respawn(self, agent: str, at_ns: int) -> None:
+        launch = self.launch
+        old = launch.children.procs.get(agent)
+        if old is not None and old.poll() is None:   # it should have killed itself
+            try:
+                old.wait(timeout=3.0)
+            except subprocess.TimeoutExpired:   # still there: kill it by PID
+                os.kill(old.pid, signal.SIGKILL)
+                old.wait()
+        launch.spawn(agent, resume_ns=at_ns)
+        with self._lock:
+            self.dying.pop(agent, None)
+        self._spawned.add(agent)
+        launch.options.log(f"{agent} restarting at {at_ns / 1e9:g} s (pid "
+                           f"{launch.children.procs[agent].pid})")
+
+    def _lost(self, agent: str, code: int) -> None:
+        """A process ended without an injected kill (or its last report never came)."""
+        launch = self.launch
+        self.lost.append(agent)
+        self.killed.add(agent)
+        description = launch.children.describe_death(agent, code)
+        now = self._earliest_ns()
+        with self._lock:
+            restart = self._restart_at.get(agent)
+            self._attempts[agent] = self._attempts.get(agent, 0) + 1
+            again = restart is not None and self._attempts[agent] <= 2
+        if launch.clock is not None:
+            launch.clock.kill(agent)
+            if restart is not None and not again:
+                launch.clock.cancel_restart(agent)
+        what = "the run goes on without it"
+        if again:
+            what = f"restarting it at {restart / 1e9:g} s as planned"
+            self.lost.remove(agent)
+        launch.options.log(f"{description}; {what}")
+        self._event(now, "ERROR", "agent_lost", f"{description}; {what}", subject=agent)
+        if again and launch.clock is not None:
+            self._respawn(agent, restart)
+
+    def _earliest_ns(self) -> int:
+        clock = self.launch.clock
+        if clock is None:
+            return self.realtime_ns() + 10_000_000
+        return clock.earliest_unprocessed_ns()
+
+    def realtime_ns(self) -> int:
+        """Sim time on the realtime clock now, ns (0 before the start)."""
+        epoch, speed = self.launch.epoch_ns, self.launch.options.speed
+        return max(0, int((time.time_ns() - epoch) * speed)) if epoch else 0
+
+    def _event(self, t_ns: int, level: str, kind: str, text: str, **extra) -> None:
+        self.launch.outbox.send(self.keys.event(LAUNCHER), t_ns, level=level, kind=kind,
+                                text=text, **extra)
