@@ -20,3 +20,22 @@ def payload(key: str, body: dict, *, src: str | None = None, seq: int = 0, t_sen
 def message(key: str, t_ns: int, body: dict, *, src: str | None = None, seq: int = 0):
     """A decoded message as the runtime would deliver it."""
     return decode(key, payload(key, body, src=src, seq=seq, t_send_ns=t_ns))
+
+
+BODIES = {
+    "p_y": {"p_y": 0.25, "p_ref_w": 1e6, "kp": 5e-8, "ki": 2e-7, "entry": 1},
+    "p_ref": {"p_ref_w": -2.5e6},
+    "der_state": {"p_w": 1e5, "setpoint_w": 2e5, "mode": "control"},
+    "heartbeat": {"available": True, "mode": "control", "p_y": 0.1, "entry": 0},
+    "p_ip": {"p_ip_w": 3.5e6},
+    "si": {"si": {"SGen1": True}},
+    "fault": {"fault_id": 1, "kind": "ict_outage", "start_ns": 10, "end_ns": 20},
+    "fault_request": {"request_id": "r", "kind": "ict_outage", "at_ns": None, "for_ns": None},
+    "event": {"level": "INFO", "kind": "test", "text": "x"},
+    "clock_report": {"next_ns": None, "granted_ns": 0, "received": 0, "sent": {}},
+    "clock_grant": {"until_ns": 10, "expect": 0},
+    "clock_start": {"clock": "sim", "epoch_ns": 0, "speed": 1.0, "end_ns": 9, "seed": 3},
+    "clock_stop": {"reason": "test"},
+    "agent_bye": {"published": {}, "rejected": {}, "lost": 0, "stats": {}},
+}
+"""A valid body of every message type."""

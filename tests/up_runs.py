@@ -67,8 +67,10 @@ def run_up(tmp_path: Path, config: Path, table: Path, name: str, *extra: str):
 
 
 def data_messages(recording) -> list[tuple[str, bytes]]:
-    """The data plane (everything but the clock's own traffic), in a fixed order."""
-    messages = [m for m in recording.messages if "/clock/" not in m.topic]
+    """The data plane (everything but the clock's own traffic, rejected payloads and a
+    person's fault requests), in a fixed order."""
+    messages = [m for m in recording.messages if "/clock/" not in m.topic
+                and not m.topic.endswith(("/rejected", "/control/fault"))]
     messages.sort(key=lambda m: (m.log_time_ns, m.topic, json.loads(m.data)["seq"]))
     return [(m.topic, bytes(m.data)) for m in messages]
 
@@ -107,12 +109,13 @@ def processes_mentioning(text: str) -> list[int]:
     return found
 
 
-def start_long_run(tmp_path: Path, name: str, **changes):
+def start_long_run(tmp_path: Path, name: str, *extra: str, **changes):
     """Start ``adnmesh up`` on a long sim scenario; return (process, agent pids, config path)
     once every agent is ready."""
     changes.setdefault("scenario", {"duration_s": 3600})
     config, table = write_case(tmp_path, name, **changes)
-    proc = subprocess.Popen(up_argv(config, table, tmp_path / f"{name}.mcap"), cwd=tmp_path,
+    proc = subprocess.Popen(up_argv(config, table, tmp_path / f"{name}.mcap", *extra),
+                            cwd=tmp_path,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     lines = []
     with selectors.DefaultSelector() as selector:

@@ -24,6 +24,7 @@ import msgspec
 from msgspec import Meta, Struct
 
 from adnmesh.runtime.summary import RunSeries
+from adnmesh.sim.node import names_known_ders
 from adnmesh.sim.topology import Topology
 from adnmesh.wire.envelope import MessageError, decode, encode, envelope_times, split_frame
 from adnmesh.wire.messages import Envelope
@@ -86,6 +87,7 @@ class RecorderTap:
         for agent in topology.agents:
             self._known |= {keys.report(agent), keys.bye(agent)}
         self._known.add(keys.fault_request)
+        self._der_ids = topology.der_ids
         self._last: dict[str, tuple[int, int]] = {}
         self._lock = threading.Lock()
         self.rejected: dict[str, dict[str, int]] = {}
@@ -132,6 +134,8 @@ class RecorderTap:
             if key not in self._known:
                 raise MessageError("unknown_key", "not a key of this run's agents")
             message = decode(key, payload)
+            if not names_known_ders(message, self._der_ids):
+                raise MessageError("unknown_der", "names a DER this run does not have")
             stamp = (message.t_send_ns, message.seq)
             if key in self._last and stamp <= self._last[key]:
                 raise MessageError("replayed", f"(t_send_ns, seq) {stamp} already seen")

@@ -30,6 +30,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from msgspec import UNSET
+
 from adnmesh.control.base import Agent
 from adnmesh.sim.clock import Report
 from adnmesh.sim.links import Impairment, Link
@@ -38,7 +40,16 @@ from adnmesh.wire.envelope import MessageError, decode, encode
 from adnmesh.wire.keys import route
 from adnmesh.wire.messages import MESSAGE_TYPES, MESSAGE_VERSION
 
-__all__ = ["Node", "NodeCounts"]
+__all__ = ["Node", "NodeCounts", "names_known_ders"]
+
+
+def names_known_ders(message, der_ids: frozenset[str]) -> bool:
+    """False if ``message`` names a DER the run does not have (SI, the CPFC's weights)."""
+    if message.type == "si":
+        return message.si.keys() <= der_ids
+    if message.type == "p_y" and message.w is not UNSET:
+        return message.w.keys() <= der_ids
+    return True
 
 
 @dataclass
@@ -126,6 +137,7 @@ class Node:
                                             agent.agent_id), route(key).type)
                           for key in topology.publishes(agent.agent_id)}
         self._subscribed = frozenset(self.subscriptions)
+        self._der_ids = topology.der_ids
         self._last: dict[str, tuple[int, int]] = {}   # key -> (t_send, seq) last accepted
         self._window_keys: list[str] = []   # keys sent on in this window, in first-send order
         # held messages (t_deliver, key, seq, receive count, message); sorted latest first
@@ -161,7 +173,8 @@ class Node:
 
     def receive(self, key: str, payload: bytes) -> None:
         """Take one payload from the bus; reject (count, drop) anything that is not a genuine
-        message of a subscribed key, or that repeats one already accepted on the key."""
+        message of a subscribed key, or that repeats one already accepted on the key, or names a DER
+  the run does not have."""
         counts = self.counts
         if key not in self._subscribed:
             counts.reject(key, "not_subscribed")
@@ -170,6 +183,9 @@ class Node:
             message = decode(key, payload)
         except MessageError as exc:
             counts.reject(key, exc.reason)
+            return
+        if not names_known_ders(message, self._der_ids):
+            counts.reject(key, "unknown_der")
             return
         stamp = (message.t_send_ns, message.seq)
         last = self._last.get(key)

@@ -73,6 +73,11 @@ class Topology:
     subscriptions: dict = field(repr=False)
     lookahead_ns: dict = field(repr=False)
 
+    @property
+    def der_ids(self) -> frozenset[str]:
+        """The DER ids of the run."""
+        return frozenset(a[4:] for a in self.agents if a.startswith("der/"))
+
     @classmethod
     def from_config(cls, config: Config) -> Topology:
         keys = Keys(config.grid)

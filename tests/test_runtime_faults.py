@@ -1,0 +1,244 @@
+"""Faults against real processes: ``adnmesh fault`` into a running ``up``, agents that die, a
+bus full of junk, and ``up`` itself killed.
+
+The runs use the small runtime case (two WTs, tests/up_runs.py), made long enough (scenario
+``duration_s``) that there is time to act while they run; every wait is bounded.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from adnmesh.config import load_config
+from adnmesh.control.cpfc import GainSchedule
+from adnmesh.recording import read_recording
+from adnmesh.sim.local import _LocalRunner
+from adnmesh.table import load_table
+from adnmesh.wire.units import ns
+from up_runs import (
+    alive,
+    children_of,
+    data_messages,
+    finish,
+    processes_mentioning,
+    run_up,
+    start_long_run,
+    up_argv,
+    write_case,
+)
+
+pytestmark = pytest.mark.slow
+
+
+def adnmesh_fault(recording: Path, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "adnmesh", "fault", str(recording), *args],
+                          capture_output=True, text=True, timeout=60, check=False)
+
+
+def events(recording, kind: str | None = None) -> list[dict]:
+    found = [json.loads(m.data) for m in recording.messages if "/event/" in m.topic]
+    return [e for e in found if kind is None or e["kind"] == kind]
+
+
+def local_run(config_path: Path, table_path: Path, faults) -> list[tuple[str, bytes]]:
+    """The in-process run of the same config with ``faults`` (kind, at s, for s, target)."""
+    config = load_config(config_path)
+    runner = _LocalRunner(config, GainSchedule(config, load_table(table_path, config),
+                                               on_demand=False), ns(config.scenario.duration_s))
+    for kind, at, duration, target in faults:
+        runner.plan.add(kind, ns(at), None if duration is None else ns(duration), **target)
+    grants = runner.start()
+    while grants:
+        grants.extend(runner.step(grants.popleft()))
+    return runner.run.messages
+
+
+def agents_only(messages) -> list[tuple[str, bytes]]:
+    """What the agents sent (``up``'s fault messages and events and the requests carry the
+    wall-clock moment of the request)."""
+    return [(k, p) for k, p in messages
+            if not k.endswith(("/faults", "/event/up", "/control/fault"))]
+
+
+def test_faults_injected_into_a_running_sim_run_take_effect_at_their_instant(
+        tmp_path: Path) -> None:
+    """`adnmesh fault` while the run goes: an outage of the CPFC -> DER link and a kill of
+    the CPFC with a restart. Both take effect at the requested sim time, so the agents'
+    messages are exactly those of the in-process run with the same faults."""
+    proc, agents, config = start_long_run(tmp_path, "inject", scenario={"duration_s": 400})
+    recording = tmp_path / "inject.mcap"
+    outage = adnmesh_fault(recording, "link_outage", "cpfc_to_der", "--at", "300", "--for", "5")
+    kill = adnmesh_fault(recording, "kill", "cpfc", "--at", "350", "--for", "3")
+    refused = adnmesh_fault(recording, "kill", "grid", "--at", "360")
+    returncode, err = finish(proc, agents, config)
+    assert (outage.returncode, kill.returncode, refused.returncode) == (0, 0, 2), \
+        outage.stdout + kill.stdout + refused.stdout + err
+    assert "link_outage of cpfc_to_der from 300 s for 5 s" in outage.stdout
+    assert "kill of cpfc at 350 s, restarted at 353 s" in kill.stdout
+    assert "unknown agent 'grid'" in refused.stdout
+    assert returncode == 0, err
+    run = read_recording(recording)
+    kinds = [(e["src"], e["kind"]) for e in events(run)]
+    assert ("up", "killed") in kinds and ("up", "rejoined") in kinds
+    assert ("der/SGen1", "watchdog_fallback") in kinds and ("cpfc", "resume") in kinds
+    expected = local_run(config, tmp_path / "inject.table.json", [
+        ("link_outage", 300, 5, {"link": "cpfc_to_der"}), ("kill", 350, 3, {"agent": "cpfc"})])
+    assert agents_only(data_messages(run)) == agents_only(
+        sorted(expected, key=lambda m: (json.loads(m[1])["t_deliver_ns"], m[0],
+                                        json.loads(m[1])["seq"])))
+
+
+def test_a_dead_agent_does_not_end_the_run(tmp_path: Path) -> None:
+    """A DER's process killed from outside: the run goes on to its end without it, prints
+    its summary and says who was lost (exit code 1: an agent died unplanned)."""
+    proc, agents, config = start_long_run(tmp_path, "victim", scenario={"duration_s": 120})
+    victim = max(agents)
+    os.kill(victim, signal.SIGKILL)
+    returncode, err = finish(proc, agents, config)
+    assert returncode == 1, err
+    assert f"(pid {victim}) died (signal 9); the run goes on without it" in err
+    assert "agent(s) lost during the run" in err
+    run = read_recording(tmp_path / "victim.mcap")
+    (lost,) = events(run, "agent_lost")
+    last_p_ip = max(m.publish_time_ns for m in run.messages if m.topic.endswith("/p_ip"))
+    assert last_p_ip == ns(120)                              # the run reached its end
+    assert events(run, "unavailable")                        # the monitor noticed
+
+
+def test_up_killed_leaves_no_agent_behind(tmp_path: Path) -> None:
+    proc, agents, config = start_long_run(tmp_path, "orphans")
+    proc.kill()
+    proc.wait(timeout=10)
+    deadline = time.monotonic() + 1.0
+    while time.monotonic() < deadline and any(alive(pid) for pid in agents):
+        time.sleep(0.05)
+    survivors = [pid for pid in agents if alive(pid)]
+    for pid in survivors:               # cleanup by PID before failing
+        os.kill(pid, signal.SIGKILL)
+    assert survivors == [], "agents outlived a SIGKILLed up by more than 1 s"
+    assert processes_mentioning(str(config)) == []
+
+
+# --- a bus that junk cannot disturb ---------------------------------------------------------------
+
+
+def junk_payloads(key: str, sender: str, impostor: str, n: int) -> list[bytes]:
+    """``n`` payloads that are no genuine message on ``key``: malformed JSON, wrong types,
+    missing fields, NaN/inf, out-of-range and 40-digit integers, unknown DER ids, stale and
+    future timestamps (from the wrong sender, or delivered before sent), 1 MB payloads, deep
+    nesting, well-formed envelopes with a wrong ``src``."""
+    from adnmesh.wire.keys import route
+    from payloads import BODIES
+
+    kind = route(key).type
+    head = {"v": 1, "type": kind, "seq": 7, "t_send_ns": 5_000_000_000,
+            "t_deliver_ns": 5_100_000_000}
+    valid = {**head, **BODIES[kind]}
+    shapes = [
+        lambda i: b'{"v":1,"type":' + str(i).encode(),                          # malformed
+        lambda i: b"\xff\xfe" + bytes([i % 256]),                                 # not UTF-8
+        lambda i: json.dumps({**head, "src": sender, "seq": "seven"}).encode(),   # wrong type
+        lambda i: json.dumps({"v": 1, "type": kind, "src": sender}).encode(),     # missing
+        lambda i: (json.dumps({**head, "src": sender})[:-1] + ',"p_w":NaN}').encode(),
+        lambda i: (json.dumps({**head, "src": sender})[:-1] + ',"p_w":1e999}').encode(),
+        lambda i: json.dumps({**head, "src": sender, "seq": 10 ** 40 + i}).encode(),
+        lambda i: json.dumps({**head, "src": sender, "t_send_ns": -i}).encode(),
+        lambda i: json.dumps({**head, "src": "availability", "type": "si",
+                              "si": {f"Bogus{i}": True}}).encode(),               # unknown DER
+        lambda i: json.dumps({**valid, "src": impostor, "t_send_ns": i,
+                              "t_deliver_ns": i}).encode(),                       # stale
+        lambda i: json.dumps({**valid, "src": impostor, "seq": 10 ** 18 + i,
+                              "t_send_ns": 10 ** 18, "t_deliver_ns": 10 ** 18}).encode(),
+        lambda i: json.dumps({**valid, "src": sender, "t_send_ns": 10 ** 12,
+                              "t_deliver_ns": 10 ** 9}).encode(),                 # delivered early
+        lambda i: b"[" * 50_000 + b"]" * 50_000,                                  # deep
+        lambda i: json.dumps({**valid, "src": impostor}).encode(),                # wrong src
+    ]
+    out = [shapes[i % len(shapes)](i) for i in range(n)]
+    out[::250] = [b'{"v":1,"x":"' + b"x" * 1_000_000 + b'"}'] * len(out[::250])   # 1 MB
+    return out
+
+
+def publish_junk(endpoint: str, keys: list[str], per_key: int, done: threading.Event,
+                 counted: list[int]) -> None:
+    """Publish the junk, then a harmless fault request (a delay beyond the run's end) on the
+    same session and wait for up's answer: samples of one session arrive in order, so once
+    the answer is in, up has taken every piece of junk."""
+    import zenoh
+
+    from adnmesh.runtime.bus import client_config
+    from adnmesh.wire.envelope import encode
+    from adnmesh.wire.keys import Keys, route
+    from adnmesh.wire.messages import FaultRequest
+
+    answered = threading.Event()
+    with zenoh.open(client_config([endpoint])) as session:
+        grid = keys[0].split("/")[1]
+        answer = session.declare_subscriber(Keys(grid).event("up"), lambda s: (
+            b"sentinel" in s.payload.to_bytes() and answered.set()))
+        for key in keys:
+            sender = route(key).sender
+            impostor = "der/SGen2" if sender != "der/SGen2" else "der/SGen1"
+            publisher = session.declare_publisher(
+                key, congestion_control=zenoh.CongestionControl.BLOCK)
+            for payload in junk_payloads(key, sender, impostor, per_key):
+                publisher.put(payload)
+                counted[0] += 1
+            publisher.undeclare()
+        session.put(Keys(grid).fault_request, encode(FaultRequest(
+            1, "fault_request", "operator", 1, 0, 0, request_id="sentinel", kind="link_delay",
+            at_ns=10 ** 15, for_ns=1, link="cpfc_to_der", delay_ns=0)))
+        answered.wait(60)
+        answer.undeclare()
+    if answered.is_set():
+        done.set()
+
+
+def test_junk_on_every_subscribed_key_changes_nothing(tmp_path: Path) -> None:
+    """1,000 junk payloads on every key an agent subscribes to, while the run goes: no agent
+    or recorder error, every payload rejected and counted, and the control result identical
+    to the undisturbed run's (sim clock, same seed)."""
+    from adnmesh.sim.topology import Topology
+
+    changes = {"scenario": {"duration_s": 400, "p_ref_steps": [{"t_s": 40, "delta_w": 1.0e6}],
+                            "availability": [{"t_s": 250, "available": False,
+                                              "ders": ["SGen2"]}]}}
+    config, table = write_case(tmp_path, "junk", **changes)
+    _, clean, _ = run_up(tmp_path, config, table, "clean")
+    topology = Topology.from_config(load_config(config))
+    keys = sorted({k for subs in topology.subscriptions.values() for k in subs}
+                  | {topology.keys.grant(a) for a in topology.agents}
+                  | {topology.keys.kill(a) for a in topology.agents}
+                  | {topology.keys.start, topology.keys.stop, topology.keys.fault_request})
+    proc, agents, _ = start_long_run(tmp_path, "junky", "--summary-json",
+                                     str(tmp_path / "junky.json"), **changes)
+    endpoint = json.loads((tmp_path / "junky.run.json").read_text())["endpoint"]
+    done, counted = threading.Event(), [0]
+    sender = threading.Thread(target=publish_junk, args=(endpoint, keys, 1000, done, counted),
+                              daemon=True)
+    sender.start()
+    done.wait(timeout=120)
+    still_running = proc.poll() is None
+    returncode, err = finish(proc, agents, config)
+    assert done.is_set() and still_running, "the junk took longer than the run"
+    assert returncode == 0, err
+    assert "Traceback" not in err and "error" not in err.lower()
+    run = read_recording(tmp_path / "junky.mcap")
+    assert agents_only(data_messages(run)) == agents_only(data_messages(clean))
+    rejected = [m for m in run.messages if m.topic.endswith("/rejected")]
+    assert len(rejected) == counted[0] == 1000 * len(keys)
+    extra = json.loads((tmp_path / "junky.json").read_text())["extra"]
+    assert extra["rejected_by_recorder"] == counted[0]
+    assert extra["rejected_by_agents"] > 0
+    reasons = {json.loads(m.data)["reason"] for m in rejected}
+    assert {"malformed", "invalid", "wrong_sender", "unknown_der", "too_large",
+            "time_order"} <= reasons
