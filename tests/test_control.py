@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 import random
@@ -195,8 +194,9 @@ def test_der_availability_change_sends_a_heartbeat_and_runs_on_schedule(config: 
 
 
 def test_der_offline_drops_commands_and_heartbeats(config: Config) -> None:
-    faulty = dataclasses.replace(config, runtime=dataclasses.replace(
-        config.runtime, faults=Faults(der_offline=(DEROffline("SGen1", 2.0, 1.5),))))
+    faults = Faults(der_offline=(DEROffline(der="SGen1", t_s=2.0, duration_s=1.5),))
+    faulty = config.model_copy(update={"runtime": config.runtime.model_copy(
+        update={"faults": faults})})
     der = DERController(faulty.ders[0], faulty)
     sent = []
     t = 0
@@ -371,7 +371,7 @@ def test_build_agent_knows_every_agent(config, table) -> None:
 
 
 def test_der_defaults_follow_the_config_dataclass() -> None:
-    der = DER("X", "PV", 1e5, 0.0, 0.1, "s")
+    der = DER(id="X", type="PV", p_inst_w=1e5, t_delay_s=0.0, t_rise_s=0.1, sgen="s")
     assert PT1DelayParams.from_der(der).t_delay_ns == 0
 
 
