@@ -2,17 +2,20 @@
 
 from __future__ import annotations
 
+import json
 import re
 import runpy
 import subprocess
 import sys
 from pathlib import Path
 
+import jsonschema
 import pytest
 
 from adnmesh import __version__
 from adnmesh.cli import COMMANDS, build_parser, main
 from adnmesh.commands import check
+from adnmesh.commands import schema as schema_command
 from adnmesh.errors import UsageError
 
 
@@ -109,3 +112,40 @@ def test_installed_console_script_prints_no_traceback(tmp_path: Path) -> None:
     assert result.stderr.startswith(f"adnmesh: error: {config}: line 2, column 1: invalid YAML: ")
     assert result.stderr.count("\n") == 1
     assert "Traceback" not in result.stderr
+
+
+def test_schema_config_is_the_committed_file(configs_dir: Path, capsys) -> None:
+    """configs/config.schema.json is what 'adnmesh schema config' prints: it cannot drift."""
+    assert main(["schema", "config"]) == 0
+    out, err = capsys.readouterr()
+    assert err == ""
+    assert out == (configs_dir / "config.schema.json").read_text(), (
+        "configs/config.schema.json is stale: run 'adnmesh schema config > "
+        "configs/config.schema.json'")
+
+
+def test_schema_config_is_a_json_schema_with_units(capsys) -> None:
+    assert main(["schema", "config"]) == 0
+    schema = json.loads(capsys.readouterr().out)
+    jsonschema.Draft202012Validator.check_schema(schema)
+    assert schema["$schema"] == "https://json-schema.org/draft/2020-12/schema"
+    assert schema["additionalProperties"] is False
+    assert list(schema["properties"]) == ["grid", "simbench_code", "t_com_s", "t_meas_s",
+                                          "constraints", "ders", "scenario", "runtime"]
+    der = schema["$defs"]["DER"]["properties"]
+    assert der["p_inst_w"]["description"].endswith(", W; the controller's C_d.")
+    assert (der["p_inst_w"]["exclusiveMinimum"], der["p_inst_w"]["maximum"]) == (0, 1e10)
+    assert der["type"]["enum"] == ["WT", "CHP", "PV"]
+    sections = [schema, *schema["$defs"].values()]
+    descriptions = [entry["description"] for section in sections
+                    for entry in (section, *section["properties"].values())]
+    assert len(descriptions) > 60 and not any("\n" in text for text in descriptions)
+
+
+def test_schema_takes_a_name_from_its_registry(capsys) -> None:
+    assert list(schema_command.SCHEMAS) == ["config"]
+    assert main(["schema", "messages"]) == 2
+    err = capsys.readouterr().err
+    assert "invalid choice: 'messages' (choose from 'config')" in err
+    assert main(["schema"]) == 2
+    assert "the following arguments are required: NAME" in capsys.readouterr().err

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 import random
@@ -363,7 +362,7 @@ def test_build_agent_knows_every_agent(config, table) -> None:
 
 
 def test_der_defaults_follow_the_config_dataclass() -> None:
-    der = DER("X", "PV", 1e5, 0.0, 0.1, "s")
+    der = DER(id="X", type="PV", p_inst_w=1e5, t_delay_s=0.0, t_rise_s=0.1, sgen="s")
     assert PT1DelayParams.from_der(der).t_delay_ns == 0
 
 

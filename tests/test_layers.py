@@ -24,7 +24,6 @@ GROUP = {
     "errors": "foundation", "config": "foundation", "wire": "wire", "control": "control",
     "sim": "sim", "recording": "recording", "runtime": "runtime", "commands": "commands",
     "cli": "commands", "__main__": "commands", "__init__": "foundation",
-    "schema": "foundation",   # until the config moves to pydantic
 }
 """Top-level module or package -> its layer group; anything else is numerics."""
 

@@ -46,7 +46,7 @@ def schedule(config: Config) -> GainSchedule:
 
 
 def with_runtime(config: Config, **changes) -> Config:
-    return dataclasses.replace(config, runtime=dataclasses.replace(config.runtime, **changes))
+    return config.model_copy(update={"runtime": config.runtime.model_copy(update=changes)})
 
 
 # --- ICT links ----------------------------------------------------------------------------------
@@ -84,7 +84,8 @@ def test_link_loss_rate_matches_its_probability() -> None:
 
 def test_link_params_from_settings() -> None:
     params = LinkParams.from_settings("x", LinkSettings(jitter_s=0.001, loss=0.1,
-                                                        outages=(Outage(1.0, 0.5),)), 0.1)
+                                                        outages=(Outage(t_s=1.0,
+                                                                        duration_s=0.5),)), 0.1)
     assert params == LinkParams("x", 100_000_000, 1_000_000, 0.1, True,
                                 ((1_000_000_000, 1_500_000_000),))
     with pytest.raises(ValueError, match="no delay"):
@@ -359,8 +360,8 @@ def test_gains_of_the_test_table_meet_the_constraints(config: Config) -> None:
 
 
 def test_local_run_is_deterministic(config: Config, schedule: GainSchedule) -> None:
-    noisy = with_runtime(config, links=dataclasses.replace(
-        config.runtime.links, cpfc_to_der=LinkSettings(jitter_s=0.02, loss=0.05)))
+    noisy = with_runtime(config, links=config.runtime.links.model_copy(
+        update={"cpfc_to_der": LinkSettings(jitter_s=0.02, loss=0.05)}))
     first = run_local(noisy, schedule).messages
     assert first == run_local(noisy, schedule).messages
     other_seed = run_local(with_runtime(noisy, seed=noisy.runtime.seed + 1), schedule).messages

@@ -9,7 +9,6 @@ summary to stdout.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import hashlib
 import json
 import os
@@ -96,7 +95,7 @@ def _table(args, config: Config, run_dir: Path, run_id: str, log) -> Path:
         raise UsageError(f"no gain table {path} for {config.path}; run 'adnmesh tune "
                          f"{config.path}' first (or give --table PATH)")
     log(f"no gain table at {path}: tuning the {len(subsets)} subset(s) the scenario needs")
-    table = SchedulingTable(config.sha256, dataclasses.asdict(config.constraints), "on-demand",
+    table = SchedulingTable(config.sha256, config.constraints.model_dump(), "on-demand",
                             config.der_ids())
     for subset in subsets:
         table.add(tune(config, [d for d in config.der_ids() if d in subset]))

@@ -92,7 +92,7 @@ class FaultInjector:
         for planned in self.plan.faults:
             body = resend_body(planned, at_ns)
             if body is not None:
-                self._send(planned, at_ns, body, under_clock_lock=True)
+                self._send(planned, at_ns, body, announce=False)
 
     # -- the main thread -----------------------------------------------------------------------
 
@@ -129,7 +129,7 @@ class FaultInjector:
                 at = earliest if request.at_ns is None else request.at_ns
                 planned = self.plan.add(request.kind, at, request.for_ns, earliest_ns=earliest,
                                         **target)
-                self._send(planned, earliest, request_id=rid, under_clock_lock=True)
+                self._send(planned, earliest, request_id=rid)
                 if planned.body["kind"] == "kill" and planned.body["end_ns"] is not None:
                     self._plan_restart(planned.body["agent"], planned.body["end_ns"])
         except FaultError as exc:
@@ -139,15 +139,15 @@ class FaultInjector:
         self.launch.options.log(fault_events(planned)["text"])
 
     def _send(self, planned: PlannedFault, t_send: int, body: dict | None = None,
-              request_id: str | None = None, under_clock_lock: bool = False) -> None:
-        """Send a fault to every agent (counted by the sim clock) and say so."""
+              request_id: str | None = None, announce: bool = True) -> None:
+        """Send a fault to every agent (counted by the sim clock) and, the first time, say so."""
         launch = self.launch
         body = planned.body if body is None else body
         if launch.clock is not None:
             launch.clock.inject(launch.topology.agents)
         launch.outbox.send(self.keys.faults, t_send, t_deliver_ns=max(body["start_ns"], t_send),
                            **body)
-        if body is planned.body:
+        if announce:
             event = fault_events(planned)
             if request_id is not None:
                 event["request_id"] = request_id

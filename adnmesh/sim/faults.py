@@ -78,12 +78,12 @@ class FaultPlan:
     def from_config(self, config: Config) -> list[PlannedFault]:
         """The config's ``runtime.faults``, numbered from 1 (their starts are never moved)."""
         planned = []
-        for fault in config.runtime.faults.der_offline:
-            planned.append(self.add("der_offline", ns(fault.t_s), ns(fault.duration_s),
-                                    der=fault.der, origin="config"))
-        for crash in config.runtime.faults.crash:
-            planned.append(self.add("kill", ns(crash.t_s), None, agent=crash.agent,
-                                    origin="config"))
+        for f in config.runtime.faults:
+            span = f.restart_after_s if f.kind == "kill" else f.duration_s
+            planned.append(self.add(
+                f.kind, ns(f.t_s), None if span is None else ns(span), origin="config",
+                link=f.link, der=f.der, agent=f.agent, probability=f.probability,
+                delay_ns=None if f.delay_s is None else ns(f.delay_s)))
         return planned
 
     def add(self, kind: str, at_ns: int, for_ns: int | None, *, earliest_ns: int = 0,
