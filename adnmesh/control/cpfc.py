@@ -44,9 +44,9 @@ controller with unit weights; if none exists the CPFC keeps its gains and says s
   outage of the CPFC → DER link (the availability monitor counts a DER in fallback as
   unavailable); the switch back to an available set is bumpless;
 - it has just been restarted (``hold: resuming``; it sends nothing then): it waits for SI and a
-  heartbeat of every available DER (their acknowledgement of the P_Y they apply, 0 for a DER in
-  fallback), at most ``heartbeat_timeout_s``, and resumes from the latest acknowledged P_Y, so
-  that the DERs' setpoints do not jump when its commands return.
+  heartbeat of every available DER (their acknowledgement of the last P_Y they applied), at
+  most ``heartbeat_timeout_s``, and resumes from the latest acknowledged P_Y, so that the DERs
+  return to the setpoints they had before it was lost.
 
 Each start and end of a hold is an event on ``event/cpfc``.
 """
@@ -362,8 +362,7 @@ class CPFC(Agent):
         waiting = not self._si_seen or not set(available) <= set(fresh)
         if waiting and t_ns - since < self.ack_timeout_ns:
             return False
-        applying = [a for a in fresh.values() if a[1] == "control"]
-        acked = max(applying)[2] if applying else 0.0
+        acked = max(fresh.values())[2] if fresh else 0.0     # the most recent acknowledgement
         self._pending = None
         self.available = frozenset()      # the switch below sets gains, weights and limits
         self.pi.output = acked
@@ -371,8 +370,8 @@ class CPFC(Agent):
         self.hold = None if record is not None else "actuators"
         self.pi.reenter(self.p_ref_w - self.p_meas_w)
         self._next_weights_ns = t_ns
-        out.append(self._event("INFO", "resume", f"restarted: resumed from the acknowledged P_Y "
-                               f"{acked:.6g} of {len(applying)} DER(s) in control"))
+        out.append(self._event("INFO", "resume", f"restarted: resumed from the P_Y {acked:.6g} "
+                               f"the DERs acknowledged ({len(fresh)} heartbeat(s))"))
         return True
 
     def _event(self, level: str, kind: str, text: str) -> Outgoing:

@@ -21,9 +21,10 @@ A ``P_Y`` is valid if its ``entry`` matches the entry whose weights the DER hold
 with the switch and are repeated periodically). Every ``measurement_period_s`` the DER reports its
 infeed and setpoint on ``der/<id>/state`` (exact at that instant); every ``heartbeat_period_s``,
 and at once when its availability or its mode changes, it sends a heartbeat with its
-availability flag, its mode and the P_Y it applies (0 unless in ``control``) with its entry:
-the availability monitor counts a DER in ``watchdog`` as unavailable, and a restarted CPFC
-resumes from the acknowledged P_Y. A watchdog fallback is also an event (``event/der/<id>``).
+availability flag, its mode and the last P_Y it applied with that command's entry: the
+availability monitor counts a DER in ``watchdog`` as unavailable, and a restarted CPFC resumes
+from the acknowledged P_Y (SPEC §5), so that the DERs return to their setpoints before the
+fault. A watchdog fallback is also an event (``event/der/<id>``).
 Injected ICT faults are the node's business (:mod:`adnmesh.sim.node`): the DER only notices that
 commands stop.
 """
@@ -135,6 +136,7 @@ class DERController(Agent):
         if not self.watchdog_expired and t_ns >= self.watchdog_deadline_ns:
             self.watchdog_expired = True
             self.counts["watchdog_trips"] += 1
+        if self.watchdog_expired and mode == "control" and self.available:
             out.append(Outgoing(self._event_key, {
                 "level": "WARNING", "kind": "watchdog_fallback", "subject": self.agent_id,
                 "text": f"{self.der.id}: no valid command for "
@@ -158,9 +160,8 @@ class DERController(Agent):
     # -- internals -----------------------------------------------------------------------------
 
     def _heartbeat(self) -> dict:
-        applying = self.mode == "control"
-        return {"available": self.available, "mode": self.mode,
-                "p_y": self.p_y if applying else 0.0, "entry": self.entry}
+        return {"available": self.available, "mode": self.mode, "p_y": self.p_y,
+                "entry": self.entry}
 
     def _update_setpoint(self, t_ns: int) -> None:
         der = self.der

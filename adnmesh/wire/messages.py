@@ -126,8 +126,8 @@ class DERState(Envelope):
 
 class Heartbeat(Envelope):
     """A DER's heartbeat: its availability flag, where its setpoint comes from (``mode``) and
-    the P_Y it applies (0 unless in ``control``) with the number of the CPFC's table entry
-    (its acknowledgement of the CPFC's commands)."""
+    the last P_Y it applied with the number of the CPFC's table entry of that command (its
+    acknowledgement of the CPFC's commands)."""
 
     type: Literal["heartbeat"]
     available: bool
