@@ -24,6 +24,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sp
 
 from adnmesh.grid.data import GridData
 from adnmesh.grid.errors import GridError
@@ -107,6 +108,10 @@ class GridSolver:
         self._act_bus = data.sgen_bus[act]
         self._w_to_pu = 1e-6 / base
         self._ybus = data.ybus.tocsc()
+        # both ends' currents in one product: rows [Yf; Yt], times % per p.u. of current
+        self._y_ends = sp.vstack([data.yf, data.yt]).tocsr()
+        self._loading_ends = np.concatenate([data.loading_f, data.loading_t])
+        self._n_branch = data.yf.shape[0]
         ref = int(data.ref[0])
         self._ref = ref
         row = data.ybus[ref]
@@ -162,7 +167,8 @@ class GridSolver:
         s_ref = v[ref] * np.conj(self._ref_vals @ v[self._ref_cols])
         s_ext = (s_ref - sbus[ref]) * d.base_mva * 1e6          # external grid's injection, VA
         vm = np.abs(v[d.report_bus])
-        loading = np.maximum(np.abs(d.yf @ v) * d.loading_f, np.abs(d.yt @ v) * d.loading_t)
+        ends = np.abs(self._y_ends @ v) * self._loading_ends
+        loading = np.maximum(ends[:self._n_branch], ends[self._n_branch:])
         return GridSample(p_ip_w=float(-s_ext.real), q_ip_var=float(-s_ext.imag),
                           vm_min_pu=float(vm.min()), vm_max_pu=float(vm.max()),
                           line_loading_max_pct=_max(loading, d.line_rows),
