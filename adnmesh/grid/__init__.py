@@ -8,9 +8,10 @@ Pure numerics plus one disk cache; no bus, no agents. The measurement agent need
 
 and :func:`available_power_w` gives each actuator's available power at the study case.
 
-Modules: :mod:`~adnmesh.grid.data` (the arrays), :mod:`~adnmesh.grid.solver` (the solver),
-:mod:`~adnmesh.grid.cache` (the cache), :mod:`~adnmesh.grid.simbench_net` and
-:mod:`~adnmesh.grid.build` (the only users of simbench and pandapower, imported on a cache miss).
+Modules: :mod:`~adnmesh.grid.data` (the lightsim2grid model and arrays),
+:mod:`~adnmesh.grid.solver` (the solver), :mod:`~adnmesh.grid.cache` (the cache),
+:mod:`~adnmesh.grid.simbench_net` and :mod:`~adnmesh.grid.build` (the only users of simbench and
+pandapower, imported on a cache miss only).
 """
 
 from adnmesh.grid.cache import default_cache_dir, load_grid

@@ -1,7 +1,8 @@
 """Disk cache of :class:`~adnmesh.grid.data.GridData`: a second start without simbench.
 
 Loading a SimBench grid and solving it with pandapower takes tens of seconds (importing the two
-alone several); reading its arrays back takes a fraction of one. :func:`load_grid` returns the
+alone several); reading the model and its arrays back takes milliseconds (plus about a second
+to import lightsim2grid). :func:`load_grid` returns the
 data of (code, study case, load model), from the cache when a valid file is there, else built
 with simbench and pandapower and then written to the cache.
 
@@ -10,12 +11,14 @@ with simbench and pandapower and then written to the cache.
 - **Key**: grid code, study case, load model, the installed versions of simbench, pandapower and
   lightsim2grid, and :data:`FORMAT_VERSION` (:func:`cache_key`). The file name carries a hash of
   the key and the file holds the key itself, which is compared on reading.
-- **Format**: one ``.npz`` file of plain arrays (:func:`adnmesh.grid.data.to_arrays`), read with
-  ``allow_pickle=False``: nothing in it can run code.
-- **Robustness**: written to a temporary file in the same folder and renamed into place (readers
-  see the old file or the new one, never half of one); a file that cannot be read, or whose key
-  differs, is rebuilt with a warning; a folder that cannot be written is a warning, not an
-  error.
+- **Format**: the grid model in lightsim2grid's own binary format (``LSGrid.save_binary``, which
+  checks what it reads: a truncated or damaged file is an error, not garbage) and a ``.npz`` of
+  plain arrays (:func:`adnmesh.grid.data.to_arrays`) read with ``allow_pickle=False``, which
+  holds the key and the model file's sha256. No pickle anywhere: nothing in the cache runs code.
+- **Robustness**: each file is written to a temporary file and renamed into place (readers see
+  an old file or a new one, never half of one), the model first, the arrays last; a pair that
+  cannot be read, whose key differs or whose model is not the one the arrays name is rebuilt
+  with a warning; a folder that cannot be written is a warning, not an error.
 """
 
 from __future__ import annotations
@@ -34,10 +37,10 @@ import numpy as np
 
 from adnmesh.grid.data import GridData, from_arrays, to_arrays
 
-__all__ = ["FORMAT_VERSION", "default_cache_dir", "cache_key", "cache_path", "cached",
-           "load_grid"]
+__all__ = ["FORMAT_VERSION", "default_cache_dir", "cache_key", "cache_path", "model_path",
+           "cached", "load_grid"]
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 
 
 def default_cache_dir() -> Path:
@@ -116,18 +119,36 @@ def load_grid(code: str, case: str = "lW", load_model: str = "impedance",
     return cached(cache_key(code, case, load_model), build, cache_dir)
 
 
+def model_path(path: Path) -> Path:
+    """The grid model's file beside the arrays' ``.npz``."""
+    return path.with_suffix(".lsgrid")
+
+
 def _read(path: Path, key: dict) -> GridData:
+    from lightsim2grid.lightsim2grid_cpp import LSGrid      # not .network: it imports pandapower
+
     with np.load(path, allow_pickle=False) as npz:
         stored = json.loads(str(npz["cache_key"]))
         if stored != key:
             raise ValueError(f"stored key {stored} is not {key}")
-        return from_arrays(npz)
+        model = model_path(path)
+        if _sha256(model) != str(npz["model_sha256"]):
+            raise ValueError(f"{model.name} is not the model the arrays were written with")
+        return from_arrays(npz, LSGrid.load_binary(str(model)))
+
+
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 def _write(path: Path, key: dict, data: GridData) -> None:
+    """The model (lightsim2grid's own atomic binary file), then the arrays with its hash."""
     path.parent.mkdir(parents=True, exist_ok=True)
+    model = model_path(path)
+    data.lsgrid.save_binary(str(model), True)
     arrays = to_arrays(data)
     arrays["cache_key"] = np.array(json.dumps(key, sort_keys=True))
+    arrays["model_sha256"] = np.array(_sha256(model))
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
     try:
         with os.fdopen(fd, "wb") as fh:

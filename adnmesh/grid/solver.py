@@ -2,20 +2,21 @@
 
 :class:`GridSolver` takes a :class:`~adnmesh.grid.data.GridData` and the names of the actuator
 static generators, and solves the power flow for one vector of their active powers at a time
-(:meth:`GridSolver.solve`) with lightsim2grid's Newton-Raphson solver (single slack, KLU sparse
-LU) on pandapower's own admittance matrices, starting from the previous solution. Everything
-else in the grid is a constant injection (or, for constant-impedance loads, a shunt in
-``Ybus``); the actuators' reactive power stays at its study-case value.
+(:meth:`GridSolver.solve`): lightsim2grid's Newton-Raphson (single slack, KLU sparse LU where
+the build has it) on its own copy of the grid model, starting from the previous solution. The
+model keeps its factorisation structure between solves; only the actuators' injections change.
+Everything else in the grid is a constant injection (constant-impedance loads are shunts); the
+actuators' reactive power stays at its study-case value.
 
 Results (:class:`GridSample`) follow pandapower's definitions: ``P_IP``/``Q_IP`` are the external
 grid's injection with the sign turned, so that power flowing from the MV grid into the 110 kV
 grid is positive; voltage extremes over the net's buses (``res_bus.vm_pu``); loadings as
-``res_line.loading_percent`` (current over ``max_i_ka · df · parallel``) and
-``res_trafo.loading_percent`` (pandapower's default ``trafo_loading="current"``: the larger of the
-two ends' currents times rated voltage over ``sn_mva``, over ``parallel · df``).
+``res_line.loading_percent`` (the larger end current over ``max_i_ka · df · parallel``) and
+``res_trafo.loading_percent`` (pandapower's default ``trafo_loading="current"``: the larger of
+``i_hv · vn_hv_kv`` and ``i_lv · vn_lv_kv``, times √3, over ``sn_mva · parallel · df``).
 
-Accuracy: Newton-Raphson to a power mismatch below ``tol_pu`` (default 1e-8 p.u., i.e. 0.01 W
-and 0.01 var at ``base_mva`` = 1), the tolerance pandapower's ``runpp`` uses by default.
+Accuracy: Newton-Raphson to a power mismatch below ``tol_pu`` (default 1e-8 p.u. of the model's
+1 MVA base, i.e. 0.01 W / 0.01 var), the tolerance pandapower's ``runpp`` uses by default.
 """
 
 from __future__ import annotations
@@ -24,12 +25,13 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse as sp
 
 from adnmesh.grid.data import GridData
 from adnmesh.grid.errors import GridError
 
 __all__ = ["GridSample", "GridSolver", "available_power_w"]
+
+_SQRT3 = math.sqrt(3.0)
 
 
 @dataclass(frozen=True)
@@ -71,11 +73,14 @@ def available_power_w(data: GridData, sgen_names) -> np.ndarray:
     return data.sgen_p_mw[data.sgen_index(sgen_names)] * 1e6
 
 
-def _nr_solver():
-    """lightsim2grid's single-slack Newton-Raphson, KLU if this build has it."""
-    from lightsim2grid import algorithm
-    cls = getattr(algorithm, "NRSing_KLU", None) or algorithm.NRSing_SparseLU
-    return cls()
+def _single_slack_nr(grid) -> None:
+    """Switch ``grid`` to lightsim2grid's single-slack Newton-Raphson (KLU if available)."""
+    from lightsim2grid.algorithm import AlgorithmType
+    names = set(grid.available_algorithm_names())
+    for algo in ("NRSing_KLU", "NRSing_SparseLU"):
+        if algo in names:
+            grid.change_algorithm(getattr(AlgorithmType, algo))
+            return
 
 
 class GridSolver:
@@ -90,39 +95,21 @@ class GridSolver:
     max_iter : int
         Newton-Raphson iterations per attempt.
     tol_pu : float
-        Convergence tolerance on the power mismatch, p.u. of ``data.base_mva``.
+        Convergence tolerance on the power mismatch, p.u. of the model's base (1 MVA).
     """
 
     def __init__(self, data: GridData, actuator_sgens, max_iter: int = 20,
                  tol_pu: float = 1e-8) -> None:
         self.data = data
         self.actuator_sgens = tuple(actuator_sgens)
-        act = data.sgen_index(self.actuator_sgens)
-        others = np.setdiff1d(np.arange(len(data.sgen_names)), act)
-        base = data.base_mva
-        s = data.s_fixed_pu.astype(complex).copy()
-        np.add.at(s, data.sgen_bus[others],
-                  (data.sgen_p_mw[others] + 1j * data.sgen_q_mvar[others]) / base)
-        np.add.at(s, data.sgen_bus[act], 1j * data.sgen_q_mvar[act] / base)
-        self._s_base = s
-        self._act_bus = data.sgen_bus[act]
-        self._w_to_pu = 1e-6 / base
-        self._ybus = data.ybus.tocsc()
-        # both ends' currents in one product: rows [Yf; Yt], times % per p.u. of current
-        self._y_ends = sp.vstack([data.yf, data.yt]).tocsr()
-        self._loading_ends = np.concatenate([data.loading_f, data.loading_t])
-        self._n_branch = data.yf.shape[0]
-        ref = int(data.ref[0])
-        self._ref = ref
-        row = data.ybus[ref]
-        self._ref_cols, self._ref_vals = row.indices.copy(), row.data.copy()
-        self._ids = (data.ref.astype(np.int32), data.pv.astype(np.int32),
-                     data.pq.astype(np.int32))
-        self._weights = np.zeros(data.n_bus)
-        self._weights[ref] = 1.0
+        self._act = [int(i) for i in data.sgen_index(self.actuator_sgens)]
+        self._grid = data.lsgrid.copy()
+        _single_slack_nr(self._grid)
         self._max_iter, self._tol = int(max_iter), float(tol_pu)
-        self._solver = _nr_solver()
         self._v = data.v_init.astype(complex).copy()
+        self._line_factor = 100.0 / data.line_i_max_ka
+        self._hv_factor = _SQRT3 * 100.0 * data.trafo_vn_hv_kv / data.trafo_rating_mva
+        self._lv_factor = _SQRT3 * 100.0 * data.trafo_vn_lv_kv / data.trafo_rating_mva
 
     @property
     def n_actuators(self) -> int:
@@ -130,8 +117,14 @@ class GridSolver:
         return len(self.actuator_sgens)
 
     @property
+    def model(self):
+        """The solver's own lightsim2grid model, holding the results of the last solve (read
+        them, change nothing)."""
+        return self._grid
+
+    @property
     def voltages_pu(self) -> np.ndarray:
-        """Complex bus voltages of the last converged solution (internal bus order), p.u."""
+        """Complex bus voltages of the last converged solution (model bus order), p.u."""
         return self._v.copy()
 
     def solve(self, p_actuator_w) -> GridSample:
@@ -144,41 +137,34 @@ class GridSolver:
         if p.shape != (self.n_actuators,) or not np.all(np.isfinite(p)):
             raise GridError(f"grid solver: expected {self.n_actuators} finite actuator powers "
                             f"in W, got {p_actuator_w!r}")
-        sbus = self._s_base + np.bincount(self._act_bus, p * self._w_to_pu,
-                                          minlength=self.data.n_bus)
-        v, ok = self._run(self._v, sbus)
-        if not ok:
-            v, ok = self._run(self.data.v_init, sbus)
-        iterations = self._solver.get_nb_iter()
-        if not ok:
+        grid = self._grid
+        for sgen, p_w in zip(self._act, p.tolist()):
+            grid.change_p_sgen(sgen, p_w * 1e-6)
+        v = grid.ac_pf(self._v, self._max_iter, self._tol)
+        if v.size == 0:
+            v = grid.ac_pf(self.data.v_init, self._max_iter, self._tol)
+        iterations = int(grid.get_algo().get_nb_iter())
+        if v.size == 0:
             return _not_converged(iterations)
-        self._v = v
-        return self._sample(v, sbus, iterations)
+        self._v = np.array(v, dtype=complex)
+        return self._sample(iterations)
 
-    def _run(self, v0: np.ndarray, sbus: np.ndarray) -> tuple[np.ndarray, bool]:
-        ref, pv, pq = self._ids
-        ok = self._solver.compute_pf(self._ybus, v0.copy(), sbus, ref, self._weights, pv, pq,
-                                     self._max_iter, self._tol)
-        # get_V is a view of the solver's own memory, which the next solve overwrites
-        return np.array(self._solver.get_V(), dtype=complex), bool(ok)
-
-    def _sample(self, v: np.ndarray, sbus: np.ndarray, iterations: int) -> GridSample:
-        d, ref = self.data, self._ref
-        s_ref = v[ref] * np.conj(self._ref_vals @ v[self._ref_cols])
-        s_ext = (s_ref - sbus[ref]) * d.base_mva * 1e6          # external grid's injection, VA
-        vm = np.abs(v[d.report_bus])
-        ends = np.abs(self._y_ends @ v) * self._loading_ends
-        loading = np.maximum(ends[:self._n_branch], ends[self._n_branch:])
-        return GridSample(p_ip_w=float(-s_ext.real), q_ip_var=float(-s_ext.imag),
+    def _sample(self, iterations: int) -> GridSample:
+        grid, d = self._grid, self.data
+        p_gen, q_gen, _ = grid.get_gen_res()
+        vm = np.abs(self._v[d.report_bus])
+        line = np.maximum(grid.get_line_res1()[3], grid.get_line_res2()[3]) * self._line_factor
+        trafo = np.maximum(grid.get_trafo_res1()[3] * self._hv_factor,
+                           grid.get_trafo_res2()[3] * self._lv_factor)
+        return GridSample(p_ip_w=float(-p_gen[d.slack_gen] * 1e6),
+                          q_ip_var=float(-q_gen[d.slack_gen] * 1e6),
                           vm_min_pu=float(vm.min()), vm_max_pu=float(vm.max()),
-                          line_loading_max_pct=_max(loading, d.line_rows),
-                          trafo_loading_max_pct=_max(loading, d.trafo_rows),
-                          converged=True, iterations=int(iterations))
+                          line_loading_max_pct=_max(line), trafo_loading_max_pct=_max(trafo),
+                          converged=True, iterations=iterations)
 
 
-def _max(values: np.ndarray, rows: tuple[int, int]) -> float:
-    part = values[rows[0]:rows[1]]
-    return float(part.max()) if part.size else math.nan
+def _max(values: np.ndarray) -> float:
+    return float(values.max()) if values.size else math.nan
 
 
 def _not_converged(iterations: int) -> GridSample:
