@@ -13,7 +13,7 @@ from scipy.optimize import brentq, minimize
 from adnmesh import dermodels as dm
 from adnmesh.control import dynamics
 from adnmesh.dermodels import chp, pv, wt
-from adnmesh.dermodels.pieces import lag_of_pieces, rate_limited_lag
+from adnmesh.dermodels.pieces import lag_of_pieces, rate_limited_lag, rate_limited_lag_end
 from adnmesh.dermodels.plots import plot_der_models
 from adnmesh.dermodels.responses import der_model_report
 from adnmesh.dermodels.risetime import normalised, rise_time
@@ -68,6 +68,8 @@ def test_rate_limited_lag_matches_an_ode_solver(x0, r0, s, up, down):
         exact = pieces[-1].value(pieces[-1].duration)
         assert exact == pytest.approx(_ivp_lag(x0, r0, s, t_lag, up, down, duration), abs=1e-7)
         assert sum(p.duration for p in pieces) == pytest.approx(duration, rel=1e-14)
+        assert rate_limited_lag_end(x0, r0, s, t_lag, up, down, duration) == pytest.approx(
+            exact, rel=1e-13, abs=1e-13)
 
 
 @pytest.mark.parametrize("t2", [0.5, 0.2, 0.2 * (1 + 1e-12)])     # distinct and resonant

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cached_property, lru_cache
 
 from adnmesh.dermodels.pieces import end_value, lag_of_pieces, rate_limited_lag
 from adnmesh.dermodels.risetime import ModelFunctions, rise_time
@@ -70,7 +70,7 @@ class CHPParams:
                 and self.rate_down_w_per_s > 0 and 0 <= self.p_min_w <= self.p_max_w):
             raise ValueError(f"invalid CHP model parameters: {self}")
 
-    @property
+    @cached_property
     def t_delay_ns(self) -> int:
         """Dead time, ns."""
         return int(round(self.t_delay_s * 1e9))

@@ -21,15 +21,14 @@ constant-slope input gives at most two pieces. Rounding is the only error (relat
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from typing import NamedTuple
 
-__all__ = ["Piece", "rate_limited_lag", "lag_of_pieces", "end_value"]
+__all__ = ["Piece", "rate_limited_lag", "rate_limited_lag_end", "lag_of_pieces", "end_value"]
 
 _REL = 1e-12          # relative tolerance deciding whether a derivative sits at its limit
 
 
-@dataclass(frozen=True)
-class Piece:
+class Piece(NamedTuple):
     """``x(t) = a + b t + c exp(-t / tau)`` for ``0 <= t <= duration`` (s; W, W/s)."""
 
     duration: float
@@ -75,9 +74,12 @@ def rate_limited_lag(x0: float, r0: float, s: float, t_lag: float, rate_up: floa
     duration : float
         Length of the interval, s (>= 0).
     """
+    d0 = (r0 - x0) / t_lag
+    if -rate_down <= s <= rate_up and -rate_down < d0 < rate_up:      # free throughout
+        return [Piece(duration, r0 - s * t_lag, s, -t_lag * (d0 - s), t_lag)]
     pieces: list[Piece] = []
     t, x = 0.0, x0
-    mode = _mode((r0 - x0) / t_lag, s, rate_up, rate_down)
+    mode = _mode(d0, s, rate_up, rate_down)
     while t < duration:
         r, d = r0 + s * t, (r0 + s * t - x) / t_lag
         if mode == 0:
@@ -103,6 +105,16 @@ def rate_limited_lag(x0: float, r0: float, s: float, t_lag: float, rate_up: floa
         if step == switch:
             mode = next_mode
     return pieces
+
+
+def rate_limited_lag_end(x0: float, r0: float, s: float, t_lag: float, rate_up: float,
+                         rate_down: float, duration: float) -> float:
+    """``x`` at the end of :func:`rate_limited_lag` (the same solution, without the pieces
+    where the lag stays free: the hot path of the models)."""
+    d0 = (r0 - x0) / t_lag
+    if -rate_down <= s <= rate_up and -rate_down < d0 < rate_up:
+        return r0 + s * (duration - t_lag) + t_lag * (s - d0) * math.exp(-duration / t_lag)
+    return end_value(rate_limited_lag(x0, r0, s, t_lag, rate_up, rate_down, duration), x0)
 
 
 def lag_of_pieces(x0: float, pieces: list[Piece], t_lag: float) -> float:

@@ -15,8 +15,9 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
-from adnmesh.dermodels.pieces import end_value, rate_limited_lag
+from adnmesh.dermodels.pieces import rate_limited_lag_end
 from adnmesh.dermodels.risetime import ModelFunctions
 from adnmesh.dermodels.state import DerState, evaluate, queue_set_point
 
@@ -55,7 +56,7 @@ class PVParams:
             object.__setattr__(self, "p_max_w", float(self.p_inst_w))
         _check(self)
 
-    @property
+    @cached_property
     def t_delay_ns(self) -> int:
         """Dead time, ns."""
         return int(round(self.t_delay_s * 1e9))
@@ -85,9 +86,8 @@ def steady_state(params: PVParams, p_w: float, t_ns: int = 0) -> DerState:
 def advance(params: PVParams, core: tuple, u_w: float, dt_s: float) -> tuple:
     """Exact ``core`` after ``dt_s`` with the lag's input at ``u_w``."""
     (x,) = core
-    pieces = rate_limited_lag(x, u_w, 0.0, params.t_lag_s, params.rate_up_w_per_s,
-                              params.rate_down_w_per_s, dt_s)
-    return (end_value(pieces, x),)
+    return (rate_limited_lag_end(x, u_w, 0.0, params.t_lag_s, params.rate_up_w_per_s,
+                                 params.rate_down_w_per_s, dt_s),)
 
 
 def output(params: PVParams, core: tuple) -> float:

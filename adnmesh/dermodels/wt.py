@@ -20,11 +20,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cached_property, lru_cache
 
 from scipy.optimize import brentq
 
-from adnmesh.dermodels.pieces import end_value, rate_limited_lag
+from adnmesh.dermodels.pieces import rate_limited_lag_end
 from adnmesh.dermodels.risetime import ModelFunctions, rise_time
 from adnmesh.dermodels.state import DerState, evaluate, queue_set_point
 
@@ -78,7 +78,7 @@ class WTParams:
                         self.rate_down_w_per_s) > 0 and 0 <= self.p_min_w <= self.p_max_w):
             raise ValueError(f"invalid WT model parameters: {self}")
 
-    @property
+    @cached_property
     def t_delay_ns(self) -> int:
         """Dead time, ns."""
         return int(round(self.t_delay_s * 1e9))
@@ -107,9 +107,8 @@ def advance(params: WTParams, core: tuple, u_w: float, dt_s: float) -> tuple:
         else:
             s, t_reach = 0.0, math.inf
         step = min(dt_s - t, t_reach)
-        pieces = rate_limited_lag(x, r, s, params.t_lag_s, params.rate_up_w_per_s,
-                                  params.rate_down_w_per_s, step)
-        x = end_value(pieces, x)
+        x = rate_limited_lag_end(x, r, s, params.t_lag_s, params.rate_up_w_per_s,
+                                 params.rate_down_w_per_s, step)
         r = u_w if step == t_reach else r + s * step
         t += step
     return (r, x)
