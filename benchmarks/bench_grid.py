@@ -2,15 +2,15 @@
 
 The operating points are those of a control run on configs/simbench.yaml: the eleven actuators
 start at their schedule (the wind turbines at half their installed power, CHP and PV at 0 W),
-then every ``--period-s`` the reference model (PT1 behind a dead time, SPEC §2) moves them
-towards setpoints that step by +-1 MW (shared by installed power) every 5 s, plus a small
-random jitter (0.05 % of P_inst): small steps between consecutive samples, as the measurement
-agent sees them. Prints, per repeat, the median and p99 time of one solve (GridSolver.solve)
-(wall clock; CPU time of the thread beside it, which preemption on a shared machine does not
-inflate) beside pandapower's runpp on every ``--runpp-every``-th point of the same run (default init, and
-init="results", pandapower's own warm start), their ratio, and the largest |dP_IP| and |dQ_IP|;
-then the cold load time (fresh interpreter, empty cache: simbench, pandapower and the grid
-build) and the cached one (fresh interpreter, warm cache, up to the first solved sample).
+then every ``--period-s`` each moves by a first-order lag (its reference-model T) towards a
+setpoint that steps by +-1 MW (shared by installed power) every 5 s, plus a small random jitter
+(0.05 % of P_inst): small steps between consecutive samples, as the measurement agent sees them.
+Prints, per repeat, the median and p99 time of one solve (GridSolver.solve; wall clock, and the
+thread's CPU time, which preemption on a shared machine does not inflate) beside pandapower's
+runpp on every ``--runpp-every``-th point of the same run (default init, and init="results",
+pandapower's own warm start), their ratio, and the largest |dP_IP| and |dQ_IP|; then the cold
+load time (fresh interpreter, empty cache: simbench, pandapower and the grid build) and the
+cached one (fresh interpreter, warm cache; and up to the first solved sample).
 
     .venv/bin/python benchmarks/bench_grid.py [--samples 3000] [--repeat 3] [--runpp-every 10]
 """
