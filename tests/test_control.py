@@ -14,7 +14,7 @@ from adnmesh.control.registry import build_agent
 from adnmesh.control.availability import AvailabilityMonitor
 from adnmesh.control.cpfc import CPFC, GainSchedule, initial_p_ref_w, output_limits
 from adnmesh.control.der import DERController
-from adnmesh.control.dynamics import PT1DelayParams, PT1DelayState, infeed_at, set_point
+from adnmesh.dermodels.pt1 import PT1DelayParams, PT1DelayState, infeed_at, set_point
 from adnmesh.control.measurement import Measurement
 from adnmesh.control.pi import SampledPI
 from adnmesh.sim.node import Node
@@ -61,11 +61,11 @@ def test_pt1_with_delay_is_exact_for_piecewise_constant_setpoints() -> None:
 
 def test_pt1_reaches_the_rise_time_of_the_config(config: Config) -> None:
     der = config.ders[0]
-    params = PT1DelayParams.from_der(der)
+    params = PT1DelayParams(der.p_inst_w, int(round(der.t_delay_s * 1e9)), config.t_lag_s(der))
     state = PT1DelayState.steady(0.0)
     set_point(params, state, 0, 1.0)
-    t10 = params.t_delay_ns * 1e-9 - der.t_lag_s * math.log(0.9)
-    t90 = params.t_delay_ns * 1e-9 - der.t_lag_s * math.log(0.1)
+    t10 = params.t_delay_ns * 1e-9 - config.t_lag_s(der) * math.log(0.9)
+    t90 = params.t_delay_ns * 1e-9 - config.t_lag_s(der) * math.log(0.1)
     assert infeed_at(params, state, round(t10 * 1e9)) == pytest.approx(0.1, abs=1e-8)
     assert infeed_at(params, state, round(t90 * 1e9)) == pytest.approx(0.9, abs=1e-8)
     assert t90 - t10 == pytest.approx(der.t_rise_s, rel=1e-12)
@@ -361,9 +361,10 @@ def test_build_agent_knows_every_agent(config, table) -> None:
         build_agent("cpfc", config)
 
 
-def test_der_defaults_follow_the_config_dataclass() -> None:
+def test_der_defaults_follow_the_config_dataclass(config) -> None:
     der = DER(id="X", type="PV", p_inst_w=1e5, t_delay_s=0.0, t_rise_s=0.1, sgen="s")
-    assert PT1DelayParams.from_der(der).t_delay_ns == 0
+    assert (der.p_sched_w, der.model) == (0.0, None)
+    assert DERController(der, config).params.t_delay_ns == 0
 
 
 def test_pi_switch_to_a_narrower_range_continues_from_its_limit() -> None:

@@ -11,7 +11,7 @@ from scipy.integrate import solve_ivp
 from scipy.optimize import brentq, minimize
 
 from adnmesh import dermodels as dm
-from adnmesh.control import dynamics
+from adnmesh.dermodels import pt1 as dynamics
 from adnmesh.dermodels import chp, pv, wt
 from adnmesh.dermodels.pieces import lag_of_pieces, rate_limited_lag, rate_limited_lag_end
 from adnmesh.dermodels.plots import plot_der_models

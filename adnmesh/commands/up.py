@@ -105,6 +105,23 @@ def _table(args, config: Config, run_dir: Path, run_id: str, log) -> Path:
     return path
 
 
+def _operating_point(config: Config, log) -> dict[str, float]:
+    """The DERs' available power (loading the grid model once, before any agent starts: the
+    first time it builds its disk cache, which takes tens of seconds); checks every DER's
+    model parameters."""
+    from adnmesh.control.der_model import check_der_models
+    from adnmesh.control.operating_point import available_power_w, initial_p_ip_w
+
+    if config.grid_model is not None:
+        log(f"grid model: SimBench {config.simbench_code}, study case "
+            f"{config.grid_model.study_case} (the first time: tens of seconds to build its cache)")
+    available = available_power_w(config)
+    check_der_models(config, available)
+    if config.grid_model is not None:
+        log(f"grid model ready: P_IP {initial_p_ip_w(config) / 1e6:.4f} MW at the schedules")
+    return available
+
+
 def _check_arguments(args: argparse.Namespace) -> None:
     if args.speed is not None and args.clock != "realtime":
         raise UsageError("--speed needs --clock realtime")
@@ -134,12 +151,14 @@ def run(args: argparse.Namespace) -> int:
 
     run_id = f"{Path(config.path).stem}-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"
     out = Path(args.out) if args.out else Path("logs") / f"{run_id}.mcap"
+    available = _operating_point(config, log)
     table_path = _table(args, config, out.parent, run_id, log)
     options = UpOptions(
         config=config, table_path=table_path, out=out, clock=args.clock,
         speed=args.speed or 1.0,
         seed=config.runtime.seed if args.seed is None else args.seed,
         listen=args.listen, log=log, run_id=run_id, run_file=run_file_path(out),
+        available_w=available,
         metadata={"run_id": run_id, "table_sha256":
                   hashlib.sha256(table_path.read_bytes()).hexdigest()},
     )

@@ -4,7 +4,9 @@
   reference, rate-limited first-order lag; steps up slower than steps down);
 - :mod:`~adnmesh.dermodels.chp`: CHP plant, two lags in series with a rate limit (S-shaped,
   slow);
-- :mod:`~adnmesh.dermodels.pv`: PV plant, processing delay and a first-order lag with limits.
+- :mod:`~adnmesh.dermodels.pv`: PV plant, processing delay and a first-order lag with limits;
+- :mod:`~adnmesh.dermodels.pt1`: the reference model (SPEC §2), a first-order lag behind a
+  dead time, exact between setpoint changes.
 
 Every model has a frozen parameter dataclass (plain numbers: W, s, W/s), the shared
 :class:`~adnmesh.dermodels.state.DerState`, and the reference model's two functions
@@ -20,7 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from adnmesh.dermodels import chp, pv, wt
+from adnmesh.dermodels import chp, pt1, pv, wt
 from adnmesh.dermodels.chp import CHPParams
 from adnmesh.dermodels.pv import PVParams
 from adnmesh.dermodels.risetime import ModelFunctions
@@ -63,9 +65,8 @@ def functions(params) -> ModelFunctions:
     """The model functions that go with ``params`` (any model here, or the reference PT1)."""
     if type(params) in _BY_PARAMS:
         return _BY_PARAMS[type(params)].FUNCTIONS
-    from adnmesh.control.dynamics import PT1DelayParams
-    if isinstance(params, PT1DelayParams):
-        return _pt1_functions()
+    if isinstance(params, pt1.PT1DelayParams):
+        return _PT1_FUNCTIONS
     raise TypeError(f"no DER model has parameters of type {type(params).__name__}")
 
 
@@ -85,14 +86,9 @@ def infeed_at(params, state, t_ns: int) -> float:
 
 
 def reference_pt1(p_inst_w: float, t_delay_s: float, t_lag_s: float):
-    """Parameters of the reference model (:mod:`adnmesh.control.dynamics`, unchanged)."""
-    from adnmesh.control.dynamics import PT1DelayParams
-    return PT1DelayParams(p_inst_w, int(round(t_delay_s * 1e9)), t_lag_s)
+    """Parameters of the reference model (:mod:`adnmesh.dermodels.pt1`)."""
+    return pt1.PT1DelayParams(p_inst_w, int(round(t_delay_s * 1e9)), t_lag_s)
 
 
-def _pt1_functions() -> ModelFunctions:
-    from adnmesh.control import dynamics
-
-    def steady(params, p_w, t_ns=0):
-        return dynamics.PT1DelayState.steady(p_w, t_ns)
-    return ModelFunctions(steady, dynamics.set_point, dynamics.infeed_at)
+_PT1_FUNCTIONS = ModelFunctions(lambda params, p_w, t_ns=0: pt1.PT1DelayState.steady(p_w, t_ns),
+                                pt1.set_point, pt1.infeed_at)

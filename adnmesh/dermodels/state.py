@@ -8,7 +8,7 @@ A model is its parameters (a frozen dataclass with ``t_delay_s``, ``p_min_w``, `
 
 :class:`DerState` holds the core at ``t_ns``, the input the dynamics currently see and the
 setpoints still inside the dead time. :func:`set_point` and :func:`infeed_at` have the shape of
-the reference model's (:mod:`adnmesh.control.dynamics`): a setpoint given at ``t`` reaches the
+the reference model's (:mod:`adnmesh.dermodels.pt1`): a setpoint given at ``t`` reaches the
 dynamics at ``t + t_delay`` (limited to ``[p_min_w, p_max_w]``), and ``infeed_at(t)`` is exact.
 
 The core is committed only at the instants where the dynamics' input changes; the infeed at any

@@ -31,14 +31,18 @@ worker was woken for work it seldom found, which cost a fifth of a run's context
 about 8 % of its CPU time on two cores."""
 
 
-def agent_argv(agent_id: str, config_path: Path, endpoint: str, table_path: Path) -> list[str]:
-    """Command line of the process of ``agent_id``."""
+def agent_argv(agent_id: str, config_path: Path, endpoint: str, table_path: Path,
+               p_avail_w: float | None = None) -> list[str]:
+    """Command line of the process of ``agent_id`` (a DER may be told its available power, W,
+    so that it need not load the grid to learn it)."""
     der_id = der_id_of(agent_id)
     kind = "der" if der_id is not None else agent_id
     argv = [sys.executable, str(AGENTS_DIR / f"{kind}.py"), str(config_path),
             "--connect", endpoint]
     if der_id is not None:
         argv += ["--der", der_id]
+        if p_avail_w is not None:
+            argv += ["--p-avail-w", repr(float(p_avail_w))]
     if kind == "cpfc":
         argv += ["--table", str(table_path)]
     return argv

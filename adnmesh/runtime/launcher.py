@@ -89,6 +89,8 @@ class UpOptions:
     run_file : Path, optional
         Where to describe the running run (endpoint, grid, pid) for ``adnmesh fault``;
         removed when the run ends.
+    available_w : dict
+        DER id -> its available power, W, handed to the DER processes.
     """
 
     config: Config
@@ -104,6 +106,7 @@ class UpOptions:
     log: Callable[[str], None] = lambda line: None
     run_id: str = ""
     run_file: Path | None = None
+    available_w: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -234,8 +237,9 @@ class _Launch:
 
     def spawn(self, agent_id: str, resume_ns: int = 0) -> None:
         """Start the process of ``agent_id`` (a restarted one begins at ``resume_ns``)."""
+        der_id = agent_id[4:] if agent_id.startswith("der/") else None
         argv = agent_argv(agent_id, Path(self.config.path), self.endpoint,
-                          self.options.table_path)
+                          self.options.table_path, self.options.available_w.get(der_id))
         if resume_ns:
             argv += ["--resume-at-ns", str(resume_ns)]
         self.children.spawn(agent_id, argv)
