@@ -36,7 +36,8 @@ def test_inspect_summarises_a_complete_recording(fake: Path, capsys) -> None:
     assert "adn/fake/measurement/p_ip p_ip 601 0.000 60.000" in lines
     assert "adn/fake/der/WT1/state der_state 601 0.000 60.000" in lines
     assert "adn/fake/fault/der/CHP1 fault 2 40.000 42.000" in lines
-    assert any(line.startswith("5 +1.000 2.700 1.20 1.60 0.5") for line in lines)
+    assert "5.00 +1.000 1.186 1.588 0.585 -1.33 10.00" in lines     # window ends at the next step
+    assert "50.00 -0.200 5.978 6.912 4.324 8.65 10.00" in lines     # ... at the end of the run
     assert "events: 1 gain switches, 1 availability changes, 2 fault events, 4 DER mode " \
            "changes" in lines
     assert any(line.startswith("25.000 s gain switch to entry 12: K_P 6.593e-08 -> 6.364e-07")

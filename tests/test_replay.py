@@ -156,10 +156,13 @@ def test_summary_figures_of_the_fake_run(fake) -> None:
     figures = run_figures(extract(read_recording(fake)))
     assert [s.t_s for s in figures.steps] == [5.0, 15.0, 30.0, 50.0]
     first = figures.steps[0]
-    assert first.delta_w == 1.0e6 and first.target_w == pytest.approx(2.7e6)
-    assert 0.5 < first.rise_time_s < 3 and first.settling_time_s < 5 and first.overshoot_pct < 1
+    assert first.step_w == 1.0e6 and first.p_ref_w == pytest.approx(2.7e6)
+    assert 0.5 < first.figures.rise_time_s < 3 and first.figures.settling_time_s < 5
+    assert first.figures.overshoot_pct < 1
     slow = figures.steps[2]  # after the WTs left: the CHP plant dominates
-    assert slow.rise_time_s > 3 * first.rise_time_s
+    assert slow.figures.rise_time_s > 3 * first.figures.rise_time_s
+    # each window ends at the next event: step, gain switch, fault start, end of the run
+    assert [s.window_s for s in figures.steps] == [10.0, 10.0, 10.0, 10.0]
     assert (figures.gain_switches, figures.availability_changes, figures.faults,
             figures.mode_changes) == (1, 1, 2, 4)
     assert figures.max_error_w == pytest.approx(1.0e6, rel=0.01)

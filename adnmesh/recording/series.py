@@ -106,10 +106,12 @@ liveliness, heartbeats); they are still counted by ``adnmesh inspect``."""
 
 @dataclass(frozen=True)
 class Event:
-    """Something that happened: a gain switch, an availability change, a fault, a DER mode change.
+    """Something that happened: a gain switch, an availability change, a fault, a DER mode change,
+    a DER's heartbeat flag change, the run's start.
 
     ``t_ns`` is the send time; ``data`` holds the details (e.g. ``available`` for an availability
-    change, ``active`` for a fault that has a start and an end).
+    change, ``active`` for a fault that has a start and an end, ``switch`` for a gain switch
+    that carries the CPFC's switch record, ``end_ns`` for the run's start).
     """
 
     t_ns: int
@@ -140,7 +142,8 @@ def _gain_switch(body: dict, previous: dict | None, captures: dict) -> tuple[str
         text += f", P_Y {_g(before.get('p_y_before'))} -> {_g(body.get('p_y'))}"
     if active:
         text += f"; DERs: {', '.join(active)}"
-    return "INFO", text, {"kp": kp, "ki": ki, "entry": body.get("entry"), "active": active}
+    return "INFO", text, {"kp": kp, "ki": ki, "entry": body.get("entry"), "active": active,
+                          "switch": isinstance(switch, Mapping)}
 
 
 def _der_mode(body: dict, previous: dict | None, captures: dict) -> tuple[str, str, dict] | None:
@@ -151,6 +154,29 @@ def _der_mode(body: dict, previous: dict | None, captures: dict) -> tuple[str, s
     der = captures.get("der", "?")
     return ("WARN" if mode == "watchdog" else "INFO", f"{der}: mode {old} -> {mode}",
             {"der": der, "mode": mode})
+
+
+def _der_available(body: dict, previous: dict | None,
+                   captures: dict) -> tuple[str, str, dict] | None:
+    """A DER heartbeat whose ``available`` flag differs from the DER's previous heartbeat's
+    (a DER counts as available before its first heartbeat)."""
+    flag = body.get("available")
+    old = True if previous is None else previous.get("available")
+    if not isinstance(flag, bool) or flag == old:
+        return None
+    der = captures.get("der", "?")
+    return ("INFO", f"{der}: heartbeat says {'available' if flag else 'unavailable'}",
+            {"der": der, "available": flag})
+
+
+def _run_start(body: dict, previous: dict | None, captures: dict) -> tuple[str, str, dict] | None:
+    """The sim clock's start message: the clock mode and the run's end (``end_ns``)."""
+    end = body.get("end_ns")
+    if not isinstance(end, int) or isinstance(end, bool):
+        return None
+    clock = body.get("clock", "?")
+    return "INFO", f"run starts: {clock} clock, ends at {end / 1e9:g} s", {"end_ns": end,
+                                                                          "clock": clock}
 
 
 def _fault(body: dict, previous: dict | None, captures: dict) -> tuple[str, str, dict] | None:
@@ -167,7 +193,9 @@ EventRule = Callable[[dict, "dict | None", dict], "tuple[str, str, dict] | None"
 EVENTS: dict[str, tuple[str, EventRule]] = {
     "adn/{grid}/cpfc/p_y": ("gain_switch", _gain_switch),
     "adn/{grid}/der/{der}/state": ("der_mode", _der_mode),
+    "adn/{grid}/der/{der}/heartbeat": ("der_available", _der_available),
     "adn/{grid}/fault/**": ("fault", _fault),
+    "adn/{grid}/clock/start": ("run_start", _run_start),
 }
 """Key pattern -> (event kind, rule). A rule gets the payload body, the body of the previous
 message on the same key (None for the first) and the key's captures, and returns

@@ -2,13 +2,16 @@
 
 For every step of ``P_ref`` (the CPFC's ``scenario/p_ref`` records) the response of ``P_IP``
 (the measurement's samples, at their sampling instants) until the next event (step, gain switch,
-a DER's availability change, an injected fault) or the end:
+a DER's availability change, an injected fault) or the end: rise time (10-90 %), settling time
+in ``band_pct`` % and in 2 % of the step, overshoot, peak, and the steady error ``P_ref - P_IP``
+at the window's last sample, W. The figures and the windows are those of
+:func:`adnmesh.stepfigures.reference_step_figures`, the rule ``adnmesh inspect`` applies to the
+recording too (:mod:`adnmesh.recording.figures`), so both print the same figures.
 
-- **rise time**: from 10 % to 90 % of the step (first crossings, interpolated linearly), s;
-- **settling time**: from the step until ``P_IP`` stays within ``band_pct`` % of the step around
-  the new reference (interpolated), s; None if it never settles in the window;
-- **overshoot**: beyond the new reference in the step's direction, % of the step;
-- **steady error**: ``P_ref - P_IP`` at the last sample of the window, W.
+The events that end a window (:class:`RunSeries`): a ``p_y`` message with a ``switch`` record,
+a DER heartbeat whose ``available`` flag differs from the DER's previous one (every DER
+counts as available before its first heartbeat), an SI message whose set of available DERs
+differs from the previous SI's (the first SI is the initial state), every ``fault`` message.
 
 For every gain switch (``cpfc/p_y`` messages with a ``switch`` record): the largest
 ``|P_IP - P_ref|`` in the ``window_s`` (10 s) after it, and the jump of ``P_Y`` at the switch
@@ -21,19 +24,22 @@ limiting reported apart (``p_y_limited_by``). Plus wall time, simulated time and
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from adnmesh.stepfigures import ReferenceStep, reference_step_figures
+
 __all__ = [
+    "MESSAGE_TYPES",
     "RunSeries",
     "RunSummary",
-    "StepFigures",
     "SwitchFigures",
-    "step_figures",
     "summarize",
 ]
+
+MESSAGE_TYPES = frozenset({"p_ip", "p_ref", "p_y", "heartbeat", "si", "fault"})
+"""The message types :meth:`RunSeries.add` takes (of ``p_y`` only those with a ``switch``)."""
 
 
 @dataclass
@@ -50,8 +56,8 @@ class RunSeries:
         One per gain switch: ``t_ns``, ``p_y_before``, ``p_y_limited`` (limited to the new
         output range), ``p_y_after``, ``available`` (DER ids).
     disturbances_ns : list of int
-        Instants of other events that disturb ``P_IP`` (a DER's availability changes, an
-        injected fault starts or ends); a step's window ends at the next one.
+        Instants of other events that disturb ``P_IP`` (a DER's availability flag or SI
+        changes, an injected fault starts or ends); a step's window ends at the next one.
     """
 
     p_ip_t_ns: list = field(default_factory=list)
@@ -81,22 +87,13 @@ class RunSeries:
             if self._flags.get(body["src"], True) != body["available"]:
                 self.disturbances_ns.append(body["t_send_ns"])
             self._flags[body["src"]] = body["available"]
+        elif message_type == "si":
+            available = frozenset(d for d, flag in body["si"].items() if flag)
+            if self._flags.get("si", available) != available:
+                self.disturbances_ns.append(body["t_send_ns"])
+            self._flags["si"] = available
         elif message_type == "fault":
             self.disturbances_ns.append(body["t_send_ns"])
-
-
-@dataclass(frozen=True)
-class StepFigures:
-    """Response of ``P_IP`` to one step of ``P_ref`` (see the module docstring)."""
-
-    t_s: float
-    step_w: float
-    p_ref_w: float
-    rise_time_s: float | None
-    settling_time_s: float | None
-    overshoot_pct: float | None
-    steady_error_w: float | None
-    window_s: float
 
 
 @dataclass(frozen=True)
@@ -114,7 +111,7 @@ class SwitchFigures:
 class RunSummary:
     """Everything ``adnmesh up`` prints at the end (and writes with ``--summary-json``)."""
 
-    steps: tuple[StepFigures, ...]
+    steps: tuple[ReferenceStep, ...]
     switches: tuple[SwitchFigures, ...]
     band_pct: float
     sim_time_s: float
@@ -135,54 +132,6 @@ def _finite(value):
     if isinstance(value, list | tuple):
         return [_finite(v) for v in value]
     return value
-
-
-def _crossing(t: np.ndarray, y: np.ndarray, level: float) -> float | None:
-    """First time ``y`` reaches ``level`` (from below), linearly interpolated; None if never."""
-    above = np.nonzero(y >= level)[0]
-    if above.size == 0:
-        return None
-    i = int(above[0])
-    if i == 0:
-        return float(t[0])
-    t0, t1, y0, y1 = t[i - 1], t[i], y[i - 1], y[i]
-    return float(t0 + (t1 - t0) * (level - y0) / (y1 - y0))
-
-
-def step_figures(t_s: Sequence[float], y: Sequence[float], band: float = 0.05):
-    """Rise time, settling time and overshoot of a normalised step response.
-
-    Parameters
-    ----------
-    t_s : sequence of float
-        Times from the step, s (increasing, starting at or after 0).
-    y : sequence of float
-        Response normalised to the step (0 before, 1 at the target).
-    band : float
-        Settling band as a fraction of the step.
-
-    Returns
-    -------
-    (rise_time_s, settling_time_s, overshoot_pct)
-        Each None where undefined (no samples, 90 % never reached, not settled at the end).
-    """
-    t = np.asarray(t_s, dtype=float)
-    y = np.asarray(y, dtype=float)
-    if t.size == 0:
-        return None, None, None
-    t10, t90 = _crossing(t, y, 0.1), _crossing(t, y, 0.9)
-    rise = None if t10 is None or t90 is None else t90 - t10
-    overshoot = max(0.0, 100.0 * (float(y.max()) - 1.0))
-    outside = np.nonzero(np.abs(y - 1.0) > band)[0]
-    if outside.size == 0:
-        settling = 0.0
-    elif outside[-1] == t.size - 1:
-        settling = None
-    else:
-        i = int(outside[-1])
-        target = 1.0 + band if y[i] > 1.0 else 1.0 - band
-        settling = float(t[i] + (t[i + 1] - t[i]) * (target - y[i]) / (y[i + 1] - y[i]))
-    return rise, settling, overshoot
 
 
 def _p_ref_at(series: RunSeries, t_ns: np.ndarray) -> np.ndarray:
@@ -211,28 +160,12 @@ def summarize(series: RunSeries, *, end_ns: int, band_pct: float = 5.0,
     extra : dict, optional
         Further figures to carry along (message counts, clock grants, ...).
     """
+    steps = reference_step_figures(
+        series.p_ip_t_ns, series.p_ip_w, series.p_ref_t_ns, series.p_ref_w,
+        [*(s["t_ns"] for s in series.switches), *series.disturbances_ns], end_ns,
+        band_pct=band_pct)
     t_ip = np.asarray(series.p_ip_t_ns, dtype=np.int64)
     p_ip = np.asarray(series.p_ip_w, dtype=float)
-    order = np.argsort(t_ip, kind="stable")
-    t_ip, p_ip = t_ip[order], p_ip[order]
-    steps = []
-    ref_t, ref_v = list(series.p_ref_t_ns), list(series.p_ref_w)
-    ends = sorted([*ref_t, *(s["t_ns"] for s in series.switches), *series.disturbances_ns,
-                   end_ns + 1])
-    for k in range(1, len(ref_t)):
-        t0 = ref_t[k]
-        t1 = ends[int(np.searchsorted(ends, t0, side="right"))]
-        before, after = ref_v[k - 1], ref_v[k]
-        step = after - before
-        if step == 0:
-            continue
-        inside = (t_ip >= t0) & (t_ip < t1)
-        t_rel = (t_ip[inside] - t0) * 1e-9
-        y = (p_ip[inside] - before) / step
-        rise, settle, overshoot = step_figures(t_rel, y, band_pct / 100.0)
-        steady = float(after - p_ip[inside][-1]) if inside.any() else None
-        steps.append(StepFigures(t0 * 1e-9, step, after, rise, settle, overshoot, steady,
-                                 (t1 - t0) * 1e-9))
     switches = []
     for s in series.switches:
         inside = (t_ip >= s["t_ns"]) & (t_ip <= s["t_ns"] + int(window_s * 1e9))
@@ -244,7 +177,7 @@ def summarize(series: RunSeries, *, end_ns: int, band_pct: float = 5.0,
                                       float(limited - s["p_y_before"])))
     sim_s = end_ns * 1e-9
     speed = sim_s / wall_time_s if wall_time_s else None
-    return RunSummary(tuple(steps), tuple(switches), band_pct, sim_s, wall_time_s, speed,
+    return RunSummary(steps, tuple(switches), band_pct, sim_s, wall_time_s, speed,
                       dict(extra or {}))
 
 
@@ -252,22 +185,12 @@ def format_summary(summary: RunSummary):
     """Rich renderables (tables and lines) of a summary, for the console."""
     from rich.table import Table
 
+    from adnmesh.recording.figures import step_table
+
     def num(value, fmt):
         return "-" if value is None else format(value, fmt)
 
-    out = []
-    steps = Table(title=f"P_ref steps (P_IP; settling band {summary.band_pct:g} %)",
-                  title_justify="left")
-    for column in ("t [s]", "step [MW]", "rise [s]", "settling [s]", "overshoot [%]",
-                   "steady error [W]"):
-        steps.add_column(column, justify="right")
-    for s in summary.steps:
-        steps.add_row(f"{s.t_s:.2f}", f"{s.step_w / 1e6:+.3f}", num(s.rise_time_s, ".3f"),
-                      num(s.settling_time_s, ".3f"), num(s.overshoot_pct, ".3f"),
-                      num(s.steady_error_w, ".3g"))
-    if not summary.steps:
-        steps.add_row("", "no steps", "", "", "", "")
-    out.append(steps)
+    out = [step_table(summary.steps, summary.band_pct, "P_ref steps: P_IP")]
     switches = Table(title="gain switches", title_justify="left")
     for column in ("t [s]", "available DERs", "max |P_IP - P_ref| in 10 s [W]", "P_Y jump"):
         switches.add_column(column, justify="right" if column != "available DERs" else "left")
