@@ -3,9 +3,11 @@
 :func:`advance` runs the method of steps of :mod:`adnmesh.stepresp` for M candidates over a
 block of samples, with delays read from precomputed (interpolating) taps; :func:`advance_exact`
 is the same arithmetic for the common case of delays that are whole multiples of the step, with
-the buffer columns computed in the loop (no taps, no interpolation). They are the only hot loops
-of the numerics: everything else is vectorised numpy. Candidates are independent, so the outer
-loop runs in parallel threads for large batches.
+the buffer columns computed in the loop (no taps, no interpolation). :func:`accumulate` is the
+step-figure rule of :mod:`adnmesh.stepfigures` (rise, settling, peak of sampled responses, on
+the simulation's uniform grid or at given sample times). They are the only hot loops of the
+numerics: everything else is vectorised numpy. Candidates are independent, so the outer loop
+of the simulation runs in parallel threads for large batches.
 """
 from __future__ import annotations
 

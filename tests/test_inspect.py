@@ -165,3 +165,62 @@ def test_inspect_runs_as_a_program(fake: Path) -> None:
                             capture_output=True, text=True, timeout=60, check=False)
     assert result.returncode == 0, result.stderr
     assert "3918 messages on 13 topics" in result.stdout
+
+
+def test_inspect_finds_the_windows_of_up_s_summary(tmp_path: Path) -> None:
+    """Every event that ends a step's window in ``up``'s summary ends it in ``inspect`` too:
+    a switch record, a heartbeat flag change, an SI change alone (a heartbeat timeout), a
+    fault; not a gain change without a switch record, not the initial SI nor a repeated one;
+    the last window closes at the start message's end."""
+    import dataclasses
+    import json
+    import math
+
+    import numpy as np
+
+    from adnmesh.recording.figures import run_figures
+    from adnmesh.recording.series import extract
+    from adnmesh.runtime import messages
+    from adnmesh.runtime.summary import MESSAGE_TYPES, RunSeries, summarize
+
+    keys, s = messages.Keys("g"), 1_000_000_000
+    gains = {"p_y": 0.1, "p_ref_w": 0.0, "kp": 1e-7, "ki": 2e-7, "entry": 3}
+    events = [(0, keys.start, "up", {"clock": "sim", "epoch_ns": 0, "speed": 1.0,
+                                     "end_ns": 70 * s, "seed": 0}),
+              (0, keys.si, "availability", {"si": {"A": True, "B": True}}),
+              (3 * s, keys.si, "availability", {"si": {"A": True, "B": True}}),
+              (8 * s, keys.p_y, "cpfc", {**gains, "kp": 3e-7}),          # no switch record
+              (12 * s, keys.p_y, "cpfc", {**gains, "w": {"A": 1.0}, "switch": {
+                  "p_y_before": 0.1, "kp_before": 3e-7, "ki_before": 2e-7}}),
+              (15 * s, keys.heartbeat("B"), "der/B", {"available": True}),
+              (22 * s, keys.heartbeat("B"), "der/B", {"available": False}),
+              (33 * s, keys.si, "availability", {"si": {"A": False, "B": False}}),
+              (41 * s, keys.fault("der/A"), "der/A", {"fault": "der_offline", "agent": "der/A",
+                                                      "active": True})]
+    steps = ((0, 0.0), (5, 1e6), (20, 0.0), (30, 1e6), (40, 0.0), (60, 1e6))
+    events += [(t * s, keys.p_ref, "cpfc", {"p_ref_w": w}) for t, w in steps]
+    p_ip = 0.0                                   # P_ref through a 1 s lag, sampled every 10 ms
+    for k in range(7001):
+        events.append((k * 10_000_000, keys.p_ip, "measurement", {"p_ip_w": p_ip}))
+        p_ref = [w for t, w in steps if t * 100 <= k][-1]
+        p_ip += (p_ref - p_ip) * (1 - math.exp(-0.01))
+    path = tmp_path / "windows.mcap"
+    series = RunSeries()
+    with messages_recorder(path, messages) as recorder:
+        for i, (t_ns, key, src, body) in enumerate(sorted(events, key=lambda e: e[0])):
+            kind = messages.message_type(key)
+            payload = messages.encode(kind, src, i, t_ns, t_ns + 1, body)
+            recorder.write(key, kind, payload, log_time_ns=t_ns + 1, publish_time_ns=t_ns)
+            if kind in MESSAGE_TYPES and (kind != "p_y" or "switch" in body):
+                series.add(kind, json.loads(payload))
+    summary = summarize(series, end_ns=70 * s)
+    inspected = run_figures(extract(read_recording(path)))
+    assert [(x.t_s, x.window_s) for x in summary.steps] == [
+        (5.0, 7.0), (20.0, 2.0), (30.0, 3.0), (40.0, 1.0), (60.0, 10.0)]
+    assert math.isnan(summary.steps[3].figures.rise_time_s)     # 1 s: no 90 % crossing
+    np.testing.assert_equal([dataclasses.astuple(x) for x in inspected.steps],
+                            [dataclasses.astuple(x) for x in summary.steps])
+
+
+def messages_recorder(path: Path, messages):
+    return Recorder(path, metadata={}, schemas=messages.SCHEMAS)

@@ -67,6 +67,7 @@ class RunSeries:
     switches: list = field(default_factory=list)
     disturbances_ns: list = field(default_factory=list)
     _flags: dict = field(default_factory=dict, repr=False)
+    _si: frozenset | None = field(default=None, repr=False)
 
     def add(self, message_type: str, body: dict) -> None:
         """Take one decoded message (envelope and body) if the summary needs it."""
@@ -89,9 +90,9 @@ class RunSeries:
             self._flags[body["src"]] = body["available"]
         elif message_type == "si":
             available = frozenset(d for d, flag in body["si"].items() if flag)
-            if self._flags.get("si", available) != available:
+            if self._si is not None and self._si != available:
                 self.disturbances_ns.append(body["t_send_ns"])
-            self._flags["si"] = available
+            self._si = available
         elif message_type == "fault":
             self.disturbances_ns.append(body["t_send_ns"])
 
