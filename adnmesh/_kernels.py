@@ -134,7 +134,7 @@ _exact_parallel = numba.njit(cache=True, parallel=True)(_advance_exact)
 _exact_serial = numba.njit(cache=True, parallel=False)(_advance_exact)
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True)
 def _time_at(i, frac, t0, h, times):  # pragma: no cover - compiled
     """Time of the position ``i + frac`` between samples i and i + 1 (0 = ``last``).
 
@@ -146,7 +146,7 @@ def _time_at(i, frac, t0, h, times):  # pragma: no cover - compiled
     return times[i] + (times[i + 1] - times[i]) * frac
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True)
 def _vertex(ym, yc, yp, j, t0, h, times):  # pragma: no cover - compiled
     """Peak value and time of the parabola through samples j - 1, j, j + 1 if it is concave,
     else sample j itself.
