@@ -109,12 +109,17 @@ class StepFigureAccumulator:
         self.settle = self.settle[:, rows]
 
     def add(self, t0: float, h: float, chunk: np.ndarray, times: np.ndarray | None = None):
-        """Take in y at ``t0 + h, ..., t0 + n h`` (shape (M, n), n >= 1; ``last`` is at t0),
+        """Take in y at ``t0 + h, ..., t0 + n h`` (shape (M, n); ``last`` is at t0),
         or at ``times[1:]`` (``times`` (n + 1,), s, increasing, ``times[0]`` the time of
         ``last``). Returns each response's largest ``|second difference|`` of y in the block.
         """
         curvature = np.zeros(chunk.shape[0])
+        if chunk.shape[1] == 0:
+            return curvature
         times = _UNIFORM if times is None else np.ascontiguousarray(times, dtype=float)
+        if times.size and times.shape != (chunk.shape[1] + 1,):
+            raise ValueError(f"{chunk.shape[1]} samples need {chunk.shape[1] + 1} times, got "
+                             f"{times.shape}")
         accumulate(float(t0), float(h), times, np.ascontiguousarray(chunk, dtype=float),
                    self.last, self.t10, self.t90, self.peak, self.peak_t,
                    np.asarray(self.bands, float), self.settle, curvature)

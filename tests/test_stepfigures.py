@@ -211,3 +211,11 @@ def test_repeated_references_unsorted_nan_and_duplicate_samples():
     shifted = reference_step_figures(t, p, [0, 5 * S], [0.0, 1e6], [], 30 * S, origin_ns=S)
     assert shifted[0].t_s == 4.0
     assert reference_step_figures([], [], [0], [1e6], [], 30 * S) == ()
+
+
+def test_accumulator_refuses_mismatched_times_and_skips_empty_blocks():
+    acc = StepFigureAccumulator(2, (0.05,))
+    with pytest.raises(ValueError, match="3 samples need 4 times"):
+        acc.add(0.0, 0.0, np.ones((2, 3)), times=np.arange(3.0))
+    assert np.array_equal(acc.add(0.0, 0.1, np.empty((2, 0))), np.zeros(2))
+    assert np.array_equal(acc.last, np.zeros(2)) and np.all(acc.peak == -np.inf)
