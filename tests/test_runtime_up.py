@@ -107,10 +107,41 @@ def test_summary_of_the_run(reference_run) -> None:
     _, _, _, result, _, summary = reference_run
     (step,) = summary["steps"]
     assert step["t_s"] == 1.0 and step["step_w"] == 1e6
-    assert 2.0 < step["rise_time_s"] < 3.0 and step["overshoot_pct"] < 1.0
+    assert step["window_s"] == 7.0                # until SGen2's heartbeat says unavailable
+    figures = step["figures"]
+    assert 2.0 < figures["rise_time_s"] < 3.0 and figures["overshoot_pct"] < 1.0
     assert abs(step["steady_error_w"]) < 5e3                      # 0.5 % of the step
     assert summary["speed_factor"] > 1.0 and summary["extra"]["clock_grants"] > 0
     assert "P_ref steps" in result.stdout and "speed factor" in result.stdout
+
+
+def assert_inspect_agrees(recording, summary: dict) -> None:
+    """``adnmesh inspect``'s step figures of the recording are the summary's, exactly; and so
+    are the summary's own figures of every recorded message (SI included)."""
+    from adnmesh.commands.inspect import settling_band_pct
+    from adnmesh.recording.figures import run_figures
+    from adnmesh.recording.series import extract
+    from adnmesh.runtime.summary import MESSAGE_TYPES, RunSeries, RunSummary, summarize
+
+    def as_json(steps) -> list:
+        return json.loads(json.dumps(RunSummary(steps, (), 0, 0, None, None).to_json()["steps"]))
+
+    band = settling_band_pct(recording)
+    assert band == summary["band_pct"]
+    inspected = run_figures(extract(recording), band_pct=band)
+    assert inspected.steps and as_json(inspected.steps) == summary["steps"]
+    series = RunSeries()
+    for m in sorted(recording.messages, key=lambda m: m.publish_time_ns):
+        body = json.loads(m.data)
+        if body["type"] in MESSAGE_TYPES and (body["type"] != "p_y" or "switch" in body):
+            series.add(body["type"], body)
+    again = summarize(series, end_ns=int(summary["sim_time_s"] * 1e9), band_pct=band)
+    assert as_json(again.steps) == summary["steps"]
+
+
+def test_inspect_gives_the_summary_figures(reference_run) -> None:
+    _, _, _, _, recording, summary = reference_run
+    assert_inspect_agrees(recording, summary)
 
 
 # --- 7c: a gain switch with a non-zero integrator causes no jump in P_Y ---------------------------
@@ -158,7 +189,8 @@ def test_realtime_run_follows_the_step(tmp_path: Path) -> None:
     assert recording.run["clock"] == "realtime"
     (step,) = summary["steps"]
     # realtime is not deterministic: messages late on a loaded machine perturb the loop a little
-    assert 1.5 < step["rise_time_s"] < 4.0 and abs(step["steady_error_w"]) < 5e4
+    assert 1.5 < step["figures"]["rise_time_s"] < 4.0 and abs(step["steady_error_w"]) < 5e4, step
+    assert_inspect_agrees(recording, summary)
     assert summary["speed_factor"] == pytest.approx(8.0, rel=0.25)
 
 

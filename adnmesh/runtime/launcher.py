@@ -40,7 +40,7 @@ import zenoh
 
 from adnmesh import __version__
 from adnmesh.config import Config
-from adnmesh.recording import PUBLISHED_METADATA, Recorder
+from adnmesh.recording import PUBLISHED_METADATA, UNCOUNTED_METADATA, Recorder
 from adnmesh.runtime.bus import DEFAULT_HOST, free_port, router_config
 from adnmesh.runtime.children import AgentProcesses, agent_argv
 from adnmesh.runtime.injector import FaultInjector
@@ -395,6 +395,10 @@ def verify(launch: _Launch) -> None:
                                f"{', '.join(sorted(set(launch.injector.lost)))}")
     launch.recorder.add_metadata(PUBLISHED_METADATA,
                                  {k: str(v) for k, v in result.published.items()})
+    uncounted = {launch.tap.rejected_key: "payloads the recorder rejected",
+                 launch.keys.fault_request: "a person's fault requests",
+                 **{k: "a process of its agent died" for k in unverified}}
+    launch.recorder.add_metadata(UNCOUNTED_METADATA, uncounted)
 
 
 def _keys_of(launch: _Launch, agents) -> set[str]:
