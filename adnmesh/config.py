@@ -373,6 +373,11 @@ class Runtime(Section):
     measurement_timeout_s: _Period = 0.25
     """The CPFC holds output and integrator after this long without a measurement, s (more than
     measurement_period_s + measurement_to_cpfc.jitter_s)."""
+    realtime_tolerance_s: Annotated[float, Field(gt=0, le=_MAX_DELAY_S)] | None = None
+    """On the realtime clock, an event (message or timer) processed more than this late is an
+    overrun (the machine does not keep up with --speed), s of sim time; the measurement, whose
+    inputs have no delay, also processes each instant this much later. Default: 5 % of the
+    shortest ICT link delay."""
     links: Links = Links()
     """ICT channel model per link."""
     faults: _Events[Fault] = ()

@@ -45,6 +45,7 @@ from adnmesh.runtime.bus import DEFAULT_HOST, free_port, router_config
 from adnmesh.runtime.children import AgentProcesses, agent_argv
 from adnmesh.runtime.injector import FaultInjector
 from adnmesh.runtime.launcher_bus import LauncherOutbox, SimClockDriver
+from adnmesh.runtime.realtime import tolerance_ns
 from adnmesh.runtime.roster import Roster
 from adnmesh.runtime.summary import RunSeries
 from adnmesh.runtime.tap import RecorderTap, recording_schemas
@@ -52,9 +53,11 @@ from adnmesh.sim.clock import Coordinator
 from adnmesh.sim.topology import Topology
 from adnmesh.wire.units import ns
 
-__all__ = ["EXIT_FAILED", "EXIT_OK", "UpOptions", "UpResult", "run"]
+__all__ = ["EXIT_FAILED", "EXIT_NOT_REALTIME", "EXIT_OK", "UpOptions", "UpResult", "run"]
 
-EXIT_OK, EXIT_FAILED, EXIT_SIGINT, EXIT_SIGTERM = 0, 1, 130, 143
+EXIT_OK, EXIT_FAILED, EXIT_NOT_REALTIME, EXIT_SIGINT, EXIT_SIGTERM = 0, 1, 3, 130, 143
+NOT_REALTIME = "not real time"
+"""How the reason of a run stopped by ``--strict`` begins."""
 
 _POLL_S = 0.1   # longest wait between checks of the processes, s
 
@@ -91,6 +94,8 @@ class UpOptions:
         removed when the run ends.
     available_w : dict
         DER id -> its available power, W, handed to the DER processes.
+    strict : bool
+        Realtime: stop the run at the first overrun (exit code 3).
     """
 
     config: Config
@@ -107,6 +112,7 @@ class UpOptions:
     run_id: str = ""
     run_file: Path | None = None
     available_w: dict = field(default_factory=dict)
+    strict: bool = False
 
 
 @dataclass
@@ -116,7 +122,8 @@ class UpResult:
     Attributes
     ----------
     exit_code : int
-        0 success; 1 failure (agent died, recording incomplete, ...); 130/143 interrupted.
+        0 success; 1 failure (agent died, recording incomplete, ...); 3 stopped by ``--strict``
+        (not real time); 130/143 interrupted.
     reason : str
         Why the run ended (``finished``, ``SIGINT``, ``agent der/X died (...)``, ...).
     series : RunSeries
@@ -139,6 +146,8 @@ class UpResult:
         Clock grants issued (sim).
     problems : list of str
         What went wrong, one line each.
+    tolerance_ns : int
+        The realtime overrun tolerance, ns of sim time.
     """
 
     exit_code: int = EXIT_OK
@@ -154,6 +163,7 @@ class UpResult:
     rejected: dict = field(default_factory=dict)
     grants: int = 0
     problems: list = field(default_factory=list)
+    tolerance_ns: int = 0
 
 
 class _Launch:
@@ -177,6 +187,10 @@ class _Launch:
         self.outbox: LauncherOutbox | None = None
         self.injector = FaultInjector(self)
         self.epoch_ns = 0
+        self.result.tolerance_ns = tolerance_ns(self.config.runtime.realtime_tolerance_s,
+                                                self.topology)
+        self.not_realtime: str | None = None      # the first overrun, with --strict
+        self._overrun_log = [0.0, 0]              # next wall time to say one, how many unsaid
         self._start_body: dict | None = None
         self._handles: list = []
         self._token = None
@@ -232,6 +246,22 @@ class _Launch:
                 self.roster.note_bye(message)
             elif message.type == "fault_request":
                 self.injector.on_request(message)
+            elif message.type == "event" and message.kind == "overrun":
+                self.on_overrun(message)
+
+    def on_overrun(self, message) -> None:
+        """An agent cannot keep up: say so at once (at most once a second, with the count of
+        those not said); with ``--strict`` stop the run."""
+        now, (next_s, unsaid) = time.monotonic(), self._overrun_log
+        if now < next_s:
+            self._overrun_log[1] = unsaid + 1
+        else:
+            more = f" (and {unsaid} more overrun report(s))" if unsaid else ""
+            self.options.log(f"warning: {message.text}{more}")
+            self._overrun_log[:] = [now + 1.0, 0]
+        if self.options.strict and self.not_realtime is None:
+            self.not_realtime = f"{message.text} (--strict)"
+            self.roster.changed.set()
 
     # -- for the phases and the injector -------------------------------------------------------
 
@@ -261,6 +291,8 @@ class _Launch:
             return "SIGINT" if self.interrupted[0] == signal.SIGINT else "SIGTERM"
         if self.clock is not None and self.clock.error:
             return f"clock: {self.clock.error}"
+        if self.not_realtime is not None:
+            return f"{NOT_REALTIME}: {self.not_realtime}"
         return None
 
     def startup_failure(self) -> str | None:
@@ -312,7 +344,8 @@ def run_clock(launch: _Launch) -> str:
     epoch_ns = launch.epoch_ns = time.time_ns() + 200_000_000
     launch._start_body = {"clock": options.clock, "epoch_ns": epoch_ns,
                           "speed": float(options.speed), "end_ns": result.end_ns,
-                          "seed": options.seed}
+                          "seed": options.seed,
+                          "tolerance_ns": result.tolerance_ns}
     launch.announce_start()
     if launch.clock is not None:
         launch.clock.start()
@@ -442,7 +475,9 @@ def _stopped(result: UpResult, reason: str) -> None:
     result.reason = reason
     if reason != "finished":
         result.exit_code = (EXIT_SIGINT if reason == "SIGINT" else
-                            EXIT_SIGTERM if reason == "SIGTERM" else EXIT_FAILED)
+                            EXIT_SIGTERM if reason == "SIGTERM" else
+                            EXIT_NOT_REALTIME if reason.startswith(NOT_REALTIME) else
+                            EXIT_FAILED)
         result.problems.append(f"run stopped: {reason}")
 
 

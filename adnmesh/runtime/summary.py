@@ -24,8 +24,9 @@ apart (``p_y_limited_by``).
 For every injected fault (``fault`` messages) its detection, deviation and recovery
 (:func:`adnmesh.faultfigures.fault_figures`, from the run's ``event`` messages); with a grid
 model the extremes of the grid over the run and the report periods with samples outside the
-band (``grid_state`` messages). Plus wall time, simulated time and their ratio, the speed
-factor.
+band (``grid_state`` messages); of a realtime run its timing: delivery errors per link,
+overruns, alarms the machine's lateness caused (:mod:`adnmesh.runtime.realtime_report`). Plus
+wall time, simulated time and their ratio, the speed factor.
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from adnmesh.faultfigures import FaultFigures, fault_figures
+from adnmesh.runtime.realtime_report import ALARM_TIMEOUTS, RealtimeFigures, realtime_lines
 from adnmesh.stepfigures import ReferenceStep, reference_step_figures
 
 __all__ = [
@@ -50,6 +52,8 @@ __all__ = [
 MESSAGE_TYPES = frozenset({"p_ip", "p_ref", "p_y", "heartbeat", "si", "fault", "event",
                            "grid_state"})
 """The message types :meth:`RunSeries.add` takes (of ``p_y`` only those with a ``switch``)."""
+
+_ALARM_KINDS = frozenset({"overrun", *ALARM_TIMEOUTS})
 
 
 @dataclass
@@ -73,6 +77,9 @@ class RunSeries:
         kept once).
     events : list of (float, str, str)
         ``(t_s, sender, kind)`` of every event.
+    alarms : list of (float, str, str, str, str)
+        ``(t_s, sender, kind, subject, text)`` of the overrun and alarm events
+        (:mod:`adnmesh.runtime.realtime_report`).
     grid : list of dict
         The ``grid_state`` bodies, in time order.
     """
@@ -85,6 +92,7 @@ class RunSeries:
     disturbances_ns: list = field(default_factory=list)
     faults: dict = field(default_factory=dict)
     events: list = field(default_factory=list)
+    alarms: list = field(default_factory=list)
     grid: list = field(default_factory=list)
     _flags: dict = field(default_factory=dict, repr=False)
     _si: frozenset | None = field(default=None, repr=False)
@@ -120,6 +128,9 @@ class RunSeries:
                                      if t is not None]
         elif message_type == "event":
             self.events.append((body["t_send_ns"] * 1e-9, body["src"], body["kind"]))
+            if body["kind"] in _ALARM_KINDS:
+                self.alarms.append((body["t_send_ns"] * 1e-9, body["src"], body["kind"],
+                                    body.get("subject") or body["src"], body["text"]))
         elif message_type == "grid_state":
             self.grid.append(body)
 
@@ -163,10 +174,14 @@ class RunSummary:
     extra: dict = field(default_factory=dict)
     faults: tuple[FaultFigures, ...] = ()
     grid: GridFigures | None = None
+    realtime: RealtimeFigures | None = None
 
     def to_json(self) -> dict:
         """Plain data for ``json.dump`` (NaN and infinities become null)."""
-        return _finite(asdict(self))
+        data = asdict(self)
+        if self.realtime is not None:
+            data["realtime"]["real_time"] = self.realtime.real_time
+        return _finite(data)
 
 
 def _finite(value):
@@ -188,7 +203,8 @@ def _p_ref_at(series: RunSeries, t_ns: np.ndarray) -> np.ndarray:
 
 def summarize(series: RunSeries, *, end_ns: int, band_pct: float = 5.0,
               wall_time_s: float | None = None, window_s: float = 10.0,
-              extra: dict | None = None) -> RunSummary:
+              extra: dict | None = None,
+              realtime: RealtimeFigures | None = None) -> RunSummary:
     """Compute the summary of a run from its series (see the module docstring).
 
     Parameters
@@ -204,6 +220,8 @@ def summarize(series: RunSeries, *, end_ns: int, band_pct: float = 5.0,
         Window after a gain switch, s.
     extra : dict, optional
         Further figures to carry along (message counts, clock grants, ...).
+    realtime : RealtimeFigures, optional
+        The timing of a realtime run.
     """
     steps = reference_step_figures(
         series.p_ip_t_ns, series.p_ip_w, series.p_ref_t_ns, series.p_ref_w,
@@ -223,7 +241,8 @@ def summarize(series: RunSeries, *, end_ns: int, band_pct: float = 5.0,
     sim_s = end_ns * 1e-9
     speed = sim_s / wall_time_s if wall_time_s else None
     return RunSummary(steps, tuple(switches), band_pct, sim_s, wall_time_s, speed,
-                      dict(extra or {}), _faults(series, sim_s, band_pct), _grid(series))
+                      dict(extra or {}), _faults(series, sim_s, band_pct), _grid(series),
+                      realtime)
 
 
 def _faults(series: RunSeries, end_s: float, band_pct: float) -> tuple[FaultFigures, ...]:
@@ -281,6 +300,8 @@ def format_summary(summary: RunSummary):
         out.append(fault_table(summary.faults))
     if summary.grid is not None:
         out.append(grid_line(summary.grid))
+    if summary.realtime is not None:
+        out += realtime_lines(summary.realtime)
     line = f"run: {summary.sim_time_s:g} s simulated"
     if summary.wall_time_s is not None:
         line += f" in {summary.wall_time_s:.2f} s wall"

@@ -263,7 +263,8 @@ class ClockGrant(Envelope):
 
 
 class ClockStart(Envelope):
-    """The run starts (realtime: sim time = (wall - epoch_ns) * speed) with this ICT seed."""
+    """The run starts (realtime: sim time = (wall - epoch_ns) * speed, and an event processed
+    more than ``tolerance_ns`` of sim time late is an overrun) with this ICT seed."""
 
     type: Literal["clock_start"]
     clock: Literal["sim", "realtime"]
@@ -271,6 +272,7 @@ class ClockStart(Envelope):
     speed: Annotated[float, Meta(gt=0.0, le=1e6)]
     end_ns: NS
     seed: Count
+    tolerance_ns: NS = 0
 
 
 class ClockStop(Envelope):
@@ -282,7 +284,8 @@ class ClockStop(Envelope):
 
 class AgentBye(Envelope):
     """An agent's final counts: messages published per key, rejected per key and reason, lost
-    on its links, and its statistics."""
+    on its links, its statistics and (realtime) its delivery errors per link: ``[max ns, counts
+    per bin]`` (:mod:`adnmesh.sim.latency`)."""
 
     type: Literal["agent_bye"]
     published: Annotated[dict[Key, Count], Meta(max_length=4096)]
@@ -290,6 +293,9 @@ class AgentBye(Envelope):
                         Meta(max_length=4096)]
     lost: Count
     stats: Annotated[dict[Annotated[str, Meta(max_length=64)], Stat], Meta(max_length=256)]
+    latency: Annotated[dict[Annotated[str, Meta(max_length=64)],
+                            Annotated[list[Count], Meta(max_length=128)]],
+                       Meta(max_length=64)] | UnsetType = UNSET
 
 
 MESSAGE_TYPES: dict[str, type[Envelope]] = {
