@@ -240,6 +240,9 @@ def test_junk_on_every_subscribed_key_changes_nothing(tmp_path: Path) -> None:
     assert extra["rejected_by_recorder"] == counted[0]
     assert extra["rejected_by_agents"] > 0
     reasons = {json.loads(m.data)["reason"] for m in rejected}
+    print(f"junk: {counted[0]} payloads on {len(keys)} keys; rejected by the recorder "
+          f"{extra['rejected_by_recorder']}, by the agents {extra['rejected_by_agents']}; "
+          f"reasons {sorted(reasons)}")
     assert {"malformed", "invalid", "wrong_sender", "unknown_der", "too_large",
             "time_order"} <= reasons
 

@@ -57,6 +57,8 @@ __all__ = ["AgentProcess", "add_agent_arguments", "die_with_parent", "load_confi
 
 _WAIT_S = 1.0       # longest sleep between checks of the stop flag, s
 _BYE_WAIT_S = 5.0   # longest wait after the goodbye for `up` to confirm it, s
+_CATCH_UP_NS = 50_000_000   # realtime: sim time processed at most between two looks at the bus
+_LET_IN_S = 5e-5            # ... and how long it then lets them have the lock, s
 _KILL_WAIT_S = 2.0  # longest wait for `up` to acknowledge the last report before a kill, s
 _UP_GRACE_S = 10.0  # how long `up` may stay out of sight (a session reconnecting) before we stop
 
@@ -124,6 +126,8 @@ class AgentProcess:
         self.reconnects = 0                  # times up came back into sight
         self.said_bye = False
         self._wake_ns: int | None = None      # realtime: the event time the main thread waits for
+        self._sleeping = False               # realtime: ... and it is waiting for it
+        self._arrivals: deque = deque()      # realtime: samples not yet taken by the node
         self.dying = False                   # an injected kill was reached
         self.kill_acked = False              # ... and up has the last report
         self.window_cpu_s = 0.0              # CPU time spent processing grants
@@ -194,6 +198,7 @@ class AgentProcess:
     def goodbye(self) -> None:
         """Send the agent's last messages and the goodbye; wait (bounded) for ``up``'s ack."""
         with self.lock:
+            self._take_arrivals()
             self.mode, self.said_bye = None, True
             self._publish_all(self.node.finish())
             node, counts = self.node, self.node.counts
@@ -226,15 +231,30 @@ class AgentProcess:
         # decoded and queued in the node at once, while other agents still run: a window later
         # only processes events (the node orders them by delivery time, not by arrival)
         key = str(sample.key_expr)
-        envelopes = split_frame(sample.payload.to_bytes())
+        data = sample.payload.to_bytes()
+        if self.mode == "realtime":
+            # never wait for the main thread while it processes (Zenoh's receive thread would
+            # back up behind it): queue the sample; wake the main thread only if it sleeps
+            # (it drains the queue before it sleeps, after it says so: nothing is missed)
+            self._arrivals.append((key, data))
+            if self._sleeping:
+                with self.lock:
+                    self._take_arrivals()
+                    if self._due_sooner():
+                        self.lock.notify()
+            return
         with self.lock:
-            for payload in envelopes:
+            for payload in split_frame(data):
                 self.node.receive(key, payload)
-            if self.mode == "sim":
-                if self.grants:
-                    self._run_granted()
-            elif self.mode == "realtime" and self._due_sooner():
-                self.lock.notify()
+            if self.mode == "sim" and self.grants:
+                self._run_granted()
+
+    def _take_arrivals(self) -> None:   # with the lock held
+        arrivals, receive = self._arrivals, self.node.receive
+        while arrivals:
+            key, data = arrivals.popleft()
+            for payload in split_frame(data):
+                receive(key, payload)
 
     def _due_sooner(self) -> bool:
         """Realtime: the node's next event is due before the main thread means to wake (a
@@ -347,10 +367,19 @@ class AgentProcess:
         watch = self.overruns = OverrunWatch(self.agent, start.tolerance_ns, start.speed)
         with self.lock:
             while not self._up_lost():
+                self._take_arrivals()
                 now = clock.now_ns()
                 if now >= 0:
-                    self._publish_all(node.advance(min(now, start.end_ns) + 1, clock.now_ns))
+                    # behind the clock, catch up a slice at a time, letting the callbacks in
+                    # between (messages, the stop, Zenoh's own keep-alive traffic)
+                    due = node.next_event_ns()
+                    until = min(now, start.end_ns) if due is None else \
+                        min(now, start.end_ns, due + _CATCH_UP_NS)
+                    self._publish_all(node.advance(until + 1, clock.now_ns))
                     self._note_overrun(watch.check(now, node.take_worst_late()))
+                    if until < min(now, start.end_ns) and not node.killed:
+                        self._let_callbacks_in()
+                        continue
                 if node.killed:
                     self.dying = True
                     self._report()
@@ -360,8 +389,14 @@ class AgentProcess:
                     min(_WAIT_S, clock.wait_s(next_ns))
                 if wait_s > 0:
                     self._wake_ns = next_ns if wait_s < _WAIT_S else None
-                    self.lock.wait(wait_s)
-                    self._wake_ns = None
+                    self._sleeping = True
+                    if not self._arrivals:        # none came since they were taken
+                        self.lock.wait(wait_s)
+                    self._sleeping, self._wake_ns = False, None
+
+    def _let_callbacks_in(self) -> None:
+        """Release the lock for a moment (the main thread holds it while it processes)."""
+        self.lock.wait(_LET_IN_S)
 
     def _note_overrun(self, body: dict | None) -> None:
         if body is not None:
