@@ -205,6 +205,30 @@ def test_measurement_sums_the_infeeds_and_the_rest_of_the_grid(config: Config) -
     assert out.key == keys.p_ip and out.body["p_ip_w"] == -3e6 + 1.5e5 + 0.5e6
 
 
+def test_a_restarted_availability_monitor_listens_before_it_speaks(config: Config) -> None:
+    """Restarted at 240 s after SGen2 left: no SI until one heartbeat timeout has passed, then
+    the SI the heartbeats say (never 'everyone available', the state at t = 0)."""
+    monitor = AvailabilityMonitor(config)
+    keys = Keys(config.grid)
+    start = 240_000 * MS
+    timeout = int(config.runtime.heartbeat_timeout_s * 1e9)
+    monitor.resume(start)
+    sent = []
+    for k in range(3):                       # SGen1 beats every second, SGen2 says it left
+        for der_id, available in (("SGen1", True), ("SGen2", False)):
+            t = start + 100 * MS + k * 1000 * MS
+            sent += monitor.on_message(t, message(keys.heartbeat(der_id), t, {
+                "available": available, "mode": "schedule" if not available else "control"},
+                src=f"der/{der_id}"))
+            while monitor.next_timer_ns() <= t:
+                sent += monitor.on_timer(monitor.next_timer_ns())
+    assert [o for o in sent if o.key == keys.si and o.body["si"]["SGen2"]] == []
+    while monitor.next_timer_ns() <= start + timeout:
+        sent += monitor.on_timer(monitor.next_timer_ns())
+    first = [o.body["si"] for o in sent if o.key == keys.si]
+    assert first and first[0] == {"SGen1": True, "SGen2": False}
+
+
 def test_availability_monitor_builds_si_from_heartbeats(config: Config) -> None:
     monitor = AvailabilityMonitor(config)
     keys = Keys(config.grid)

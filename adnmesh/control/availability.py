@@ -8,6 +8,9 @@ sending (ICT fault, dead process) drops out when its heartbeat times out, after
 back with its next heartbeat. Every DER is available at t = 0. The monitor sends SI on
 ``availability/si`` at t = 0, whenever it changes and every ``heartbeat_period_s`` (so that a
 restarted CPFC learns it), and every change of a DER as an event (``event/availability``).
+A **restarted** monitor knows nothing: it listens for ``heartbeat_timeout_s`` (every live DER
+is heard at least twice, a silent one times out) before its first SI, so that it never
+announces a DER that left while it was down.
 
 SI is sent **once per instant**, with every change of that instant: a heartbeat that changes SI
 only sets a timer at its own delivery time, and the runtime fires timers after every message
@@ -46,12 +49,15 @@ class AvailabilityMonitor(Agent):
         self._sent: dict[str, bool] | None = None
         self._send_ns: int | None = 0   # when SI goes out if it changed (0: the initial SI)
         self._next_repeat_ns = self.period_ns
+        self._quiet_until_ns = 0        # a restarted monitor sends no SI before this
 
     def resume(self, t_ns: int) -> None:
-        """A restarted monitor at ``t_ns``: every DER available until its heartbeats say else."""
+        """A restarted monitor at ``t_ns``: it listens for one heartbeat timeout, then sends SI
+        as the heartbeats (or their absence) say."""
         self.deadline_ns = dict.fromkeys(self.der_ids, t_ns + self.timeout_ns)
-        self._send_ns = t_ns
-        self._next_repeat_ns = t_ns + self.period_ns
+        self._quiet_until_ns = t_ns + self.timeout_ns
+        self._send_ns = None
+        self._next_repeat_ns = self._quiet_until_ns
 
     def si(self) -> dict[str, bool]:
         """The current availability vector, in config order."""
@@ -76,7 +82,7 @@ class AvailabilityMonitor(Agent):
             "its heartbeat says it is not available")
         self.deadline_ns[der_id] = t_ns + self.timeout_ns
         self.expired.discard(der_id)
-        if self.si() != self._sent:
+        if self.si() != self._sent and t_ns >= self._quiet_until_ns:
             self._send_ns = t_ns   # after the other messages of this instant
         return []
 
