@@ -9,11 +9,9 @@ reports its infeed and heartbeats. Logic: adnmesh.control.der.DERController.
 import argparse
 import sys
 
-import zenoh
-
 from adnmesh.control.registry import build_agent
-from adnmesh.runtime.bus import session_config
-from adnmesh.runtime.process import AgentProcess, add_agent_arguments, load_config_or_exit
+from adnmesh.runtime.process import (AgentProcess, add_agent_arguments, load_config_or_exit,
+                                     open_session)
 from adnmesh.sim.node import Node
 from adnmesh.wire.keys import der_agent_id
 
@@ -30,8 +28,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"unknown DER id {args.der!r} (known: {', '.join(config.der_ids())})")
     node = Node.for_config(build_agent(der_agent_id(args.der), config), config,
                           start_ns=args.resume_at_ns)
-    with zenoh.open(session_config(args)) as session:
-        return AgentProcess(session, node, config.grid).serve()
+    with open_session(args, der_agent_id(args.der)) as session:
+        return AgentProcess(session, node, config.grid,
+                            publishers=args.certs is None).serve()
 
 
 if __name__ == "__main__":

@@ -52,8 +52,41 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--summary-json", metavar="PATH",
                         help="also write the summary as JSON to PATH")
     parser.add_argument("--listen", metavar="ENDPOINT",
-                        help="endpoint of the embedded router (default: tcp/127.0.0.1:<free port>)")
+                        help="endpoint of the embedded router (default: tcp/127.0.0.1:<free "
+                        "port>; tls/ with --secure)")
+    security = parser.add_argument_group("secure profile and agents on other hosts")
+    security.add_argument("--secure", action="store_true",
+                          help="mutual TLS on every link and Zenoh access control derived from "
+                          "the topology (certificates from --certs)")
+    security.add_argument("--certs", metavar="DIR",
+                          help="certificate directory of 'adnmesh certs' (default: certs; "
+                          "implies --secure)")
+    security.add_argument("--external", metavar="KIND[:ID],...",
+                          help="agents started elsewhere ('adnmesh agent'), e.g. "
+                          "der:SGen2,measurement; up waits for them")
+    security.add_argument("--routers", metavar="NAME,...",
+                          help="site routers ('adnmesh router --name NAME') that may link to "
+                          "this one")
+    security.add_argument("--startup-timeout", type=float, default=60.0, metavar="S",
+                          help="how long to wait for every agent to be ready (default 60 s)")
     return parser
+
+
+def external_agents(text: str | None, config: Config) -> frozenset[str]:
+    """The agent ids of ``--external`` (``cpfc``, ``der:SGen1`` or ``der/SGen1``, ...)."""
+    from adnmesh.sim.topology import Topology
+
+    agents = Topology.from_config(config).agents
+    found = set()
+    for item in (text or "").split(","):
+        item = item.strip().replace(":", "/", 1)
+        if not item:
+            continue
+        if item not in agents:
+            raise UsageError(f"--external: no agent {item!r} in {config.path} (agents: "
+                             f"{', '.join(agents)})")
+        found.add(item)
+    return frozenset(found)
 
 
 def scenario_subsets(config: Config) -> list[frozenset[str]]:
@@ -112,6 +145,28 @@ def _check_arguments(args: argparse.Namespace) -> None:
         raise UsageError(f"--speed must be in (0, 1e6], got {args.speed:g}")
     if args.seed is not None and not 0 <= args.seed < 2**63:
         raise UsageError(f"--seed must be in [0, 2**63), got {args.seed}")
+    if not 0 < args.startup_timeout <= 86400:
+        raise UsageError(f"--startup-timeout must be in (0, 86400] s, got "
+                         f"{args.startup_timeout:g}")
+    if args.routers and not (args.secure or args.certs):
+        raise UsageError("--routers is for the secure profile (--secure); in the open profile "
+                         "any router may link")
+
+
+def _certs(args: argparse.Namespace) -> Path | None:
+    """The certificate directory of the secure profile (checked), or None (open profile)."""
+    if not (args.secure or args.certs):
+        return None
+    from adnmesh.runtime.identity import cert_files
+    from adnmesh.runtime.security import check_endpoints
+
+    certs = Path(args.certs or "certs")
+    if not certs.is_dir():
+        raise UsageError(f"{certs}: no certificate directory; create it with 'adnmesh certs "
+                         f"{certs} --config {args.config}'")
+    cert_files(certs, "up").check()
+    check_endpoints([args.listen] if args.listen else [], True, flag="--listen")
+    return certs.resolve()
 
 
 def run(args: argparse.Namespace) -> int:
@@ -132,6 +187,9 @@ def run(args: argparse.Namespace) -> int:
     def log(line: str) -> None:
         err.print(f"adnmesh up: {line}")
 
+    certs = _certs(args)
+    external = external_agents(args.external, config)
+    routers = tuple(n.strip() for n in (args.routers or "").split(",") if n.strip())
     run_id = f"{Path(config.path).stem}-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"
     out = Path(args.out) if args.out else Path("logs") / f"{run_id}.mcap"
     table_path = _table(args, config, out.parent, run_id, log)
@@ -140,6 +198,8 @@ def run(args: argparse.Namespace) -> int:
         speed=args.speed or 1.0,
         seed=config.runtime.seed if args.seed is None else args.seed,
         listen=args.listen, log=log, run_id=run_id, run_file=run_file_path(out),
+        certs=certs, external=external, routers=routers,
+        startup_timeout_s=args.startup_timeout,
         metadata={"run_id": run_id, "table_sha256":
                   hashlib.sha256(table_path.read_bytes()).hexdigest()},
     )
@@ -167,6 +227,9 @@ def _print_summary(args: argparse.Namespace, config: Config, run_id: str, result
         "rejected_by_recorder": sum(sum(r.values()) for r in result.rejected.values()),
         "lost_on_links": sum(b.lost for b in byes),
         "startup_s": round(result.startup_s, 3),
+        "profile": "secure" if args.secure or args.certs else "open",
+        "links_accepted": sum(result.sessions.opened.values()),
+        "unexpected_sessions": len(result.sessions.unexpected),
     }
     if args.clock == "sim":
         extra["clock_grants"] = result.grants

@@ -3,6 +3,10 @@
 Every agent runs as ``sys.executable agents/<kind>.py CONFIG --connect ENDPOINT`` in its own
 session (so Ctrl-C reaches only ``up``), told to die with ``up`` (environment
 :data:`PARENT_ENV`, Linux ``PR_SET_PDEATHSIG``), and is stopped, if it has to be, by PID.
+
+An **external** agent (``adnmesh up --external``) runs elsewhere (``adnmesh agent`` on another
+host): it has no PID here; it counts as running until its session ends without a goodbye
+(:meth:`AgentProcesses.session_ended`: its host or its link went down), and then as dead.
 """
 
 from __future__ import annotations
@@ -31,8 +35,9 @@ worker was woken for work it seldom found, which cost a fifth of a run's context
 about 8 % of its CPU time on two cores."""
 
 
-def agent_argv(agent_id: str, config_path: Path, endpoint: str, table_path: Path) -> list[str]:
-    """Command line of the process of ``agent_id``."""
+def agent_argv(agent_id: str, config_path: Path, endpoint: str, table_path: Path,
+               certs: Path | None = None) -> list[str]:
+    """Command line of the process of ``agent_id`` (secure profile: with ``--certs``)."""
     der_id = der_id_of(agent_id)
     kind = "der" if der_id is not None else agent_id
     argv = [sys.executable, str(AGENTS_DIR / f"{kind}.py"), str(config_path),
@@ -41,14 +46,33 @@ def agent_argv(agent_id: str, config_path: Path, endpoint: str, table_path: Path
         argv += ["--der", der_id]
     if kind == "cpfc":
         argv += ["--table", str(table_path)]
+    if certs is not None:
+        argv += ["--certs", str(certs)]
     return argv
 
 
 class AgentProcesses:
-    """The agent processes of a run, by agent id (tracked and stopped by PID only)."""
+    """The agent processes of a run, by agent id (tracked and stopped by PID only), and the
+    external agents (see the module docstring)."""
 
-    def __init__(self) -> None:
+    def __init__(self, external=()) -> None:
         self.procs: dict[str, subprocess.Popen] = {}
+        self.external = frozenset(external)
+        self._ended: set[str] = set()        # external agents whose session ended
+
+    def session_ended(self, agent_id: str) -> None:
+        """An agent's session ended without a goodbye: an external one is dead now."""
+        if agent_id in self.external:
+            self._ended.add(agent_id)
+
+    def expect_again(self, agent_id: str) -> None:
+        """An external agent is to be started again (a restart): it is no longer dead."""
+        self._ended.discard(agent_id)
+
+    def describe(self, agent_id: str) -> str:
+        """``pid N``, or ``external`` for an agent that runs elsewhere."""
+        proc = self.procs.get(agent_id)
+        return "external" if proc is None else f"pid {proc.pid}"
 
     def spawn(self, agent_id: str, argv: list[str]) -> None:
         """Start ``argv`` as the process of ``agent_id``."""
@@ -61,16 +85,23 @@ class AgentProcesses:
         """The PIDs, space-separated."""
         return " ".join(str(p.pid) for p in self.procs.values())
 
-    def dead(self) -> list[tuple[str, int]]:
-        """``(agent id, exit code)`` of every process that has ended (negative: signal)."""
-        return [(a, p.returncode) for a, p in self.procs.items() if p.poll() is not None]
+    def dead(self) -> list[tuple[str, int | None]]:
+        """``(agent id, exit code)`` of every process that has ended (negative: signal; None:
+        an external agent whose session ended)."""
+        return [(a, p.returncode) for a, p in self.procs.items() if p.poll() is not None] + \
+            [(a, None) for a in sorted(self._ended)]
 
     def running(self) -> set[str]:
-        """The agents whose process still runs."""
-        return {a for a, p in self.procs.items() if p.poll() is None}
+        """The agents whose process still runs (external ones: whose session has not ended)."""
+        return {a for a, p in self.procs.items() if p.poll() is None} | \
+            (self.external - self._ended)
 
-    def describe_death(self, agent_id: str, code: int) -> str:
-        """``agent X (pid N) died (exit code C | signal S)``."""
+    def describe_death(self, agent_id: str, code: int | None) -> str:
+        """``agent X (pid N) died (exit code C | signal S)``, or that an external agent's
+        session ended."""
+        if code is None:
+            return (f"external agent {agent_id}: its session ended without a goodbye (its "
+                    "process, host or link is down)")
         how = f"signal {-code}" if code < 0 else f"exit code {code}"
         return f"agent {agent_id} (pid {self.procs[agent_id].pid}) died ({how})"
 
