@@ -67,8 +67,14 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     security.add_argument("--routers", metavar="NAME,...",
                           help="site routers ('adnmesh router --name NAME') that may link to "
                           "this one")
+    security.add_argument("--print-zenoh-config", action="store_true",
+                          help="print the router's Zenoh configuration (JSON: mode, endpoints, "
+                          "TLS, access control) and exit")
     security.add_argument("--startup-timeout", type=float, default=60.0, metavar="S",
                           help="how long to wait for every agent to be ready (default 60 s)")
+    parser.add_argument("--stall-timeout", type=float, default=60.0, metavar="S",
+                        help="sim clock: stop the run when it made no progress for S wall "
+                        "seconds (default 60; 0: never)")
     return parser
 
 
@@ -148,6 +154,8 @@ def _check_arguments(args: argparse.Namespace) -> None:
     if not 0 < args.startup_timeout <= 86400:
         raise UsageError(f"--startup-timeout must be in (0, 86400] s, got "
                          f"{args.startup_timeout:g}")
+    if not 0 <= args.stall_timeout <= 86400:
+        raise UsageError(f"--stall-timeout must be in [0, 86400] s, got {args.stall_timeout:g}")
     if args.routers and not (args.secure or args.certs):
         raise UsageError("--routers is for the secure profile (--secure); in the open profile "
                          "any router may link")
@@ -190,6 +198,8 @@ def run(args: argparse.Namespace) -> int:
     certs = _certs(args)
     external = external_agents(args.external, config)
     routers = tuple(n.strip() for n in (args.routers or "").split(",") if n.strip())
+    if args.print_zenoh_config:
+        return _print_zenoh_config(args, config, certs, routers)
     run_id = f"{Path(config.path).stem}-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"
     out = Path(args.out) if args.out else Path("logs") / f"{run_id}.mcap"
     table_path = _table(args, config, out.parent, run_id, log)
@@ -199,7 +209,7 @@ def run(args: argparse.Namespace) -> int:
         seed=config.runtime.seed if args.seed is None else args.seed,
         listen=args.listen, log=log, run_id=run_id, run_file=run_file_path(out),
         certs=certs, external=external, routers=routers,
-        startup_timeout_s=args.startup_timeout,
+        startup_timeout_s=args.startup_timeout, stall_timeout_s=args.stall_timeout,
         metadata={"run_id": run_id, "table_sha256":
                   hashlib.sha256(table_path.read_bytes()).hexdigest()},
     )
@@ -209,6 +219,26 @@ def run(args: argparse.Namespace) -> int:
     log(f"recording: {out} ({sum(result.recorded.values())} messages)")
     _print_summary(args, config, run_id, result)
     return result.exit_code
+
+
+def _print_zenoh_config(args: argparse.Namespace, config: Config, certs, routers) -> int:
+    """Print the parts of the router's Zenoh config that adnmesh sets; return 0."""
+    from adnmesh.runtime.bus import DEFAULT_HOST
+    from adnmesh.runtime.launcher import UpOptions, embedded_router_config
+
+    scheme = "tcp" if certs is None else "tls"
+    endpoint = args.listen or f"{scheme}/{DEFAULT_HOST}:7447"
+    options = UpOptions(config=config, table_path=Path(), out=Path(), certs=certs,
+                        routers=routers)
+    full = json.loads(str(embedded_router_config(options, endpoint)))
+    link = full["transport"]["link"]
+    shown = {"mode": full["mode"], "listen": {"endpoints": full["listen"]["endpoints"]},
+             "scouting": {"multicast": {"enabled": full["scouting"]["multicast"]["enabled"]}},
+             "transport": {"link": {"protocols": link["protocols"], "tls": {
+                 k: v for k, v in link["tls"].items() if v is not None}}},
+             "access_control": full["access_control"]}
+    print(json.dumps(shown, indent=2))
+    return 0
 
 
 def _print_summary(args: argparse.Namespace, config: Config, run_id: str, result) -> None:

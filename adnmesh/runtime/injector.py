@@ -172,15 +172,24 @@ class FaultInjector:
         with self._lock:
             self.dying.pop(agent, None)
         self._spawned.add(agent)
-        launch.options.log(f"{agent} restarting at {at_ns / 1e9:g} s (pid "
-                           f"{launch.children.procs[agent].pid})")
+        launch.options.log(f"{agent} restarting at {at_ns / 1e9:g} s "
+                           f"({launch.children.describe(agent)})")
 
-    def _lost(self, agent: str, code: int) -> None:
+    def left_early(self, agent: str) -> None:
+        """``agent`` said goodbye while the run goes on (it was told to stop: SIGTERM on its
+        host, or a clock stop or a withdrawn liveliness of ``up`` that ``up`` did not send):
+        it is lost, the run goes on without it."""
+        if agent not in self.lost:
+            self._lost(agent, None, f"agent {agent} said goodbye before the end of the run "
+                       f"({self.launch.children.describe(agent)}; it was told to stop, but "
+                       "not by up)")
+
+    def _lost(self, agent: str, code: int | None, description: str | None = None) -> None:
         """A process ended without an injected kill (or its last report never came)."""
         launch = self.launch
         self.lost.append(agent)
         self.killed.add(agent)
-        description = launch.children.describe_death(agent, code)
+        description = description or launch.children.describe_death(agent, code)
         now = self._earliest_ns()
         with self._lock:
             restart = self._restart_at.get(agent)

@@ -63,7 +63,7 @@ from adnmesh.sim.topology import Topology
 from adnmesh.wire.keys import LAUNCHER
 from adnmesh.wire.units import ns
 
-__all__ = ["EXIT_FAILED", "EXIT_OK", "UpOptions", "UpResult", "run"]
+__all__ = ["EXIT_FAILED", "EXIT_OK", "UpOptions", "UpResult", "embedded_router_config", "run"]
 
 EXIT_OK, EXIT_FAILED, EXIT_SIGINT, EXIT_SIGTERM = 0, 1, 130, 143
 
@@ -106,6 +106,10 @@ class UpOptions:
         Agent ids started elsewhere (``adnmesh agent``); ``up`` waits for them.
     routers : tuple of str
         Names of the site routers (``adnmesh router --name``) that may link to this one.
+    stall_timeout_s : float
+        Sim clock: stop the run when no grant was issued for this long, wall s (0: never).
+        Nothing legitimate stalls the clock for long (a restarted process rejoins in seconds);
+        in the open profile a forged message can (see the README's security section).
     """
 
     config: Config
@@ -124,6 +128,7 @@ class UpOptions:
     certs: Path | None = None
     external: frozenset = frozenset()
     routers: tuple = ()
+    stall_timeout_s: float = 60.0
 
 
 @dataclass
@@ -232,11 +237,7 @@ class _Launch:
 
     def router_config(self):
         """The Zenoh config of the embedded router (secure profile: mTLS and access control)."""
-        options = self.options
-        if options.certs is None:
-            return router_config([self.endpoint])
-        return router_config([self.endpoint], certs=options.certs, identity=LAUNCHER,
-                             access_control=acl.access_control(self.topology, self.peers))
+        return embedded_router_config(self.options, self.endpoint)
 
     def withdraw_liveliness(self) -> None:
         """Withdraw ``up``'s liveliness token (once): agents waiting after their goodbye close."""
@@ -320,6 +321,12 @@ class _Launch:
             return "SIGINT" if self.interrupted[0] == signal.SIGINT else "SIGTERM"
         if self.clock is not None and self.clock.error:
             return f"clock: {self.clock.error}"
+        timeout = self.options.stall_timeout_s
+        if self.clock is not None and timeout and self.clock.stalled_s() > timeout:
+            with self.clock.lock:
+                busy = self.clock.coordinator.busy()
+            return (f"clock: no progress for {timeout:g} s (waiting for the report of "
+                    f"{', '.join(busy) or 'nobody'})")
         return None
 
     def startup_failure(self) -> str | None:
@@ -329,6 +336,17 @@ class _Launch:
         if dead:
             return self.children.describe_death(*dead[0])
         return self.failure()
+
+
+def embedded_router_config(options: UpOptions, endpoint: str) -> zenoh.Config:
+    """The Zenoh config of ``up``'s router listening on ``endpoint``: in the secure profile
+    with ``up``'s certificate and the access control derived from the topology."""
+    if options.certs is None:
+        return router_config([endpoint])
+    peers = [router_identity(n) for n in options.routers]
+    return router_config([endpoint], certs=options.certs, identity=LAUNCHER,
+                         access_control=acl.access_control(
+                             Topology.from_config(options.config), peers))
 
 
 def _metadata(options: UpOptions) -> dict[str, str]:
@@ -406,6 +424,8 @@ def run_clock(launch: _Launch) -> str:
         reason = "finished" if done else launch.failure()
         if reason is None:
             launch.injector.supervise()
+            for agent in sorted(launch.roster.byes):   # gone before up said stop
+                launch.injector.left_early(agent)
             launch.roster.wait(_POLL_S)
     result.wall_time_s = time.perf_counter() - t_start
     if reason == "finished":

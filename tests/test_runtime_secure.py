@@ -1,0 +1,232 @@
+"""The secure profile and agents on other hosts, with real processes: a rogue session against a
+running secure system achieves nothing; the same attacks against the open profile do what the
+README says; two linked routers record what one router records; a missing external agent is
+named. Every run is the small runtime case (tests/up_runs.py) in its own temporary directory,
+every wait is bounded, every process started here is ended by PID.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from adnmesh.config import load_config
+from adnmesh.control.cpfc import GainSchedule
+from adnmesh.recording import read_recording
+from adnmesh.cli import main as adnmesh_main
+from adnmesh.runtime.bus import free_port
+from adnmesh.runtime.certs import issue
+from adnmesh.runtime.identity import identities
+from adnmesh.sim.local import run_local
+from adnmesh.sim.topology import Topology
+from adnmesh.table import load_table
+from adnmesh.wire.units import ns
+from rogue import attack, forged_attacks, junk_on_own_keys, rogue_config
+from up_runs import (
+    REPO,
+    alive,
+    data_messages,
+    finish,
+    processes_mentioning,
+    start_long_run,
+    up_argv,
+    write_case,
+)
+
+GRID = "runtime-test"
+AT_S = 150.0                 # when the forged messages claim to be delivered, s of sim time
+CHANGES = {"scenario": {"duration_s": 200, "p_ref_steps": [{"t_s": 40, "delta_w": 1.0e6}],
+                        "availability": [{"t_s": 90, "available": False, "ders": ["SGen2"]}]}}
+
+
+def adnmesh(*args: str, cwd: Path | None = None, timeout: float = 60) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "adnmesh", *args], capture_output=True,
+                          text=True, timeout=timeout, check=False, cwd=cwd)
+
+
+def agents_only(messages) -> list[tuple[str, bytes]]:
+    """The agents' messages (``up``'s events name wall-clock moments of fault requests)."""
+    return [(k, p) for k, p in messages
+            if not k.endswith(("/faults", "/event/up", "/control/fault"))]
+
+
+@pytest.fixture(scope="module")
+def case(tmp_path_factory):
+    """The case, its certificates, and its undisturbed run in the secure profile (one
+    router): the reference every test here compares with."""
+    tmp = tmp_path_factory.mktemp("secure")
+    config, table = write_case(tmp, "case", **CHANGES)
+    made = adnmesh("certs", str(tmp / "certs"), "--config", str(config), "--router", "site")
+    assert made.returncode == 0, made.stderr
+    issue(tmp / "other-ca", identities(load_config(config)))      # a CA of another system
+    out = tmp / "clean.mcap"
+    clean = subprocess.run(up_argv(config, table, out, "--secure", "--certs",
+                                   str(tmp / "certs")),
+                           cwd=tmp, capture_output=True, text=True, timeout=180, check=False)
+    assert clean.returncode == 0, clean.stderr
+    assert "secure: mutual TLS, access control" in clean.stderr
+    return tmp, config, table, data_messages(read_recording(out))
+
+
+def test_the_secure_run_records_what_the_in_process_run_computes(case) -> None:
+    tmp, config, table, clean = case
+    loaded = load_config(config)
+    local = run_local(loaded, GainSchedule(loaded, load_table(table, loaded), on_demand=False))
+    expected = sorted(local.messages, key=lambda m: (json.loads(m[1])["t_deliver_ns"], m[0],
+                                                     json.loads(m[1])["seq"]))
+    assert clean == expected
+
+
+@pytest.mark.slow
+def test_a_rogue_session_against_a_running_secure_system_achieves_nothing(case, capsys) -> None:
+    """Without a certificate or with one of another CA it cannot connect; with a DER's
+    certificate its forged correcting variable, another DER's state, measurement, SI, clock
+    stop, clock grant, fault and fault request are refused by the router, its junk on the DER's
+    own keys is rejected and counted by the receivers, its wide subscription gets nothing it may
+    not have: the run completes with exactly the undisturbed run's messages, and ``up`` reports
+    the second session with that certificate."""
+    tmp, config, table, clean = case
+    certs = tmp / "certs"
+    proc, agents, _ = start_long_run(tmp, "attacked", "--secure", "--certs", str(certs),
+                                     "--summary-json", str(tmp / "attacked.json"), **CHANGES)
+    endpoint = json.loads((tmp / "attacked.run.json").read_text())["endpoint"]
+    refused = {}
+    for what, certs_dir, ep in (("no certificate", None, endpoint.replace("tls/", "tcp/")),
+                                ("another CA", tmp / "other-ca", endpoint)):
+        try:
+            attack(rogue_config(ep, certs_dir, "der/SGen1" if certs_dir else None), [], GRID)
+            refused[what] = False
+        except Exception as exc:   # zenoh.ZError: the handshake failed
+            refused[what] = "Unable to connect" in str(exc)
+    forged = forged_attacks(GRID, at_ns=int(AT_S * 1e9))
+    junk = junk_on_own_keys(GRID, "SGen1", 25)
+    report = attack(rogue_config(endpoint, certs, "der/SGen1"), forged + junk, GRID,
+                    listen_to=[f"adn/{GRID}/**", f"adn/{GRID}/measurement/p_ip"],
+                    up_token=True)
+    # the operator may: a fault after the end of the run (injected, it changes nothing)
+    operator = adnmesh_main(["fault", str(tmp / "attacked.mcap"), "ict_outage", "--at",
+                             "5000"])
+    still_running = proc.poll() is None
+    returncode, err = finish(proc, agents, config)
+    assert refused == {"no certificate": True, "another CA": True}
+    assert still_running, "the run ended before the attack was over"
+    assert returncode == 0, err
+    assert operator == 0 and "ict_outage of all ICT from 5000 s on" in capsys.readouterr().out
+    assert len(report.sent) == len(forged) + len(junk) + 1
+    assert report.received == {}, "the rogue received something"
+    run = read_recording(tmp / "attacked.mcap")
+    assert agents_only(data_messages(run)) == agents_only(clean)
+    rejected = [json.loads(m.data) for m in run.messages if m.topic.endswith("/rejected")]
+    assert len(rejected) == len(junk)                       # only the junk got through
+    assert {r["key"] for r in rejected} == {a.key for a in junk}
+    summary = json.loads((tmp / "attacked.json").read_text())["extra"]
+    assert summary["rejected_by_recorder"] == len(junk)
+    receivers = Topology.from_config(load_config(config)).receivers   # each rejects each
+    assert summary["rejected_by_agents"] == sum(len(receivers[a.key]) for a in junk)
+    assert summary["unexpected_sessions"] == 1
+    assert "security: der/SGen1 had 2 links at once" in err
+
+
+@pytest.mark.slow
+def test_the_same_attacks_against_the_open_profile_are_taken_for_genuine(tmp_path) -> None:
+    """Open profile: a forged measurement of 50 MW is recorded as a genuine one (and every
+    genuine one after it is taken for a replay: its stamp is newer); a forged clock stop makes
+    every agent say goodbye: the run ends at once, every agent lost."""
+    proc, agents, config = start_long_run(tmp_path, "open", "--summary-json",
+                                          str(tmp_path / "open.json"), **CHANGES)
+    endpoint = json.loads((tmp_path / "open.run.json").read_text())["endpoint"]
+    forged = {a.name: a for a in forged_attacks(GRID, at_ns=int(AT_S * 1e9))}
+    measurement, stop = forged["measurement P_IP = 50 MW"], forged["clock stop"]
+    attack(rogue_config(endpoint, None, None), [measurement, stop], GRID)
+    returncode, err = finish(proc, agents, config)
+    assert returncode == 1, err
+    assert "said goodbye before the end of the run" in err
+    assert "agent(s) lost during the run: availability, cpfc, der/SGen1, der/SGen2, " \
+        "measurement" in err
+    run = read_recording(tmp_path / "open.mcap")
+    taken = [m for m in run.messages if m.topic == measurement.key
+             and bytes(m.data) == measurement.payload]
+    assert len(taken) == 1                                  # recorded as a genuine P_IP
+    assert json.loads(taken[0].data)["p_ip_w"] == 5e7
+    genuine = [m for m in data_messages(run) if m[1] != measurement.payload]
+    last = max((json.loads(p)["t_send_ns"] for _, p in genuine), default=0)
+    assert last < AT_S * 1e9 < ns(CHANGES["scenario"]["duration_s"])   # it stopped early
+    replays = {json.loads(m.data)["reason"] for m in run.messages if m.topic.endswith(
+        "/rejected") and json.loads(m.data)["key"] == measurement.key}
+    assert replays <= {"replayed"}     # genuine P_IP after the forged one: taken for replays
+
+
+@pytest.mark.slow
+def test_two_linked_routers_with_agents_split_record_what_one_router_records(case) -> None:
+    """``up`` with its router (CPFC, one DER, the monitor) and a site router linked to it
+    (``adnmesh router``) with the other DER and the measurement (``adnmesh agent``), secure
+    profile: the recorded payloads equal the single-router run's."""
+    tmp, config, table, clean = case
+    certs = str(tmp / "certs")
+    central, site = (f"tls/127.0.0.1:{free_port()}" for _ in range(2))
+    out = tmp / "split.mcap"
+    up = subprocess.Popen(up_argv(config, table, out, "--secure", "--certs", certs, "--listen",
+                                  central, "--external", "der:SGen2,measurement", "--routers",
+                                  "site", "--startup-timeout", "60"),
+                          cwd=tmp, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    others = [subprocess.Popen([sys.executable, "-m", "adnmesh", *argv], cwd=tmp,
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+              for argv in (["router", str(config), "--name", "site", "--connect", central,
+                            "--listen", site, "--certs", certs, "--until-run-ends"],
+                           ["agent", "der", "--id", "SGen2", str(config), "--connect", site,
+                            "--certs", certs],
+                           ["agent", "measurement", str(config), "--connect", site, "--certs",
+                            certs])]
+    try:
+        up_out, up_err = up.communicate(timeout=180)
+        ends = [p.communicate(timeout=30) for p in others]
+    finally:
+        for p in [up, *others]:
+            if p.poll() is None:
+                os.kill(p.pid, signal.SIGKILL)
+                p.wait()
+    assert up.returncode == 0, up_err
+    assert [p.returncode for p in others] == [0, 0, 0], [e for _, e in ends]
+    assert "waiting up to 60 s for 2 external agent(s): der/SGen2, measurement" in up_err
+    assert "adnmesh up is reachable" in ends[0][1]
+    assert data_messages(read_recording(out)) == clean
+    summary_links = [line for line in up_err.splitlines() if "security:" in line]
+    assert summary_links == []
+    assert processes_mentioning(str(config)) == []
+
+
+def test_an_external_agent_that_never_comes_is_named(tmp_path) -> None:
+    config, table = write_case(tmp_path, "lonely")
+    result = subprocess.run(up_argv(config, table, tmp_path / "lonely.mcap", "--external",
+                                    "der:SGen2", "--startup-timeout", "3"),
+                            cwd=tmp_path, capture_output=True, text=True, timeout=120,
+                            check=False)
+    assert result.returncode == 1
+    assert "agents not ready after 3 s: der/SGen2 (external, not connected: der/SGen2; " \
+        "start each on its host, e.g. 'adnmesh agent der --id SGen2" in result.stderr
+    assert processes_mentioning(str(config)) == []
+
+
+@pytest.mark.parametrize("argv, code, message", [
+    (["agent", "der", "CONFIG", "--connect", "tcp/127.0.0.1:1"], 2, "der needs --id"),
+    (["agent", "cpfc", "CONFIG", "--id", "x", "--connect", "tcp/127.0.0.1:1"], 2,
+     "cpfc takes no --id"),
+    (["agent", "measurement", "CONFIG", "--connect", "tls/127.0.0.1:1"], 2, "needs certificates"),
+    (["agent", "measurement", "CONFIG", "--connect", "tcp/127.0.0.1:1", "--connect-timeout",
+      "0.5"], 1, "cannot connect to tcp/127.0.0.1:1"),
+    (["up", "CONFIG", "--secure", "--certs", "nowhere"], 2, "no certificate directory"),
+    (["up", "CONFIG", "--external", "der:Nope"], 2, "--external: no agent 'der/Nope'"),
+    (["up", "CONFIG", "--routers", "site"], 2, "--routers is for the secure profile"),
+])
+def test_multi_host_and_secure_usage_errors_are_one_line(tmp_path, argv, code, message) -> None:
+    config = REPO / "configs" / "examples" / "runtime-step.yaml"
+    result = adnmesh(*[str(config) if a == "CONFIG" else a for a in argv], cwd=tmp_path)
+    assert result.returncode == code, result.stderr
+    assert message in result.stderr and result.stderr.count("\n") == 1, result.stderr
+    assert "Traceback" not in result.stderr
