@@ -142,7 +142,7 @@ def run_up(config_path: Path, table: Path, workdir: Path, certs: Path | None = N
         raise SystemExit(f"adnmesh up failed: {result.reason}; {result.problems}")
     sim_s = config.scenario.duration_s
     cpu = {"up (router, recorder, clock)": time.process_time() - cpu0,
-           **{a: b["stats"]["cpu_s"] for a, b in sorted(result.byes.items())}}
+           **{a: b.stats["cpu_s"] for a, b in sorted(result.byes.items())}}
     return {
         "agents": len(result.byes), "sim_s": sim_s,
         "wall_s": round(result.wall_time_s, 2),

@@ -9,9 +9,11 @@ from __future__ import annotations
 
 import json
 import os
+import selectors
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -162,15 +164,12 @@ def test_the_same_attacks_against_the_open_profile_are_taken_for_genuine(tmp_pat
     assert replays <= {"replayed"}     # genuine P_IP after the forged one: taken for replays
 
 
-@pytest.mark.slow
-def test_two_linked_routers_with_agents_split_record_what_one_router_records(case) -> None:
+def start_split(tmp: Path, config: Path, table: Path, out: Path, *router_flags: str):
     """``up`` with its router (CPFC, one DER, the monitor) and a site router linked to it
     (``adnmesh router``) with the other DER and the measurement (``adnmesh agent``), secure
-    profile: the recorded payloads equal the single-router run's."""
-    tmp, config, table, clean = case
+    profile; return (up's process, [site router, DER, measurement])."""
     certs = str(tmp / "certs")
     central, site = (f"tls/127.0.0.1:{free_port()}" for _ in range(2))
-    out = tmp / "split.mcap"
     up = subprocess.Popen(up_argv(config, table, out, "--secure", "--certs", certs, "--listen",
                                   central, "--external", "der:SGen2,measurement", "--routers",
                                   "site", "--startup-timeout", "60"),
@@ -178,27 +177,99 @@ def test_two_linked_routers_with_agents_split_record_what_one_router_records(cas
     others = [subprocess.Popen([sys.executable, "-m", "adnmesh", *argv], cwd=tmp,
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
               for argv in (["router", str(config), "--name", "site", "--connect", central,
-                            "--listen", site, "--certs", certs, "--until-run-ends"],
+                            "--listen", site, "--certs", certs, *router_flags],
                            ["agent", "der", "--id", "SGen2", str(config), "--connect", site,
                             "--certs", certs],
                            ["agent", "measurement", str(config), "--connect", site, "--certs",
                             certs])]
+    return up, others
+
+
+def end_all(processes) -> list[tuple[str, str]]:
+    """Wait (bounded) for every process; SIGKILL by PID what is left; their outputs."""
+    outputs = []
     try:
-        up_out, up_err = up.communicate(timeout=180)
-        ends = [p.communicate(timeout=30) for p in others]
+        for p in processes:
+            outputs.append(p.communicate(timeout=180))
     finally:
-        for p in [up, *others]:
+        for p in processes:
             if p.poll() is None:
                 os.kill(p.pid, signal.SIGKILL)
                 p.wait()
+    return outputs
+
+
+def wait_for_line(proc: subprocess.Popen, text: str, timeout_s: float = 90) -> list[str]:
+    """Read ``proc``'s stderr until a line contains ``text`` (bounded); the lines read."""
+    lines = []
+    with selectors.DefaultSelector() as selector:
+        selector.register(proc.stderr, selectors.EVENT_READ)
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if not selector.select(timeout=max(0.0, deadline - time.monotonic())):
+                break
+            lines.append(proc.stderr.readline())
+            if text in lines[-1] or not lines[-1]:
+                break
+    return lines
+
+
+@pytest.mark.slow
+def test_two_linked_routers_with_agents_split_record_what_one_router_records(case) -> None:
+    """Two routers on two ports, agents split between them, secure profile: the recorded
+    payloads equal the single-router run's."""
+    tmp, config, table, clean = case
+    out = tmp / "split.mcap"
+    up, others = start_split(tmp, config, table, out, "--until-run-ends")
+    (_, up_err), (_, router_err), *_ = end_all([up, *others])
     assert up.returncode == 0, up_err
-    assert [p.returncode for p in others] == [0, 0, 0], [e for _, e in ends]
+    assert [p.returncode for p in others] == [0, 0, 0]
     assert "waiting up to 60 s for 2 external agent(s): der/SGen2, measurement" in up_err
-    assert "adnmesh up is reachable" in ends[0][1]
+    assert "adnmesh up is reachable" in router_err
+    assert "security:" not in up_err
     assert data_messages(read_recording(out)) == clean
-    summary_links = [line for line in up_err.splitlines() if "security:" in line]
-    assert summary_links == []
     assert processes_mentioning(str(config)) == []
+
+
+@pytest.mark.slow
+def test_a_site_router_that_drops_loses_its_agents_and_the_run_goes_on(case) -> None:
+    """The site router killed while the run goes: its agents lose ``up`` and exit; ``up``
+    names them lost and runs to the end without them (the CPFC holds without measurements,
+    the monitor reports the DER unavailable)."""
+    tmp, config, table, _ = case
+    out = tmp / "dropped.mcap"
+    up, (router, *agents) = start_split(tmp, config, table, out)
+    ready = wait_for_line(up, "agents ready")
+    os.kill(router.pid, signal.SIGKILL)
+    outputs = end_all([*agents, up, router])
+    up_err = "".join(ready) + outputs[2][1]
+    assert any("agents ready" in line for line in ready), up_err
+    assert [a.returncode for a in agents] == [0, 0], [e for _, e in outputs[:2]]
+    assert up.returncode == 1, up_err
+    for agent in ("der/SGen2", "measurement"):
+        assert f"external agent {agent}: its session ended without a goodbye" in up_err
+    assert "agent(s) lost during the run: der/SGen2, measurement" in up_err
+    run = read_recording(out)
+    last_p_y = max(m.publish_time_ns for m in run.messages if m.topic.endswith("/cpfc/p_y"))
+    assert last_p_y == ns(CHANGES["scenario"]["duration_s"])      # the run reached its end
+    kinds = {json.loads(m.data)["kind"] for m in run.messages if "/event/" in m.topic}
+    assert {"agent_lost", "hold", "unavailable"} <= kinds
+    assert processes_mentioning(str(config)) == []
+
+
+@pytest.mark.slow
+def test_an_agent_told_to_stop_on_its_host_is_lost_and_the_run_goes_on(tmp_path) -> None:
+    """SIGTERM to one DER's process (not by ``up``): it says goodbye and exits; ``up`` counts
+    it lost and runs to the end (it used to wait for that agent's reports for ever)."""
+    proc, agents, config = start_long_run(tmp_path, "told", **CHANGES)
+    victim = max(agents)
+    os.kill(victim, signal.SIGTERM)
+    returncode, err = finish(proc, agents, config)
+    assert returncode == 1, err
+    assert "said goodbye before the end of the run (pid " in err
+    run = read_recording(tmp_path / "told.mcap")
+    last_p_ip = max(m.publish_time_ns for m in run.messages if m.topic.endswith("/p_ip"))
+    assert last_p_ip == ns(CHANGES["scenario"]["duration_s"])
 
 
 def test_an_external_agent_that_never_comes_is_named(tmp_path) -> None:
