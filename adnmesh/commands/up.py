@@ -162,18 +162,21 @@ def _check_arguments(args: argparse.Namespace) -> None:
 
 
 def _certs(args: argparse.Namespace) -> Path | None:
-    """The certificate directory of the secure profile (checked), or None (open profile)."""
-    if not (args.secure or args.certs):
-        return None
+    """The certificate directory of the secure profile (checked), or None (open profile);
+    the ``--listen`` endpoint must fit the profile."""
     from adnmesh.runtime.identity import cert_files
     from adnmesh.runtime.security import check_endpoints
+
+    secure = bool(args.secure or args.certs)
+    check_endpoints([args.listen] if args.listen else [], secure, flag="--listen")
+    if not secure:
+        return None
 
     certs = Path(args.certs or "certs")
     if not certs.is_dir():
         raise UsageError(f"{certs}: no certificate directory; create it with 'adnmesh certs "
                          f"{certs} --config {args.config}'")
     cert_files(certs, "up").check()
-    check_endpoints([args.listen] if args.listen else [], True, flag="--listen")
     return certs.resolve()
 
 
