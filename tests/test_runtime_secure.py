@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import selectors
 import signal
 import subprocess
@@ -221,8 +222,9 @@ def test_two_linked_routers_with_agents_split_record_what_one_router_records(cas
     tmp, config, table, clean = case
     out = tmp / "split.mcap"
     up, others = start_split(tmp, config, table, out, "--until-run-ends")
-    (_, up_err), (_, router_err), *_ = end_all([up, *others])
-    assert up.returncode == 0, up_err
+    outputs = end_all([up, *others])
+    (_, up_err), (_, router_err), *_ = outputs
+    assert up.returncode == 0, "\n".join(err for _, err in outputs)
     assert [p.returncode for p in others] == [0, 0, 0]
     assert "waiting up to 60 s for 2 external agent(s): der/SGen2, measurement" in up_err
     assert "adnmesh up is reachable" in router_err
@@ -279,8 +281,10 @@ def test_an_external_agent_that_never_comes_is_named(tmp_path) -> None:
                             cwd=tmp_path, capture_output=True, text=True, timeout=120,
                             check=False)
     assert result.returncode == 1
-    assert "agents not ready after 3 s: der/SGen2 (external, not connected: der/SGen2; " \
-        "start each on its host, e.g. 'adnmesh agent der --id SGen2" in result.stderr
+    # (on a busy machine a local agent may not be ready in 3 s either: it is named too)
+    assert re.search(r"agents not ready after 3 s: .*der/SGen2", result.stderr), result.stderr
+    assert "(external, not connected: der/SGen2; start each on its host, e.g. 'adnmesh agent " \
+        "der --id SGen2 " in result.stderr
     assert processes_mentioning(str(config)) == []
 
 

@@ -171,7 +171,6 @@ def _certs(args: argparse.Namespace) -> Path | None:
     check_endpoints([args.listen] if args.listen else [], secure, flag="--listen")
     if not secure:
         return None
-
     certs = Path(args.certs or "certs")
     if not certs.is_dir():
         raise UsageError(f"{certs}: no certificate directory; create it with 'adnmesh certs "

@@ -50,8 +50,8 @@ from adnmesh.config import Config
 from adnmesh.recording import PUBLISHED_METADATA, Recorder
 from adnmesh.runtime import acl
 from adnmesh.runtime.bus import DEFAULT_HOST, free_port, router_config
-from adnmesh.runtime.identity import router_identity
 from adnmesh.runtime.children import AgentProcesses, agent_argv
+from adnmesh.runtime.identity import router_identity
 from adnmesh.runtime.injector import FaultInjector
 from adnmesh.runtime.launcher_bus import LauncherOutbox, SimClockDriver
 from adnmesh.runtime.roster import Roster
@@ -343,19 +343,22 @@ def embedded_router_config(options: UpOptions, endpoint: str) -> zenoh.Config:
     with ``up``'s certificate and the access control derived from the topology."""
     if options.certs is None:
         return router_config([endpoint])
-    peers = [router_identity(n) for n in options.routers]
     return router_config([endpoint], certs=options.certs, identity=LAUNCHER,
-                         access_control=acl.access_control(
-                             Topology.from_config(options.config), peers))
+                         access_control=_access_control(options))
+
+
+def _access_control(options: UpOptions) -> dict:
+    """The router's access control: the topology's rules, the site routers as peers."""
+    return acl.access_control(Topology.from_config(options.config),
+                              [router_identity(n) for n in options.routers])
 
 
 def _metadata(options: UpOptions) -> dict[str, str]:
     config = options.config
     security = {"profile": "open"}
     if options.certs is not None:
-        peers = [router_identity(n) for n in options.routers]
-        security = {"profile": "secure (mutual TLS, access control)", "zenoh_access_control":
-                    json.dumps(acl.access_control(Topology.from_config(config), peers))}
+        security = {"profile": "secure (mutual TLS, access control)",
+                    "zenoh_access_control": json.dumps(_access_control(options))}
     return {"config": Path(config.path).read_text(), "config_path": str(config.path),
             "config_sha256": config.sha256, "adnmesh_version": __version__,
             "seed": str(options.seed), "clock": options.clock, "t0_ns": "0", **security,
@@ -392,8 +395,10 @@ def startup(launch: _Launch) -> str | None:
 def _not_ready(launch: _Launch) -> str:
     """Who is missing after the startup timeout, external agents with how to start them."""
     missing = launch.roster.not_ready()
-    external = [a for a in missing if a in launch.options.external]
-    text = f"agents not ready after {launch.options.startup_timeout_s:g} s: {', '.join(missing)}"
+    alive = launch.roster.alive_now()
+    external = [a for a in missing if a in launch.options.external and a not in alive]
+    named = [f"{a} (connected, no clock report)" if a in alive else a for a in missing]
+    text = f"agents not ready after {launch.options.startup_timeout_s:g} s: {', '.join(named)}"
     if external:
         text += (f" (external, not connected: {', '.join(external)}; start each on its host, "
                  f"e.g. {launch.agent_command(external[0])})")
