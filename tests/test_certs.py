@@ -5,14 +5,13 @@ from __future__ import annotations
 
 import ipaddress
 import stat
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 from cryptography import x509
 from cryptography.x509.oid import NameOID
 
+from adnmesh.cli import main
 from adnmesh.config import load_config
 from adnmesh.errors import UsageError
 from adnmesh.runtime.certs import issue
@@ -118,15 +117,12 @@ def test_bad_hosts_days_and_renewals_are_refused(tmp_path: Path) -> None:
         issue(tmp_path / "c", ["up"], renew=["der/X"])
 
 
-def test_adnmesh_certs_reports_what_it_created_and_kept(tmp_path: Path) -> None:
-    argv = [sys.executable, "-m", "adnmesh", "certs", str(tmp_path / "certs"), "--config",
-            str(CASE), "--router", "site"]
-    first = subprocess.run(argv, capture_output=True, text=True, timeout=60, check=False)
-    second = subprocess.run(argv, capture_output=True, text=True, timeout=60, check=False)
-    bad = subprocess.run([*argv, "--renew", "der/Nope"], capture_output=True, text=True,
-                         timeout=60, check=False)
-    assert first.returncode == 0 and "CA created; 8 certificate(s) created, 0 kept" in \
-        first.stdout, first.stderr
-    assert second.returncode == 0 and "CA kept; 0 certificate(s) created, 8 kept" in \
-        second.stdout
-    assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "cannot renew" in bad.stderr
+def test_adnmesh_certs_reports_what_it_created_and_kept(tmp_path: Path, capsys) -> None:
+    argv = ["certs", str(tmp_path / "certs"), "--config", str(CASE), "--router", "site"]
+    assert main(argv) == 0
+    assert "CA created; 8 certificate(s) created, 0 kept" in capsys.readouterr().out
+    assert main(argv) == 0
+    assert "CA kept; 0 certificate(s) created, 8 kept" in capsys.readouterr().out
+    assert main([*argv, "--renew", "der/Nope"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "cannot renew der/Nope" in err

@@ -33,7 +33,6 @@ from adnmesh.wire.units import ns
 from rogue import attack, forged_attacks, junk_on_own_keys, rogue_config
 from up_runs import (
     REPO,
-    alive,
     data_messages,
     finish,
     processes_mentioning,
@@ -48,11 +47,6 @@ CHANGES = {"scenario": {"duration_s": 200, "p_ref_steps": [{"t_s": 40, "delta_w"
                         "availability": [{"t_s": 90, "available": False, "ders": ["SGen2"]}]}}
 
 
-def adnmesh(*args: str, cwd: Path | None = None, timeout: float = 60) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "adnmesh", *args], capture_output=True,
-                          text=True, timeout=timeout, check=False, cwd=cwd)
-
-
 def agents_only(messages) -> list[tuple[str, bytes]]:
     """The agents' messages (``up``'s events name wall-clock moments of fault requests)."""
     return [(k, p) for k, p in messages
@@ -65,8 +59,7 @@ def case(tmp_path_factory):
     router): the reference every test here compares with."""
     tmp = tmp_path_factory.mktemp("secure")
     config, table = write_case(tmp, "case", **CHANGES)
-    made = adnmesh("certs", str(tmp / "certs"), "--config", str(config), "--router", "site")
-    assert made.returncode == 0, made.stderr
+    issue(tmp / "certs", [*identities(load_config(config)), "router/site"])
     issue(tmp / "other-ca", identities(load_config(config)))      # a CA of another system
     out = tmp / "clean.mcap"
     clean = subprocess.run(up_argv(config, table, out, "--secure", "--certs",
@@ -299,9 +292,8 @@ def test_an_external_agent_that_never_comes_is_named(tmp_path) -> None:
     (["up", "CONFIG", "--external", "der:Nope"], 2, "--external: no agent 'der/Nope'"),
     (["up", "CONFIG", "--routers", "site"], 2, "--routers is for the secure profile"),
 ])
-def test_multi_host_and_secure_usage_errors_are_one_line(tmp_path, argv, code, message) -> None:
+def test_multi_host_and_secure_usage_errors_are_one_line(argv, code, message, capsys) -> None:
     config = REPO / "configs" / "examples" / "runtime-step.yaml"
-    result = adnmesh(*[str(config) if a == "CONFIG" else a for a in argv], cwd=tmp_path)
-    assert result.returncode == code, result.stderr
-    assert message in result.stderr and result.stderr.count("\n") == 1, result.stderr
-    assert "Traceback" not in result.stderr
+    assert adnmesh_main([str(config) if a == "CONFIG" else a for a in argv]) == code
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1, err

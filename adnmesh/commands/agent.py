@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+import sys
 
 from adnmesh.errors import UsageError
 
@@ -71,4 +72,10 @@ def run(args: argparse.Namespace) -> int:
     spec = importlib.util.spec_from_file_location(f"adnmesh_agent_{args.kind}", path)
     program = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(program)
-    return program.main(argv)
+    try:
+        return program.main(argv)
+    except SystemExit as exc:        # the program's own one-line errors (exit code 1 or 2)
+        if exc.code is None or isinstance(exc.code, int):
+            return exc.code or 0
+        print(exc.code, file=sys.stderr)  # sys.exit("message"), as Python itself would
+        return 1
