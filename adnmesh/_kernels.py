@@ -3,9 +3,11 @@
 :func:`advance` runs the method of steps of :mod:`adnmesh.stepresp` for M candidates over a
 block of samples, with delays read from precomputed (interpolating) taps; :func:`advance_exact`
 is the same arithmetic for the common case of delays that are whole multiples of the step, with
-the buffer columns computed in the loop (no taps, no interpolation). They are the only hot loops
-of the numerics: everything else is vectorised numpy. Candidates are independent, so the outer
-loop runs in parallel threads for large batches.
+the buffer columns computed in the loop (no taps, no interpolation). :func:`accumulate` is the
+step-figure rule of :mod:`adnmesh.stepfigures` (rise, settling, peak of sampled responses, on
+the simulation's uniform grid or at given sample times). They are the only hot loops of the
+numerics: everything else is vectorised numpy. Candidates are independent, so the outer loop
+of the simulation runs in parallel threads for large batches.
 """
 from __future__ import annotations
 
@@ -132,14 +134,60 @@ _exact_parallel = numba.njit(cache=True, parallel=True)(_advance_exact)
 _exact_serial = numba.njit(cache=True, parallel=False)(_advance_exact)
 
 
-def _accumulate(t0, h, chunk, last, t10, t90, peak, peak_t, bands, settle, curvature):
-    """Step-info figures of one block of samples per candidate, updated in place.
+@numba.njit(cache=True)
+def _time_at(i, frac, t0, h, times):  # pragma: no cover - compiled
+    """Time of the position ``i + frac`` between samples i and i + 1 (0 = ``last``).
 
-    ``chunk`` (M, n) holds y at ``t0 + h, ..., t0 + n h``; ``last`` (M,) y at ``t0``. Exactly
-    the arithmetic of :meth:`adnmesh.stepresp._InfoAccumulator.add`: first crossings of 10 %
-    and 90 % (linear interpolation), the block's peak if higher (parabolic interpolation
-    inside the block), the last exit from each band (``inf`` if the block ends outside).
-    ``curvature[m]`` receives the block's largest ``|y[k] - 2 y[k-1] + y[k-2]|``.
+    Uniform block (``times`` empty): ``t0 + h (i + frac)``. Sampled times: linear between
+    ``times[i]`` and ``times[i + 1]``. The two agree (to rounding) on a uniform grid.
+    """
+    if times.size == 0:
+        return t0 + h * (i + frac)
+    return times[i] + (times[i + 1] - times[i]) * frac
+
+
+@numba.njit(cache=True)
+def _vertex(ym, yc, yp, j, t0, h, times):  # pragma: no cover - compiled
+    """Peak value and time of the parabola through samples j - 1, j, j + 1 if it is concave,
+    else sample j itself.
+
+    Uniform block: offset ``0.5 (ym - yp) / (ym - 2 yc + yp)`` steps, peak
+    ``yc - 0.25 (ym - yp) offset``. Sampled times: the same parabola written for spacings
+    ``d1 = t_j - t_(j-1)``, ``d2 = t_(j+1) - t_j`` (slopes ``s1``, ``s2``, curvature
+    ``a = (s2 - s1) / (d1 + d2)``, slope at ``t_j`` ``b = s1 + a d1``; vertex at
+    ``t_j - b / (2a)``, value ``yc - b^2 / (4a)``), which is the uniform formula when d1 = d2.
+    """
+    if times.size == 0:
+        den = ym - 2.0 * yc + yp
+        off = 0.0
+        if den < 0.0:
+            off = 0.5 * (ym - yp) / den
+        return yc - 0.25 * (ym - yp) * off, t0 + h * (j + off)
+    d1 = times[j] - times[j - 1]
+    d2 = times[j + 1] - times[j]
+    s1 = (yc - ym) / d1
+    a = ((yp - yc) / d2 - s1) / (d1 + d2)
+    if not a < 0.0:
+        return yc, times[j]
+    b = s1 + a * d1
+    return yc - b * b / (4.0 * a), times[j] - b / (2.0 * a)
+
+
+def _accumulate(t0, h, times, chunk, last, t10, t90, peak, peak_t, bands, settle, curvature):
+    """Step figures of one block of samples per candidate, updated in place: THE rule of
+    :mod:`adnmesh.stepfigures` (every step figure in adnmesh comes from here).
+
+    ``chunk`` (M, n), n >= 1, holds y after ``last`` (M,). Sample positions: 0 is ``last``,
+    k + 1 is ``chunk[:, k]``. Their times: ``t0 + h * position`` when ``times`` is empty (the
+    uniform grid of the simulation), else ``times`` (n + 1,), shared by all rows, increasing.
+    Per row: first crossings of 10 % and 90 % from below, linearly interpolated (none if the
+    row is already at or above the level at position 0); the block's largest sample if higher
+    than ``peak`` (the first of equal ones), refined by the parabola through it and its
+    neighbours when both are in the block and it is concave; for each band the last exit
+    (interpolated) from ``|y - 1| <= band``, ``inf`` if the block ends outside, unchanged if the
+    block is inside throughout. ``curvature[m]`` receives the block's largest
+    ``|y[k] - 2 y[k-1] + y[k-2]|``. Only the conversion of positions to times depends on
+    ``times`` (:func:`_time_at`, :func:`_vertex`).
     """  # pragma: no cover - compiled
     m_count, n = chunk.shape
     for m in numba.prange(m_count):
@@ -152,7 +200,7 @@ def _accumulate(t0, h, chunk, last, t10, t90, peak, peak_t, bands, settle, curva
             for k in range(n):
                 if chunk[m, k] >= level:
                     y0 = prev if k == 0 else chunk[m, k - 1]
-                    store[m] = t0 + h * (k + (level - y0) / (chunk[m, k] - y0))
+                    store[m] = _time_at(k, (level - y0) / (chunk[m, k] - y0), t0, h, times)
                     break
         # peak of the block (sample 0 = prev)
         j = 0
@@ -162,14 +210,11 @@ def _accumulate(t0, h, chunk, last, t10, t90, peak, peak_t, bands, settle, curva
                 yc = chunk[m, k]
                 j = k + 1
         if yc > peak[m]:
-            ym = prev if j <= 1 else chunk[m, j - 2]
-            yp = chunk[m, j] if j < n else chunk[m, n - 1]
-            den = ym - 2.0 * yc + yp
-            off = 0.0
-            if 0 < j < n and den < 0.0:
-                off = 0.5 * (ym - yp) / den
-            peak[m] = yc - 0.25 * (ym - yp) * off
-            peak_t[m] = t0 + h * (j + off)
+            if 0 < j < n:
+                ym = prev if j == 1 else chunk[m, j - 2]
+                peak[m], peak_t[m] = _vertex(ym, yc, chunk[m, j], j, t0, h, times)
+            else:
+                peak[m], peak_t[m] = yc, _time_at(j, 0.0, t0, h, times)
         for b in range(bands.size):
             band = bands[b]
             # last sample (0 = prev, k + 1 = chunk[k]) outside the band
@@ -188,7 +233,7 @@ def _accumulate(t0, h, chunk, last, t10, t90, peak, peak_t, bands, settle, curva
             y0 = prev if last_out == 0 else chunk[m, last_out - 1]
             y1 = chunk[m, last_out]
             target = 1.0 + band if y0 > 1.0 else 1.0 - band
-            settle[b, m] = t0 + h * (last_out + (target - y0) / (y1 - y0))
+            settle[b, m] = _time_at(last_out, (target - y0) / (y1 - y0), t0, h, times)
         c = 0.0
         for k in range(2, n):
             d = abs(chunk[m, k] - 2.0 * chunk[m, k - 1] + chunk[m, k - 2])

@@ -33,7 +33,8 @@ from adnmesh.errors import ConfigError
 
 __all__ = [
     "DER_TYPES", "PT1_RISE_TIME_FACTOR", "AvailabilityChange", "Config", "ConfigFile",
-    "Constraints", "DER", "Fault", "LinkSettings", "Links", "Outage", "PRefStep", "Runtime",
+    "Constraints", "DER", "Fault", "GridLimits", "GridModel", "LinkSettings", "Links", "Outage",
+    "PRefStep", "Runtime",
     "Scenario", "Section", "json_schema", "load_config",
 ]
 
@@ -137,12 +138,13 @@ class DER(Section):
     """Name of the static generator in the SimBench grid that this DER drives."""
     p_sched_w: _PowerOrZero = 0.0
     """Scheduled active power P_sched,d, W, at most p_inst_w: the DER falls back to it when it
-    loses contact with the CPFC."""
-
-    @property
-    def t_lag_s(self) -> float:
-        """Time constant ``T_d`` of the reference PT1 model in s: ``t_rise_s / ln(9)``."""
-        return self.t_rise_s / PT1_RISE_TIME_FACTOR
+    loses contact with the CPFC, and P_Y adds to it (p_avail - p_sched is its upward reserve)."""
+    model: Annotated[dict[Annotated[str, Field(pattern=r"^[a-z][a-z0-9_]*$", max_length=40)],
+                          Annotated[float, Field(ge=-_MAX_W, le=_MAX_W)]] | None,
+                     Field(strict=False)] = None
+    """Overrides of the detailed model's parameters (runtime.der_models: detailed), named as
+    they are there, in W, s and W/s, e.g. {t_lag_s: 0.2, ramp_up_w_per_s: 5.0e+5}; see
+    adnmesh analyze CONFIG --der-models."""
 
     @model_validator(mode="after")
     def _schedule_within_rating(self) -> DER:
@@ -150,6 +152,32 @@ class DER(Section):
             raise _problem(("p_sched_w",), f"must not exceed p_inst_w ({self.p_inst_w:g}), "
                                            f"got {self.p_sched_w:g}")
         return self
+
+
+class GridLimits(Section):
+    """The band a grid sample must stay in (the summary flags any sample outside it)."""
+
+    v_min_pu: Annotated[float, Field(gt=0, le=2)] = 0.9
+    """Lowest bus voltage, p.u."""
+    v_max_pu: Annotated[float, Field(gt=0, le=2)] = 1.1
+    """Highest bus voltage, p.u."""
+    loading_max_pct: Annotated[float, Field(gt=0, le=1000)] = 100.0
+    """Highest line and transformer loading, %."""
+
+
+class GridModel(Section):
+    """The AC power flow of the SimBench grid (simbench_code) behind P_IP: the measurement
+    agent solves it at every sample, the DERs' sgens set to their infeeds."""
+
+    study_case: Annotated[str, Field(pattern=r"^[A-Za-z0-9]+$", max_length=16)] = "lW"
+    """SimBench study case of the loads, the other generators and the slack voltage (a row of
+    the net's loadcases table: hL, n1, hW, hPV, lW, lPV); also the DERs' available power."""
+    load_model: Literal["impedance", "power"] = "impedance"
+    """Loads as constant impedances (SPEC §6) or constant power."""
+    report_period_s: _Period = 1.0
+    """The grid's extremes (voltages, loadings, Q_IP) are sent this often, s."""
+    limits: GridLimits = GridLimits()
+    """The band of voltages and loadings."""
 
 
 class Constraints(Section):
@@ -161,6 +189,10 @@ class Constraints(Section):
     """Overshoot of the closed-loop step response must stay below this, % of the final value."""
     settling_band_pct: Annotated[float, Field(gt=0, le=50)] = 5.0
     """Band for the settling time, % of the final value."""
+    sampled_pi: bool = True
+    """Design for the sampled PI of the runtime: its zero-order hold delays P_Y by half a
+    sampling period on average, so the design loop's T_com is t_com_s + runtime.pi_period_s /
+    2 (false: the continuous PI of the paper, T_com = t_com_s)."""
 
 
 class PRefStep(Section):
@@ -335,9 +367,17 @@ class Runtime(Section):
     pi_period_s + cpfc_to_der.jitter_s)."""
     weights_period_s: _Period = 1.0
     """The CPFC repeats the weights W with P_Y this often (besides on every switch), s."""
+    der_models: Literal["reference", "detailed"] = "reference"
+    """The DERs' dynamics in a run: the reference model (the PT1 tuning and analyses use) or the
+    detailed models of SPEC §6 (WT Type 4B-like, CHP, PV), limited to the available power."""
     measurement_timeout_s: _Period = 0.25
     """The CPFC holds output and integrator after this long without a measurement, s (more than
     measurement_period_s + measurement_to_cpfc.jitter_s)."""
+    realtime_tolerance_s: Annotated[float, Field(gt=0, le=_MAX_DELAY_S)] | None = None
+    """On the realtime clock, an event (message or timer) processed more than this late is an
+    overrun (the machine does not keep up with --speed), s of sim time; the measurement, whose
+    inputs have no delay, also processes each instant this much later. Default: 5 % of the
+    shortest ICT link delay."""
     links: Links = Links()
     """ICT channel model per link."""
     faults: _Events[Fault] = ()
@@ -378,6 +418,26 @@ class ConfigFile(Section):
     """The time-domain scenario."""
     runtime: Runtime = Runtime()
     """How the distributed runtime runs the scenario."""
+    grid_model: GridModel | None = None
+    """The power flow behind P_IP; without it P_IP = runtime.rest_of_grid_w + the infeeds."""
+    t_rise_is: Literal["rise_time", "time_constant"] = "rise_time"
+    """What the DERs' t_rise_s is: their 10-90 % rise time (the reference model's time constant
+    is then t_rise_s / ln 9, as the paper has it) or the time constant itself."""
+
+    @property
+    def design_t_com_s(self) -> float:
+        """T_com of the loop tuning and the analyses use, s (see constraints.sampled_pi)."""
+        hold = self.runtime.pi_period_s / 2 if self.constraints.sampled_pi else 0.0
+        return self.t_com_s + hold
+
+    def t_lag_s(self, der: DER) -> float:
+        """Time constant ``T_d`` of the reference PT1 model of ``der``, s (see ``t_rise_is``)."""
+        return der.t_rise_s / self.rise_per_lag
+
+    @property
+    def rise_per_lag(self) -> float:
+        """``t_rise_s`` over the reference model's time constant: ln 9, or 1."""
+        return PT1_RISE_TIME_FACTOR if self.t_rise_is == "rise_time" else 1.0
 
     def der_ids(self) -> tuple[str, ...]:
         """Return the DER ids in file order."""

@@ -8,8 +8,8 @@ run's events (what agents noticed, :mod:`adnmesh.wire.messages`):
   the start and before the end (a fault nobody noticed while it lasted is "not detected"); by
   whom and how long after the start;
 - **largest deviation during** and **after**: ``max |P_IP - P_ref|`` over the P_IP samples in
-  the window, and from the end until the next fault starts or 60 s have passed (or the run
-  ends), W;
+  the window, and from the end until the next fault starts, the next scenario event (a step of
+  P_ref, a change of availability: ``events_s``) or 60 s have passed (or the run ends), W;
 - **recovery time**: from the end until ``|P_IP - P_ref|`` stays within ``band_w`` (interpolated
   like a settling time), s; 0 if it never leaves the band after the end, None if it is outside
   at the end of the after window.
@@ -72,10 +72,22 @@ def _recovery(t_ip: np.ndarray, dev: np.ndarray, lo: float, hi: float,
     return float(crossing - lo)
 
 
+def _first_reaction(reactions, start: float, stop: float, fault: dict):
+    """``(t, who)`` of the first reaction in ``[start, stop)``; at equal times the fault's own
+    DER's, else the first sender by name."""
+    inside = [(t, who) for t, who, _ in reactions if start <= t < stop]
+    if not inside:
+        return None
+    first = min(t for t, _ in inside)
+    at_first = [who for t, who in inside if t == first]
+    own = f"der/{fault.get('der')}"
+    return first, own if own in at_first else min(at_first)
+
+
 def fault_figures(faults: Sequence[dict], events: Sequence[tuple[float, str, str]],
                   t_ip_s: Sequence[float], p_ip_w: Sequence[float],
                   p_ref_t_s: Sequence[float], p_ref_w: Sequence[float], *, end_s: float,
-                  band_w: float) -> list[FaultFigures]:
+                  band_w: float, events_s: Sequence[float] = ()) -> list[FaultFigures]:
     """The figures of every fault (see the module docstring).
 
     Parameters
@@ -92,6 +104,8 @@ def fault_figures(faults: Sequence[dict], events: Sequence[tuple[float, str, str
         End of the run, s.
     band_w : float
         Recovery band, W.
+    events_s : sequence of float
+        Instants of the scenario's own events (they end a fault's after window), s.
     """
     t_ip = np.asarray(t_ip_s, dtype=float)
     p_ip = np.asarray(p_ip_w, dtype=float)
@@ -105,8 +119,8 @@ def fault_figures(faults: Sequence[dict], events: Sequence[tuple[float, str, str
         start = f["start_ns"] * 1e-9
         end = None if f.get("end_ns") is None else f["end_ns"] * 1e-9
         stop = end_s if end is None else end
-        seen = next(((t, who) for t, who, _ in reactions if start <= t < stop), None)
-        later = [s for s in starts if s > start and (end is None or s >= end)]
+        seen = _first_reaction(reactions, start, stop, f)
+        later = [s for s in (*starts, *events_s) if s > start and (end is None or s > end)]
         after_hi = min([end_s, *later, *([] if end is None else [end + AFTER_WINDOW_S])])
         target = next((str(f[k]) for k in ("link", "der", "agent") if f.get(k)), "all ICT")
         out.append(FaultFigures(

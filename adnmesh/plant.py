@@ -197,6 +197,7 @@ def plant_from_ders(
     weights: dict[str, float] | Iterable[float] | None = None,
     model: str = "pt1",
     lag_scale: float = 1.0,
+    rise_per_lag: float = RISE_PER_LAG,
 ) -> Plant:
     """Group DERs (objects with ``id, p_inst_w, t_delay_s, t_rise_s``) into a :class:`Plant`.
 
@@ -212,6 +213,9 @@ def plant_from_ders(
         Actuator model for every DER (``pt1`` is the reference model).
     lag_scale : float
         Factor ``b`` on every time constant (model-uncertainty study).
+    rise_per_lag : float
+        ``t_rise_s`` over the time constant: ln 9 (``t_rise_s`` is the 10-90 % rise time, the
+        default) or 1 (it is the time constant); see the config's ``t_rise_is``.
     """
     if weights is None:
         w = [1.0] * len(ders)
@@ -221,6 +225,6 @@ def plant_from_ders(
         w = [float(x) for x in weights]
     groups: dict[Actuator, float] = {}
     for der, wd in zip(ders, w):
-        act = Actuator(float(der.t_delay_s), float(der.t_rise_s) / RISE_PER_LAG * lag_scale, model)
+        act = Actuator(float(der.t_delay_s), float(der.t_rise_s) / rise_per_lag * lag_scale, model)
         groups[act] = groups.get(act, 0.0) + wd * float(der.p_inst_w)
     return Plant(tuple(groups), np.array(list(groups.values())), float(t_com_s), float(t_meas_s))

@@ -16,9 +16,10 @@ The only approximation is the hold: ``P_Y`` and the error are taken linear betwe
 local error is ``O(h^3 |u''|)`` and the global error ``O(h^2)``; the step ``h`` is chosen from the
 fastest active actuator and the loop bandwidth so that the error on ``y`` stays below
 ``1e-4`` (relative to the final value) — :mod:`tests.test_stepresp` checks this bound against
-the same response at ``h/4`` and against a python-control Padé model. Times (rise, settling,
-peak) are interpolated linearly between samples; their error is ``O(h^2)`` plus the
-amplitude error divided by the slope.
+the same response at ``h/4`` and against a python-control Padé model. The figures are those
+of :mod:`adnmesh.stepfigures` (the one rule of adnmesh): times (rise, settling) are
+interpolated linearly between samples, the peak parabolically; their error is ``O(h^2)`` plus
+the amplitude error divided by the slope.
 
 Every candidate is simulated until its response has stayed within 0.5 % of the final value for
 the last quarter of the simulated time, and at least for 4 x its slowest active actuator's time
@@ -34,9 +35,10 @@ from math import gcd
 
 import numpy as np
 
-from ._kernels import accumulate, advance, advance_exact
+from ._kernels import advance, advance_exact
 from .freqresp import as_candidates
 from .plant import Plant
+from .stepfigures import StepFigureAccumulator
 
 __all__ = ["StepInfo", "simulate_step", "step_info", "step_info_from_samples", "choose_step",
            "choose_steps"]
@@ -267,84 +269,17 @@ def simulate_step(plant: Plant, kp, ki, t_end_s: float, h: float | None = None):
     return np.arange(steps + 1) * h, y
 
 
-class _InfoAccumulator:
-    """Step-info figures computed chunk by chunk (so long horizons need little memory)."""
-
-    FIELDS = ("t10", "t90", "peak", "peak_t", "last")
-
-    def __init__(self, m: int, bands: tuple[float, ...]):
-        self.t10 = np.full(m, np.nan)
-        self.t90 = np.full(m, np.nan)
-        self.peak = np.zeros(m)
-        self.peak_t = np.zeros(m)
-        self.bands = bands
-        self.settle = np.zeros((len(bands), m))
-        self.last = np.zeros(m)
-
-    def keep(self, rows: np.ndarray) -> None:
-        for name in self.FIELDS:
-            setattr(self, name, getattr(self, name)[rows])
-        self.settle = self.settle[:, rows]
-
-    def add(self, t0: float, h: float, chunk: np.ndarray) -> np.ndarray:
-        """Take in y at ``t0 + h, ..., t0 + n h`` (shape (M, n)); returns each candidate's
-        largest second difference of y in the block (compiled: :func:`accumulate`)."""
-        curvature = np.zeros(chunk.shape[0])
-        accumulate(float(t0), float(h), np.ascontiguousarray(chunk), self.last, self.t10,
-                   self.t90, self.peak, self.peak_t, np.asarray(self.bands, float), self.settle,
-                   curvature)
-        return curvature
-
-    def add_numpy(self, t0: float, h: float, chunk: np.ndarray) -> None:
-        """The same as :meth:`add` in plain numpy (the reference its tests compare with)."""
-        y = np.concatenate([self.last[:, None], chunk], axis=1)     # sample 0 at time t0
-        rows = np.arange(y.shape[0])
-        for level, store in ((0.1, self.t10), (0.9, self.t90)):
-            above = y >= level
-            idx = np.argmax(above, axis=1)
-            hit = above[rows, idx] & (idx > 0) & np.isnan(store)
-            i = idx[hit]
-            y0, y1 = y[hit, i - 1], y[hit, i]
-            store[hit] = t0 + h * (i - 1 + (level - y0) / (y1 - y0))
-        j = np.argmax(y, axis=1)
-        better = y[rows, j] > self.peak
-        if np.any(better):
-            jj = j[better]
-            yc = y[better, jj]
-            ym = y[better, np.maximum(jj - 1, 0)]
-            yp = y[better, np.minimum(jj + 1, y.shape[1] - 1)]
-            inner = (jj > 0) & (jj < y.shape[1] - 1)
-            den = ym - 2 * yc + yp
-            off = np.where(inner & (den < 0), 0.5 * (ym - yp) / np.where(den < 0, den, -1.0), 0.0)
-            self.peak[better] = yc - 0.25 * (ym - yp) * off
-            self.peak_t[better] = t0 + h * (jj + off)
-        for b, band in enumerate(self.bands):
-            store = self.settle[b]
-            out = np.abs(y - 1.0) > band
-            any_out = out.any(axis=1)
-            last = y.shape[1] - 1 - np.argmax(out[:, ::-1], axis=1)
-            ends_out = any_out & (last == y.shape[1] - 1)
-            store[ends_out] = np.inf
-            cross = any_out & ~ends_out
-            i = last[cross]
-            y0, y1 = y[cross, i], y[cross, i + 1]
-            target = np.where(y0 > 1.0, 1.0 + band, 1.0 - band)
-            store[cross] = t0 + h * (i + (target - y0) / (y1 - y0))
-        self.last = chunk[:, -1].copy()
-
-
 def step_info_from_samples(h: float, y: np.ndarray, band_pct: float = 5.0) -> StepInfo:
-    """Step info of sampled unit-step responses ``y`` (shape (M, N), ``y[:, 0]`` at t = 0).
-
-    Crossing times are interpolated linearly between samples, the peak parabolically.
-    """
+    """Step info of sampled unit-step responses ``y`` (shape (M, N), ``y[:, 0]`` at t = 0,
+    step h): the rule of :mod:`adnmesh.stepfigures` on the uniform grid (crossing times
+    interpolated linearly between samples, the peak parabolically)."""
     y = np.atleast_2d(y)
-    acc = _InfoAccumulator(y.shape[0], (band_pct / 100.0, 0.02))
+    acc = StepFigureAccumulator(y.shape[0], (band_pct / 100.0, 0.02))
     acc.last = y[:, 0].copy()
     acc.add(0.0, h, y[:, 1:])
     horizon = np.full(y.shape[0], h * (y.shape[1] - 1))
-    return StepInfo(np.maximum(0.0, 100.0 * (acc.peak - 1.0)), acc.t90 - acc.t10, acc.settle[0],
-                    acc.settle[1], acc.peak, acc.peak_t, float(h), horizon)
+    return StepInfo(acc.overshoot_pct(), acc.rise_time_s(), acc.settle[0], acc.settle[1],
+                    acc.peak, acc.peak_t, float(h), horizon)
 
 
 def _horizon_floor(plant: Plant, gains: np.ndarray, bandwidth: np.ndarray) -> np.ndarray:
@@ -368,7 +303,7 @@ def _simulate_until_settled(plant, kp, ki, gains, h, t_min, band_pct, t_max, sto
     m = kp.size
     out = {k: np.full(m, np.nan) for k in ("os", "tr", "ts", "ts2", "pk", "tp", "hor")}
     sim = _Simulator(Plant(plant.actuators, gains, plant.t_com_s, plant.t_meas_s), kp, ki, h)
-    acc = _InfoAccumulator(m, (band_pct / 100.0, 0.02, _SETTLED_BAND))
+    acc = StepFigureAccumulator(m, (band_pct / 100.0, 0.02, _SETTLED_BAND))
     alive = np.arange(m)
     chunk = int(np.clip(np.ceil(min(t_min.min(), 10.0) / h), 50, 2e7 // max(m, 1)))
     chunk += chunk % 2
@@ -382,8 +317,8 @@ def _simulate_until_settled(plant, kp, ki, gains, h, t_min, band_pct, t_max, sto
         finished = settled | over | (elapsed >= t_max)
         if finished.any():
             idx = alive[finished]
-            out["os"][idx] = np.maximum(0.0, 100.0 * (acc.peak[finished] - 1.0))
-            out["tr"][idx] = acc.t90[finished] - acc.t10[finished]
+            out["os"][idx] = acc.overshoot_pct()[finished]
+            out["tr"][idx] = acc.rise_time_s()[finished]
             unsettled = np.where(over[finished], np.nan, np.inf)
             out["ts"][idx] = np.where(settled[finished], acc.settle[0][finished], unsettled)
             out["ts2"][idx] = np.where(settled[finished], acc.settle[1][finished], unsettled)

@@ -20,13 +20,16 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="der", description="adnmesh DER agent")
     parser.add_argument("config", metavar="CONFIG", help="adnmesh config file (YAML)")
     parser.add_argument("--der", required=True, metavar="ID", help="id of the DER in the config")
+    parser.add_argument("--p-avail-w", type=float, metavar="W",
+                        help="its available power, W (default: from the config's grid model)")
     add_agent_arguments(parser)
     args = parser.parse_args(argv)
 
     config = load_config_or_exit(args.config)
     if args.der not in config.der_ids():
         parser.error(f"unknown DER id {args.der!r} (known: {', '.join(config.der_ids())})")
-    node = Node.for_config(build_agent(der_agent_id(args.der), config), config,
+    agent = build_agent(der_agent_id(args.der), config, p_avail_w=args.p_avail_w)
+    node = Node.for_config(agent, config,
                           start_ns=args.resume_at_ns)
     with open_session(args, der_agent_id(args.der)) as session:
         return AgentProcess(session, node, config.grid,

@@ -97,7 +97,7 @@ def checked_entry(config, ids, gains) -> TableEntry:
     ders = config.ders_by_id(ids)
     total = sum(d.p_inst_w for d in ders)
     kp, ki = gains[0] / total, gains[1] / total
-    fig = evaluate(plant_from_ders(ders, config.t_com_s, config.t_meas_s), kp, ki)
+    fig = evaluate(plant_from_ders(ders, config.design_t_com_s, config.t_meas_s), kp, ki)
     ok = bool(fig.stable[0]) and fig.disk_margin[0] >= config.constraints.disk_margin_min \
         and fig.overshoot_pct[0] < config.constraints.overshoot_max_pct
     if not ok:

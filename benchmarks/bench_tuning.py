@@ -33,7 +33,7 @@ def audit(config, table) -> int:
     for start in range(0, len(entries), 256):
         batch = entries[start:start + 256]
         for e in batch:
-            plant = plant_from_ders(config.ders_by_id(e.ders), config.t_com_s, config.t_meas_s,
+            plant = plant_from_ders(config.ders_by_id(e.ders), config.design_t_com_s, config.t_meas_s,
                                     weights=e.w)
             f = evaluate(plant, e.kp, e.ki, band_pct=c.settling_band_pct, classical=False).row(0)
             if not (f["stable"] and f["disk_margin"] >= c.disk_margin_min

@@ -23,7 +23,7 @@ LOOPS = {
 
 
 def plant(ids, **kw):
-    return plant_from_ders(CONFIG.ders_by_id(ids), CONFIG.t_com_s, CONFIG.t_meas_s, **kw)
+    return plant_from_ders(CONFIG.ders_by_id(ids), CONFIG.design_t_com_s, CONFIG.t_meas_s, **kw)
 
 
 def gains(name):

@@ -89,3 +89,29 @@ def test_table_of_another_config_is_refused(capsys, two_wt_table, tmp_path):
     err = _error(capsys, "analyze", str(EXAMPLES / "wt-chp.yaml"), "--table",
                  str(tmp_path / "nope.json"))
     assert "nope.json" in err and "adnmesh tune" in err
+
+
+def test_der_models_alone_need_no_table(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)                      # no tables/ here
+    out = tmp_path / "der"
+    assert main(["analyze", str(EXAMPLES / "two-wt.yaml"), "--only", "der-models",
+                 "--out", str(out)]) == 0
+    assert {p.name for p in out.iterdir()} == {"index.md", "der-models.png", "der-models.csv",
+                                               "der-models.json"}
+    rows = list(csv.DictReader((out / "der-models.csv").open()))
+    assert {r["der"] for r in rows} == {"SGen1", "SGen2"}
+    first = rows[0]
+    assert (first["direction"], first["step_pct"]) == ("up", "10")
+    assert float(first["rise_time_s"]) == pytest.approx(float(first["pt1_rise_time_s"]),
+                                                        rel=1e-6)
+    doc = json.loads((out / "der-models.json").read_text())
+    assert doc["ders"][0]["model"] == "WT Type 4B-like"
+    assert "der-models.png" in (out / "index.md").read_text()
+    assert "DER models" in capsys.readouterr().out
+
+
+def test_der_models_beside_the_table_parts(tmp_path, two_wt_table):
+    out = tmp_path / "both"
+    assert main(["analyze", str(EXAMPLES / "two-wt.yaml"), "--table", str(two_wt_table),
+                 "--out", str(out), "--only", "robustness", "--der-models"]) == 0
+    assert {"robustness.csv", "der-models.png"} <= {p.name for p in out.iterdir()}

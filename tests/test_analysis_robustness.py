@@ -43,7 +43,7 @@ def test_figures_are_those_of_the_deployed_loop_with_weights():
     i = result.names.index("SGen1,SGen5")
     entry = table.lookup(["SGen1", "SGen5"])
     assert entry.w["SGen5"] == 0.5
-    plant = plant_from_ders(config.ders_by_id(["SGen1", "SGen5"]), config.t_com_s,
+    plant = plant_from_ders(config.ders_by_id(["SGen1", "SGen5"]), config.design_t_com_s,
                             config.t_meas_s, weights=entry.w)
     direct = evaluate(plant, entry.kp, entry.ki).row(0)
     # step figures may differ within the simulation's error bound: in a batch, the step
@@ -54,7 +54,7 @@ def test_figures_are_those_of_the_deployed_loop_with_weights():
     assert sorted(result.adaptive_batch.gains_w[i]) == pytest.approx([0.155e6, 2.0e6])
     # the static controller: its one pair and weights 1 for every subset
     st = table.static
-    plant = plant_from_ders(config.ders_by_id(["SGen5"]), config.t_com_s, config.t_meas_s)
+    plant = plant_from_ders(config.ders_by_id(["SGen5"]), config.design_t_com_s, config.t_meas_s)
     direct = evaluate(plant, st.kp, st.ki).row(0)
     j = result.names.index("SGen5")
     assert result.static["rise_time_s"][j] == pytest.approx(direct["rise_time_s"], rel=1e-6)

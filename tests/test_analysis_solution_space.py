@@ -30,7 +30,7 @@ def test_grid_covers_the_normalised_ranges_and_classifies_every_point(space):
 def test_classes_agree_with_the_loop_figures(space):
     config = example("wt-chp")
     c = config.constraints
-    plant = plant_from_ders(config.ders_by_id(space.ders), config.t_com_s, config.t_meas_s)
+    plant = plant_from_ders(config.ders_by_id(space.ders), config.design_t_com_s, config.t_meas_s)
     rng = np.random.default_rng(7)
     for i, j in rng.integers(0, 14, size=(6, 2)):
         f = evaluate(plant, space.kp[j], space.ki[i], classical=False).row(0)

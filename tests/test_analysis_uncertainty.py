@@ -96,11 +96,11 @@ def test_single_der_pt1_stability_limit_agrees_with_direct_computation():
     res = analyze_uncertainty(batch, 5.0, models=("pt1",), quantities=("stability",))
     down, up = res.models[0].limits["stability"]
     der = config.ders_by_id(["SGen5"])[0]
-    b_direct = _direct_pt1_limit(der.p_inst_w, KP_CHP, KI_CHP, der.t_lag_s,
-                                 der.t_delay_s + config.t_com_s + config.t_meas_s)
+    b_direct = _direct_pt1_limit(der.p_inst_w, KP_CHP, KI_CHP, config.t_lag_s(der),
+                                 der.t_delay_s + config.design_t_com_s + config.t_meas_s)
     assert down.status == "found" and down.subsets == ("SGen5",)
     assert down.b_fail <= b_direct <= down.b_pass
-    assert down.b == round_sig(b_direct) == 0.0326
+    assert down.b == round_sig(b_direct) == 0.0327     # T_com with the PI's half-sample hold
     assert up.text() == "> 100"
     # and the loop's own stability test agrees on either side of the limit
     for b, stable in ((b_direct * 1.001, True), (b_direct * 0.999, False)):
@@ -127,7 +127,7 @@ def test_doubling_limits_are_measured_against_the_nominal_pt1_values():
 def test_rhpz_step_response_starts_in_the_wrong_direction():
     config = example("wt-chp")
     batch = deployed_batch(config, [("SGen1",)], 1.078e-7, 3.502e-7)
-    delay = 0.01 + config.t_com_s                          # P_Y reaches the DER after this
+    delay = 0.01 + config.design_t_com_s                          # P_Y reaches the DER after this
     for model, sign in (("rhpz", -1), ("pt1", +1), ("pt2", +1)):
         t, y = simulate_step(batch.plant(model), 1.078e-7, 3.502e-7, 1.0)
         early = y[0, (t > delay) & (t < delay + 0.1)]

@@ -131,7 +131,8 @@ def test_schema_config_is_a_json_schema_with_units(capsys) -> None:
     assert schema["$schema"] == "https://json-schema.org/draft/2020-12/schema"
     assert schema["additionalProperties"] is False
     assert list(schema["properties"]) == ["grid", "simbench_code", "t_com_s", "t_meas_s",
-                                          "constraints", "ders", "scenario", "runtime"]
+                                          "constraints", "ders", "scenario", "runtime",
+                                          "grid_model", "t_rise_is"]
     der = schema["$defs"]["DER"]["properties"]
     assert der["p_inst_w"]["description"].endswith(", W; the controller's C_d.")
     assert (der["p_inst_w"]["exclusiveMinimum"], der["p_inst_w"]["maximum"]) == (0, 1e10)
@@ -143,9 +144,12 @@ def test_schema_config_is_a_json_schema_with_units(capsys) -> None:
 
 
 def test_schema_takes_a_name_from_its_registry(capsys) -> None:
-    assert list(schema_command.SCHEMAS) == ["config"]
-    assert main(["schema", "messages"]) == 2
+    assert list(schema_command.SCHEMAS) == ["config", "messages"]
+    assert main(["schema", "wire"]) == 2
     err = capsys.readouterr().err
-    assert "invalid choice: 'messages' (choose from 'config')" in err
+    assert "invalid choice: 'wire' (choose from 'config', 'messages')" in err
+    assert main(["schema", "messages"]) == 0
+    messages = json.loads(capsys.readouterr().out)
+    assert messages["p_ip"]["properties"]["p_ip_w"]["maximum"] == 1e15
     assert main(["schema"]) == 2
     assert "the following arguments are required: NAME" in capsys.readouterr().err

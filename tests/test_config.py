@@ -77,9 +77,10 @@ def test_simbench_scenario_is_the_papers_demonstration(simbench_config: Config) 
 def test_t_lag_is_rise_time_over_ln9(simbench_config: Config) -> None:
     wt = simbench_config.ders[0]
     assert PT1_RISE_TIME_FACTOR == pytest.approx(2.197, abs=5e-4)
-    assert wt.t_lag_s == pytest.approx(0.515 / math.log(9.0), rel=1e-15)
+    assert simbench_config.t_lag_s(wt) == pytest.approx(0.515 / math.log(9.0), rel=1e-15)
     # a PT1 with this time constant reaches 10 % and 90 % exactly t_rise_s apart
-    t10, t90 = -wt.t_lag_s * math.log(0.9), -wt.t_lag_s * math.log(0.1)
+    lag = simbench_config.t_lag_s(wt)
+    t10, t90 = -lag * math.log(0.9), -lag * math.log(0.1)
     assert t90 - t10 == pytest.approx(wt.t_rise_s, rel=1e-12)
 
 
@@ -327,7 +328,7 @@ INVALID = {
     "unknown section": (
         _set("power_flow", {"solver": "nr"}),
         "power_flow: unknown key (valid keys: grid, simbench_code, t_com_s, t_meas_s, "
-        "constraints, ders, scenario, runtime)",
+        "constraints, ders, scenario, runtime, grid_model, t_rise_is)",
     ),
     "disk margin out of range": (
         _set("constraints.disk_margin_min", 2.5),
@@ -373,7 +374,7 @@ INVALID = {
     "key that is not a string": (
         lambda doc: doc.update({5: 1}),
         "5: unknown key (valid keys: grid, simbench_code, t_com_s, t_meas_s, constraints, ders, "
-        "scenario, runtime)",
+        "scenario, runtime, grid_model, t_rise_is)",
     ),
     # upper bounds
     "more than 1000 DERs": (
@@ -529,7 +530,7 @@ def test_runtime_section_is_optional_with_defaults(simbench_config: Config) -> N
     from adnmesh.config import Runtime
 
     runtime = simbench_config.runtime
-    assert runtime == Runtime()
+    assert runtime == Runtime(der_models="detailed")          # the only key simbench.yaml sets
     assert (runtime.seed, runtime.pi_period_s, runtime.measurement_period_s) == (0, 0.01, 0.01)
     assert runtime.links.cpfc_to_der.delay_s is None          # the config's t_com_s
     assert runtime.links.der_to_availability.delay_s == 0.1

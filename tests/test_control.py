@@ -14,7 +14,7 @@ from adnmesh.control.registry import build_agent
 from adnmesh.control.availability import AvailabilityMonitor
 from adnmesh.control.cpfc import CPFC, GainSchedule, initial_p_ref_w, output_limits
 from adnmesh.control.der import DERController
-from adnmesh.control.dynamics import PT1DelayParams, PT1DelayState, infeed_at, set_point
+from adnmesh.dermodels.pt1 import PT1DelayParams, PT1DelayState, infeed_at, set_point
 from adnmesh.control.measurement import Measurement
 from adnmesh.control.pi import SampledPI
 from adnmesh.sim.node import Node
@@ -61,11 +61,11 @@ def test_pt1_with_delay_is_exact_for_piecewise_constant_setpoints() -> None:
 
 def test_pt1_reaches_the_rise_time_of_the_config(config: Config) -> None:
     der = config.ders[0]
-    params = PT1DelayParams.from_der(der)
+    params = PT1DelayParams(der.p_inst_w, int(round(der.t_delay_s * 1e9)), config.t_lag_s(der))
     state = PT1DelayState.steady(0.0)
     set_point(params, state, 0, 1.0)
-    t10 = params.t_delay_ns * 1e-9 - der.t_lag_s * math.log(0.9)
-    t90 = params.t_delay_ns * 1e-9 - der.t_lag_s * math.log(0.1)
+    t10 = params.t_delay_ns * 1e-9 - config.t_lag_s(der) * math.log(0.9)
+    t90 = params.t_delay_ns * 1e-9 - config.t_lag_s(der) * math.log(0.1)
     assert infeed_at(params, state, round(t10 * 1e9)) == pytest.approx(0.1, abs=1e-8)
     assert infeed_at(params, state, round(t90 * 1e9)) == pytest.approx(0.9, abs=1e-8)
     assert t90 - t10 == pytest.approx(der.t_rise_s, rel=1e-12)
@@ -361,9 +361,10 @@ def test_build_agent_knows_every_agent(config, table) -> None:
         build_agent("cpfc", config)
 
 
-def test_der_defaults_follow_the_config_dataclass() -> None:
+def test_der_defaults_follow_the_config_dataclass(config) -> None:
     der = DER(id="X", type="PV", p_inst_w=1e5, t_delay_s=0.0, t_rise_s=0.1, sgen="s")
-    assert PT1DelayParams.from_der(der).t_delay_ns == 0
+    assert (der.p_sched_w, der.model) == (0.0, None)
+    assert DERController(der, config).params.t_delay_ns == 0
 
 
 def test_pi_switch_to_a_narrower_range_continues_from_its_limit() -> None:
@@ -376,3 +377,140 @@ def test_pi_switch_to_a_narrower_range_continues_from_its_limit() -> None:
     record = pi.switch(5e-7, 7e-8)
     assert record.p_y_limited == 0.0 and record.p_y_after == pytest.approx(0.0, abs=1e-15)
     assert pi.kp * pi.e_prev + pi.ki * pi.x_i == pytest.approx(0.0, abs=1e-15)  # not wound up
+
+
+# --- CPFC under faults: holds, undoing wind-up, power-continuous switches, restarts -------------
+
+
+def heartbeat(cpfc: CPFC, der_id: str, t_ns: int, mode: str, p_y: float = 0.0,
+              t_send_ns: int | None = None) -> None:
+    keys = Keys(cpfc.config.grid)
+    sent = t_ns - 100 * MS if t_send_ns is None else t_send_ns
+    cpfc.on_message(t_ns, message(keys.heartbeat(der_id), sent,
+                                  {"available": True, "mode": mode, "p_y": p_y, "entry": 0},
+                                  src=f"der/{der_id}"))
+
+
+def drive(cpfc: CPFC, until_ns: int, p_meas, on_sample=lambda t: None) -> list:
+    """Run the CPFC's samples to ``until_ns`` with the measurement ``p_meas(t)`` (None: no
+    measurement at that sample); return ``(t, body)`` of its P_Y messages."""
+    keys = Keys(cpfc.config.grid)
+    out = []
+    while cpfc.next_timer_ns() < until_ns:
+        t = cpfc.next_timer_ns()
+        on_sample(t)
+        value = p_meas(t)
+        if value is not None:
+            cpfc.on_message(t, message(keys.p_ip, t, {"p_ip_w": value}, src="measurement"))
+        out += [(t, o.body) for o in cpfc.on_timer(t) if o.key == keys.p_y]
+    return out
+
+
+def test_cpfc_holds_without_measurements_and_resumes_without_a_jump(config, table) -> None:
+    """Measurements stop at 2 s (the step came at 1 s): from the last one on the PI is taken
+    back and held; when they return at 4 s the output continues from the held value."""
+    cpfc = CPFC(config, GainSchedule(config, table))
+    lost = (2000 * MS, 4000 * MS)
+    out = drive(cpfc, 5000 * MS, lambda t: None if lost[0] <= t < lost[1] else -2.2e6)
+    by_t = dict(out)
+    last_fresh = by_t[lost[0] - 10 * MS]["p_y"]
+    held = [b for t, b in out if lost[0] + 260 * MS <= t < lost[1]]
+    assert held and all(b["hold"] == "measurement" and b["p_y"] == last_fresh for b in held)
+    resumed = by_t[lost[1]]
+    error = -1.5e6 - (-2.2e6)
+    one_step = cpfc.pi.ki * config.runtime.pi_period_s * error
+    assert "hold" not in resumed                # it continues from the held value with one
+    assert resumed["p_y"] - last_fresh == pytest.approx(one_step, rel=1e-9)   # sample's integral
+    assert cpfc.counts["rollbacks"] == 1
+
+
+def test_cpfc_undoes_the_samples_a_fallback_disturbed(config, table) -> None:
+    """Both DERs fall back at 3 s (their acknowledgements say so, 0.1 s later); P_IP drops. The
+    CPFC takes its PI back to the sample at fallback + T_meas and holds: the outage leaves no
+    trace in the integrator whatever its length."""
+    cpfc = CPFC(config, GainSchedule(config, table))
+    t_fall = 3000 * MS
+
+    def p_meas(t):
+        return -1.5e6 if t < t_fall + 100 * MS else -2.5e6      # the DERs' share is gone
+
+    def acks(t):
+        if t == t_fall + 100 * MS:
+            for der in ("SGen1", "SGen2"):
+                heartbeat(cpfc, der, t, "watchdog", 0.3, t_send_ns=t_fall)
+
+    out = drive(cpfc, 9000 * MS, p_meas, acks)
+    by_t = dict(out)
+    before = by_t[t_fall + 100 * MS - 10 * MS]["p_y"]          # the sample it goes back to
+    held = [b for t, b in out if t > t_fall + 100 * MS]
+    assert all(b["hold"] == "actuators" and b["p_y"] == before for b in held)
+    assert cpfc.counts["rollbacks"] == 1
+
+
+def test_cpfc_hands_returning_ders_their_share_of_the_power(config, table) -> None:
+    """SGen2 comes back while SGen1 carries P_Y alone: the switch scales P_Y so that the DERs'
+    total commanded power P_Y Σ w P_inst stays the same (SGen2 does not add its share at once)."""
+    cpfc = CPFC(config, GainSchedule(config, table))
+    keys = Keys(config.grid)
+
+    def si(t):
+        if t == 2000 * MS:
+            cpfc.on_message(t, message(keys.si, t, {"si": {"SGen1": True, "SGen2": False}}))
+        if t == 6000 * MS:
+            cpfc.on_message(t, message(keys.si, t, {"si": {"SGen1": True, "SGen2": True}}))
+
+    out = drive(cpfc, 6100 * MS, lambda t: -2.2e6, si)
+    by_t = dict(out)
+    alone, together = by_t[2000 * MS], by_t[6000 * MS]
+    assert alone["switch"].scale == 1.0 and alone["p_y"] == alone["switch"].p_y_before
+    w = table.lookup(["SGen1", "SGen2"]).w
+    share = 2e6 / (w["SGen1"] * 2e6 + w["SGen2"] * 2e6)
+    assert together["switch"].scale == pytest.approx(share)
+    before_w = together["switch"].p_y_before * 1.0 * 2e6
+    after_w = together["p_y"] * (w["SGen1"] * 2e6 + w["SGen2"] * 2e6)
+    assert after_w == pytest.approx(before_w, rel=1e-12)
+
+
+def test_a_restarted_cpfc_resumes_from_the_acknowledged_p_y(config, table) -> None:
+    cpfc = CPFC(config, GainSchedule(config, table))
+    keys = Keys(config.grid)
+    cpfc.resume(5003 * MS)
+    assert cpfc.next_timer_ns() == 5010 * MS and cpfc.hold == "resuming"
+
+    def inputs(t):
+        if t == 5100 * MS:
+            cpfc.on_message(t, message(keys.si, t, {"si": {"SGen1": True, "SGen2": True}}))
+        if t == 5300 * MS:
+            heartbeat(cpfc, "SGen1", t, "watchdog", 0.2125)
+        if t == 5600 * MS:
+            heartbeat(cpfc, "SGen2", t, "watchdog", 0.2125)
+
+    out = drive(cpfc, 6000 * MS, lambda t: -2.1e6, inputs)
+    first_t, first = out[0]
+    assert first_t == 5600 * MS                      # SI and both acknowledgements in
+    assert first["p_y"] == pytest.approx(0.2125, abs=1e-15)
+    assert first["hold"] == "actuators"    # both in fallback: held until they follow again
+    assert all(t >= 5600 * MS for t, _ in out)       # nothing sent while resuming
+
+
+def test_a_restarted_cpfc_resumes_after_the_heartbeat_timeout_without_acks(config, table) -> None:
+    cpfc = CPFC(config, GainSchedule(config, table))
+    cpfc.resume(0)
+    out = drive(cpfc, 3000 * MS, lambda t: -2.5e6)
+    timeout = int(config.runtime.heartbeat_timeout_s * 1e9)
+    one_step = cpfc.pi.ki * config.runtime.pi_period_s * 1e6     # P_ref -1.5 MW, P_IP -2.5
+    assert out[0][0] == timeout and out[0][1]["p_y"] == pytest.approx(one_step, rel=1e-9)
+
+
+def test_der_heartbeat_acknowledges_its_last_p_y_and_mode_changes_at_once(config) -> None:
+    der = DERController(config.ders[0], config)
+    sent = [(0, o.body) for o in der.on_timer(0) if o.key.endswith("/heartbeat")]
+    command(der, 100 * MS, 0.25, w={"SGen1": 1.0})
+    t = 0
+    while t < 2500 * MS:
+        t = der.next_timer_ns()
+        sent += [(t, o.body) for o in der.on_timer(t) if o.key.endswith("/heartbeat")]
+    assert sent[0] == (0, {"available": True, "mode": "control", "p_y": 0.0, "entry": None})
+    assert (1000 * MS, "control", 0.25) in [(t, b["mode"], b["p_y"]) for t, b in sent]
+    assert (1100 * MS, "watchdog", 0.25) in [(t, b["mode"], b["p_y"]) for t, b in sent]
+    assert der.setpoint_w == 0.0 and der.counts["watchdog_trips"] == 1

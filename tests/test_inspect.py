@@ -10,7 +10,7 @@ import pytest
 
 from adnmesh.cli import main
 from adnmesh.recording import PUBLISHED_METADATA, Recorder, read_recording
-from adnmesh.recording.synthetic import FAKE_SCHEMAS, fake_run, write_fake_run
+from synthetic_runs import FAKE_SCHEMAS, fake_run, write_fake_run
 
 
 @pytest.fixture(scope="module")
@@ -30,25 +30,26 @@ def test_inspect_summarises_a_complete_recording(fake: Path, capsys) -> None:
     out, err = capsys.readouterr()
     assert err == ""
     lines = _lines(out)
-    assert lines[0].startswith(f"{fake}: complete MCAP recording, 3918 messages on 13 topics, ")
+    assert lines[0].startswith(f"{fake}: complete MCAP recording, 3917 messages on 13 topics, ")
     assert lines[1].startswith("run: run_id fake, clock sim, seed 0, adnmesh_version ")
     assert "time: 0.000 to 60.100 s (sim_time, send and delivery times)" in lines
     assert "adn/fake/measurement/p_ip p_ip 601 0.000 60.000" in lines
     assert "adn/fake/der/WT1/state der_state 601 0.000 60.000" in lines
-    assert "adn/fake/fault/der/CHP1 fault 2 40.000 42.000" in lines
-    assert any(line.startswith("5 +1.000 2.700 1.20 1.60 0.5") for line in lines)
-    assert "events: 1 gain switches, 1 availability changes, 2 fault events, 4 DER mode " \
+    assert "adn/fake/faults fault 1 40.000 40.000" in lines
+    assert "5.00 +1.000 1.186 1.588 0.585 -1.33 10.00" in lines     # window ends at the next step
+    assert "50.00 -0.200 5.978 6.912 4.324 8.65 10.00" in lines     # ... at the end of the run
+    assert "events: 1 gain switches, 1 availability changes, 1 fault events, 4 DER mode " \
            "changes" in lines
     assert any(line.startswith("25.000 s gain switch to entry 12: K_P 6.593e-08 -> 6.364e-07")
                for line in lines)
     assert "41.000 s CHP1: mode control -> watchdog" in lines
-    assert "published counts: every message recorded (3918 on 13 topics)" in lines
+    assert "published counts: every message recorded (3917 on 13 topics)" in lines
     assert not any("recovered" in line for line in lines)
 
 
 def test_inspect_validates_schemas_on_request(fake: Path, capsys) -> None:
     assert main(["inspect", str(fake), "--validate"]) == 0
-    assert "schema check: all 3918 messages valid" in _lines(capsys.readouterr().out)
+    assert "schema check: all 3917 messages valid" in _lines(capsys.readouterr().out)
 
 
 def test_inspect_prints_the_metadata_on_request(fake: Path, capsys) -> None:
@@ -74,7 +75,7 @@ def test_inspect_recovers_a_truncated_recording(fake: Path, tmp_path: Path, caps
     data = path.read_bytes()
     path.write_bytes(data[: (size_before + size_after) // 2])  # the last chunk is unfinished
     expected = read_recording(path)
-    assert 0 < len(expected.messages) < 3918 and len(expected.messages) % 500 == 0
+    assert 0 < len(expected.messages) < 3917 and len(expected.messages) % 500 == 0
 
     assert main(["inspect", str(path)]) == 0
     lines = _lines(capsys.readouterr().out)
@@ -163,4 +164,64 @@ def test_inspect_runs_as_a_program(fake: Path) -> None:
     result = subprocess.run([sys.executable, "-m", "adnmesh", "inspect", str(fake)],
                             capture_output=True, text=True, timeout=60, check=False)
     assert result.returncode == 0, result.stderr
-    assert "3918 messages on 13 topics" in result.stdout
+    assert "3917 messages on 13 topics" in result.stdout
+
+
+def test_inspect_finds_the_windows_of_up_s_summary(tmp_path: Path) -> None:
+    """Every event that ends a step's window in ``up``'s summary ends it in ``inspect`` too:
+    a switch record, a heartbeat flag change, an SI change alone (a heartbeat timeout), a
+    fault; not a gain change without a switch record, not the initial SI nor a repeated one;
+    the last window closes at the start message's end."""
+    import dataclasses
+    import json
+    import math
+
+    import numpy as np
+
+    from adnmesh.recording.figures import run_figures
+    from adnmesh.recording.series import extract
+    from adnmesh.runtime.summary import MESSAGE_TYPES, RunSeries, summarize
+    from adnmesh.wire.keys import Keys, route
+    from adnmesh.wire.messages import Switch
+    from adnmesh.wire.schemas import message_schemas
+    from payloads import payload
+
+    keys, s = Keys("g"), 1_000_000_000
+    gains = {"p_y": 0.1, "p_ref_w": 0.0, "kp": 1e-7, "ki": 2e-7, "entry": 3}
+    events = [(0, keys.start, "up", {"clock": "sim", "epoch_ns": 0, "speed": 1.0,
+                                     "end_ns": 70 * s, "seed": 0}),
+              (0, keys.si, "availability", {"si": {"A": True, "B": True}}),
+              (3 * s, keys.si, "availability", {"si": {"A": True, "B": True}}),
+              (8 * s, keys.p_y, "cpfc", {**gains, "kp": 3e-7}),          # no switch record
+              (12 * s, keys.p_y, "cpfc", {**gains, "w": {"A": 1.0}, "switch": Switch(
+                  p_y_before=0.1, p_y_limited=0.1, kp_before=3e-7, ki_before=2e-7)}),
+              (15 * s, keys.heartbeat("B"), "der/B", {"available": True}),
+              (22 * s, keys.heartbeat("B"), "der/B", {"available": False}),
+              (33 * s, keys.si, "availability", {"si": {"A": False, "B": False}}),
+              (1 * s, keys.faults, "up", {"fault_id": 1, "kind": "der_offline", "der": "A",
+                                          "start_ns": 41 * s, "end_ns": 80 * s})]
+    steps = ((0, 0.0), (5, 1e6), (20, 0.0), (30, 1e6), (40, 0.0), (60, 1e6))
+    events += [(t * s, keys.p_ref, "cpfc", {"p_ref_w": w}) for t, w in steps]
+    p_ip = 0.0                                   # P_ref through a 1 s lag, sampled every 10 ms
+    for k in range(7001):
+        events.append((k * 10_000_000, keys.p_ip, "measurement", {"p_ip_w": p_ip}))
+        p_ref = [w for t, w in steps if t * 100 <= k][-1]
+        p_ip += (p_ref - p_ip) * (1 - math.exp(-0.01))
+    path = tmp_path / "windows.mcap"
+    series = RunSeries()
+    with Recorder(path, metadata={}, schemas=message_schemas()) as recorder:
+        for i, (t_ns, key, src, body) in enumerate(sorted(events, key=lambda e: e[0])):
+            kind = route(key).type
+            data = payload(key, body, src=src, seq=i, t_send_ns=t_ns, t_deliver_ns=t_ns + 1)
+            recorder.write(key, kind, data, log_time_ns=t_ns + 1, publish_time_ns=t_ns)
+            if kind in MESSAGE_TYPES and (kind != "p_y" or "switch" in body):
+                series.add(kind, json.loads(data))
+    summary = summarize(series, end_ns=70 * s)
+    inspected = run_figures(extract(read_recording(path)))
+    assert [(x.t_s, x.window_s) for x in summary.steps] == [
+        (5.0, 7.0), (20.0, 2.0), (30.0, 3.0), (40.0, 1.0), (60.0, 10.0)]
+    assert math.isnan(summary.steps[3].figures.rise_time_s)     # 1 s: no 90 % crossing
+    np.testing.assert_equal([dataclasses.astuple(x) for x in inspected.steps],
+                            [dataclasses.astuple(x) for x in summary.steps])
+
+

@@ -26,7 +26,7 @@ from adnmesh.recording import (
     recover,
     validate_recording,
 )
-from adnmesh.recording.synthetic import FAKE_SCHEMAS, fake_run, write_fake_run
+from synthetic_runs import FAKE_SCHEMAS, fake_run, write_fake_run
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 
@@ -234,8 +234,9 @@ def test_a_failing_disk_fails_the_recording_loudly(tmp_path: Path, monkeypatch) 
 # "<message number> <time.monotonic()>" (CLOCK_MONOTONIC is system-wide on Linux).
 _WRITER = """
 import json, sys, time
+sys.path.insert(0, sys.argv[3])
 from adnmesh.recording import Recorder
-from adnmesh.recording.synthetic import FAKE_SCHEMAS
+from synthetic_runs import FAKE_SCHEMAS
 recorder = Recorder(sys.argv[1], metadata={"clock": "realtime"}, schemas=FAKE_SCHEMAS,
                     flush_interval_s=float(sys.argv[2]))
 i = 0
@@ -256,7 +257,8 @@ _SCHEDULING_ALLOWANCE_S = 0.2  # for the flush thread to get the CPU on a loaded
 def test_sigkilled_recorder_leaves_every_message_older_than_the_flush_interval(
         tmp_path: Path) -> None:
     path = tmp_path / "killed.mcap"
-    child = subprocess.Popen([sys.executable, "-c", _WRITER, str(path), str(_FLUSH_INTERVAL_S)],
+    child = subprocess.Popen([sys.executable, "-c", _WRITER, str(path), str(_FLUSH_INTERVAL_S),
+                              str(Path(__file__).parent)],
                              stdout=subprocess.PIPE, text=True, cwd=REPO_ROOT)
     try:
         reported: list[tuple[int, float]] = []

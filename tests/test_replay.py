@@ -19,7 +19,7 @@ from adnmesh.recording.rerun_export import (
     viewer_command,
 )
 from adnmesh.recording.series import SERIES, extract, match_key
-from adnmesh.recording.synthetic import FAKE_DERS, write_fake_run
+from synthetic_runs import FAKE_DERS, write_fake_run
 
 
 @pytest.fixture(scope="module")
@@ -106,11 +106,11 @@ def test_gain_switches_and_faults_are_text_log_entries(rrd) -> None:
         "gain switch to entry 12: K_P 6.593e-08 -> 6.364e-07 1/W, K_I 3.297e-07 -> 7.273e-07 "
         "1/(W s), P_Y -0.001432 -> -0.001341; DERs: CHP1, PV1")
     assert gains["TextLog:level"] == [["INFO"]]
-    faults = rrd[rerun_entity_path("/adn/fake/fault/der/CHP1/events")]
-    assert faults[SIM_TIMELINE] == [40_000_000_000, 42_000_000_000]
-    assert [t[0] for t in faults["TextLog:text"]] == ["fault der_offline der/CHP1 starts",
-                                                      "fault der_offline der/CHP1 ends"]
-    assert faults["TextLog:level"] == [["WARN"], ["WARN"]]
+    faults = rrd[rerun_entity_path("/adn/fake/faults/events")]
+    assert faults[SIM_TIMELINE] == [40_000_000_000]
+    assert [t[0] for t in faults["TextLog:text"]] == [
+        "fault 1: der_offline of CHP1 from 40 s to 42 s"]
+    assert faults["TextLog:level"] == [["WARN"]]
     modes = rrd[rerun_entity_path("/adn/fake/der/CHP1/state/events")]
     assert modes[SIM_TIMELINE] == [41_000_000_000, 42_000_000_000]
     assert [t[0] for t in modes["TextLog:text"]] == ["CHP1: mode control -> watchdog",
@@ -156,12 +156,15 @@ def test_summary_figures_of_the_fake_run(fake) -> None:
     figures = run_figures(extract(read_recording(fake)))
     assert [s.t_s for s in figures.steps] == [5.0, 15.0, 30.0, 50.0]
     first = figures.steps[0]
-    assert first.delta_w == 1.0e6 and first.target_w == pytest.approx(2.7e6)
-    assert 0.5 < first.rise_time_s < 3 and first.settling_time_s < 5 and first.overshoot_pct < 1
+    assert first.step_w == 1.0e6 and first.p_ref_w == pytest.approx(2.7e6)
+    assert 0.5 < first.figures.rise_time_s < 3 and first.figures.settling_time_s < 5
+    assert first.figures.overshoot_pct < 1
     slow = figures.steps[2]  # after the WTs left: the CHP plant dominates
-    assert slow.rise_time_s > 3 * first.rise_time_s
+    assert slow.figures.rise_time_s > 3 * first.figures.rise_time_s
+    # each window ends at the next event: step, gain switch, fault start, end of the run
+    assert [s.window_s for s in figures.steps] == [10.0, 10.0, 10.0, 10.0]
     assert (figures.gain_switches, figures.availability_changes, figures.faults,
-            figures.mode_changes) == (1, 1, 2, 4)
+            figures.mode_changes) == (1, 1, 1, 4)
     assert figures.max_error_w == pytest.approx(1.0e6, rel=0.01)
 
 
@@ -242,8 +245,8 @@ def test_the_series_table_understands_the_runtimes_messages(tmp_path: Path) -> N
         (keys.der_state("SGen1"), {"p_w": 1e6, "setpoint_w": 1.1e6, "mode": "control"}),
         (keys.heartbeat("SGen1"), {"available": True}),
         (keys.si, {"si": {"SGen1": True, "SGen2": False}}),
-        (keys.fault("der/SGen2"), {"fault": "der_offline", "agent": "der/SGen2",
-                                   "active": True}),
+        (keys.faults, {"fault_id": 1, "kind": "der_offline", "der": "SGen2",
+                       "start_ns": 700_000_000, "end_ns": None}),
     ]
     path = tmp_path / "runtime.mcap"
     with Recorder(path, metadata={}, schemas=message_schemas()) as recorder:

@@ -10,20 +10,10 @@ import math
 import numpy as np
 import pytest
 
-from adnmesh.runtime.summary import RunSeries, step_figures, summarize
+from adnmesh.runtime.summary import RunSeries, summarize
+
 
 # --- summary ------------------------------------------------------------------------------------
-
-
-def test_step_figures_of_a_first_order_response() -> None:
-    tau = 2.0
-    t = np.arange(0.0, 40.0, 0.001)
-    rise, settle, overshoot = step_figures(t, 1 - np.exp(-t / tau), 0.05)
-    assert rise == pytest.approx(tau * math.log(9), abs=1e-5)
-    assert settle == pytest.approx(tau * math.log(20), abs=1e-5)
-    assert overshoot == 0.0
-    assert step_figures([], [], 0.05) == (None, None, None)
-    assert step_figures(t, 0.5 * np.ones_like(t), 0.05) == (None, None, 0.0)
 
 
 def synthetic_series() -> RunSeries:
@@ -48,9 +38,10 @@ def test_summary_of_synthetic_series() -> None:
     first, second = summary.steps
     assert (first.t_s, first.step_w) == (10.0, 1e6)
     assert first.window_s == pytest.approx(15.0)                            # ends at the switch
-    assert first.rise_time_s == pytest.approx(math.log(9), abs=1e-3)
-    assert first.settling_time_s == pytest.approx(math.log(20), abs=1e-2)
-    assert second.step_w == -5e5 and second.overshoot_pct == 0.0
+    assert first.figures.rise_time_s == pytest.approx(math.log(9), abs=1e-3)
+    assert first.figures.settling_time_s == pytest.approx(math.log(20), abs=1e-2)
+    assert second.step_w == -5e5 and second.figures.overshoot_pct == 0.0
+    assert second.window_s == pytest.approx(20.0)                           # ends with the run
     assert abs(second.steady_error_w) < 1.0
     (switch,) = summary.switches
     assert switch.t_s == 25.0 and switch.p_y_jump == 0.0

@@ -7,14 +7,16 @@ every wait is bounded, every process started here is ended by PID.
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import os
-import re
 import selectors
 import signal
 import subprocess
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -44,7 +46,10 @@ from up_runs import (
 GRID = "runtime-test"
 AT_S = 150.0                 # when the forged messages claim to be delivered, s of sim time
 CHANGES = {"scenario": {"duration_s": 200, "p_ref_steps": [{"t_s": 40, "delta_w": 1.0e6}],
-                        "availability": [{"t_s": 90, "available": False, "ders": ["SGen2"]}]}}
+                        "availability": [{"t_s": 90, "available": False, "ders": ["SGen2"]}]},
+           # a fault from the config: up's faults reach the agents through the access control
+           "runtime": {"faults": [{"kind": "link_outage", "link": "cpfc_to_der", "t_s": 60,
+                                   "duration_s": 5}]}}
 
 
 def agents_only(messages) -> list[tuple[str, bytes]]:
@@ -53,80 +58,112 @@ def agents_only(messages) -> list[tuple[str, bytes]]:
             if not k.endswith(("/faults", "/event/up", "/control/fault"))]
 
 
+@dataclass
+class Attacked:
+    """The one secure run (one router) of this module, attacked while it ran."""
+
+    tmp: Path
+    config: Path
+    table: Path
+    expected: list          # the in-process run's messages, in recording order
+    refused: dict           # what the rogue could not connect with -> refused as expected
+    still_running: bool     # the run was still going when the attack was over
+    returncode: int
+    err: str                # up's stderr
+    operator: int           # exit code of the operator's `adnmesh fault`
+    operator_out: str
+    report: object          # rogue.RogueReport
+    sent: int               # attempts the rogue made through its session
+    junk: list              # its junk on the DER's own keys
+
+
 @pytest.fixture(scope="module")
-def case(tmp_path_factory):
-    """The case, its certificates, and its undisturbed run in the secure profile (one
-    router): the reference every test here compares with."""
+def attacked(tmp_path_factory) -> Attacked:
+    """The case, its certificates, the in-process run of it, and its run in the secure profile
+    with a rogue session attacking it: without a certificate, with one of another CA, and with
+    a DER's certificate (forged messages of every kind, junk on the DER's own keys, a wide
+    subscription, ``up``'s liveliness token); the operator requests a fault meanwhile. One run
+    for every test here that needs a running secure system (each run costs tens of seconds)."""
     tmp = tmp_path_factory.mktemp("secure")
     config, table = write_case(tmp, "case", **CHANGES)
-    issue(tmp / "certs", [*identities(load_config(config)), "router/site"])
-    issue(tmp / "other-ca", identities(load_config(config)))      # a CA of another system
-    out = tmp / "clean.mcap"
-    clean = subprocess.run(up_argv(config, table, out, "--secure", "--certs",
-                                   str(tmp / "certs")),
-                           cwd=tmp, capture_output=True, text=True, timeout=180, check=False)
-    assert clean.returncode == 0, clean.stderr
-    assert "secure: mutual TLS, access control" in clean.stderr
-    return tmp, config, table, data_messages(read_recording(out))
-
-
-def test_the_secure_run_records_what_the_in_process_run_computes(case) -> None:
-    tmp, config, table, clean = case
     loaded = load_config(config)
+    issue(tmp / "certs", [*identities(loaded), "router/site"])
+    issue(tmp / "other-ca", identities(loaded))      # a CA of another system
     local = run_local(loaded, GainSchedule(loaded, load_table(table, loaded), on_demand=False))
     expected = sorted(local.messages, key=lambda m: (json.loads(m[1])["t_deliver_ns"], m[0],
                                                      json.loads(m[1])["seq"]))
-    assert clean == expected
+    certs = tmp / "certs"
+    proc, agents, run_config = start_long_run(
+        tmp, "attacked", "--secure", "--certs", str(certs), "--summary-json",
+        str(tmp / "attacked.json"), **CHANGES)
+    try:
+        endpoint = json.loads((tmp / "attacked.run.json").read_text())["endpoint"]
+        refused = {}
+        for what, certs_dir, ep in (("no certificate", None, endpoint.replace("tls/", "tcp/")),
+                                    ("another CA", tmp / "other-ca", endpoint)):
+            try:
+                attack(rogue_config(ep, certs_dir, "der/SGen1" if certs_dir else None), [],
+                       GRID)
+                refused[what] = False
+            except Exception as exc:   # zenoh.ZError: the handshake failed
+                refused[what] = "Unable to connect" in str(exc)
+        forged = forged_attacks(GRID, at_ns=int(AT_S * 1e9))
+        junk = junk_on_own_keys(GRID, "SGen1", 25)
+        report = attack(rogue_config(endpoint, certs, "der/SGen1"), forged + junk, GRID,
+                        listen_to=[f"adn/{GRID}/**", f"adn/{GRID}/measurement/p_ip"],
+                        up_token=True)
+        # the operator may: a fault after the end of the run (injected, it changes nothing)
+        out = io.StringIO()
+        with contextlib.redirect_stdout(out):
+            operator = adnmesh_main(["fault", str(tmp / "attacked.mcap"), "ict_outage",
+                                     "--at", "5000"])
+    finally:      # also if an attack failed: up ends (bounded), every process checked by PID
+        still_running = proc.poll() is None
+        returncode, err = finish(proc, agents, run_config)
+    return Attacked(tmp, config, table, expected, refused, still_running, returncode, err,
+                    operator, out.getvalue(), report, len(forged) + len(junk) + 1, junk)
 
 
-@pytest.mark.slow
-def test_a_rogue_session_against_a_running_secure_system_achieves_nothing(case, capsys) -> None:
+def test_the_secure_run_records_what_the_in_process_run_computes(attacked, tmp_path) -> None:
+    """The run of the secure profile completes with exactly the in-process run's messages
+    (the rogue session's attempts changed nothing; the config's fault took effect)."""
+    assert attacked.still_running, "the run ended before the attack was over"
+    assert attacked.returncode == 0, attacked.err
+    assert "secure: mutual TLS, access control" in attacked.err
+    run = read_recording(attacked.tmp / "attacked.mcap")
+    assert agents_only(data_messages(run)) == agents_only(attacked.expected)
+    # the config's fault changes what the agents send: up's faults reached them
+    config, table = write_case(tmp_path, "unfaulted", scenario=CHANGES["scenario"])
+    loaded = load_config(config)
+    unfaulted = run_local(loaded, GainSchedule(loaded, load_table(table, loaded),
+                                               on_demand=False))
+    assert agents_only(unfaulted.messages) != agents_only(attacked.expected)
+
+
+def test_a_rogue_session_against_a_running_secure_system_achieves_nothing(attacked) -> None:
     """Without a certificate or with one of another CA it cannot connect; with a DER's
     certificate its forged correcting variable, another DER's state, measurement, SI, clock
     stop, clock grant, fault and fault request are refused by the router, its junk on the DER's
     own keys is rejected and counted by the receivers, its wide subscription gets nothing it may
-    not have: the run completes with exactly the undisturbed run's messages, and ``up`` reports
-    the second session with that certificate."""
-    tmp, config, table, clean = case
-    certs = tmp / "certs"
-    proc, agents, _ = start_long_run(tmp, "attacked", "--secure", "--certs", str(certs),
-                                     "--summary-json", str(tmp / "attacked.json"), **CHANGES)
-    endpoint = json.loads((tmp / "attacked.run.json").read_text())["endpoint"]
-    refused = {}
-    for what, certs_dir, ep in (("no certificate", None, endpoint.replace("tls/", "tcp/")),
-                                ("another CA", tmp / "other-ca", endpoint)):
-        try:
-            attack(rogue_config(ep, certs_dir, "der/SGen1" if certs_dir else None), [], GRID)
-            refused[what] = False
-        except Exception as exc:   # zenoh.ZError: the handshake failed
-            refused[what] = "Unable to connect" in str(exc)
-    forged = forged_attacks(GRID, at_ns=int(AT_S * 1e9))
-    junk = junk_on_own_keys(GRID, "SGen1", 25)
-    report = attack(rogue_config(endpoint, certs, "der/SGen1"), forged + junk, GRID,
-                    listen_to=[f"adn/{GRID}/**", f"adn/{GRID}/measurement/p_ip"],
-                    up_token=True)
-    # the operator may: a fault after the end of the run (injected, it changes nothing)
-    operator = adnmesh_main(["fault", str(tmp / "attacked.mcap"), "ict_outage", "--at",
-                             "5000"])
-    still_running = proc.poll() is None
-    returncode, err = finish(proc, agents, config)
-    assert refused == {"no certificate": True, "another CA": True}
-    assert still_running, "the run ended before the attack was over"
-    assert returncode == 0, err
-    assert operator == 0 and "ict_outage of all ICT from 5000 s on" in capsys.readouterr().out
-    assert len(report.sent) == len(forged) + len(junk) + 1
-    assert report.received == {}, "the rogue received something"
-    run = read_recording(tmp / "attacked.mcap")
-    assert agents_only(data_messages(run)) == agents_only(clean)
+    not have (the run's messages are the in-process run's: the test above), and ``up`` reports
+    the second session with that certificate. The operator's fault request is answered."""
+    assert attacked.refused == {"no certificate": True, "another CA": True}
+    assert attacked.returncode == 0, attacked.err
+    assert attacked.operator == 0 and "ict_outage of all ICT from 5000 s on" in \
+        attacked.operator_out
+    assert len(attacked.report.sent) == attacked.sent
+    assert attacked.report.received == {}, "the rogue received something"
+    run = read_recording(attacked.tmp / "attacked.mcap")
+    junk = attacked.junk
     rejected = [json.loads(m.data) for m in run.messages if m.topic.endswith("/rejected")]
     assert len(rejected) == len(junk)                       # only the junk got through
     assert {r["key"] for r in rejected} == {a.key for a in junk}
-    summary = json.loads((tmp / "attacked.json").read_text())["extra"]
+    summary = json.loads((attacked.tmp / "attacked.json").read_text())["extra"]
     assert summary["rejected_by_recorder"] == len(junk)
-    receivers = Topology.from_config(load_config(config)).receivers   # each rejects each
+    receivers = Topology.from_config(load_config(attacked.config)).receivers   # each rejects
     assert summary["rejected_by_agents"] == sum(len(receivers[a.key]) for a in junk)
     assert summary["unexpected_sessions"] == 1
-    assert "security: der/SGen1 had 2 links at once" in err
+    assert "security: der/SGen1 had 2 links at once" in attacked.err
 
 
 @pytest.mark.slow
@@ -209,10 +246,10 @@ def wait_for_line(proc: subprocess.Popen, text: str, timeout_s: float = 90) -> l
 
 
 @pytest.mark.slow
-def test_two_linked_routers_with_agents_split_record_what_one_router_records(case) -> None:
+def test_two_linked_routers_with_agents_split_record_what_one_router_records(attacked) -> None:
     """Two routers on two ports, agents split between them, secure profile: the recorded
-    payloads equal the single-router run's."""
-    tmp, config, table, clean = case
+    payloads equal the in-process run's, as the single-router run's do."""
+    tmp, config, table = attacked.tmp, attacked.config, attacked.table
     out = tmp / "split.mcap"
     up, others = start_split(tmp, config, table, out, "--until-run-ends")
     outputs = end_all([up, *others])
@@ -222,16 +259,16 @@ def test_two_linked_routers_with_agents_split_record_what_one_router_records(cas
     assert "waiting up to 60 s for 2 external agent(s): der/SGen2, measurement" in up_err
     assert "adnmesh up is reachable" in router_err
     assert "security:" not in up_err
-    assert data_messages(read_recording(out)) == clean
+    assert data_messages(read_recording(out)) == attacked.expected
     assert processes_mentioning(str(config)) == []
 
 
 @pytest.mark.slow
-def test_a_site_router_that_drops_loses_its_agents_and_the_run_goes_on(case) -> None:
+def test_a_site_router_that_drops_loses_its_agents_and_the_run_goes_on(attacked) -> None:
     """The site router killed while the run goes: its agents lose ``up`` and exit; ``up``
     names them lost and runs to the end without them (the CPFC holds without measurements,
     the monitor reports the DER unavailable)."""
-    tmp, config, table, _ = case
+    tmp, config, table = attacked.tmp, attacked.config, attacked.table
     out = tmp / "dropped.mcap"
     up, (router, *agents) = start_split(tmp, config, table, out)
     ready = wait_for_line(up, "agents ready")
@@ -268,16 +305,19 @@ def test_an_agent_told_to_stop_on_its_host_is_lost_and_the_run_goes_on(tmp_path)
 
 
 def test_an_external_agent_that_never_comes_is_named(tmp_path) -> None:
+    """Every agent external (none started here: no agent to wait for at the shutdown), none
+    comes: up names each and says how to start them."""
     config, table = write_case(tmp_path, "lonely")
+    everyone = "cpfc,measurement,availability,der:SGen1,der:SGen2"
     result = subprocess.run(up_argv(config, table, tmp_path / "lonely.mcap", "--external",
-                                    "der:SGen2", "--startup-timeout", "3"),
+                                    everyone, "--startup-timeout", "3"),
                             cwd=tmp_path, capture_output=True, text=True, timeout=120,
                             check=False)
-    assert result.returncode == 1
-    # (on a busy machine a local agent may not be ready in 3 s either: it is named too)
-    assert re.search(r"agents not ready after 3 s: .*der/SGen2", result.stderr), result.stderr
-    assert "(external, not connected: der/SGen2; start each on its host, e.g. 'adnmesh agent " \
-        "der --id SGen2 " in result.stderr
+    assert result.returncode == 1, result.stderr
+    missing = "availability, cpfc, der/SGen1, der/SGen2, measurement"
+    assert f"agents not ready after 3 s: {missing} (external, not connected: {missing}; " \
+        f"start each on its host, e.g. 'adnmesh agent availability {config} --connect tcp/" \
+        in result.stderr, result.stderr
     assert processes_mentioning(str(config)) == []
 
 

@@ -7,10 +7,12 @@ import pytest
 from adnmesh.plant import RISE_PER_LAG, Plant
 from adnmesh.stability import nyquist_stability
 from adnmesh.margins import disk_margin
+from adnmesh.stepfigures import StepFigureAccumulator
 from adnmesh.stepresp import choose_step, simulate_step, step_info, step_info_from_samples
 
 from loops import CONFIG, LOOPS, gains, plant
 from pade_reference import reference_figures
+from step_figures_reference import accumulate_numpy
 from test_stability import integrator_with_delay
 
 #: stated bound of the simulation error on y (final value 1) at the default step
@@ -99,19 +101,19 @@ def test_adaptive_horizon_and_coarsening_keep_accuracy():
 
 
 def test_compiled_step_info_accumulator_equals_the_numpy_reference():
-    from adnmesh.stepresp import _InfoAccumulator, _Simulator
+    from adnmesh.stepresp import _Simulator
     rng = np.random.default_rng(0)
     m = 60
     lags = plant(list(CONFIG.der_ids()))
     gains = rng.dirichlet(np.ones(len(lags.actuators)), m) * 1e6
     sim = _Simulator(Plant(lags.actuators, gains, lags.t_com_s, lags.t_meas_s),
                      rng.uniform(0.05, 1.5, m) / 1e6, rng.uniform(0.02, 3.0, m) / 1e6, 0.01)
-    fast, ref = (_InfoAccumulator(m, (0.05, 0.02, 0.005)) for _ in range(2))
+    fast, ref = (StepFigureAccumulator(m, (0.05, 0.02, 0.005)) for _ in range(2))
     t0 = 0.0
     for n in (1, 2, 3, 50, 700, 2000, 3000):
         y = sim.run(n)
         curvature = fast.add(t0, 0.01, y)
-        ref.add_numpy(t0, 0.01, y)
+        accumulate_numpy(ref, t0, 0.01, y)
         if n > 2:
             assert curvature.max() == np.abs(np.diff(y, 2, axis=1)).max()
         t0 += n * 0.01

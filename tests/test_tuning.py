@@ -30,7 +30,7 @@ def two_wt():
 
 
 def _deployed(config, entry, **kw):
-    plant = plant_from_ders(config.ders_by_id(entry.ders), config.t_com_s, config.t_meas_s,
+    plant = plant_from_ders(config.ders_by_id(entry.ders), config.design_t_com_s, config.t_meas_s,
                             weights=entry.w)
     return evaluate(plant, entry.kp, entry.ki, **kw).row(0)
 
@@ -217,7 +217,7 @@ def test_static_controller_is_feasible_everywhere_and_matches_a_brute_force_sear
     assert static.feasible
     worst = 0.0
     for entry in table.entries.values():
-        plant = plant_from_ders(config.ders_by_id(entry.ders), config.t_com_s, config.t_meas_s)
+        plant = plant_from_ders(config.ders_by_id(entry.ders), config.design_t_com_s, config.t_meas_s)
         f = evaluate(plant, static.kp, static.ki, classical=False).row(0)
         assert f["stable"] and f["disk_margin"] >= 1.5 and f["overshoot_pct"] < 1.0
         worst = max(worst, f["rise_time_s"])

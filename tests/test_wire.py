@@ -25,7 +25,7 @@ from adnmesh.wire.schemas import message_schemas
 from adnmesh.wire.units import NS_MAX, ns
 
 KEYS = Keys("g")
-SENDER = {KEYS.p_y: "cpfc", KEYS.p_ref: "cpfc", KEYS.der_state("SGen1"): "der/SGen1",
+SENDER = {KEYS.grid_state: "measurement", KEYS.p_y: "cpfc", KEYS.p_ref: "cpfc", KEYS.der_state("SGen1"): "der/SGen1",
           KEYS.heartbeat("SGen1"): "der/SGen1", KEYS.p_ip: "measurement",
           KEYS.si: "availability", KEYS.faults: "up", KEYS.event("der/SGen1"): "der/SGen1",
           KEYS.event("up"): "up", KEYS.fault_request: "operator", KEYS.kill("cpfc"): "up",
@@ -38,7 +38,10 @@ EXAMPLES = {
     KEYS.p_ref: {"p_ref_w": -2.5e6},
     KEYS.der_state("SGen1"): {"p_w": 1e5, "setpoint_w": 2e5, "mode": "watchdog"},
     KEYS.heartbeat("SGen1"): {"available": False, "mode": "watchdog", "p_y": 0.0, "entry": 2},
-    KEYS.p_ip: {"p_ip_w": 3.5},
+    KEYS.p_ip: {"p_ip_w": 3.5, "q_ip_var": -2.5e5},
+    KEYS.grid_state: {"v_min_pu": 0.98, "v_max_pu": 1.03, "line_loading_max_pct": 41.5,
+                      "trafo_loading_max_pct": 30.0, "q_ip_var": 3.5e5, "samples": 100,
+                      "outside_band": 0, "not_converged": 0},
     KEYS.si: {"si": {"SGen1": True, "SGen2": False}},
     KEYS.faults: {"fault_id": 3, "kind": "link_loss", "start_ns": 10, "end_ns": 20,
                   "link": "cpfc_to_der", "probability": 0.5, "origin": "command"},

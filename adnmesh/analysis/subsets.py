@@ -13,7 +13,7 @@ from typing import Sequence
 
 import numpy as np
 
-from ..plant import RISE_PER_LAG, Actuator, Plant
+from ..plant import Actuator, Plant
 
 __all__ = ["SubsetBatch", "all_subsets", "subset_name", "deployed_batch", "config_actuators"]
 
@@ -33,7 +33,7 @@ def config_actuators(config) -> tuple[tuple[Actuator, ...], dict[str, int]]:
     groups: dict[Actuator, int] = {}
     group_of = {}
     for der in config.ders:
-        act = Actuator(float(der.t_delay_s), float(der.t_rise_s) / RISE_PER_LAG, "pt1")
+        act = Actuator(float(der.t_delay_s), config.t_lag_s(der), "pt1")
         group_of[der.id] = groups.setdefault(act, len(groups))
     return tuple(groups), group_of
 
@@ -148,5 +148,5 @@ def deployed_batch(config, subsets: Sequence[Sequence[str]], kp, ki,
             gains[i, group_of[d]] += float((w or {}).get(d, 1.0)) * p_inst[d]
     kp = np.broadcast_to(np.asarray(kp, float), (m,)).copy()
     ki = np.broadcast_to(np.asarray(ki, float), (m,)).copy()
-    return SubsetBatch(subs, actuators, gains, kp, ki, float(config.t_com_s),
+    return SubsetBatch(subs, actuators, gains, kp, ki, float(config.design_t_com_s),
                        float(config.t_meas_s))

@@ -3,7 +3,9 @@
 Reads the scheduling table of CONFIG (``--table``, default :func:`adnmesh.table.default_table_path`)
 and writes every output of one run into one folder (``--out``, default
 ``out/analyze-<config stem>-<timestamp>/``) with an ``index.md`` that links them all. The
-numerics are in :mod:`adnmesh.analysis`; this module only parses, reports progress and writes.
+numerics are in :mod:`adnmesh.analysis` and :mod:`adnmesh.dermodels`; this module only parses,
+reports progress and writes. ``--der-models`` adds the detailed DER models' step responses beside
+the reference PT1 (``--only der-models``: that part alone, which needs no table).
 """
 from __future__ import annotations
 
@@ -33,7 +35,8 @@ from adnmesh.table import default_table_path, load_table
 
 __all__ = ["add_parser", "run", "PARTS", "parse_subset", "default_out_dir"]
 
-PARTS = ("robustness", "uncertainty", "solution-space")
+PARTS = ("robustness", "uncertainty", "solution-space", "der-models")
+_TABLE_PARTS = ("robustness", "uncertainty", "solution-space")
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
@@ -56,6 +59,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         help="show outliers in the box plots (hidden by default, as in the paper)")
     parser.add_argument("--solution-space", metavar="IDS",
                         help="also map the (K_P, K_I) plane of this subset, e.g. SGen1,SGen5")
+    parser.add_argument("--der-models", action="store_true",
+                        help="also draw the detailed DER models' step responses beside the "
+                        "reference PT1, with their rise times (der-models.png, .csv, .json)")
     parser.add_argument("--grid", type=int, default=60, metavar="N",
                         help="solution-space grid points per axis (default 60)")
     parser.add_argument("--models", default=",".join(MODELS), metavar="LIST",
@@ -233,14 +239,52 @@ def _solution_space(config, table, ids, grid: int, out: Path, console: Console, 
     return stem, space, path
 
 
+def _der_models(config, out: Path, console: Console) -> str:
+    """Step responses of every DER's default detailed model beside the reference PT1."""
+    from adnmesh.dermodels.plots import distinct_reports, plot_der_models
+    from adnmesh.dermodels.responses import der_model_report
+
+    reports = [der_model_report(der) for der in config.ders]
+    plot_der_models(reports, out / "der-models.png")
+    rows = [[r.der_id, r.der_type, r.model_name, s.direction, f"{100 * s.step_fraction:g}",
+             f"{s.rise_time_s:.6g}", f"{s.reaction_s:.6g}", f"{ref.rise_time_s:.6g}",
+             f"{ref.reaction_s:.6g}"]
+            for r in reports for s, ref in zip(r.responses, r.reference)]
+    _write_csv(out / "der-models.csv", ["der", "type", "model", "direction", "step_pct",
+                                        "rise_time_s", "reaction_s", "pt1_rise_time_s",
+                                        "pt1_reaction_s"], rows)
+    doc = {"config": str(config.path), "config_sha256": config.sha256,
+           "note": "setpoint steps from 50 % of P_inst; rise time 10-90 %, exact to 1 ns; "
+                   "reaction: first instant the infeed moved by 1e-9 of the step",
+           "ders": [r.to_json() for r in reports]}
+    (out / "der-models.json").write_text(json.dumps(doc, indent=1, allow_nan=False))
+    t = Table(title="DER models: 10-90 % rise time of setpoint steps from 50 % of P_inst, s")
+    groups = distinct_reports(reports)
+    steps = [s.label for s in groups[0][0].responses]
+    for header in ["DERs", "model", *steps, "PT1"]:
+        t.add_column(header, justify="left" if header in ("DERs", "model") else "right")
+    lines = ["| DERs | model | " + " | ".join(steps) + " | PT1 |",
+             "|---|---|" + "---:|" * (len(steps) + 1)]
+    for report, ids in groups:
+        cells = [f"{s.rise_time_s:.4g}" for s in report.responses]
+        ref = f"{report.reference[0].rise_time_s:.4g}"
+        t.add_row(", ".join(ids), report.model_name, *cells, ref)
+        lines.append(f"| {', '.join(ids)} | {report.model_name} | " + " | ".join(cells)
+                     + f" | {ref} |")
+    console.print(t)
+    return "\n".join(lines)
+
+
 def _index(config, table_path: Path, table, out: Path, parts: dict, times: dict,
            total_s: float, outliers: bool) -> str:
     lines = [f"# adnmesh analyze: {config.path}", "",
-             f"- config: `{config.path}` (sha256 {config.sha256[:12]})",
-             f"- table: `{table_path}` (method {table.method}, {len(table.entries)} entries"
-             + ("" if table.complete else ", incomplete") + ", static controller "
-             + ("yes" if table.static is not None else "none") + ")",
-             f"- adnmesh {__version__}, {datetime.now().isoformat(timespec='seconds')}",
+             f"- config: `{config.path}` (sha256 {config.sha256[:12]})"]
+    if table is not None:
+        lines.append(f"- table: `{table_path}` (method {table.method}, {len(table.entries)} "
+                     "entries" + ("" if table.complete else ", incomplete")
+                     + ", static controller "
+                     + ("yes" if table.static is not None else "none") + ")")
+    lines += [f"- adnmesh {__version__}, {datetime.now().isoformat(timespec='seconds')}",
              f"- run time {total_s:.1f} s ("
              + ", ".join(f"{k} {v:.1f} s" for k, v in times.items()) + ")", ""]
     if "robustness" in parts:
@@ -272,6 +316,17 @@ def _index(config, table_path: Path, table, out: Path, parts: dict, times: dict,
         if best is not None:
             lines += [f"Grid optimum: K_P = {best[0]:.4g} 1/W, K_I = {best[1]:.4g} 1/(W s), "
                       f"rise time {best[2]:.4g} s.", ""]
+    if "der-models" in parts:
+        lines += ["## DER models", "",
+                  "Default detailed models (WT Type 4B-like, CHP second order with rate limit, "
+                  "PV lag with processing delay) against the reference PT1: setpoint steps up "
+                  "and down from 50 % of P_inst, responses normalised to the step. The "
+                  "defaults match the config's T_delay and T_rise for the 10 % step.", "",
+                  "![DER models](der-models.png)", "",
+                  "- [der-models.png](der-models.png) — step responses",
+                  "- [der-models.csv](der-models.csv) — rise and reaction time per DER and step",
+                  "- [der-models.json](der-models.json) — the same with every model parameter",
+                  "", parts["der-models"], ""]
     return "\n".join(lines)
 
 
@@ -282,6 +337,9 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--grid must be between 5 and 400, got {args.grid}")
     models = _parse_list(args.models, MODELS, "--models")
     parts = _parse_list(args.only, PARTS, "--only") if args.only else PARTS
+    parts = tuple(p for p in parts if p != "der-models" or args.only)   # only on request
+    if args.der_models and "der-models" not in parts:
+        parts += ("der-models",)
     config = load_config(args.config)
     ids = parse_subset(config, args.solution_space) if args.solution_space else None
     if ids is None:
@@ -289,12 +347,14 @@ def run(args: argparse.Namespace) -> int:
             raise UsageError("--only solution-space needs --solution-space IDS")
         parts = tuple(p for p in parts if p != "solution-space")
     table_path = Path(args.table) if args.table else default_table_path(config)
-    if not table_path.exists():
-        raise ConfigError(f"{table_path}: no scheduling table; run 'adnmesh tune {args.config}' "
-                          "first (or give --table PATH)")
-    table = load_table(table_path, config)
-    if not table.entries:
-        raise ConfigError(f"{table_path}: the table has no entries")
+    table = None
+    if any(p in _TABLE_PARTS for p in parts):
+        if not table_path.exists():
+            raise ConfigError(f"{table_path}: no scheduling table; run 'adnmesh tune "
+                              f"{args.config}' first (or give --table PATH)")
+        table = load_table(table_path, config)
+        if not table.entries:
+            raise ConfigError(f"{table_path}: the table has no entries")
     out = Path(args.out) if args.out else default_out_dir(config)
     if out.exists() and not out.is_dir():
         raise UsageError(f"--out: {out} exists and is not a folder")
@@ -303,9 +363,12 @@ def run(args: argparse.Namespace) -> int:
     console = Console(highlight=False, width=None if sys.stdout.isatty() else 160)
     err = Console(stderr=True, highlight=False)
     n_all = 2 ** len(config.ders) - 1
-    console.print(f"analyze {config.path}: table {table_path} ({len(table.entries)} of {n_all} "
-                  f"subsets, method {table.method}"
-                  + ("" if table.static is not None else ", no static controller") + ")")
+    if table is not None:
+        console.print(f"analyze {config.path}: table {table_path} ({len(table.entries)} of "
+                      f"{n_all} subsets, method {table.method}"
+                      + ("" if table.static is not None else ", no static controller") + ")")
+    else:
+        console.print(f"analyze {config.path}: {', '.join(parts)} (no table needed)")
     done, times, rob = {}, {}, None
     if "robustness" in parts:
         t0 = time.perf_counter()
@@ -320,6 +383,10 @@ def run(args: argparse.Namespace) -> int:
         done["solution-space"] = _solution_space(config, table, ids, args.grid, out, console,
                                                  err)
         times["solution space"] = time.perf_counter() - t0
+    if "der-models" in parts:
+        t0 = time.perf_counter()
+        done["der-models"] = _der_models(config, out, console)
+        times["DER models"] = time.perf_counter() - t0
     total = time.perf_counter() - t_start
     index = _index(config, table_path, table, out, done, times, total, args.outliers)
     (out / "index.md").write_text(index)

@@ -3,24 +3,28 @@
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 
+import yaml
 from rich.console import Console
 from rich.table import Table
 
+from adnmesh.config import Constraints
 from adnmesh.recording import (
     PUBLISHED_METADATA,
     RUN_METADATA,
+    UNCOUNTED_METADATA,
     Recording,
     count_differences,
     read_recording,
     recover,
     validate_recording,
 )
-from adnmesh.recording.figures import RunFigures, run_figures
+from adnmesh.recording.figures import run_figures, step_table
 from adnmesh.recording.series import RunData, extract
 
-__all__ = ["EXIT_PROBLEMS", "add_parser", "run", "topic_table"]
+__all__ = ["EXIT_PROBLEMS", "add_parser", "run", "settling_band_pct", "topic_table"]
 
 EXIT_PROBLEMS = 1
 """Exit code when the recording is readable but wrong: counts differ from what the agents
@@ -57,10 +61,6 @@ def _s(t_ns: int, t0_ns: int) -> str:
     return f"{(t_ns - t0_ns) / 1e9:.3f}"
 
 
-def _opt(value: float | None, fmt: str) -> str:
-    return "-" if value is None else format(value, fmt)
-
-
 def topic_table(recording: Recording, t0_ns: int) -> Table:
     """Return the per-topic table: type, count, first and last send time, s."""
     table = Table(title=f"{len(recording.channels)} topics", title_justify="left")
@@ -79,29 +79,50 @@ def topic_table(recording: Recording, t0_ns: int) -> Table:
     return table
 
 
-def _step_table(figures: RunFigures) -> Table:
-    table = Table(title="P_IP after each P_ref step", title_justify="left")
-    for column in ("t [s]", "step [MW]", "P_ref [MW]", "rise 10-90 % [s]", "settling 5 % [s]",
-                   "overshoot [%]"):
-        table.add_column(column, justify="right")
-    for step in figures.steps:
-        table.add_row(f"{step.t_s:g}", f"{step.delta_w / 1e6:+.3f}", f"{step.target_w / 1e6:.3f}",
-                      _opt(step.rise_time_s, ".2f"),
-                      _opt(step.settling_time_s, ".2f") if step.settling_time_s is not None
-                      else f"> {step.window_s:g}", f"{step.overshoot_pct:.2f}")
-    return table
+def settling_band_pct(recording: Recording) -> float:
+    """The settling band of the recorded run's config (``constraints.settling_band_pct``, as
+    ``adnmesh up``'s summary uses it), else the default, %."""
+    try:
+        document = yaml.safe_load(recording.run.get("config", "")) or {}
+        band = document.get("constraints", {}).get("settling_band_pct")
+    except (yaml.YAMLError, AttributeError):
+        band = None
+    valid = isinstance(band, int | float) and not isinstance(band, bool) and band > 0
+    return float(band) if valid else Constraints().settling_band_pct
 
 
-def _print_figures(console: Console, run_data: RunData) -> None:
-    figures = run_figures(run_data)
+def _print_faults_and_grid(console: Console, recording: Recording, band_pct: float) -> None:
+    """The per-fault and grid figures of ``adnmesh up``'s summary, from the same series."""
+    from adnmesh.runtime.summary import MESSAGE_TYPES, RunSeries, fault_table, grid_line, \
+        summarize
+
+    series = RunSeries()
+    for message in sorted(recording.messages, key=lambda m: m.publish_time_ns):
+        if message.schema_name in MESSAGE_TYPES:
+            try:
+                series.add(message.schema_name, json.loads(message.data))
+            except (ValueError, KeyError, TypeError):
+                continue                  # not one of adnmesh's messages: no figures from it
+    end = max((m.publish_time_ns for m in recording.messages), default=0)
+    summary = summarize(series, end_ns=end, band_pct=band_pct)
+    if summary.faults:
+        console.print(fault_table(summary.faults))
+    if summary.grid is not None:
+        console.print(grid_line(summary.grid))
+
+
+def _print_figures(console: Console, run_data: RunData, band_pct: float,
+                   recording: Recording) -> None:
+    figures = run_figures(run_data, band_pct=band_pct)
     if figures.steps:
-        console.print(_step_table(figures))
+        console.print(step_table(figures.steps, figures.band_pct))
     if figures.rms_error_w is not None:
         console.print(f"tracking error P_IP - P_ref: RMS {figures.rms_error_w / 1e6:.4f} MW, "
                       f"max {figures.max_error_w / 1e6:.4f} MW")
     console.print(f"events: {figures.gain_switches} gain switches, "
                   f"{figures.availability_changes} availability changes, {figures.faults} fault "
                   f"events, {figures.mode_changes} DER mode changes")
+    _print_faults_and_grid(console, recording, band_pct)
     initial = next((e for e in run_data.events if e.kind == "availability"), None)
     for event in run_data.events:
         if event is not initial:  # the first availability event is the initial state
@@ -113,11 +134,16 @@ def _check_counts(console: Console, recording: Recording) -> bool:
     if published is None:
         console.print("published counts: not in the recording (not checked)")
         return True
-    differences = count_differences({k: int(v) for k, v in published.items()}, recording.counts())
+    uncounted = recording.metadata.get(UNCOUNTED_METADATA, {})
+    recorded = {k: v for k, v in recording.counts().items() if k not in uncounted}
+    differences = count_differences({k: int(v) for k, v in published.items()}, recorded)
     if not differences:
-        total = sum(recording.counts().values())
+        total = sum(recorded.values())
         console.print(f"published counts: every message recorded ({total} on {len(published)} "
                       "topics)")
+        for topic, why in uncounted.items():
+            if topic in recording.channels:
+                console.print(f"  not counted: {topic} ({why})")
         return True
     console.print(f"published counts: MISMATCH on {len(differences)} topic(s)")
     for difference in differences:
@@ -155,7 +181,7 @@ def run(args: argparse.Namespace) -> int:
         console.print(f"time: {_s(span[0], run_data.t0_ns)} to {_s(span[1], run_data.t0_ns)} s "
                       f"(sim_time, send and delivery times)")
     console.print(topic_table(recording, run_data.t0_ns))
-    _print_figures(console, run_data)
+    _print_figures(console, run_data, settling_band_pct(recording), recording)
     ok = _check_counts(console, recording)
     if args.validate:
         problems = validate_recording(recording, limit=20)

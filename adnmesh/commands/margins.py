@@ -48,7 +48,8 @@ def parse_der_list(config, text: str | None) -> list[str]:
 def loop_report(config, ids: list[str], kp: float, ki: float,
                 weights: dict | None = None) -> dict:
     """Figures of merit of the loop (JSON-ready; margins None when unstable)."""
-    plant = plant_from_ders(config.ders_by_id(ids), config.t_com_s, config.t_meas_s, weights)
+    plant = plant_from_ders(config.ders_by_id(ids), config.design_t_com_s, config.t_meas_s, weights,
+                            rise_per_lag=config.rise_per_lag)
     f = evaluate(plant, kp, ki, band_pct=config.constraints.settling_band_pct).row(0)
     c = config.constraints
     stable = f["stable"]

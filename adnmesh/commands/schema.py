@@ -17,7 +17,14 @@ from adnmesh import config
 
 __all__ = ["SCHEMAS", "add_parser", "render", "run"]
 
-SCHEMAS: dict[str, Callable[[], dict[str, Any]]] = {"config": config.json_schema}
+def _messages() -> dict[str, Any]:
+    """The bus messages: one schema per message type, as recordings carry them."""
+    from adnmesh.wire.schemas import message_schemas
+    return message_schemas()
+
+
+SCHEMAS: dict[str, Callable[[], dict[str, Any]]] = {"config": config.json_schema,
+                                                   "messages": _messages}
 """Schema name -> function returning the JSON Schema (a dict)."""
 
 
@@ -27,8 +34,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "schema",
         help="print the JSON Schema of a file format",
         description="Print the JSON Schema (draft 2020-12) of NAME to stdout: 'config' is the "
-        "format of a config file, with every key's meaning and unit. "
-        "configs/config.schema.json is its output for 'config'.",
+        "format of a config file, with every key's meaning and unit "
+        "(configs/config.schema.json is its output); 'messages' the bus messages, one schema "
+        "per message type (the schemas every recording carries).",
     )
     parser.add_argument("name", metavar="NAME", choices=list(SCHEMAS),
                         help=f"which schema: {', '.join(SCHEMAS)}")

@@ -34,8 +34,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         description="Start every agent of CONFIG as its own process around an embedded Zenoh "
         "router (listening on 127.0.0.1), run the scenario on the chosen clock, record every "
         "message to MCAP and print a summary. Exit code 0 on success, 1 if the run failed "
-        "(an agent died, the recording is incomplete), 2 for a user error, 130/143 after "
-        "Ctrl-C/SIGTERM.",
+        "(an agent died, the recording is incomplete), 2 for a user error, 3 if --strict "
+        "stopped a realtime run that could not keep up, 130/143 after Ctrl-C/SIGTERM.",
     )
     add_config_argument(parser)
     parser.add_argument("--clock", choices=["sim", "realtime"], default="sim",
@@ -43,6 +43,11 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         "allow; realtime: the wall clock")
     parser.add_argument("--speed", type=float, metavar="X",
                         help="realtime only: X simulated seconds per wall second (default 1)")
+    parser.add_argument("--strict", action="store_true",
+                        help="realtime only: stop the run (exit code 3) as soon as an agent "
+                        "falls behind the scaled wall clock by more than the tolerance "
+                        "(runtime.realtime_tolerance_s); without it the run goes on and its "
+                        "summary says it was not real time")
     parser.add_argument("--seed", type=int, metavar="N",
                         help="seed of the ICT random streams (default: runtime.seed of CONFIG)")
     parser.add_argument("--table", metavar="PATH",
@@ -144,9 +149,28 @@ def _table(args, config: Config, run_dir: Path, run_id: str, log) -> Path:
     return path
 
 
+def _operating_point(config: Config, log) -> dict[str, float]:
+    """The DERs' available power (loading the grid model once, before any agent starts: the
+    first time it builds its disk cache, which takes tens of seconds); checks every DER's
+    model parameters."""
+    from adnmesh.control.der_model import check_der_models
+    from adnmesh.control.operating_point import available_power_w, initial_p_ip_w
+
+    if config.grid_model is not None:
+        log(f"grid model: SimBench {config.simbench_code}, study case "
+            f"{config.grid_model.study_case} (the first time: tens of seconds to build its cache)")
+    available = available_power_w(config)
+    check_der_models(config, available)
+    if config.grid_model is not None:
+        log(f"grid model ready: P_IP {initial_p_ip_w(config) / 1e6:.4f} MW at the schedules")
+    return available
+
+
 def _check_arguments(args: argparse.Namespace) -> None:
     if args.speed is not None and args.clock != "realtime":
         raise UsageError("--speed needs --clock realtime")
+    if args.strict and args.clock != "realtime":
+        raise UsageError("--strict needs --clock realtime")
     if args.speed is not None and not 0 < args.speed <= 1e6:
         raise UsageError(f"--speed must be in (0, 1e6], got {args.speed:g}")
     if args.seed is not None and not 0 <= args.seed < 2**63:
@@ -204,6 +228,7 @@ def run(args: argparse.Namespace) -> int:
         return _print_zenoh_config(args, config, certs, routers)
     run_id = f"{Path(config.path).stem}-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"
     out = Path(args.out) if args.out else Path("logs") / f"{run_id}.mcap"
+    available = _operating_point(config, log)
     table_path = _table(args, config, out.parent, run_id, log)
     options = UpOptions(
         config=config, table_path=table_path, out=out, clock=args.clock,
@@ -212,6 +237,7 @@ def run(args: argparse.Namespace) -> int:
         listen=args.listen, log=log, run_id=run_id, run_file=run_file_path(out),
         certs=certs, external=external, routers=routers,
         startup_timeout_s=args.startup_timeout, stall_timeout_s=args.stall_timeout,
+        available_w=available, strict=args.strict,
         metadata={"run_id": run_id, "table_sha256":
                   hashlib.sha256(table_path.read_bytes()).hexdigest()},
     )
@@ -245,6 +271,7 @@ def _print_zenoh_config(args: argparse.Namespace, config: Config, certs, routers
 
 def _print_summary(args: argparse.Namespace, config: Config, run_id: str, result) -> None:
     """The summary on stdout (and as JSON with ``--summary-json``)."""
+    from adnmesh.runtime.realtime_report import realtime_figures
     from adnmesh.runtime.summary import format_summary, summarize
 
     byes = result.byes.values()
@@ -267,9 +294,14 @@ def _print_summary(args: argparse.Namespace, config: Config, run_id: str, result
         extra["clock_grants"] = result.grants
         extra["grants_per_s"] = round(result.grants / result.wall_time_s, 1) \
             if result.wall_time_s else None
+    realtime = None
+    if args.clock == "realtime":
+        realtime = realtime_figures(byes, result.series.alarms, result.series.faults.values(),
+                                    config, speed=args.speed or 1.0,
+                                    tolerance_ns=result.tolerance_ns)
     summary = summarize(result.series, end_ns=result.reached_ns,
                         band_pct=config.constraints.settling_band_pct,
-                        wall_time_s=result.wall_time_s, extra=extra)
+                        wall_time_s=result.wall_time_s, extra=extra, realtime=realtime)
     console = Console(highlight=False, markup=False, soft_wrap=True)
     for item in format_summary(summary):
         console.print(item)

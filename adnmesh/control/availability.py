@@ -72,7 +72,8 @@ class AvailabilityMonitor(Agent):
             return []
         self.flag[der_id] = message.available and message.mode != "watchdog"
         self.reason[der_id] = "" if self.flag[der_id] else (
-            "in watchdog fallback" if message.mode == "watchdog" else "unavailable")
+            "in watchdog fallback" if message.mode == "watchdog" else
+            "its heartbeat says it is not available")
         self.deadline_ns[der_id] = t_ns + self.timeout_ns
         self.expired.discard(der_id)
         if self.si() != self._sent:

@@ -44,9 +44,9 @@ controller with unit weights; if none exists the CPFC keeps its gains and says s
   outage of the CPFC → DER link (the availability monitor counts a DER in fallback as
   unavailable); the switch back to an available set is bumpless;
 - it has just been restarted (``hold: resuming``; it sends nothing then): it waits for SI and a
-  heartbeat of every available DER (their acknowledgement of the P_Y they apply, 0 for a DER in
-  fallback), at most ``heartbeat_timeout_s``, and resumes from the latest acknowledged P_Y, so
-  that the DERs' setpoints do not jump when its commands return.
+  heartbeat of every available DER (their acknowledgement of the last P_Y they applied), at
+  most ``heartbeat_timeout_s``, and resumes from the latest acknowledged P_Y, so that the DERs
+  return to the setpoints they had before it was lost.
 
 Each start and end of a hold is an event on ``event/cpfc``.
 """
@@ -55,11 +55,14 @@ from __future__ import annotations
 
 import math
 from collections import deque
+
+from msgspec import UNSET
 from collections.abc import Callable
 from dataclasses import dataclass
 
 from adnmesh.config import Config
 from adnmesh.control.base import Agent, Outgoing
+from adnmesh.control.operating_point import available_power_w, initial_p_ip_w
 from adnmesh.control.pi import SampledPI, SwitchRecord
 from adnmesh.wire.keys import Keys
 from adnmesh.wire.messages import Envelope, Switch
@@ -70,22 +73,26 @@ __all__ = ["CPFC", "GainSchedule", "SwitchEvent", "initial_p_ref_w", "output_lim
 
 
 def initial_p_ref_w(config: Config) -> float:
-    """``P_ref`` before the first step: the operating point with ``P_Y = 0``, W
-    (``rest_of_grid_w`` plus every DER's schedule)."""
-    return config.runtime.rest_of_grid_w + sum(d.p_sched_w for d in config.ders)
+    """``P_ref`` before the first step: the operating point with ``P_Y = 0``, W (P_IP with every
+    DER at its schedule: the power flow's with a grid model, else ``rest_of_grid_w`` plus the
+    schedules)."""
+    return initial_p_ip_w(config)
 
 
-def output_limits(config: Config, weights: dict[str, float]) -> tuple[float, float]:
+def output_limits(config: Config, weights: dict[str, float],
+                  available: dict[str, float] | None = None) -> tuple[float, float]:
     """``(y_min, y_max)``: beyond them every weighted DER is saturated (dimensionless).
 
-    A DER d saturates high at ``P_Y = (P_inst - P_sched) / (w_d P_inst)`` and low at
-    ``P_Y = -P_sched / (w_d P_inst)``. Without a weighted DER both limits are NaN.
+    A DER d saturates high at ``P_Y = (P_avail - P_sched) / (w_d P_inst)`` and low at
+    ``P_Y = -P_sched / (w_d P_inst)`` (``available``: DER id -> P_avail, W; default P_inst).
+    Without a weighted DER both limits are NaN.
     """
     highs, lows = [], []
     for der in config.ders:
         w = weights.get(der.id, 0.0)
         if w > 0:
-            highs.append((der.p_inst_w - der.p_sched_w) / (w * der.p_inst_w))
+            p_max = der.p_inst_w if available is None else available[der.id]
+            highs.append((p_max - der.p_sched_w) / (w * der.p_inst_w))
             lows.append(-der.p_sched_w / (w * der.p_inst_w))
     if not highs:
         return math.nan, math.nan
@@ -182,6 +189,7 @@ class CPFC(Agent):
         self.schedule = schedule
         self._ids = config.der_ids()
         self._p_inst = {d.id: d.p_inst_w for d in config.ders}
+        self._available = available_power_w(config)
         self.period_ns = ns(rt.pi_period_s)
         self.weights_period_ns = ns(rt.weights_period_s)
         self.p_ref_w = initial_p_ref_w(config)
@@ -189,6 +197,7 @@ class CPFC(Agent):
         self.meas_timeout_ns = ns(rt.measurement_timeout_s)
         self.ack_timeout_ns = ns(rt.heartbeat_timeout_s)
         self.last_meas_ns = 0
+        self.actuators_held = 0                  # +1 / -1: every following DER held back
         self.hold: str | None = None          # measurement, actuators, resuming
         self._resume_ns: int | None = None
         self._si_seen = False
@@ -236,6 +245,8 @@ class CPFC(Agent):
         if message.type == "p_ip":
             self.p_meas_w = message.p_ip_w
             self.last_meas_ns = t_ns
+            self.actuators_held = 0 if message.held is UNSET else \
+                (1 if message.held == "up" else -1)
         elif message.type == "heartbeat":
             self._ack(t_ns, message)
         elif message.type == "si":
@@ -278,7 +289,7 @@ class CPFC(Agent):
         self._watch_measurement(t_ns, error_w, out)
         rolled_back = self._rollback_to is not None and self._roll_back()
         if self.hold is None and not rolled_back:
-            p_y = self.pi.update(error_w)
+            p_y = self.pi.update(error_w, freeze=self.actuators_held * error_w > 0)
         else:
             p_y = self.pi.output
             self.counts["held_samples"] += 1
@@ -362,8 +373,7 @@ class CPFC(Agent):
         waiting = not self._si_seen or not set(available) <= set(fresh)
         if waiting and t_ns - since < self.ack_timeout_ns:
             return False
-        applying = [a for a in fresh.values() if a[1] == "control"]
-        acked = max(applying)[2] if applying else 0.0
+        acked = max(fresh.values())[2] if fresh else 0.0     # the most recent acknowledgement
         self._pending = None
         self.available = frozenset()      # the switch below sets gains, weights and limits
         self.pi.output = acked
@@ -371,8 +381,8 @@ class CPFC(Agent):
         self.hold = None if record is not None else "actuators"
         self.pi.reenter(self.p_ref_w - self.p_meas_w)
         self._next_weights_ns = t_ns
-        out.append(self._event("INFO", "resume", f"restarted: resumed from the acknowledged P_Y "
-                               f"{acked:.6g} of {len(applying)} DER(s) in control"))
+        out.append(self._event("INFO", "resume", f"restarted: resumed from the P_Y {acked:.6g} "
+                               f"the DERs acknowledged ({len(fresh)} heartbeat(s))"))
         return True
 
     def _event(self, level: str, kind: str, text: str) -> Outgoing:
@@ -412,7 +422,7 @@ class CPFC(Agent):
                 if d in available and d in entry.ders}
 
     def _limits(self) -> tuple[float, float]:
-        low, high = output_limits(self.config, self.weights)
+        low, high = output_limits(self.config, self.weights, self._available)
         if math.isnan(low):  # no weighted DER: hold the output
             return self.pi.output, self.pi.output
         return low, high

@@ -4,9 +4,10 @@ The controller turns the CPFC's ``P_Y`` into the DER's setpoint
 
     P_ref,d = P_Y · w_d · C_d + P_sched,d,        C_d = P_inst,d,
 
-limited to ``[0, P_avail,d]`` (``P_avail,d = P_inst,d`` for the reference model), and drives the
-DER's dynamics (:mod:`adnmesh.control.dynamics`) with it. Its mode says where the setpoint comes
-from:
+limited to ``[0, P_avail,d]`` (the DER's available power: its sgen's at the grid model's study
+case, else ``P_inst,d``), and drives the DER's dynamics with it: the reference PT1 or the
+detailed model of its type (``runtime.der_models``, :mod:`adnmesh.control.der_model`). Its mode
+says where the setpoint comes from:
 
 ``control``
     available and in contact: Eq. 1 with the weight ``w_d`` of the CPFC's current entry (0 if the
@@ -21,9 +22,10 @@ A ``P_Y`` is valid if its ``entry`` matches the entry whose weights the DER hold
 with the switch and are repeated periodically). Every ``measurement_period_s`` the DER reports its
 infeed and setpoint on ``der/<id>/state`` (exact at that instant); every ``heartbeat_period_s``,
 and at once when its availability or its mode changes, it sends a heartbeat with its
-availability flag, its mode and the P_Y it applies (0 unless in ``control``) with its entry:
-the availability monitor counts a DER in ``watchdog`` as unavailable, and a restarted CPFC
-resumes from the acknowledged P_Y. A watchdog fallback is also an event (``event/der/<id>``).
+availability flag, its mode and the last P_Y it applied with that command's entry: the
+availability monitor counts a DER in ``watchdog`` as unavailable, and a restarted CPFC resumes
+from the acknowledged P_Y (SPEC §5), so that the DERs return to their setpoints before the
+fault. A watchdog fallback is also an event (``event/der/<id>``).
 Injected ICT faults are the node's business (:mod:`adnmesh.sim.node`): the DER only notices that
 commands stop.
 """
@@ -34,7 +36,9 @@ from msgspec import UNSET
 
 from adnmesh.config import DER, Config
 from adnmesh.control.base import Agent, Outgoing
-from adnmesh.control.dynamics import PT1DelayParams, PT1DelayState, infeed_at, set_point
+from adnmesh.control.der_model import der_params
+from adnmesh.dermodels import infeed_at, set_point, steady_state
+from adnmesh.dermodels.limits import held_at
 from adnmesh.wire.keys import Keys, der_agent_id
 from adnmesh.wire.messages import Envelope
 from adnmesh.wire.units import ns
@@ -49,16 +53,17 @@ def _first_at_or_after(t_ns: int, period_ns: int) -> int:
 class DERController(Agent):
     """Local controller of DER ``der`` (agent id ``der/<id>``; see the module docstring)."""
 
-    def __init__(self, der: DER, config: Config) -> None:
+    def __init__(self, der: DER, config: Config, p_avail_w: float | None = None) -> None:
         self.der = der
+        self.p_avail_w = der.p_inst_w if p_avail_w is None else min(p_avail_w, der.p_inst_w)
         self.agent_id = der_agent_id(der.id)
         keys = Keys(config.grid)
         self._state_key = keys.der_state(der.id)
         self._heartbeat_key = keys.heartbeat(der.id)
         self._event_key = keys.event(self.agent_id)
         rt = config.runtime
-        self.params = PT1DelayParams.from_der(der)
-        self.state = PT1DelayState.steady(der.p_sched_w)
+        self.params = der_params(der, config, self.p_avail_w)
+        self.state = steady_state(self.params, der.p_sched_w)
         self.sample_period_ns = ns(rt.measurement_period_s)
         self.heartbeat_period_ns = ns(rt.heartbeat_period_s)
         self.watchdog_ns = ns(rt.watchdog_timeout_s)
@@ -77,6 +82,7 @@ class DERController(Agent):
         self.setpoint_w = der.p_sched_w
         self.mode = "control"
         self._inputs = (True, False)     # (available, watchdog expired) of the setpoint
+        self._clamped = 0                # +1 / -1: the setpoint is at its upper / lower limit
         self.counts = {"commands": 0, "stale_commands": 0, "watchdog_trips": 0}
         self._plan()
 
@@ -89,7 +95,7 @@ class DERController(Agent):
         """A restarted controller at ``t_ns``: the plant at its schedule, no command yet."""
         while self._availability and self._availability[0][0] < t_ns:
             self.available = self._availability.pop(0)[1]
-        self.state = PT1DelayState.steady(self.der.p_sched_w, t_ns)
+        self.state = steady_state(self.params, self.der.p_sched_w, t_ns)
         self.next_sample_ns = _first_at_or_after(t_ns, self.sample_period_ns)
         self.next_heartbeat_ns = t_ns
         self.watchdog_deadline_ns = t_ns + self.watchdog_ns
@@ -135,6 +141,7 @@ class DERController(Agent):
         if not self.watchdog_expired and t_ns >= self.watchdog_deadline_ns:
             self.watchdog_expired = True
             self.counts["watchdog_trips"] += 1
+        if self.watchdog_expired and mode == "control" and self.available:
             out.append(Outgoing(self._event_key, {
                 "level": "WARNING", "kind": "watchdog_fallback", "subject": self.agent_id,
                 "text": f"{self.der.id}: no valid command for "
@@ -143,8 +150,10 @@ class DERController(Agent):
             self._update_setpoint(t_ns)   # else on_message has set it from the same inputs
         if t_ns == self.next_sample_ns:
             p_w = infeed_at(self.params, self.state, t_ns)
-            out.append(Outgoing(self._state_key, {"p_w": p_w, "setpoint_w": self.setpoint_w,
-                                                  "mode": self.mode}))
+            state = {"p_w": p_w, "setpoint_w": self.setpoint_w, "mode": self.mode}
+            if self.mode == "control" and self.weight > 0:
+                state["held"] = self._clamped or held_at(self.params, self.state, t_ns)
+            out.append(Outgoing(self._state_key, state))
             self.next_sample_ns += self.sample_period_ns
         if t_ns >= self.next_heartbeat_ns or self.mode != mode or self.available != available:
             out.append(Outgoing(self._heartbeat_key, self._heartbeat()))
@@ -158,9 +167,8 @@ class DERController(Agent):
     # -- internals -----------------------------------------------------------------------------
 
     def _heartbeat(self) -> dict:
-        applying = self.mode == "control"
-        return {"available": self.available, "mode": self.mode,
-                "p_y": self.p_y if applying else 0.0, "entry": self.entry}
+        return {"available": self.available, "mode": self.mode, "p_y": self.p_y,
+                "entry": self.entry}
 
     def _update_setpoint(self, t_ns: int) -> None:
         der = self.der
@@ -170,8 +178,9 @@ class DERController(Agent):
         elif self.watchdog_expired:
             setpoint, mode = der.p_sched_w, "watchdog"
         else:
-            setpoint = self.p_y * self.weight * der.p_inst_w + der.p_sched_w
-            setpoint = min(max(setpoint, 0.0), der.p_inst_w)
+            wanted = self.p_y * self.weight * der.p_inst_w + der.p_sched_w
+            setpoint = min(max(wanted, 0.0), self.p_avail_w)
+            self._clamped = (wanted > setpoint) - (wanted < setpoint)
             mode = "control"
         self.mode = mode
         if setpoint != self.setpoint_w:

@@ -1,25 +1,66 @@
 """The measurement at the interconnection point, as a bus-free state machine.
 
-Every ``measurement_period_s`` it samples
+Every ``measurement_period_s`` it samples ``P_IP`` from the DER infeeds reported at the same
+instant (the DERs report at the same sampling times, over the lossless zero-delay ``physical``
+path, and the runtime delivers them before the sampling timer of that instant) and sends it to
+the CPFC on ``measurement/p_ip`` over the ``measurement_to_cpfc`` link (delay ``T_meas``):
 
-    P_IP = rest_of_grid_w + Σ_d P_d,
-
-the DER infeeds reported at the same instant (the DERs report at the same sampling times, over
-the lossless zero-delay ``physical`` path, and the runtime delivers them before the sampling timer
-of that instant) plus a constant for the rest of the grid, and sends it to the CPFC on
-``measurement/p_ip`` over the ``measurement_to_cpfc`` link (delay ``T_meas``). A power flow of the
-SimBench grid replaces the sum in the grid issue.
+- with the config's ``grid_model``: the AC power flow of the SimBench grid at the study case,
+  the DERs' sgens at their infeeds (:mod:`adnmesh.grid`, warm-started from the last sample):
+  P_IP and Q_IP are the slack's exchange, MV → HV positive. A power flow that does not converge
+  leaves the last values and is counted. Every ``grid_model.report_period_s`` it sends the
+  grid's extremes over the period on ``measurement/grid`` (lowest and highest bus voltage,
+  highest line and transformer loading, the samples outside ``grid_model.limits``);
+- without it: ``P_IP = runtime.rest_of_grid_w + Σ_d P_d``.
 """
 
 from __future__ import annotations
 
+import math
+
+from msgspec import UNSET
+
 from adnmesh.config import Config
 from adnmesh.control.base import Agent, Outgoing
+from adnmesh.control.operating_point import grid_solver, initial_p_ip_w
 from adnmesh.wire.keys import Keys
 from adnmesh.wire.messages import Envelope
 from adnmesh.wire.units import ns
 
-__all__ = ["Measurement"]
+__all__ = ["GridReport", "Measurement"]
+
+
+class GridReport:
+    """The extremes of the grid samples of one report period (see the module docstring)."""
+
+    def __init__(self, limits) -> None:
+        self.limits = limits
+        self.reset()
+
+    def reset(self) -> None:
+        self.v_min, self.v_max, self.line, self.trafo = math.inf, 0.0, 0.0, 0.0
+        self.samples = self.outside = self.not_converged = 0
+
+    def add(self, sample) -> None:
+        self.samples += 1
+        if not sample.converged:
+            self.not_converged += 1
+            return
+        lim = self.limits
+        self.v_min = min(self.v_min, sample.vm_min_pu)
+        self.v_max = max(self.v_max, sample.vm_max_pu)
+        self.line = max(self.line, sample.line_loading_max_pct)
+        self.trafo = max(self.trafo, sample.trafo_loading_max_pct)
+        self.outside += (sample.vm_min_pu < lim.v_min_pu or sample.vm_max_pu > lim.v_max_pu
+                         or max(sample.line_loading_max_pct, sample.trafo_loading_max_pct)
+                         > lim.loading_max_pct)
+
+    def body(self, q_ip_var: float) -> dict:
+        return {"v_min_pu": self.v_min if self.v_min < math.inf else 0.0,
+                "v_max_pu": self.v_max, "line_loading_max_pct": self.line,
+                "trafo_loading_max_pct": self.trafo, "q_ip_var": q_ip_var,
+                "samples": self.samples, "outside_band": self.outside,
+                "not_converged": self.not_converged}
 
 
 class Measurement(Agent):
@@ -29,12 +70,22 @@ class Measurement(Agent):
 
     def __init__(self, config: Config) -> None:
         keys = Keys(config.grid)
-        self._p_ip_key = keys.p_ip
+        self._p_ip_key, self._grid_key = keys.p_ip, keys.grid_state
         self.period_ns = ns(config.runtime.measurement_period_s)
         self.rest_of_grid_w = config.runtime.rest_of_grid_w
         # infeed per DER agent, in config order (fixed summation order: reproducible sums)
         self.infeed_w = {f"der/{d.id}": d.p_sched_w for d in config.ders}
+        self.held: dict[str, int] = {}          # DERs that follow P_Y: their limit state
         self.next_sample_ns = 0
+        self.solver = grid_solver(config)
+        self.p_ip_w = self.q_ip_var = 0.0
+        if self.solver is not None:     # the operating point, should the first flow fail
+            self.p_ip_w = initial_p_ip_w(config)
+        if self.solver is not None:
+            self.report = GridReport(config.grid_model.limits)
+            self.report_period_ns = ns(config.grid_model.report_period_s)
+            self.next_report_ns = self.report_period_ns
+        self.counts = {"samples": 0, "not_converged": 0}
 
     def next_timer_ns(self) -> int:
         return self.next_sample_ns
@@ -42,15 +93,48 @@ class Measurement(Agent):
     def resume(self, t_ns: int) -> None:
         """A restarted measurement at ``t_ns``: samples from the next sampling instant on."""
         self.next_sample_ns = -(-t_ns // self.period_ns) * self.period_ns
+        if self.solver is not None:
+            self.next_report_ns = -(-t_ns // self.report_period_ns) * self.report_period_ns
 
     def on_message(self, t_ns: int, message: Envelope) -> list[Outgoing]:
         if message.src in self.infeed_w:
             self.infeed_w[message.src] = message.p_w
+            if message.held is UNSET:
+                self.held.pop(message.src, None)
+            else:
+                self.held[message.src] = message.held
         return []
 
+    def _held(self) -> dict:
+        """``{"held": "up"|"down"}`` when every DER that follows P_Y is held that way."""
+        states = set(self.held.values())
+        if states == {1}:
+            return {"held": "up"}
+        if states == {-1}:
+            return {"held": "down"}
+        return {}
+
     def on_timer(self, t_ns: int) -> list[Outgoing]:
-        p_ip = self.rest_of_grid_w
-        for p_w in self.infeed_w.values():
-            p_ip += p_w
         self.next_sample_ns += self.period_ns
-        return [Outgoing(self._p_ip_key, {"p_ip_w": p_ip})]
+        self.counts["samples"] += 1
+        if self.solver is None:
+            p_ip = self.rest_of_grid_w
+            for p_w in self.infeed_w.values():
+                p_ip += p_w
+            return [Outgoing(self._p_ip_key, {"p_ip_w": p_ip, **self._held()})]
+        sample = self.solver.solve(list(self.infeed_w.values()))
+        self.report.add(sample)
+        if sample.converged:
+            self.p_ip_w, self.q_ip_var = float(sample.p_ip_w), float(sample.q_ip_var)
+        else:
+            self.counts["not_converged"] += 1
+        out = [Outgoing(self._p_ip_key, {"p_ip_w": self.p_ip_w, "q_ip_var": self.q_ip_var,
+                                         **self._held()})]
+        if t_ns >= self.next_report_ns:
+            out.append(Outgoing(self._grid_key, self.report.body(self.q_ip_var)))
+            self.report.reset()
+            self.next_report_ns += self.report_period_ns
+        return out
+
+    def stats(self) -> dict[str, float]:
+        return {k: float(v) for k, v in self.counts.items()}

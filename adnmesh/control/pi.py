@@ -83,11 +83,12 @@ class SampledPI:
         self.output = 0.0       # P_Y at the last sample
         self.holding = False    # integrator held at the last sample (anti-windup)
 
-    def update(self, error_w: float) -> float:
-        """Take the error of the current sample, W; return ``P_Y``."""
+    def update(self, error_w: float, freeze: bool = False) -> float:
+        """Take the error of the current sample, W; return ``P_Y``. ``freeze``: hold the
+        integrator this sample (the actuators cannot follow it)."""
         x_trial = self.x_i + 0.5 * self.h * (self.e_prev + error_w)
         u_trial = self.kp * error_w + self.ki * x_trial
-        self.holding = ((u_trial > self.y_max and error_w > 0)
+        self.holding = (freeze or (u_trial > self.y_max and error_w > 0)
                         or (u_trial < self.y_min and error_w < 0))
         if not self.holding:
             self.x_i = x_trial

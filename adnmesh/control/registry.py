@@ -12,6 +12,7 @@ from adnmesh.control.base import Agent
 from adnmesh.control.cpfc import CPFC, GainSchedule
 from adnmesh.control.der import DERController
 from adnmesh.control.measurement import Measurement
+from adnmesh.control.operating_point import available_power_w
 from adnmesh.wire.keys import der_agent_id, der_id_of
 
 __all__ = ["AGENT_KINDS", "agent_ids", "build_agent"]
@@ -25,8 +26,11 @@ def agent_ids(config: Config) -> tuple[str, ...]:
     return ("cpfc", "measurement", "availability", *(der_agent_id(d.id) for d in config.ders))
 
 
-def build_agent(agent_id: str, config: Config, schedule: GainSchedule | None = None) -> Agent:
-    """The state machine of ``agent_id`` for ``config``; the CPFC needs its gain schedule.
+def build_agent(agent_id: str, config: Config, schedule: GainSchedule | None = None,
+                p_avail_w: float | None = None) -> Agent:
+    """The state machine of ``agent_id`` for ``config``; the CPFC needs its gain schedule, a DER
+    can be given its available power, W (default: :func:`adnmesh.control.operating_point.
+    available_power_w`).
 
     Raises
     ------
@@ -44,5 +48,7 @@ def build_agent(agent_id: str, config: Config, schedule: GainSchedule | None = N
     der_id = der_id_of(agent_id)
     if der_id is not None and der_id in config.der_ids():
         (der,) = config.ders_by_id([der_id])
-        return DERController(der, config)
+        if p_avail_w is None:
+            p_avail_w = available_power_w(config)[der_id]
+        return DERController(der, config, p_avail_w)
     raise ValueError(f"unknown agent id {agent_id!r}")

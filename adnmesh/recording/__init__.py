@@ -32,6 +32,7 @@ from adnmesh.recording.writer import (
     RECOVERY_METADATA,
     RUN_METADATA,
     RUN_METADATA_KEYS,
+    UNCOUNTED_METADATA,
     Recorder,
 )
 
@@ -47,6 +48,7 @@ __all__ = [
     "Recording",
     "RecordingError",
     "RecordingLossError",
+    "UNCOUNTED_METADATA",
     "check_counts",
     "count_differences",
     "read_recording",

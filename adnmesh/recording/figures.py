@@ -1,16 +1,12 @@
 """Summary figures of a recorded run: how P_IP followed each step of P_ref.
 
-For every step of P_ref (a change of its value) the response of the measured P_IP is judged
-in the window up to the next step (or the end of the recording), relative to the P_IP sampled
-last before the step (``y0``) and the new reference (``target``):
-
-- rise time: from 10 % to 90 % of ``target - y0``, s (None if 90 % is never reached),
-- settling time: from the step until P_IP stays within ``band_pct`` % of ``|target - y0|``
-  around the target, s (None if it is outside at the end of the window),
-- overshoot: the largest excursion beyond the target, % of ``|target - y0|`` (0 if none).
-
-Times are P_IP's send (sampling) times. These are the same conventions as the reference model's
-step information (SPEC §2), applied to the recorded signals.
+The step figures are those of ``adnmesh up``'s summary, by the same function
+(:func:`adnmesh.stepfigures.reference_step_figures`) on the same windows, found in the
+recording by the rules of :class:`adnmesh.runtime.summary.RunSeries` (:func:`window_ends`):
+a step's window ends at the next step, gain switch, availability change (a DER's heartbeat
+flag, or SI) or fault message, else at the run's end (the ``clock/start`` message's
+``end_ns``; the last P_IP sample if the recording has none). Times are send (sampling) times;
+see :mod:`adnmesh.stepfigures` for the definitions (SPEC §2, MATLAB ``stepinfo``).
 """
 
 from __future__ import annotations
@@ -20,21 +16,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from adnmesh.recording.series import RunData
+from adnmesh.stepfigures import ReferenceStep, reference_step_figures
 
-__all__ = ["RunFigures", "StepFigures", "run_figures"]
-
-
-@dataclass(frozen=True)
-class StepFigures:
-    """P_IP's response to one step of P_ref (times in s on the sim_time axis, powers in W)."""
-
-    t_s: float
-    delta_w: float
-    target_w: float
-    rise_time_s: float | None
-    settling_time_s: float | None
-    overshoot_pct: float
-    window_s: float
+__all__ = ["RunFigures", "run_end_ns", "run_figures", "step_table", "window_ends"]
 
 
 @dataclass(frozen=True)
@@ -48,7 +32,8 @@ class RunFigures:
     at its send time (None without both series).
     """
 
-    steps: tuple[StepFigures, ...]
+    steps: tuple[ReferenceStep, ...]
+    band_pct: float
     rms_error_w: float | None
     max_error_w: float | None
     gain_switches: int
@@ -57,54 +42,86 @@ class RunFigures:
     mode_changes: int
 
 
-def _step_figures(t_s: np.ndarray, y: np.ndarray, t_step: float, t_end: float, target: float,
-                  band_pct: float) -> StepFigures | None:
-    before = np.flatnonzero(t_s <= t_step)
-    inside = (t_s > t_step) & (t_s <= t_end)
-    if before.size == 0 or not inside.any():
-        return None
-    y0 = y[before[-1]]
-    delta = target - y0
-    ts, ys = t_s[inside], y[inside]
-    if delta == 0:
-        return StepFigures(t_step, 0.0, target, None, None, 0.0, t_end - t_step)
-    fraction = (ys - y0) / delta
-    t10 = ts[np.argmax(fraction >= 0.1)] if (fraction >= 0.1).any() else None
-    t90 = ts[np.argmax(fraction >= 0.9)] if (fraction >= 0.9).any() else None
-    rise = float(t90 - t10) if t10 is not None and t90 is not None else None
-    outside = np.abs(ys - target) > band_pct / 100 * abs(delta)
-    if outside[-1]:
-        settling = None
-    else:
-        last_out = np.flatnonzero(outside)
-        settling = float(ts[last_out[-1] + 1] - t_step) if last_out.size else float(ts[0] - t_step)
-    overshoot = max(0.0, float(np.max(fraction) - 1.0) * 100.0)
-    return StepFigures(float(t_step), float(delta), float(target), rise, settling, overshoot,
-                       float(t_end - t_step))
+def window_ends(run: RunData) -> list[int]:
+    """Instants (ns) other than P_ref steps that end a step's window: gain switches with a
+    switch record, heartbeat flag changes, SI changes (not the initial SI), fault messages."""
+    ends = []
+    initial = True
+    for event in run.events:
+        if event.kind == "availability":
+            if not initial:
+                ends.append(event.t_ns)
+            initial = False
+        elif event.kind == "der_available" or (
+                event.kind == "gain_switch" and event.data.get("switch")):
+            ends.append(event.t_ns)
+    for start, end, _ in run.fault_spans():
+        ends += [start] if end is None else [start, end]
+    return ends
+
+
+def run_end_ns(run: RunData) -> int | None:
+    """End of the run, ns: the ``end_ns`` of its start message, else the last P_IP sample."""
+    start = next((e for e in run.events if e.kind == "run_start"), None)
+    if start is not None:
+        return int(start.data["end_ns"])
+    p_ip = run.one("p_ip")
+    return int(p_ip.t_ns.max()) if p_ip is not None and p_ip.t_ns.size else None
 
 
 def run_figures(run: RunData, *, band_pct: float = 5.0) -> RunFigures:
     """Compute the :class:`RunFigures` of ``run`` (settling band ``band_pct`` %)."""
     p_ref, p_ip = run.one("p_ref"), run.one("p_ip")
-    steps: list[StepFigures] = []
+    steps: tuple[ReferenceStep, ...] = ()
     rms = worst = None
     if p_ref is not None and p_ip is not None and p_ip.values.size:
-        t_ip, y = np.asarray(run.seconds(p_ip.t_ns)), p_ip.values
-        t_ref = np.asarray(run.seconds(p_ref.t_ns))
-        change = np.flatnonzero(np.diff(p_ref.values) != 0) + 1
-        step_times = [float(t_ref[i]) for i in change] + [float(t_ip[-1])]
-        for j, i in enumerate(change):
-            found = _step_figures(t_ip, y, step_times[j], step_times[j + 1],
-                                  float(p_ref.values[i]), band_pct)
-            if found is not None:
-                steps.append(found)
-        index = np.searchsorted(t_ref, t_ip, side="right") - 1
+        steps = reference_step_figures(p_ip.t_ns, p_ip.values, p_ref.t_ns, p_ref.values,
+                                       window_ends(run), run_end_ns(run), band_pct=band_pct,
+                                       origin_ns=run.t0_ns)
+        index = np.searchsorted(p_ref.t_ns, p_ip.t_ns, side="right") - 1
         valid = index >= 0
         if valid.any():
-            error = y[valid] - p_ref.values[index[valid]]
+            error = p_ip.values[valid] - p_ref.values[index[valid]]
             rms, worst = float(np.sqrt(np.mean(error**2))), float(np.max(np.abs(error)))
     kinds = [e.kind for e in run.events]
-    return RunFigures(steps=tuple(steps), rms_error_w=rms, max_error_w=worst,
+    return RunFigures(steps=steps, band_pct=band_pct, rms_error_w=rms, max_error_w=worst,
                       gain_switches=kinds.count("gain_switch"),
                       availability_changes=max(0, kinds.count("availability") - 1),
-                      faults=kinds.count("fault"), mode_changes=kinds.count("der_mode"))
+                      faults=len(run.fault_spans()), mode_changes=kinds.count("der_mode"))
+
+
+def step_table(steps, band_pct: float, title: str = "P_IP after each P_ref step"):
+    """Rich table of :class:`~adnmesh.stepfigures.ReferenceStep` records (``adnmesh up``'s
+    summary and ``adnmesh inspect`` print the same one).
+
+    A dash is a figure that does not exist (no 90 % crossing, too few samples); a settling time
+    ``> w`` means not settled within the window of ``w`` s.
+    """
+    from rich.table import Table
+
+    table = Table(title=f"{title} (rise 10-90 %, settling band {band_pct:g} %)",
+                  title_justify="left")
+    for column in ("t [s]", "step [MW]", "rise [s]", "settling [s]", "overshoot [%]",
+                   "steady error [kW]", "window [s]"):
+        table.add_column(column, justify="right")
+    for s in steps:
+        f = s.figures
+        table.add_row(f"{s.t_s:.2f}", f"{s.step_w / 1e6:+.3f}",
+                      _num(None if f is None else f.rise_time_s, ".3f"),
+                      _settling(f, s.window_s),
+                      _num(None if f is None else f.overshoot_pct, ".3f"),
+                      _num(None if s.steady_error_w is None else s.steady_error_w / 1e3, ".2f"),
+                      f"{s.window_s:.2f}")
+    if not steps:
+        table.add_row("", "no steps", "", "", "", "", "")
+    return table
+
+
+def _num(value: float | None, fmt: str) -> str:
+    return "-" if value is None or not np.isfinite(value) else format(value, fmt)
+
+
+def _settling(figures, window_s: float) -> str:
+    if figures is not None and figures.settling_time_s == np.inf:
+        return f"> {window_s:.2f}"
+    return _num(None if figures is None else figures.settling_time_s, ".3f")

@@ -5,7 +5,9 @@ which the set of available DERs differs from the first one is shaded grey and la
 number available, faults are shaded
 red (an instant fault is a red line). Bottom panel: the controller output P_Y (left axis) and
 the active gains K_P, K_I (right axis, log scale, steps); gain switches are dotted vertical lines
-in both panels.
+in both panels. With a grid model (``measurement/grid`` records) a third panel: the lowest and
+highest bus voltage (p.u., left) and the highest line and transformer loading (%, right) per
+report period, with the band of the config's ``grid_model.limits`` dotted.
 """
 
 from __future__ import annotations
@@ -54,8 +56,11 @@ def plot_run(run: RunData, *, title: str | None = None):
     """Return a matplotlib Figure of ``run`` (see the module doc)."""
     from matplotlib.figure import Figure  # no pyplot: no global state, no display needed
 
-    fig = Figure(figsize=(10, 6.5), layout="constrained")
-    top, bottom = fig.subplots(2, 1, sharex=True, height_ratios=(3, 2))
+    grid = run.one("grid_v_min") is not None
+    fig = Figure(figsize=(10, 8.5 if grid else 6.5), layout="constrained")
+    axes = fig.subplots(3 if grid else 2, 1, sharex=True,
+                        height_ratios=(3, 2, 2) if grid else (3, 2))
+    top, bottom = axes[0], axes[1]
     p_ref, p_ip, p_y = run.one("p_ref"), run.one("p_ip"), run.one("p_y")
     ends = [run.seconds(s.t_ns[-1]) for s in (p_ref, p_ip, p_y) if s is not None and s.t_ns.size]
     t_end = max(ends) if ends else 1.0
@@ -95,10 +100,33 @@ def plot_run(run: RunData, *, title: str | None = None):
     if handles:
         bottom.legend(handles, labels, loc="lower left", bbox_to_anchor=(0.0, 1.0), ncols=3,
                       fontsize=8, frameon=False)
+    if grid:
+        _grid_panel(axes[2], run, t_end)
     top.set_xlim(0 if run.t0_ns == 0 else None, t_end)
     if title:
         fig.suptitle(title, fontsize=10)
     return fig
+
+
+def _grid_panel(ax, run: RunData, t_end: float) -> None:
+    """Bus voltage extremes (left) and the highest loadings (right), per report period."""
+    for role, label in (("grid_v_min", "lowest bus voltage"), ("grid_v_max", "highest")):
+        series = run.one(role)
+        ax.step(run.seconds(series.t_ns), series.values, where="post", lw=1.0, label=label)
+    ax.set_ylabel("bus voltage [p.u.]")
+    ax.set_xlabel("sim time [s]")
+    ax.grid(True, alpha=0.3)
+    loading = ax.twinx()
+    for role, style in (("grid_line_loading", "-"), ("grid_trafo_loading", "--")):
+        series = run.one(role)
+        if series is not None:
+            loading.step(run.seconds(series.t_ns), series.values, where="post", ls=style,
+                         color="0.4", lw=1.0, label=series.name)
+    loading.set_ylabel("loading [%]")
+    handles = [h for a in (ax, loading) for h in a.get_legend_handles_labels()[0]]
+    labels = [lab for a in (ax, loading) for lab in a.get_legend_handles_labels()[1]]
+    ax.legend(handles, labels, loc="lower left", bbox_to_anchor=(0.0, 1.0), ncols=4, fontsize=8,
+              frameon=False)
 
 
 def save_plot(run: RunData, out_path: str | Path, *, title: str | None = None) -> Path:

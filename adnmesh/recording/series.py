@@ -91,6 +91,17 @@ SERIES: dict[str, tuple[Field, ...]] = {
         Field("p_w", "{der} infeed", "der_infeed"),
         Field("setpoint_w", "{der} setpoint", "der_setpoint", step=True),
     ),
+    "adn/{grid}/measurement/grid": (
+        Field("v_min_pu", "lowest bus voltage", "grid_v_min", unit="p.u.", step=True,
+              color=(200, 60, 60)),
+        Field("v_max_pu", "highest bus voltage", "grid_v_max", unit="p.u.", step=True,
+              color=(60, 60, 200)),
+        Field("line_loading_max_pct", "highest line loading", "grid_line_loading", unit="%",
+              step=True),
+        Field("trafo_loading_max_pct", "highest transformer loading", "grid_trafo_loading",
+              unit="%", step=True),
+        Field("q_ip_var", "Q_IP", "q_ip", unit="var", step=True),
+    ),
 }
 """Key pattern -> the series taken from each message on a matching key."""
 
@@ -106,10 +117,12 @@ liveliness, heartbeats); they are still counted by ``adnmesh inspect``."""
 
 @dataclass(frozen=True)
 class Event:
-    """Something that happened: a gain switch, an availability change, a fault, a DER mode change.
+    """Something that happened: a gain switch, an availability change, a fault, a DER mode change,
+    a DER's heartbeat flag change, the run's start.
 
     ``t_ns`` is the send time; ``data`` holds the details (e.g. ``available`` for an availability
-    change, ``active`` for a fault that has a start and an end).
+    change, ``active`` for a fault that has a start and an end, ``switch`` for a gain switch
+    that carries the CPFC's switch record, ``end_ns`` for the run's start).
     """
 
     t_ns: int
@@ -140,7 +153,8 @@ def _gain_switch(body: dict, previous: dict | None, captures: dict) -> tuple[str
         text += f", P_Y {_g(before.get('p_y_before'))} -> {_g(body.get('p_y'))}"
     if active:
         text += f"; DERs: {', '.join(active)}"
-    return "INFO", text, {"kp": kp, "ki": ki, "entry": body.get("entry"), "active": active}
+    return "INFO", text, {"kp": kp, "ki": ki, "entry": body.get("entry"), "active": active,
+                          "switch": isinstance(switch, Mapping)}
 
 
 def _der_mode(body: dict, previous: dict | None, captures: dict) -> tuple[str, str, dict] | None:
@@ -153,13 +167,53 @@ def _der_mode(body: dict, previous: dict | None, captures: dict) -> tuple[str, s
             {"der": der, "mode": mode})
 
 
+def _der_available(body: dict, previous: dict | None,
+                   captures: dict) -> tuple[str, str, dict] | None:
+    """A DER heartbeat whose ``available`` flag differs from the DER's previous heartbeat's
+    (a DER counts as available before its first heartbeat)."""
+    flag = body.get("available")
+    old = True if previous is None else previous.get("available")
+    if not isinstance(flag, bool) or flag == old:
+        return None
+    der = captures.get("der", "?")
+    return ("INFO", f"{der}: heartbeat says {'available' if flag else 'unavailable'}",
+            {"der": der, "available": flag})
+
+
+def _run_start(body: dict, previous: dict | None, captures: dict) -> tuple[str, str, dict] | None:
+    """The sim clock's start message: the clock mode and the run's end (``end_ns``)."""
+    end = body.get("end_ns")
+    if not isinstance(end, int) or isinstance(end, bool):
+        return None
+    clock = body.get("clock", "?")
+    return "INFO", f"run starts: {clock} clock, ends at {end / 1e9:g} s", {"end_ns": end,
+                                                                          "clock": clock}
+
+
 def _fault(body: dict, previous: dict | None, captures: dict) -> tuple[str, str, dict] | None:
-    """Every message on a fault key."""
+    """An injected fault (``up``'s ``faults`` messages): its window ``[start_ns, end_ns)``."""
+    if not isinstance(body.get("start_ns"), int) or "fault_id" not in body:
+        return None
     details = {k: v for k, v in body.items() if k not in ENVELOPE_FIELDS}
-    state = {True: "starts", False: "ends"}.get(details.get("active"), "")
-    what = " ".join(str(details[k]) for k in ("fault", "agent") if k in details)
-    text = f"fault {what} {state}".strip() if what else f"fault: {json.dumps(details)}"
+    target = next((str(details[k]) for k in ("link", "der", "agent") if details.get(k)),
+                  "all ICT")
+    end = details.get("end_ns")
+    text = (f"fault {details['fault_id']}: {details.get('kind')} of {target} from "
+            f"{details['start_ns'] / 1e9:g} s" + ("" if end is None else f" to {end / 1e9:g} s"))
     return "WARN", text, details
+
+
+_LEVELS = {"DEBUG": "DEBUG", "INFO": "INFO", "WARNING": "WARN", "ERROR": "ERROR"}
+
+
+def _agent_event(body: dict, previous: dict | None,
+                 captures: dict) -> tuple[str, str, dict] | None:
+    """What an agent (or ``up``) noticed or did: its event message, as it says it."""
+    text = body.get("text")
+    if not isinstance(text, str):
+        return None
+    return (_LEVELS.get(body.get("level"), "INFO"), f"{body.get('src', '?')}: {text}",
+            {k: body[k] for k in ("kind", "subject", "fault_id") if k in body})
 
 
 EventRule = Callable[[dict, "dict | None", dict], "tuple[str, str, dict] | None"]
@@ -167,7 +221,10 @@ EventRule = Callable[[dict, "dict | None", dict], "tuple[str, str, dict] | None"
 EVENTS: dict[str, tuple[str, EventRule]] = {
     "adn/{grid}/cpfc/p_y": ("gain_switch", _gain_switch),
     "adn/{grid}/der/{der}/state": ("der_mode", _der_mode),
-    "adn/{grid}/fault/**": ("fault", _fault),
+    "adn/{grid}/der/{der}/heartbeat": ("der_available", _der_available),
+    "adn/{grid}/faults": ("fault", _fault),
+    "adn/{grid}/event/**": ("event", _agent_event),
+    "adn/{grid}/clock/start": ("run_start", _run_start),
 }
 """Key pattern -> (event kind, rule). A rule gets the payload body, the body of the previous
 message on the same key (None for the first) and the key's captures, and returns
@@ -286,29 +343,17 @@ class RunData:
                 for e, nxt in zip(changes, changes[1:] + [None])]
 
     def fault_spans(self) -> list[tuple[int, int | None, str]]:
-        """Return (start ns, end ns or None, description) per fault.
-
-        A fault whose events carry ``active`` true/false spans from the first to the second
-        (matched on the other fields); one with ``duration_s`` spans that long; any other fault is
-        an instant (end = start).
-        """
-        spans: list[tuple[int, int | None, str]] = []
-        open_: dict[str, int] = {}
+        """Return (start ns, end ns or None, description) per injected fault (a fault sent
+        again to a restarted agent counts once; a kill without restart is an instant)."""
+        spans: dict[int, tuple[int, int | None, str]] = {}
         for event in (e for e in self.events if e.kind == "fault"):
             data = event.data
-            ident = json.dumps({k: v for k, v in data.items() if k != "active"}, sort_keys=True)
-            if isinstance(data.get("active"), bool):
-                if data["active"]:
-                    open_.setdefault(ident, len(spans))
-                    spans.append((event.t_ns, None, ident))
-                elif ident in open_:
-                    i = open_.pop(ident)
-                    spans[i] = (spans[i][0], event.t_ns, ident)
-            elif isinstance(data.get("duration_s"), (int, float)):
-                spans.append((event.t_ns, event.t_ns + int(data["duration_s"] * 1e9), ident))
-            else:
-                spans.append((event.t_ns, event.t_ns, ident))
-        return spans
+            if data["fault_id"] not in spans:
+                end = data.get("end_ns")
+                if data.get("kind") == "kill" and end is None:
+                    end = data["start_ns"]
+                spans[data["fault_id"]] = (data["start_ns"], end, event.text)
+        return sorted(spans.values())
 
 
 def _body(payload: object) -> dict:

@@ -62,6 +62,7 @@ __all__ = [
     "MESSAGE_ENCODING",
     "PUBLISHED_METADATA",
     "RECOVERY_METADATA",
+    "UNCOUNTED_METADATA",
     "RUN_METADATA",
     "RUN_METADATA_KEYS",
     "Recorder",
@@ -83,6 +84,11 @@ RUN_METADATA = "adnmesh.run"
 PUBLISHED_METADATA = "adnmesh.published"
 """Name of the optional metadata record ``{topic: count}`` with what the agents say they
 published; ``adnmesh inspect`` compares it with the recording."""
+
+UNCOUNTED_METADATA = "adnmesh.uncounted"
+"""Name of the optional metadata record ``{topic: why}`` of the topics nobody counted (payloads
+the recorder rejected, a person's commands, the keys of an agent whose process died): they are
+not compared with :data:`PUBLISHED_METADATA`."""
 
 RECOVERY_METADATA = "adnmesh.recovery"
 """Name of the metadata record that :func:`adnmesh.recording.recover` adds to a recovered file."""

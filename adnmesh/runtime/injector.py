@@ -113,11 +113,31 @@ class FaultInjector:
             with self._lock:
                 self._restart_at.pop(agent, None)
             self._respawn(agent, at)
+        self._sessions(launch.roster.session_changes())
         for agent in sorted(self._spawned & launch.roster.alive_now()):
             self._spawned.discard(agent)
             launch.announce_start()
 
     # -- internals -----------------------------------------------------------------------------
+
+    def _sessions(self, changes) -> None:
+        """A running agent whose session dropped (under load) is a fault the run survives:
+        say it and when it is back (Zenoh reconnects; what was sent meanwhile is late or
+        lost and counted)."""
+        running = self.launch.children.running()
+        for agent, back in changes:
+            with self._lock:
+                expected = agent in self.dying
+            if agent not in running or expected:
+                continue      # a death: the injector's own business
+            what = "is back" if back else \
+                "dropped (the process runs): waiting for it to reconnect" \
+                if agent in self.launch.children.procs else \
+                f"dropped: waiting up to {self.launch.children.grace_s:g} s for it to reconnect"
+            self.launch.options.log(f"{agent}'s Zenoh session {what}")
+            self._event(self._earliest_ns(), "INFO" if back else "WARNING",
+                        "session_back" if back else "session_lost",
+                        f"{agent}'s Zenoh session {what}", subject=agent)
 
     def _request(self, request) -> None:
         rid = request.request_id

@@ -47,13 +47,14 @@ import zenoh
 
 from adnmesh import __version__
 from adnmesh.config import Config
-from adnmesh.recording import PUBLISHED_METADATA, Recorder
+from adnmesh.recording import PUBLISHED_METADATA, UNCOUNTED_METADATA, Recorder
 from adnmesh.runtime import acl
 from adnmesh.runtime.bus import DEFAULT_HOST, free_port, router_config
 from adnmesh.runtime.children import AgentProcesses, agent_argv
 from adnmesh.runtime.identity import router_identity
 from adnmesh.runtime.injector import FaultInjector
 from adnmesh.runtime.launcher_bus import LauncherOutbox, SimClockDriver
+from adnmesh.runtime.realtime import tolerance_ns
 from adnmesh.runtime.roster import Roster
 from adnmesh.runtime.sessions import SessionReport, SessionWatch
 from adnmesh.runtime.summary import RunSeries
@@ -63,9 +64,12 @@ from adnmesh.sim.topology import Topology
 from adnmesh.wire.keys import LAUNCHER
 from adnmesh.wire.units import ns
 
-__all__ = ["EXIT_FAILED", "EXIT_OK", "UpOptions", "UpResult", "embedded_router_config", "run"]
+__all__ = ["EXIT_FAILED", "EXIT_NOT_REALTIME", "EXIT_OK", "UpOptions", "UpResult",
+           "embedded_router_config", "run"]
 
-EXIT_OK, EXIT_FAILED, EXIT_SIGINT, EXIT_SIGTERM = 0, 1, 130, 143
+EXIT_OK, EXIT_FAILED, EXIT_NOT_REALTIME, EXIT_SIGINT, EXIT_SIGTERM = 0, 1, 3, 130, 143
+NOT_REALTIME = "not real time"
+"""How the reason of a run stopped by ``--strict`` begins."""
 
 _POLL_S = 0.1   # longest wait between checks of the processes, s
 
@@ -100,6 +104,10 @@ class UpOptions:
     run_file : Path, optional
         Where to describe the running run (endpoint, grid, pid) for ``adnmesh fault``;
         removed when the run ends.
+    available_w : dict
+        DER id -> its available power, W, handed to the DER processes.
+    strict : bool
+        Realtime: stop the run at the first overrun (exit code 3).
     certs : Path, optional
         The secure profile: the certificate directory (``adnmesh certs``).
     external : frozenset of str
@@ -125,6 +133,8 @@ class UpOptions:
     log: Callable[[str], None] = lambda line: None
     run_id: str = ""
     run_file: Path | None = None
+    available_w: dict = field(default_factory=dict)
+    strict: bool = False
     certs: Path | None = None
     external: frozenset = frozenset()
     routers: tuple = ()
@@ -138,7 +148,8 @@ class UpResult:
     Attributes
     ----------
     exit_code : int
-        0 success; 1 failure (agent died, recording incomplete, ...); 130/143 interrupted.
+        0 success; 1 failure (agent died, recording incomplete, ...); 3 stopped by ``--strict``
+        (not real time); 130/143 interrupted.
     reason : str
         Why the run ended (``finished``, ``SIGINT``, ``agent der/X died (...)``, ...).
     series : RunSeries
@@ -163,6 +174,8 @@ class UpResult:
         The links the router accepted, per identity, and the unexpected ones.
     problems : list of str
         What went wrong, one line each.
+    tolerance_ns : int
+        The realtime overrun tolerance, ns of sim time.
     """
 
     exit_code: int = EXIT_OK
@@ -179,6 +192,7 @@ class UpResult:
     grants: int = 0
     sessions: SessionReport = field(default_factory=SessionReport)
     problems: list = field(default_factory=list)
+    tolerance_ns: int = 0
 
 
 class _Launch:
@@ -205,6 +219,10 @@ class _Launch:
         self.outbox: LauncherOutbox | None = None
         self.injector = FaultInjector(self)
         self.epoch_ns = 0
+        self.result.tolerance_ns = tolerance_ns(self.config.runtime.realtime_tolerance_s,
+                                                self.topology)
+        self.not_realtime: str | None = None      # the first overrun, with --strict
+        self._overrun_log = [0.0, 0]              # next wall time to say one, how many unsaid
         self._start_body: dict | None = None
         self._handles: list = []
         self._token = None
@@ -255,12 +273,14 @@ class _Launch:
         self._handles = []
 
     def on_alive(self, sample: zenoh.Sample) -> None:
-        """Liveliness: to the roster; an external agent whose session ended is dead."""
+        """Liveliness: to the roster; an external agent whose session ended (and does not come
+        back within the grace) is dead."""
         self.roster.on_alive(sample)
-        if sample.kind == zenoh.SampleKind.DELETE:
-            agent = str(sample.key_expr).split("/alive/", 1)[1]
-            if agent not in self.roster.byes:
-                self.children.session_ended(agent)
+        agent = str(sample.key_expr).split("/alive/", 1)[1]
+        if sample.kind == zenoh.SampleKind.PUT:
+            self.children.session_back(agent)
+        elif agent not in self.roster.byes:
+            self.children.session_ended(agent)
 
     def on_sample(self, sample: zenoh.Sample) -> None:
         """Every sample an agent sends: through the tap; reports, goodbyes and fault requests
@@ -276,6 +296,22 @@ class _Launch:
                 self.roster.note_bye(message)
             elif message.type == "fault_request":
                 self.injector.on_request(message)
+            elif message.type == "event" and message.kind == "overrun":
+                self.on_overrun(message)
+
+    def on_overrun(self, message) -> None:
+        """An agent cannot keep up: say so at once (at most once a second, with the count of
+        those not said); with ``--strict`` stop the run."""
+        now, (next_s, unsaid) = time.monotonic(), self._overrun_log
+        if now < next_s:
+            self._overrun_log[1] = unsaid + 1
+        else:
+            more = f" (and {unsaid} more overrun report(s))" if unsaid else ""
+            self.options.log(f"warning: {message.text}{more}")
+            self._overrun_log[:] = [now + 1.0, 0]
+        if self.options.strict and self.not_realtime is None:
+            self.not_realtime = f"{message.text} (--strict)"
+            self.roster.changed.set()
 
     # -- for the phases and the injector -------------------------------------------------------
 
@@ -287,8 +323,10 @@ class _Launch:
             self.options.log(f"external agent {agent_id}: start it on its host with "
                              f"{self.agent_command(agent_id, resume_ns)}")
             return
+        der_id = agent_id[4:] if agent_id.startswith("der/") else None
         argv = agent_argv(agent_id, Path(self.config.path), self.endpoint,
-                          self.options.table_path, self.options.certs)
+                          self.options.table_path, self.options.available_w.get(der_id),
+                          self.options.certs)
         if resume_ns:
             argv += ["--resume-at-ns", str(resume_ns)]
         self.children.spawn(agent_id, argv)
@@ -321,6 +359,8 @@ class _Launch:
             return "SIGINT" if self.interrupted[0] == signal.SIGINT else "SIGTERM"
         if self.clock is not None and self.clock.error:
             return f"clock: {self.clock.error}"
+        if self.not_realtime is not None:
+            return f"{NOT_REALTIME}: {self.not_realtime}"
         timeout = self.options.stall_timeout_s
         if self.clock is not None and timeout and self.clock.stalled_s() > timeout:
             with self.clock.lock:
@@ -415,7 +455,8 @@ def run_clock(launch: _Launch) -> str:
     epoch_ns = launch.epoch_ns = time.time_ns() + 200_000_000
     launch._start_body = {"clock": options.clock, "epoch_ns": epoch_ns,
                           "speed": float(options.speed), "end_ns": result.end_ns,
-                          "seed": options.seed}
+                          "seed": options.seed,
+                          "tolerance_ns": result.tolerance_ns}
     launch.announce_start()
     if launch.clock is not None:
         launch.clock.start()
@@ -500,6 +541,10 @@ def verify(launch: _Launch) -> None:
                                f"{', '.join(sorted(set(launch.injector.lost)))}")
     launch.recorder.add_metadata(PUBLISHED_METADATA,
                                  {k: str(v) for k, v in result.published.items()})
+    uncounted = {launch.tap.rejected_key: "payloads the recorder rejected",
+                 launch.keys.fault_request: "a person's fault requests",
+                 **{k: "a process of its agent died" for k in unverified}}
+    launch.recorder.add_metadata(UNCOUNTED_METADATA, uncounted)
 
 
 def _keys_of(launch: _Launch, agents) -> set[str]:
@@ -545,7 +590,9 @@ def _stopped(result: UpResult, reason: str) -> None:
     result.reason = reason
     if reason != "finished":
         result.exit_code = (EXIT_SIGINT if reason == "SIGINT" else
-                            EXIT_SIGTERM if reason == "SIGTERM" else EXIT_FAILED)
+                            EXIT_SIGTERM if reason == "SIGTERM" else
+                            EXIT_NOT_REALTIME if reason.startswith(NOT_REALTIME) else
+                            EXIT_FAILED)
         result.problems.append(f"run stopped: {reason}")
 
 

@@ -14,9 +14,11 @@ three named phases:
      every event before ``until_ns``, then a report (:mod:`adnmesh.sim.clock`) — by the Zenoh
      callback that completes it (the grant, or the last expected message), under the lock: no
      hand-over to another thread on the critical path;
-   - ``realtime``: sim time is ``(wall - epoch) * speed``; the main thread sleeps until the next
-     event or message and processes what is due (a message that arrives after its delivery time
-     is processed at once and counted as late);
+   - ``realtime``: sim time is ``(wall - epoch) * speed`` (:mod:`adnmesh.runtime.realtime`);
+     the main thread sleeps until the next event or message and processes what is due, measuring
+     every event's delivery error per link (a message that arrives after its delivery time is
+     processed at once and counted as late); an error beyond the announced tolerance is
+     published at once as an ``overrun`` event;
 
    until ``clock/stop``, the disappearance of ``adnmesh up``, or SIGTERM/SIGINT;
 3. :meth:`~AgentProcess.goodbye`: send what the agent wants sent at the end
@@ -47,6 +49,8 @@ from collections import deque
 
 import zenoh
 
+from adnmesh.runtime.children import SESSION_GRACE_S
+from adnmesh.runtime.realtime import OverrunWatch, ScaledClock
 from adnmesh.sim.node import Node
 from adnmesh.wire.envelope import MessageError, decode, encode, frames, split_frame
 from adnmesh.wire.keys import Keys, route
@@ -58,6 +62,8 @@ __all__ = ["AgentProcess", "add_agent_arguments", "die_with_parent", "load_confi
 _WAIT_S = 1.0       # longest sleep between checks of the stop flag, s
 _BYE_WAIT_S = 5.0   # longest wait after the goodbye for `up` to confirm it, s
 _KILL_WAIT_S = 2.0  # longest wait for `up` to acknowledge the last report before a kill, s
+_UP_GRACE_S = SESSION_GRACE_S  # how long `up` may stay out of sight (a session reconnecting)
+                               # before we stop; up waits as long for an external agent
 
 
 def add_agent_arguments(parser) -> None:
@@ -155,6 +161,9 @@ class AgentProcess:
         self.stop: str | None = None         # why the run stopped
         self.mode: str | None = None         # "sim" / "realtime" once started
         self.up_gone = False                 # adnmesh up withdrew its liveliness
+        self._up_gone_at: float | None = None   # since when (monotonic s), until it is back
+        self.reconnects = 0                  # times up came back into sight
+        self.said_bye = False
         self.dying = False                   # an injected kill was reached
         self.kill_acked = False              # ... and up has the last report
         self.reported = False                # the first report is sent (up was seen)
@@ -163,6 +172,7 @@ class AgentProcess:
         self._own: dict[str, int] = {}       # what this wrapper published itself, per key
         self._handles: list = []
         self._signals: dict = {}
+        self.overruns: OverrunWatch | None = None
 
     # -- phases ------------------------------------------------------------------------------
 
@@ -197,7 +207,7 @@ class AgentProcess:
     def run(self) -> None:
         """Wait for the start, then run on its clock until the run stops."""
         with self.lock:
-            while self.start is None and self.stop is None:
+            while self.start is None and not self._up_lost():
                 self.lock.wait(_WAIT_S)
             if self.stop is not None:
                 return
@@ -205,7 +215,7 @@ class AgentProcess:
             self.mode = self.start.clock
             if self.mode == "sim":
                 self._run_granted()
-                while self.stop is None and not self.dying:
+                while not self._up_lost() and not self.dying:
                     self.lock.wait(_WAIT_S)
             else:
                 self.node.strict = False
@@ -225,7 +235,7 @@ class AgentProcess:
     def goodbye(self) -> None:
         """Send the agent's last messages and the goodbye; wait (bounded) for ``up``'s ack."""
         with self.lock:
-            self.mode = None
+            self.mode, self.said_bye = None, True
             self._publish_all(self.node.finish())
             node, counts = self.node, self.node.counts
             bye_key = self.keys.bye(self.agent)
@@ -233,9 +243,11 @@ class AgentProcess:
             published[bye_key] = published.get(bye_key, 0) + 1
             stats = {**node.agent.stats(), "cpu_s": time.process_time(),
                      "window_cpu_s": self.window_cpu_s, "late": float(counts.late),
-                     "received": float(counts.received)}
+                     "received": float(counts.received),
+                     "overruns": float(self.overruns.count if self.overruns else 0),
+                     "reconnects": float(self.reconnects)}
             self._send_own(bye_key, published=published, rejected=counts.rejected,
-                           lost=counts.lost, stats=stats)
+                           lost=counts.lost, stats=stats, latency=node.latency.to_wire())
             deadline = time.monotonic() + _BYE_WAIT_S
             while not self.up_gone and time.monotonic() < deadline:
                 self.lock.wait(min(_WAIT_S, max(0.0, deadline - time.monotonic())))
@@ -291,14 +303,25 @@ class AgentProcess:
         self.lock.notify()
 
     def _on_up_alive(self, sample: zenoh.Sample) -> None:
+        # the first sight of up's token: the first report (ready). up's token goes when up
+        # ends -- or when this session lost the router under load and reconnects: the agent
+        # goes on, and stops only if up stays away (_UP_GRACE_S)
         with self.lock:
-            if sample.kind == zenoh.SampleKind.PUT and not self.reported:
+            if sample.kind == zenoh.SampleKind.DELETE:
+                self.up_gone, self._up_gone_at = True, time.monotonic()
+            elif not self.reported:
                 self.reported = True
-                self._report()                    # the first report: ready
-            elif sample.kind == zenoh.SampleKind.DELETE:
-                self.up_gone = True
-                self.stop = self.stop or "adnmesh up is gone"
-                self.lock.notify()
+                self._report()
+            elif self.up_gone and not self.said_bye:
+                self.up_gone, self._up_gone_at = False, None
+                self.reconnects += 1
+            self.lock.notify()
+
+    def _up_lost(self) -> bool:
+        """``up`` has been out of sight longer than the grace (then the run stops)."""
+        if self._up_gone_at is not None and time.monotonic() - self._up_gone_at > _UP_GRACE_S:
+            self.stop = self.stop or "adnmesh up is gone"
+        return self.stop is not None
 
     def _on_signal(self, signum, frame) -> None:
         # no lock in a signal handler: the main thread wakes within _WAIT_S and sees the flag
@@ -354,20 +377,29 @@ class AgentProcess:
             self.window_cpu_s += time.thread_time() - cpu
 
     def _run_realtime(self) -> None:
-        start = self.start
-        epoch_ns, speed, end_ns = start.epoch_ns, float(start.speed), start.end_ns
+        """Process every event at its time on the scaled wall clock (:mod:`.realtime`); an
+        agent with zero-delay inputs (the measurement) processes each instant ``tolerance``
+        later, so that what its senders send at that instant is there (:mod:`.realtime`)."""
+        start, node = self.start, self.node
+        hold = start.tolerance_ns if node.instant_inputs else 0
+        clock = ScaledClock(start.epoch_ns + int(hold / start.speed), start.speed)
+        watch = self.overruns = OverrunWatch(self.agent, start.tolerance_ns, start.speed)
         with self.lock:
-            while self.stop is None:
-                now = int((time.time_ns() - epoch_ns) * speed)
+            while not self._up_lost():
+                now = clock.now_ns()
                 if now >= 0:
-                    self._run_until(min(now, end_ns) + 1)
-                if self.dying:
+                    self._publish_all(node.advance(min(now, start.end_ns) + 1, clock.now_ns))
+                    self._note_overrun(watch.check(now, node.take_worst_late()))
+                if node.killed:
+                    self.dying = True
                     self._report()
                     return
-                next_ns = self.node.next_event_ns()
-                if next_ns is None or next_ns > end_ns:
-                    wait_s = _WAIT_S
-                else:
-                    wait_s = min(_WAIT_S, (next_ns / speed + epoch_ns - time.time_ns()) * 1e-9)
+                next_ns = node.next_event_ns()
+                wait_s = _WAIT_S if next_ns is None or next_ns > start.end_ns else \
+                    min(_WAIT_S, clock.wait_s(next_ns))
                 if wait_s > 0:
                     self.lock.wait(wait_s)
+
+    def _note_overrun(self, body: dict | None) -> None:
+        if body is not None:
+            self._publish_all(self.node.send_now(self.keys.event(self.agent), body))

@@ -33,6 +33,7 @@ class Roster:
         self.reported: set[str] = set()
         self.byes: dict[str, object] = {}     # agent -> its agent_bye message
         self.gone: list[str] = []             # sessions that ended without a goodbye
+        self._changes: list[tuple[str, bool]] = []   # (agent, session up) after a loss
 
     def on_alive(self, sample: zenoh.Sample) -> None:
         """Liveliness callback: an agent's session appeared or ended."""
@@ -42,10 +43,14 @@ class Roster:
         with self.lock:
             if sample.kind == zenoh.SampleKind.PUT:
                 self.alive.add(agent)
+                if agent in self.gone:
+                    self.gone.remove(agent)
+                    self._changes.append((agent, True))
             else:
                 self.alive.discard(agent)
                 if agent not in self.byes:
                     self.gone.append(agent)
+                    self._changes.append((agent, False))
         self.changed.set()
 
     def note_report(self, agent: str) -> None:
@@ -72,10 +77,12 @@ class Roster:
         with self.lock:
             return set(self.alive)
 
-    def first_gone(self) -> str | None:
-        """The first agent whose session ended without a goodbye, if any."""
+    def session_changes(self) -> list[tuple[str, bool]]:
+        """``(agent, back)`` of every session lost without a goodbye (``back`` False) or back
+        after such a loss (True) since the last call."""
         with self.lock:
-            return self.gone[0] if self.gone else None
+            changes, self._changes = self._changes, []
+        return changes
 
     def without_bye(self) -> set[str]:
         """Agents that have not said goodbye."""

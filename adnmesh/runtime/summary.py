@@ -2,38 +2,58 @@
 
 For every step of ``P_ref`` (the CPFC's ``scenario/p_ref`` records) the response of ``P_IP``
 (the measurement's samples, at their sampling instants) until the next event (step, gain switch,
-a DER's availability change, an injected fault) or the end:
+a DER's availability change, an injected fault) or the end: rise time (10-90 %), settling time
+in ``band_pct`` % and in 2 % of the step, overshoot, peak, and the steady error ``P_ref - P_IP``
+at the window's last sample, W. The figures and the windows are those of
+:func:`adnmesh.stepfigures.reference_step_figures`, the rule ``adnmesh inspect`` applies to the
+recording too (:mod:`adnmesh.recording.figures`), so both print the same figures.
 
-- **rise time**: from 10 % to 90 % of the step (first crossings, interpolated linearly), s;
-- **settling time**: from the step until ``P_IP`` stays within ``band_pct`` % of the step around
-  the new reference (interpolated), s; None if it never settles in the window;
-- **overshoot**: beyond the new reference in the step's direction, % of the step;
-- **steady error**: ``P_ref - P_IP`` at the last sample of the window, W.
+The events that end a window (:class:`RunSeries`): a ``p_y`` message with a ``switch`` record,
+a DER heartbeat whose ``available`` flag differs from the DER's previous one (every DER
+counts as available before its first heartbeat), an SI message whose set of available DERs
+differs from the previous SI's (the first SI is the initial state), every ``fault`` message.
 
 For every gain switch (``cpfc/p_y`` messages with a ``switch`` record): the largest
-``|P_IP - P_ref|`` in the ``window_s`` (10 s) after it, and the jump of ``P_Y`` at the switch
-(output with the new gains minus output with the old ones at the switching sample; 0 when the
-switch is bumpless). An old output outside the new DERs' range (where every one of them is
-saturated) is limited to that range first; the jump is counted from the limited value and the
-limiting reported apart (``p_y_limited_by``). Plus wall time, simulated time and their ratio, the speed factor.
+``|P_IP - P_ref|`` in the ``window_s`` (10 s) after it, the factor the switch scaled ``P_Y``
+by (so that the DERs' commanded power stayed continuous; 1 when no DER returned) and the jump of
+``P_Y`` (output with the new gains minus the scaled old output; 0 when the switch is bumpless).
+A scaled output outside the new DERs' range (where every one of them is saturated) is limited
+to that range first; the jump is counted from the limited value and the limiting reported
+apart (``p_y_limited_by``).
+
+For every injected fault (``fault`` messages) its detection, deviation and recovery
+(:func:`adnmesh.faultfigures.fault_figures`, from the run's ``event`` messages); with a grid
+model the extremes of the grid over the run and the report periods with samples outside the
+band (``grid_state`` messages); of a realtime run its timing: delivery errors per link,
+overruns, alarms the machine's lateness caused (:mod:`adnmesh.runtime.realtime_report`). Plus
+wall time, simulated time and their ratio, the speed factor.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from adnmesh.faultfigures import FaultFigures, fault_figures
+from adnmesh.runtime.realtime_report import ALARM_TIMEOUTS, RealtimeFigures, realtime_lines
+from adnmesh.stepfigures import ReferenceStep, reference_step_figures
+
 __all__ = [
+    "MESSAGE_TYPES",
+    "GridFigures",
     "RunSeries",
     "RunSummary",
-    "StepFigures",
     "SwitchFigures",
-    "step_figures",
     "summarize",
 ]
+
+MESSAGE_TYPES = frozenset({"p_ip", "p_ref", "p_y", "heartbeat", "si", "fault", "event",
+                           "grid_state"})
+"""The message types :meth:`RunSeries.add` takes (of ``p_y`` only those with a ``switch``)."""
+
+_ALARM_KINDS = frozenset({"overrun", *ALARM_TIMEOUTS})
 
 
 @dataclass
@@ -50,8 +70,18 @@ class RunSeries:
         One per gain switch: ``t_ns``, ``p_y_before``, ``p_y_limited`` (limited to the new
         output range), ``p_y_after``, ``available`` (DER ids).
     disturbances_ns : list of int
-        Instants of other events that disturb ``P_IP`` (a DER's availability changes, an
-        injected fault starts or ends); a step's window ends at the next one.
+        Instants of other events that disturb ``P_IP`` (a DER's availability flag or SI
+        changes, an injected fault starts or ends); a step's window ends at the next one.
+    faults : dict
+        Fault number -> the body of its ``fault`` message (sent again to a restarted agent:
+        kept once).
+    events : list of (float, str, str)
+        ``(t_s, sender, kind)`` of every event.
+    alarms : list of (float, str, str, str, str)
+        ``(t_s, sender, kind, subject, text)`` of the overrun and alarm events
+        (:mod:`adnmesh.runtime.realtime_report`).
+    grid : list of dict
+        The ``grid_state`` bodies, in time order.
     """
 
     p_ip_t_ns: list = field(default_factory=list)
@@ -60,7 +90,12 @@ class RunSeries:
     p_ref_w: list = field(default_factory=list)
     switches: list = field(default_factory=list)
     disturbances_ns: list = field(default_factory=list)
+    faults: dict = field(default_factory=dict)
+    events: list = field(default_factory=list)
+    alarms: list = field(default_factory=list)
+    grid: list = field(default_factory=list)
     _flags: dict = field(default_factory=dict, repr=False)
+    _si: frozenset | None = field(default=None, repr=False)
 
     def add(self, message_type: str, body: dict) -> None:
         """Take one decoded message (envelope and body) if the summary needs it."""
@@ -76,28 +111,28 @@ class RunSeries:
                                   "p_y_before": switch["p_y_before"],
                                   "p_y_limited": switch.get("p_y_limited", switch["p_y_before"]),
                                   "p_y_after": body["p_y"],
+                                  "scale": switch.get("scale", 1.0),
                                   "available": sorted(body.get("w", {}))})
         elif message_type == "heartbeat":
             if self._flags.get(body["src"], True) != body["available"]:
                 self.disturbances_ns.append(body["t_send_ns"])
             self._flags[body["src"]] = body["available"]
-        elif message_type == "fault":
+        elif message_type == "si":
+            available = frozenset(d for d, flag in body["si"].items() if flag)
+            if self._si is not None and self._si != available:
+                self.disturbances_ns.append(body["t_send_ns"])
+            self._si = available
+        elif message_type == "fault" and body["fault_id"] not in self.faults:
+            self.faults[body["fault_id"]] = body
             self.disturbances_ns += [t for t in (body["start_ns"], body["end_ns"])
                                      if t is not None]
-
-
-@dataclass(frozen=True)
-class StepFigures:
-    """Response of ``P_IP`` to one step of ``P_ref`` (see the module docstring)."""
-
-    t_s: float
-    step_w: float
-    p_ref_w: float
-    rise_time_s: float | None
-    settling_time_s: float | None
-    overshoot_pct: float | None
-    steady_error_w: float | None
-    window_s: float
+        elif message_type == "event":
+            self.events.append((body["t_send_ns"] * 1e-9, body["src"], body["kind"]))
+            if body["kind"] in _ALARM_KINDS:
+                self.alarms.append((body["t_send_ns"] * 1e-9, body["src"], body["kind"],
+                                    body.get("subject") or body["src"], body["text"]))
+        elif message_type == "grid_state":
+            self.grid.append(body)
 
 
 @dataclass(frozen=True)
@@ -109,23 +144,44 @@ class SwitchFigures:
     max_deviation_w: float | None
     p_y_jump: float
     p_y_limited_by: float = 0.0
+    scale: float = 1.0
+
+
+@dataclass(frozen=True)
+class GridFigures:
+    """The grid over a run: its extremes and the report periods outside the band."""
+
+    v_min_pu: float
+    v_max_pu: float
+    line_loading_max_pct: float
+    trafo_loading_max_pct: float
+    samples: int
+    outside_band: int
+    not_converged: int
+    periods_outside_s: tuple[float, ...]
 
 
 @dataclass(frozen=True)
 class RunSummary:
     """Everything ``adnmesh up`` prints at the end (and writes with ``--summary-json``)."""
 
-    steps: tuple[StepFigures, ...]
+    steps: tuple[ReferenceStep, ...]
     switches: tuple[SwitchFigures, ...]
     band_pct: float
     sim_time_s: float
     wall_time_s: float | None
     speed_factor: float | None
     extra: dict = field(default_factory=dict)
+    faults: tuple[FaultFigures, ...] = ()
+    grid: GridFigures | None = None
+    realtime: RealtimeFigures | None = None
 
     def to_json(self) -> dict:
         """Plain data for ``json.dump`` (NaN and infinities become null)."""
-        return _finite(asdict(self))
+        data = asdict(self)
+        if self.realtime is not None:
+            data["realtime"]["real_time"] = self.realtime.real_time
+        return _finite(data)
 
 
 def _finite(value):
@@ -138,54 +194,6 @@ def _finite(value):
     return value
 
 
-def _crossing(t: np.ndarray, y: np.ndarray, level: float) -> float | None:
-    """First time ``y`` reaches ``level`` (from below), linearly interpolated; None if never."""
-    above = np.nonzero(y >= level)[0]
-    if above.size == 0:
-        return None
-    i = int(above[0])
-    if i == 0:
-        return float(t[0])
-    t0, t1, y0, y1 = t[i - 1], t[i], y[i - 1], y[i]
-    return float(t0 + (t1 - t0) * (level - y0) / (y1 - y0))
-
-
-def step_figures(t_s: Sequence[float], y: Sequence[float], band: float = 0.05):
-    """Rise time, settling time and overshoot of a normalised step response.
-
-    Parameters
-    ----------
-    t_s : sequence of float
-        Times from the step, s (increasing, starting at or after 0).
-    y : sequence of float
-        Response normalised to the step (0 before, 1 at the target).
-    band : float
-        Settling band as a fraction of the step.
-
-    Returns
-    -------
-    (rise_time_s, settling_time_s, overshoot_pct)
-        Each None where undefined (no samples, 90 % never reached, not settled at the end).
-    """
-    t = np.asarray(t_s, dtype=float)
-    y = np.asarray(y, dtype=float)
-    if t.size == 0:
-        return None, None, None
-    t10, t90 = _crossing(t, y, 0.1), _crossing(t, y, 0.9)
-    rise = None if t10 is None or t90 is None else t90 - t10
-    overshoot = max(0.0, 100.0 * (float(y.max()) - 1.0))
-    outside = np.nonzero(np.abs(y - 1.0) > band)[0]
-    if outside.size == 0:
-        settling = 0.0
-    elif outside[-1] == t.size - 1:
-        settling = None
-    else:
-        i = int(outside[-1])
-        target = 1.0 + band if y[i] > 1.0 else 1.0 - band
-        settling = float(t[i] + (t[i + 1] - t[i]) * (target - y[i]) / (y[i + 1] - y[i]))
-    return rise, settling, overshoot
-
-
 def _p_ref_at(series: RunSeries, t_ns: np.ndarray) -> np.ndarray:
     ref_t = np.asarray(series.p_ref_t_ns, dtype=np.int64)
     ref_v = np.asarray(series.p_ref_w, dtype=float)
@@ -195,7 +203,8 @@ def _p_ref_at(series: RunSeries, t_ns: np.ndarray) -> np.ndarray:
 
 def summarize(series: RunSeries, *, end_ns: int, band_pct: float = 5.0,
               wall_time_s: float | None = None, window_s: float = 10.0,
-              extra: dict | None = None) -> RunSummary:
+              extra: dict | None = None,
+              realtime: RealtimeFigures | None = None) -> RunSummary:
     """Compute the summary of a run from its series (see the module docstring).
 
     Parameters
@@ -211,64 +220,64 @@ def summarize(series: RunSeries, *, end_ns: int, band_pct: float = 5.0,
         Window after a gain switch, s.
     extra : dict, optional
         Further figures to carry along (message counts, clock grants, ...).
+    realtime : RealtimeFigures, optional
+        The timing of a realtime run.
     """
+    steps = reference_step_figures(
+        series.p_ip_t_ns, series.p_ip_w, series.p_ref_t_ns, series.p_ref_w,
+        [*(s["t_ns"] for s in series.switches), *series.disturbances_ns], end_ns,
+        band_pct=band_pct)
     t_ip = np.asarray(series.p_ip_t_ns, dtype=np.int64)
     p_ip = np.asarray(series.p_ip_w, dtype=float)
-    order = np.argsort(t_ip, kind="stable")
-    t_ip, p_ip = t_ip[order], p_ip[order]
-    steps = []
-    ref_t, ref_v = list(series.p_ref_t_ns), list(series.p_ref_w)
-    ends = sorted([*ref_t, *(s["t_ns"] for s in series.switches), *series.disturbances_ns,
-                   end_ns + 1])
-    for k in range(1, len(ref_t)):
-        t0 = ref_t[k]
-        t1 = ends[int(np.searchsorted(ends, t0, side="right"))]
-        before, after = ref_v[k - 1], ref_v[k]
-        step = after - before
-        if step == 0:
-            continue
-        inside = (t_ip >= t0) & (t_ip < t1)
-        t_rel = (t_ip[inside] - t0) * 1e-9
-        y = (p_ip[inside] - before) / step
-        rise, settle, overshoot = step_figures(t_rel, y, band_pct / 100.0)
-        steady = float(after - p_ip[inside][-1]) if inside.any() else None
-        steps.append(StepFigures(t0 * 1e-9, step, after, rise, settle, overshoot, steady,
-                                 (t1 - t0) * 1e-9))
     switches = []
     for s in series.switches:
         inside = (t_ip >= s["t_ns"]) & (t_ip <= s["t_ns"] + int(window_s * 1e9))
         deviation = np.abs(p_ip[inside] - _p_ref_at(series, t_ip[inside]))
-        limited = s["p_y_limited"]
+        limited, scale = s["p_y_limited"], s.get("scale", 1.0)
         switches.append(SwitchFigures(s["t_ns"] * 1e-9, tuple(s["available"]),
                                       float(np.nanmax(deviation)) if deviation.size else None,
                                       float(s["p_y_after"] - limited),
-                                      float(limited - s["p_y_before"])))
+                                      float(limited - s["p_y_before"] * scale), float(scale)))
     sim_s = end_ns * 1e-9
     speed = sim_s / wall_time_s if wall_time_s else None
-    return RunSummary(tuple(steps), tuple(switches), band_pct, sim_s, wall_time_s, speed,
-                      dict(extra or {}))
+    return RunSummary(steps, tuple(switches), band_pct, sim_s, wall_time_s, speed,
+                      dict(extra or {}), _faults(series, sim_s, band_pct), _grid(series),
+                      realtime)
+
+
+def _faults(series: RunSeries, end_s: float, band_pct: float) -> tuple[FaultFigures, ...]:
+    """Per-fault figures; recovery band: ``band_pct`` % of the largest P_ref step (1 MW
+    without steps); a step of P_ref ends a fault's after window (what follows is the step's)."""
+    steps = np.abs(np.diff(np.asarray(series.p_ref_w, dtype=float)))
+    band_w = band_pct / 100 * (float(steps.max()) if steps.size and steps.max() > 0 else 1e6)
+    scenario = [t * 1e-9 for t in series.p_ref_t_ns[1:]]     # the steps end an after window
+    return tuple(fault_figures(list(series.faults.values()), series.events,
+                               np.asarray(series.p_ip_t_ns) * 1e-9, series.p_ip_w,
+                               np.asarray(series.p_ref_t_ns) * 1e-9, series.p_ref_w,
+                               end_s=end_s, band_w=band_w, events_s=scenario))
+
+
+def _grid(series: RunSeries) -> GridFigures | None:
+    if not series.grid:
+        return None
+    g = series.grid
+    return GridFigures(min(x["v_min_pu"] for x in g), max(x["v_max_pu"] for x in g),
+                       max(x["line_loading_max_pct"] for x in g),
+                       max(x["trafo_loading_max_pct"] for x in g), sum(x["samples"] for x in g),
+                       sum(x["outside_band"] for x in g), sum(x["not_converged"] for x in g),
+                       tuple(x["t_send_ns"] * 1e-9 for x in g if x["outside_band"]))
 
 
 def format_summary(summary: RunSummary):
     """Rich renderables (tables and lines) of a summary, for the console."""
     from rich.table import Table
 
+    from adnmesh.recording.figures import step_table
+
     def num(value, fmt):
         return "-" if value is None else format(value, fmt)
 
-    out = []
-    steps = Table(title=f"P_ref steps (P_IP; settling band {summary.band_pct:g} %)",
-                  title_justify="left")
-    for column in ("t [s]", "step [MW]", "rise [s]", "settling [s]", "overshoot [%]",
-                   "steady error [W]"):
-        steps.add_column(column, justify="right")
-    for s in summary.steps:
-        steps.add_row(f"{s.t_s:.2f}", f"{s.step_w / 1e6:+.3f}", num(s.rise_time_s, ".3f"),
-                      num(s.settling_time_s, ".3f"), num(s.overshoot_pct, ".3f"),
-                      num(s.steady_error_w, ".3g"))
-    if not summary.steps:
-        steps.add_row("", "no steps", "", "", "", "")
-    out.append(steps)
+    out = [step_table(summary.steps, summary.band_pct, "P_ref steps: P_IP")]
     switches = Table(title="gain switches", title_justify="left")
     for column in ("t [s]", "available DERs", "max |P_IP - P_ref| in 10 s [W]", "P_Y jump"):
         switches.add_column(column, justify="right" if column != "available DERs" else "left")
@@ -281,9 +290,18 @@ def format_summary(summary: RunSummary):
         switches.add_row("", "no switches", "", "")
     out.append(switches)
     for s in summary.switches:
+        if s.scale != 1.0:
+            out.append(f"  at {s.t_s:.2f} s P_Y was scaled by {s.scale:.4g} so that the DERs' "
+                       "commanded power stayed continuous")
         if s.p_y_limited_by:
             out.append(f"  at {s.t_s:.2f} s P_Y lay outside the new DERs' output range (every "
                        f"one saturated) and was limited by {s.p_y_limited_by:.3g} first")
+    if summary.faults:
+        out.append(fault_table(summary.faults))
+    if summary.grid is not None:
+        out.append(grid_line(summary.grid))
+    if summary.realtime is not None:
+        out += realtime_lines(summary.realtime)
     line = f"run: {summary.sim_time_s:g} s simulated"
     if summary.wall_time_s is not None:
         line += f" in {summary.wall_time_s:.2f} s wall"
@@ -293,6 +311,41 @@ def format_summary(summary: RunSummary):
     if summary.extra:
         out.append(", ".join(f"{k} {_fmt(v)}" for k, v in summary.extra.items()))
     return out
+
+
+def fault_table(faults):
+    """The per-fault table (``adnmesh up`` and ``adnmesh inspect``)."""
+    from rich.table import Table
+
+    def kw(value):
+        return "-" if value is None else f"{value / 1e3:.1f}"
+
+    table = Table(title="faults (|dP| = |P_IP - P_ref|, kW)", title_justify="left")
+    for column in ("#", "fault", "window [s]", "detected", "max |dP| during", "after",
+                   "recovery [s]"):
+        table.add_column(column, justify="left" if column in ("fault", "detected")
+                         else "right", overflow="fold")
+    for f in faults:
+        window = f"{f.start_s:g}-" + ("end" if f.end_s is None else f"{f.end_s:g}")
+        seen = "no" if f.detected_by is None else \
+            f"{f.detected_by} +{f.detection_delay_s:.2f} s"
+        table.add_row(str(f.fault_id), f"{f.kind} {f.target}", window, seen,
+                      kw(f.max_deviation_during_w), kw(f.max_deviation_after_w),
+                      "-" if f.recovery_time_s is None else f"{f.recovery_time_s:.2f}")
+    return table
+
+
+def grid_line(grid: GridFigures) -> str:
+    """One line on the grid's extremes and the samples outside the band."""
+    text = (f"grid: bus voltages {grid.v_min_pu:.4f} to {grid.v_max_pu:.4f} p.u., highest "
+            f"loading {grid.line_loading_max_pct:.1f} % (lines), {grid.trafo_loading_max_pct:.1f}"
+            f" % (transformers); {grid.outside_band} of {grid.samples} samples outside the band")
+    if grid.periods_outside_s:
+        shown = ", ".join(f"{t:g}" for t in grid.periods_outside_s[:5])
+        text += f" (periods ending at {shown} s{', ...' if len(grid.periods_outside_s) > 5 else ''})"
+    if grid.not_converged:
+        text += f"; {grid.not_converged} power flows did not converge (last value kept)"
+    return text
 
 
 def _fmt(value) -> str:

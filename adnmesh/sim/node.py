@@ -34,6 +34,7 @@ from msgspec import UNSET
 
 from adnmesh.control.base import Agent
 from adnmesh.sim.clock import Report
+from adnmesh.sim.latency import Latency
 from adnmesh.sim.links import Impairment, Link
 from adnmesh.sim.topology import ICT_LINKS, Topology
 from adnmesh.wire.envelope import MessageError, decode, encode
@@ -123,7 +124,9 @@ class Node:
         When the node begins (0; later for a restarted agent).
     strict : bool
         Sim clock: reject a message delivered before the node's current time (it would break
-        causality). Realtime: process it at once and count it as late.
+        causality). Realtime: a message due before the end of the last :meth:`advance` (its
+        instant was processed, so its order among that instant's events may differ from the sim
+        run's) is processed at once and counted as late.
     """
 
     def __init__(self, agent: Agent, topology: Topology, seed: int, *, start_ns: int = 0,
@@ -148,6 +151,11 @@ class Node:
                                  if topology.inbound_link(k) in ICT_LINKS)
         self._offline: list[tuple[int, int | None]] = []   # windows without ICT in and out
         self._faults_applied: set[int] = set()
+        self._link_of = {k: topology.inbound_link(k) or "up" for k in self.subscriptions}
+        self.instant_inputs = "physical" in self._link_of.values()
+        """The agent receives over the zero-delay ``physical`` path (the measurement)."""
+        self.latency = Latency()
+        self.worst_late = (0, "")        # the largest delivery error since it was last read
         self.kill_ns: int | None = None
         self.start_ns = self.now_ns = self.granted_ns = int(start_ns)
         self.strict = strict
@@ -201,12 +209,13 @@ class Node:
             self._apply(message)
             return
         t = message.t_deliver_ns
-        if t < self.now_ns:
-            if self.strict:
+        if self.strict:
+            if t < self.now_ns:
                 counts.reject(key, "past")
                 return
+        elif t < self.granted_ns:   # realtime: its instant was already processed
             counts.late += 1
-            t = self.now_ns
+            t = max(t, self.now_ns)
         self._inbox.append((t, key, message.seq, counts.received, message))
         self._inbox_sorted = False
 
@@ -256,8 +265,11 @@ class Node:
             self._inbox_sorted = True
         return self._inbox
 
-    def advance(self, until_ns: int) -> list[tuple[str, bytes]]:
+    def advance(self, until_ns: int, clock=None) -> list[tuple[str, bytes]]:
         """Process every event with ``t < until_ns``; return the ``(key, payload)`` to publish.
+
+        ``clock`` (realtime): the current time, ns; the delivery error of every event (when it
+        is processed minus when it was due) is counted per link in :attr:`latency`.
 
         At an injected kill nothing at or after the kill time is processed, and
         :attr:`killed` becomes true.
@@ -276,12 +288,16 @@ class Node:
                     break
                 _, key, _, _, message = inbox.pop()
                 self.now_ns = t
+                if clock is not None:   # against the delivery time, also for a late arrival
+                    self._late(self._link_of[key], clock() - message.t_deliver_ns)
                 if self._offline and self._is_offline(key, t):
                     self.counts.dropped_offline += 1
                     continue
                 outgoing = on_message(t, message)
             elif timer is not None and timer < stop_ns:
                 self.now_ns = t = timer
+                if clock is not None:
+                    self._late("timer", clock() - t)
                 outgoing = on_timer(timer)
             else:
                 break
@@ -291,6 +307,22 @@ class Node:
             self.now_ns = self.granted_ns = kill_ns
         else:
             self.granted_ns = max(self.granted_ns, until_ns)
+        return out
+
+    def _late(self, link: str, error_ns: int) -> None:
+        self.latency.add(link, error_ns)
+        if error_ns > self.worst_late[0]:
+            self.worst_late = (error_ns, link)
+
+    def take_worst_late(self) -> tuple[int, str]:
+        """The largest delivery error and its link since the last call (then reset)."""
+        worst, self.worst_late = self.worst_late, (0, "")
+        return worst
+
+    def send_now(self, key: str, body: dict) -> list[tuple[str, bytes]]:
+        """Send one message of the agent's at the node's current time (outside an event)."""
+        out: list[tuple[str, bytes]] = []
+        self._emit(self.now_ns, key, body, out)
         return out
 
     @property

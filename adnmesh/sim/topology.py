@@ -14,6 +14,7 @@ sender            key (``adn/<grid>/``)  receivers          link (least delay)
 ``der/<id>``      ``der/<id>/heartbeat`` availability,      ``der_to_availability``
                                          ``cpfc`` (acks)
 ``measurement``   ``measurement/p_ip``   ``cpfc``           ``measurement_to_cpfc`` (T_meas)
+``measurement``   ``measurement/grid``   (recorded only)    ``local`` (0)
 ``availability``  ``availability/si``    ``cpfc``           ``availability_to_cpfc``
 any agent         ``event/<agent>``      (recorded only)    ``local`` (0)
 ``up``            ``faults``             every agent        (``up``'s own, not a link)
@@ -103,6 +104,7 @@ class Topology:
         route("cpfc", keys.p_y, to_der, tuple(ders))
         route("cpfc", keys.p_ref, local, ())
         route("measurement", keys.p_ip, to_cpfc, ("cpfc",))
+        route("measurement", keys.grid_state, local, ())
         route("availability", keys.si, si, ("cpfc",))
         for der in config.ders:
             agent = der_agent_id(der.id)

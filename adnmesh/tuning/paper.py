@@ -234,7 +234,7 @@ def tune_paper(problem: TuningProblem, fractions, record: bool = False) -> Paper
         kp = np.where(np.isfinite(best_kp), best_kp, kp0 * STEPS[0])
         ki = np.where(np.isfinite(best_ki), best_ki, ki0 * STEPS[0])
     i_conv = min_rise / (problem.average_time_s(fractions) + problem.config.t_meas_s
-                         + problem.config.t_com_s)
+                         + problem.config.design_t_com_s)
     area = np.isfinite(i_conv) & (i_conv >= 1.0)
     if area.any():
         idx = np.nonzero(area)[0]

@@ -16,7 +16,7 @@ from typing import Sequence
 import numpy as np
 
 from ..loop import LoopFigures, evaluate
-from ..plant import RISE_PER_LAG, Actuator, Plant
+from ..plant import Actuator, Plant
 
 __all__ = ["TuningProblem", "Check", "all_subsets", "T_MAX_S"]
 
@@ -66,7 +66,7 @@ class TuningProblem:
         groups: dict[Actuator, int] = {}
         self.group_of: dict[str, int] = {}
         for der in config.ders:
-            act = Actuator(float(der.t_delay_s), float(der.t_rise_s) / RISE_PER_LAG)
+            act = Actuator(float(der.t_delay_s), config.t_lag_s(der))
             self.group_of[der.id] = groups.setdefault(act, len(groups))
         self.actuators = tuple(groups)
         self.p_inst = {d.id: float(d.p_inst_w) for d in config.ders}
@@ -96,11 +96,12 @@ class TuningProblem:
 
     def plant(self, gains: np.ndarray) -> Plant:
         """Plant with group gains ``gains`` (shape (G,) or (M, G))."""
-        return Plant(self.actuators, gains, self.config.t_com_s, self.config.t_meas_s)
+        return Plant(self.actuators, gains, self.config.design_t_com_s, self.config.t_meas_s)
 
     def average_time_s(self, fractions: np.ndarray) -> np.ndarray:
         """``T_avg = sum_a (T_delay,a + T_rise,a) P_a / sum_a P_a`` (SPEC §3), s; shape (M,)."""
-        per_group = np.array([a.t_delay_s + a.t_lag_s * RISE_PER_LAG for a in self.actuators])
+        per_group = np.array([a.t_delay_s + a.t_lag_s * self.config.rise_per_lag
+                              for a in self.actuators])
         return np.atleast_2d(fractions) @ per_group
 
     def figures(self, gains: np.ndarray, kp, ki, classical: bool = True) -> LoopFigures:

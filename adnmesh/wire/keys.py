@@ -12,6 +12,7 @@ key                          type              sender             to
 ``der/<id>/state``           ``der_state``     ``der/<id>``       measurement (infeed)
 ``der/<id>/heartbeat``       ``heartbeat``     ``der/<id>``       availability monitor
 ``measurement/p_ip``         ``p_ip``          ``measurement``    CPFC
+``measurement/grid``         ``grid_state``    ``measurement``    (recorded: the grid's extremes)
 ``availability/si``          ``si``            ``availability``   CPFC
 ``faults``                   ``fault``         ``up``             every agent (injected faults)
 ``event/<agent>``            ``event``         ``<agent>``/``up`` (recorded: what it noticed)
@@ -117,6 +118,10 @@ class Keys:
         return f"adn/{self.grid}/measurement/p_ip"
 
     @property
+    def grid_state(self) -> str:
+        return f"adn/{self.grid}/measurement/grid"
+
+    @property
     def si(self) -> str:
         return f"adn/{self.grid}/availability/si"
 
@@ -178,6 +183,7 @@ def _route(key: str) -> Route | None:
         ("cpfc", "p_y"): Route("p_y", "cpfc"),
         ("scenario", "p_ref"): Route("p_ref", "cpfc"),
         ("measurement", "p_ip"): Route("p_ip", "measurement"),
+        ("measurement", "grid"): Route("grid_state", "measurement"),
         ("availability", "si"): Route("si", "availability"),
         ("clock", "start"): Route("clock_start", LAUNCHER),
         ("faults",): Route("fault", LAUNCHER),

@@ -39,6 +39,7 @@ __all__ = [
     "FAULT_KINDS",
     "Fault",
     "FaultRequest",
+    "GridState",
     "Event",
     "LINK_NAMES",
     "Heartbeat",
@@ -116,18 +117,21 @@ class PRef(Envelope):
 
 
 class DERState(Envelope):
-    """A DER's infeed and setpoint at a sampling instant, W, and where its setpoint comes from."""
+    """A DER's infeed and setpoint at a sampling instant, W, and where its setpoint comes from;
+    while it follows P_Y (``control``, a weight > 0), whether a limit holds its output back:
+    +1 from rising, -1 from falling, 0 free (absent while it does not follow)."""
 
     type: Literal["der_state"]
     p_w: Power
     setpoint_w: Power
     mode: Literal["control", "schedule", "watchdog"]
+    held: Literal[-1, 0, 1] | UnsetType = UNSET
 
 
 class Heartbeat(Envelope):
     """A DER's heartbeat: its availability flag, where its setpoint comes from (``mode``) and
-    the P_Y it applies (0 unless in ``control``) with the number of the CPFC's table entry
-    (its acknowledgement of the CPFC's commands)."""
+    the last P_Y it applied with the number of the CPFC's table entry of that command (its
+    acknowledgement of the CPFC's commands)."""
 
     type: Literal["heartbeat"]
     available: bool
@@ -137,10 +141,34 @@ class Heartbeat(Envelope):
 
 
 class PIP(Envelope):
-    """Measured active power at the interconnection point, W (MV -> HV positive)."""
+    """Measured active power at the interconnection point, W (MV -> HV positive), with the grid
+    model its reactive power, var; ``held`` when every DER that follows P_Y is held back by a
+    limit in that direction (the CPFC's anti-windup)."""
 
     type: Literal["p_ip"]
     p_ip_w: Power
+    q_ip_var: Power | UnsetType = UNSET
+    held: Literal["up", "down"] | UnsetType = UNSET
+
+
+PerUnit = Annotated[float, Meta(ge=0.0, le=10.0, description="p.u.")]
+Percent = Annotated[float, Meta(ge=0.0, le=1e6, description="%")]
+
+
+class GridState(Envelope):
+    """The grid over the last report period (the measurement's power flows): the lowest and
+    highest bus voltage, the highest line and transformer loading, the samples outside the
+    config's band and those whose power flow did not converge, and Q_IP at the period's end."""
+
+    type: Literal["grid_state"]
+    v_min_pu: PerUnit
+    v_max_pu: PerUnit
+    line_loading_max_pct: Percent
+    trafo_loading_max_pct: Percent
+    q_ip_var: Power
+    samples: Count
+    outside_band: Count
+    not_converged: Count
 
 
 class SI(Envelope):
@@ -235,7 +263,8 @@ class ClockGrant(Envelope):
 
 
 class ClockStart(Envelope):
-    """The run starts (realtime: sim time = (wall - epoch_ns) * speed) with this ICT seed."""
+    """The run starts (realtime: sim time = (wall - epoch_ns) * speed, and an event processed
+    more than ``tolerance_ns`` of sim time late is an overrun) with this ICT seed."""
 
     type: Literal["clock_start"]
     clock: Literal["sim", "realtime"]
@@ -243,6 +272,7 @@ class ClockStart(Envelope):
     speed: Annotated[float, Meta(gt=0.0, le=1e6)]
     end_ns: NS
     seed: Count
+    tolerance_ns: NS = 0
 
 
 class ClockStop(Envelope):
@@ -254,7 +284,8 @@ class ClockStop(Envelope):
 
 class AgentBye(Envelope):
     """An agent's final counts: messages published per key, rejected per key and reason, lost
-    on its links, and its statistics."""
+    on its links, its statistics and (realtime) its delivery errors per link: ``[max ns, counts
+    per bin]`` (:mod:`adnmesh.sim.latency`)."""
 
     type: Literal["agent_bye"]
     published: Annotated[dict[Key, Count], Meta(max_length=4096)]
@@ -262,6 +293,9 @@ class AgentBye(Envelope):
                         Meta(max_length=4096)]
     lost: Count
     stats: Annotated[dict[Annotated[str, Meta(max_length=64)], Stat], Meta(max_length=256)]
+    latency: Annotated[dict[Annotated[str, Meta(max_length=64)],
+                            Annotated[list[Count], Meta(max_length=128)]],
+                       Meta(max_length=64)] | UnsetType = UNSET
 
 
 MESSAGE_TYPES: dict[str, type[Envelope]] = {
@@ -270,6 +304,7 @@ MESSAGE_TYPES: dict[str, type[Envelope]] = {
     "der_state": DERState,
     "heartbeat": Heartbeat,
     "p_ip": PIP,
+    "grid_state": GridState,
     "si": SI,
     "fault": Fault,
     "fault_request": FaultRequest,

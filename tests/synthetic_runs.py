@@ -4,7 +4,7 @@ Four DERs (two wind turbines, a CHP plant, a PV plant) under a PI controller wit
 gains, simulated in 0.1 s steps: P_ref steps up and down, the wind turbines become unavailable
 (and the controller switches gains without a bump), the CHP plant goes offline for 2 s (its
 watchdog falls back to the schedule). The messages have the shapes of the runtime's
-(:mod:`adnmesh.runtime.messages`: an envelope ``v, type, src, seq, t_send_ns, t_deliver_ns``
+(:mod:`adnmesh.wire.messages`: an envelope ``v, type, src, seq, t_send_ns, t_deliver_ns``
 plus a flat body) on the same keys, but their own JSON Schemas (:data:`FAKE_SCHEMAS`), so tests
 of the recording tools do not depend on the runtime. Nothing here is used by a real run.
 """
@@ -63,9 +63,10 @@ FAKE_SCHEMAS: dict[str, dict] = {
     "heartbeat": _schema("heartbeat", {"available": {"type": "boolean"}}, ("available",)),
     "si": _schema("si", {"si": {"type": "object", "additionalProperties": {"type": "boolean"},
                                 "minProperties": 1}}, ("si",)),
-    "fault": _schema("fault", {"fault": {"enum": ["der_offline", "crash"]},
-                               "agent": {"type": "string"}, "active": {"type": "boolean"}},
-                     ("fault", "agent", "active")),
+    "fault": _schema("fault", {"fault_id": {"type": "integer"}, "kind": {"type": "string"},
+                               "der": {"type": "string"}, "start_ns": {"type": "integer"},
+                               "end_ns": {"type": ["integer", "null"]}},
+                     ("fault_id", "kind", "start_ns", "end_ns")),
 }
 """JSON Schemas (draft 2020-12) of the fake run's message types."""
 
@@ -128,9 +129,9 @@ def fake_run(duration_s: float = 60.0) -> Iterator[FakeMessage]:
         if k % 10 == 0 or k == 250:
             yield msg(f"adn/{GRID}/availability/si", "si", "availability", t, short_ns,
                       si={d: d in active for d in ids})
-        if k in (400, 420):
-            yield msg(f"adn/{GRID}/fault/der/CHP1", "fault", "der/CHP1", t, 0,
-                      fault="der_offline", agent="der/CHP1", active=k == 400)
+        if k == 400:
+            yield msg(f"adn/{GRID}/faults", "fault", "up", t, 0, fault_id=1,
+                      kind="der_offline", der="CHP1", start_ns=t, end_ns=t + 2_000_000_000)
         # measurement of P_IP (sampled now, arrives one delay later), PI on the last arrival
         p_ip = p_load + sum(infeed.values())
         yield msg(f"adn/{GRID}/measurement/p_ip", "p_ip", "measurement", t, delay_ns, p_ip_w=p_ip)

@@ -11,9 +11,9 @@ commands and samples: a setpoint given at ``t`` reaches the lag at ``t + T_delay
 and between two changes of the lag's input ``u`` the infeed follows
 ``P(t) = u + (P(t0) - u) exp(-(t - t0) / T)``.
 
-The detailed WT, CHP and PV models of SPEC §6 will have the same three parts
-(:class:`PT1DelayParams` from the config, :class:`PT1DelayState`, the setpoint as input) and the
-same two functions (:func:`set_point`, :func:`infeed_at`).
+The detailed WT, CHP and PV models of SPEC §6 (:mod:`adnmesh.dermodels`) have the same three
+parts (parameters, state, the setpoint as input) and the same two functions
+(:func:`set_point`, :func:`infeed_at`).
 """
 
 from __future__ import annotations
@@ -22,7 +22,6 @@ import math
 from collections import deque
 from dataclasses import dataclass, field
 
-from adnmesh.config import DER
 
 __all__ = ["PT1DelayParams", "PT1DelayState", "infeed_at", "set_point"]
 
@@ -44,10 +43,6 @@ class PT1DelayParams:
     p_inst_w: float
     t_delay_ns: int
     t_lag_s: float
-
-    @classmethod
-    def from_der(cls, der: DER) -> PT1DelayParams:
-        return cls(der.p_inst_w, int(round(der.t_delay_s * 1e9)), der.t_lag_s)
 
 
 @dataclass

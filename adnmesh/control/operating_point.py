@@ -1,0 +1,56 @@
+"""The plant side of a config: what the DERs can deliver and where the run starts.
+
+With a grid model (the config's ``grid_model``) both come from the SimBench study case
+(:mod:`adnmesh.grid`): a DER's available power is its sgen's power at the study case, and the
+initial P_IP is the power flow's at the DERs' schedules. Without one, a DER can deliver its
+installed power and P_IP is ``runtime.rest_of_grid_w`` plus the schedules. The values are
+computed once per config (the grid loads from its disk cache).
+"""
+
+from __future__ import annotations
+
+import functools
+
+from adnmesh.config import Config
+
+__all__ = ["available_power_w", "grid_solver", "initial_p_ip_w"]
+
+
+@functools.lru_cache(maxsize=8)
+def _grid(code: str, case: str, load_model: str):
+    from adnmesh.grid import load_grid
+    return load_grid(code, case, load_model)
+
+
+def grid_solver(config: Config):
+    """A fresh :class:`adnmesh.grid.GridSolver` for the config's DERs (None without a grid)."""
+    if config.grid_model is None:
+        return None
+    from adnmesh.grid import GridSolver
+    model = config.grid_model
+    return GridSolver(_grid(config.simbench_code, model.study_case, model.load_model),
+                      [d.sgen for d in config.ders])
+
+
+@functools.lru_cache(maxsize=8)
+def available_power_w(config: Config) -> dict[str, float]:
+    """DER id -> the power it can deliver, W (at most its installed power)."""
+    if config.grid_model is None:
+        return {d.id: d.p_inst_w for d in config.ders}
+    from adnmesh.grid import available_power_w as study_case_power
+    model = config.grid_model
+    data = _grid(config.simbench_code, model.study_case, model.load_model)
+    powers = study_case_power(data, [d.sgen for d in config.ders])
+    return {d.id: min(float(p), d.p_inst_w) for d, p in zip(config.ders, powers)}
+
+
+@functools.lru_cache(maxsize=8)
+def initial_p_ip_w(config: Config) -> float:
+    """P_IP with every DER at its schedule, W (MV -> HV positive): the operating point."""
+    solver = grid_solver(config)
+    if solver is None:
+        return config.runtime.rest_of_grid_w + sum(d.p_sched_w for d in config.ders)
+    sample = solver.solve([d.p_sched_w for d in config.ders])
+    if not sample.converged:
+        raise ValueError("the power flow at the DERs' schedules does not converge")
+    return float(sample.p_ip_w)

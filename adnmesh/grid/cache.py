@@ -1,0 +1,161 @@
+"""Disk cache of :class:`~adnmesh.grid.data.GridData`: a second start without simbench.
+
+Loading a SimBench grid and solving it with pandapower takes tens of seconds (importing the two
+alone several); reading the model and its arrays back takes milliseconds (plus about a second
+to import lightsim2grid). :func:`load_grid` returns the
+data of (code, study case, load model), from the cache when a valid file is there, else built
+with simbench and pandapower and then written to the cache.
+
+- **Where**: the folder ``$ADNMESH_CACHE_DIR``, else ``$XDG_CACHE_HOME/adnmesh``, else
+  ``~/.cache/adnmesh`` (:func:`default_cache_dir`); a ``cache_dir`` argument overrides it.
+- **Key**: grid code, study case, load model, the installed versions of simbench, pandapower and
+  lightsim2grid, and :data:`FORMAT_VERSION` (:func:`cache_key`). The file name carries a hash of
+  the key and the file holds the key itself, which is compared on reading.
+- **Format**: the grid model in lightsim2grid's own binary format (``LSGrid.save_binary``, which
+  checks what it reads: a truncated or damaged file is an error, not garbage) and a ``.npz`` of
+  plain arrays (:func:`adnmesh.grid.data.to_arrays`) read with ``allow_pickle=False``, which
+  holds the key and the model file's sha256. No pickle anywhere: nothing in the cache runs code.
+- **Robustness**: each file is written to a temporary file and renamed into place (readers see
+  an old file or a new one, never half of one), the model first, the arrays last; a pair that
+  cannot be read, whose key differs or whose model is not the one the arrays name is rebuilt
+  with a warning; a folder that cannot be written is a warning, not an error.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import re
+import tempfile
+import warnings
+from collections.abc import Callable
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+
+import numpy as np
+
+from adnmesh.grid.data import GridData, from_arrays, to_arrays
+
+__all__ = ["FORMAT_VERSION", "default_cache_dir", "cache_key", "cache_path", "model_path",
+           "cached", "load_grid"]
+
+FORMAT_VERSION = 2
+
+
+def default_cache_dir() -> Path:
+    """``$ADNMESH_CACHE_DIR``, else ``$XDG_CACHE_HOME/adnmesh``, else ``~/.cache/adnmesh``."""
+    explicit = os.environ.get("ADNMESH_CACHE_DIR")
+    if explicit:
+        return Path(explicit)
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    return (Path(xdg) if xdg else Path.home() / ".cache") / "adnmesh"
+
+
+def _version(package: str) -> str:
+    try:
+        return version(package)
+    except PackageNotFoundError:
+        return "none"
+
+
+def cache_key(code: str, case: str, load_model: str) -> dict:
+    """What the cached data depends on (a JSON-able dict)."""
+    return {"format": FORMAT_VERSION, "code": code, "case": case, "load_model": load_model,
+            "simbench": _version("simbench"), "pandapower": _version("pandapower"),
+            "lightsim2grid": _version("lightsim2grid")}
+
+
+def cache_path(key: dict, directory: Path) -> Path:
+    """The cache file of ``key`` in ``directory``: readable name plus a hash of the key."""
+    digest = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
+    stem = re.sub(r"[^A-Za-z0-9._-]+", "_", f"{key['code']}-{key['case']}-{key['load_model']}")
+    return Path(directory) / f"grid-{stem}-{digest}.npz"
+
+
+def cached(key: dict, build: Callable[[], GridData], directory=None) -> GridData:
+    """The data of ``key`` from the cache in ``directory``, else ``build()`` and store it."""
+    path = cache_path(key, Path(directory) if directory is not None else default_cache_dir())
+    if path.exists():
+        try:
+            return _read(path, key)
+        except Exception as exc:          # any damage to the file: rebuild, never crash
+            warnings.warn(f"grid cache {path} is unreadable ({type(exc).__name__}: {exc}); "
+                          "rebuilding it", RuntimeWarning, stacklevel=2)
+    data = build()
+    try:
+        _write(path, key, data)
+    except OSError as exc:
+        warnings.warn(f"grid cache {path} could not be written ({exc}); continuing without "
+                      "it", RuntimeWarning, stacklevel=2)
+    return data
+
+
+def load_grid(code: str, case: str = "lW", load_model: str = "impedance",
+              cache_dir=None) -> GridData:
+    """The solver's data of SimBench grid ``code`` at study ``case`` (cached; module doc).
+
+    Parameters
+    ----------
+    code : str
+        SimBench code, e.g. ``"1-MV-rural--0-no_sw"``.
+    case : str
+        Study case of the grid's own ``loadcases`` table (default ``"lW"``).
+    load_model : str
+        ``"impedance"`` (constant impedance, SPEC §6) or ``"power"`` (constant power).
+    cache_dir : path, optional
+        Cache folder (default :func:`default_cache_dir`).
+    """
+    def build() -> GridData:
+        from adnmesh.grid.build import build_grid_data
+        from adnmesh.grid.simbench_net import grid_net
+        return build_grid_data(grid_net(code, case, load_model), code, case, load_model)
+
+    from adnmesh.grid.simbench_net import LOAD_MODELS
+    if load_model not in LOAD_MODELS:
+        from adnmesh.grid.errors import GridError
+        raise GridError(f"grid: load model must be one of {', '.join(LOAD_MODELS)}, "
+                        f"got {load_model!r}")
+    return cached(cache_key(code, case, load_model), build, cache_dir)
+
+
+def model_path(path: Path) -> Path:
+    """The grid model's file beside the arrays' ``.npz``."""
+    return path.with_suffix(".lsgrid")
+
+
+def _read(path: Path, key: dict) -> GridData:
+    from lightsim2grid.lightsim2grid_cpp import LSGrid      # not .network: it imports pandapower
+
+    with np.load(path, allow_pickle=False) as npz:
+        stored = json.loads(str(npz["cache_key"]))
+        if stored != key:
+            raise ValueError(f"stored key {stored} is not {key}")
+        model = model_path(path)
+        if _sha256(model) != str(npz["model_sha256"]):
+            raise ValueError(f"{model.name} is not the model the arrays were written with")
+        return from_arrays(npz, LSGrid.load_binary(str(model)))
+
+
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _write(path: Path, key: dict, data: GridData) -> None:
+    """The model (lightsim2grid's own atomic binary file), then the arrays with its hash."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    model = model_path(path)
+    data.lsgrid.save_binary(str(model), True)
+    arrays = to_arrays(data)
+    arrays["cache_key"] = np.array(json.dumps(key, sort_keys=True))
+    arrays["model_sha256"] = np.array(_sha256(model))
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            np.savez(fh, **arrays)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise

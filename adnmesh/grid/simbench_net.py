@@ -1,0 +1,101 @@
+"""The SimBench grid at a study case, as a pandapower net (imports simbench and pandapower).
+
+- :func:`load_simbench_net`: the net of a SimBench code (``simbench.get_simbench_net``).
+- :func:`apply_study_case`: loads, generators and the slack voltage of one of the net's own study
+  cases (``net.loadcases``: hL, n1, hW, hPV, lW, lPV), through simbench's own
+  ``get_absolute_values(net, profiles_instead_of_study_cases=False)``: load p and q scaled by
+  ``pload`` and ``qload``; static generators by ``Wind_p`` (type containing "Wind" or "WP"),
+  ``PV_p`` (containing "PV") or ``RES_p`` (every other type: biomass, hydro, the aggregated
+  low-voltage ``lv_RES``); the external grid's voltage set to ``Slack_vm``.
+- :func:`loads_as_impedances`: every load becomes a shunt of the same power at 1 p.u. — a
+  constant impedance, ``S = S_0 |V|²`` (SPEC §6).
+
+Why shunts and not pandapower's ``const_z_p_percent`` / ``const_z_q_percent``: pandapower
+(3.5.6 here) applies a load's voltage dependence to the bus's net demand, static generators on
+the same bus included, so with ``const_z_p_percent = 100`` a generator on a load's bus is scaled
+by ``|V|²`` too. On 1-MV-rural at lW that is P_IP 24.62 MW instead of 23.19 MW (the shunt model,
+whose power balance closes); a one-bus example (1 MW load at 100 % const_z beside a 3 MW sgen,
+1.05 p.u.) gives an external-grid injection of -2.205 MW instead of -1.897 MW. A shunt is the
+exact constant impedance in pandapower and in the solver alike. ``tests/test_grid.py`` checks
+the solver's power balance with ``S_0 |V|²`` loads independently of both.
+
+The 110 kV bus of the SimBench net is its external grid (the slack); the grid's other generators
+are constant PQ injections (``sgen``); the six open loop-line switches of 1-MV-rural stay open
+(pandapower models each as an auxiliary bus at the open end).
+"""
+
+from __future__ import annotations
+
+from adnmesh.grid.errors import GridError
+
+__all__ = ["LOAD_MODELS", "load_simbench_net", "study_cases", "apply_study_case",
+           "loads_as_impedances", "grid_net"]
+
+LOAD_MODELS = ("impedance", "power")
+
+
+def load_simbench_net(code: str):
+    """The pandapower net of SimBench grid ``code`` (:class:`GridError` if it is not one)."""
+    import simbench
+
+    if code not in simbench.collect_all_simbench_codes():
+        raise GridError(f"grid: {code!r} is not a SimBench code (e.g. '1-MV-rural--0-no_sw')")
+    return simbench.get_simbench_net(code)
+
+
+def study_cases(net) -> tuple[str, ...]:
+    """Names of the study cases in ``net.loadcases``."""
+    cases = net.get("loadcases")
+    return () if cases is None else tuple(str(c) for c in cases.index)
+
+
+def apply_study_case(net, case: str) -> None:
+    """Set ``net``'s loads, static generators and slack voltage to study case ``case`` (in place).
+
+    Raises
+    ------
+    GridError
+        If the net has no such study case.
+    """
+    import simbench
+
+    cases = study_cases(net)
+    if case not in cases:
+        raise GridError(f"grid: unknown study case {case!r} (this grid has: "
+                        f"{', '.join(cases) or 'none'})")
+    values = simbench.get_absolute_values(net, profiles_instead_of_study_cases=False)
+    for (element, column), frame in values.items():
+        net[element][column] = frame.loc[case, net[element].index].to_numpy(dtype=float)
+
+
+def loads_as_impedances(net) -> None:
+    """Replace every in-service load by a shunt of the same p and q at 1 p.u. (in place).
+
+    The loads stay in the table, out of service; the shunts are named ``"<load name> (Z)"``.
+    """
+    import pandapower as pp
+
+    loads = net.load[net.load.in_service]
+    if loads.empty:
+        return
+    scaling = loads.scaling.fillna(1.0).to_numpy()
+    pp.create_shunts(net, loads.bus.to_numpy(), q_mvar=loads.q_mvar.to_numpy() * scaling,
+                     p_mw=loads.p_mw.to_numpy() * scaling,
+                     name=[f"{n} (Z)" for n in loads.name.astype(str)])
+    net.load.loc[loads.index, "in_service"] = False
+
+
+def grid_net(code: str, case: str = "lW", load_model: str = "impedance"):
+    """The net of SimBench ``code`` at study ``case``, loads as ``load_model`` (a new net).
+
+    ``load_model``: ``"impedance"`` (constant impedance, as shunts; SPEC §6) or ``"power"``
+    (constant power, SimBench's own).
+    """
+    if load_model not in LOAD_MODELS:
+        raise GridError(f"grid: load model must be one of {', '.join(LOAD_MODELS)}, "
+                        f"got {load_model!r}")
+    net = load_simbench_net(code)
+    apply_study_case(net, case)
+    if load_model == "impedance":
+        loads_as_impedances(net)
+    return net

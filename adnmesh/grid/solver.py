@@ -1,0 +1,172 @@
+"""Fast, warm-started AC power flow of one grid with a few actuator generators.
+
+:class:`GridSolver` takes a :class:`~adnmesh.grid.data.GridData` and the names of the actuator
+static generators, and solves the power flow for one vector of their active powers at a time
+(:meth:`GridSolver.solve`): lightsim2grid's Newton-Raphson (single slack, KLU sparse LU where
+the build has it) on its own copy of the grid model, starting from the previous solution. The
+model keeps its factorisation structure between solves; only the actuators' injections change.
+Everything else in the grid is a constant injection (constant-impedance loads are shunts); the
+actuators' reactive power stays at its study-case value.
+
+Results (:class:`GridSample`) follow pandapower's definitions: ``P_IP``/``Q_IP`` are the external
+grid's injection with the sign turned, so that power flowing from the MV grid into the 110 kV
+grid is positive; voltage extremes over the net's buses (``res_bus.vm_pu``); loadings as
+``res_line.loading_percent`` (the larger end current over ``max_i_ka · df · parallel``) and
+``res_trafo.loading_percent`` (pandapower's default ``trafo_loading="current"``: the larger of
+``i_hv · vn_hv_kv`` and ``i_lv · vn_lv_kv``, times √3, over ``sn_mva · parallel · df``).
+
+Accuracy: Newton-Raphson to a power mismatch below ``tol_pu`` (default 1e-8 p.u. of the model's
+1 MVA base, i.e. 0.01 W / 0.01 var), the tolerance pandapower's ``runpp`` uses by default.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from adnmesh.grid.data import GridData
+from adnmesh.grid.errors import GridError
+
+__all__ = ["GridSample", "GridSolver", "available_power_w"]
+
+_SQRT3 = math.sqrt(3.0)
+
+
+@dataclass(frozen=True)
+class GridSample:
+    """One power-flow solution, as the measurement at the interconnection point sees it.
+
+    Attributes
+    ----------
+    p_ip_w, q_ip_var : float
+        Active and reactive power at the interconnection point (the slack, 110 kV side),
+        positive from the MV grid to the HV grid, W and var.
+    vm_min_pu, vm_max_pu : float
+        Lowest and highest bus voltage, p.u.
+    line_loading_max_pct, trafo_loading_max_pct : float
+        Highest line and transformer loading, % (pandapower's definitions; NaN if none).
+    converged : bool
+        Whether Newton-Raphson converged; if not, every number is NaN.
+    iterations : int
+        Newton-Raphson iterations of the (last) attempt.
+    """
+
+    p_ip_w: float
+    q_ip_var: float
+    vm_min_pu: float
+    vm_max_pu: float
+    line_loading_max_pct: float
+    trafo_loading_max_pct: float
+    converged: bool
+    iterations: int
+
+
+def available_power_w(data: GridData, sgen_names) -> np.ndarray:
+    """Available active power of the named static generators at the study case, W.
+
+    It is their SimBench ``p_mw`` times the study case's scaling for their type (``Wind_p`` for
+    wind, ``PV_p`` for PV, ``RES_p`` for the rest) times their ``scaling``, as
+    :func:`adnmesh.grid.simbench_net.apply_study_case` set it.
+    """
+    return data.sgen_p_mw[data.sgen_index(sgen_names)] * 1e6
+
+
+def _single_slack_nr(grid) -> None:
+    """Switch ``grid`` to lightsim2grid's single-slack Newton-Raphson (KLU if available)."""
+    from lightsim2grid.algorithm import AlgorithmType
+    names = set(grid.available_algorithm_names())
+    for algo in ("NRSing_KLU", "NRSing_SparseLU"):
+        if algo in names:
+            grid.change_algorithm(getattr(AlgorithmType, algo))
+            return
+
+
+class GridSolver:
+    """Warm-started AC power flow for the actuators' active powers (see the module docstring).
+
+    Parameters
+    ----------
+    data : GridData
+        The grid at its study case.
+    actuator_sgens : sequence of str
+        Names of the actuator static generators; :meth:`solve` takes their powers in this order.
+    max_iter : int
+        Newton-Raphson iterations per attempt.
+    tol_pu : float
+        Convergence tolerance on the power mismatch, p.u. of the model's base (1 MVA).
+    """
+
+    def __init__(self, data: GridData, actuator_sgens, max_iter: int = 20,
+                 tol_pu: float = 1e-8) -> None:
+        self.data = data
+        self.actuator_sgens = tuple(actuator_sgens)
+        self._act = [int(i) for i in data.sgen_index(self.actuator_sgens)]
+        self._grid = data.lsgrid.copy()
+        _single_slack_nr(self._grid)
+        self._max_iter, self._tol = int(max_iter), float(tol_pu)
+        self._v = data.v_init.astype(complex).copy()
+        self._line_factor = 100.0 / data.line_i_max_ka
+        self._hv_factor = _SQRT3 * 100.0 * data.trafo_vn_hv_kv / data.trafo_rating_mva
+        self._lv_factor = _SQRT3 * 100.0 * data.trafo_vn_lv_kv / data.trafo_rating_mva
+
+    @property
+    def n_actuators(self) -> int:
+        """Number of actuator generators."""
+        return len(self.actuator_sgens)
+
+    @property
+    def model(self):
+        """The solver's own lightsim2grid model, holding the results of the last solve (read
+        them, change nothing)."""
+        return self._grid
+
+    @property
+    def voltages_pu(self) -> np.ndarray:
+        """Complex bus voltages of the last converged solution (model bus order), p.u."""
+        return self._v.copy()
+
+    def solve(self, p_actuator_w) -> GridSample:
+        """Solve the power flow with the actuators at ``p_actuator_w`` (W, construction order).
+
+        Starts from the last converged solution (the study case's at first); if Newton-Raphson
+        fails from there it tries once more from the study case's solution.
+        """
+        p = np.asarray(p_actuator_w, dtype=float)
+        if p.shape != (self.n_actuators,) or not np.all(np.isfinite(p)):
+            raise GridError(f"grid solver: expected {self.n_actuators} finite actuator powers "
+                            f"in W, got {p_actuator_w!r}")
+        grid = self._grid
+        for sgen, p_w in zip(self._act, p.tolist()):
+            grid.change_p_sgen(sgen, p_w * 1e-6)
+        v = grid.ac_pf(self._v, self._max_iter, self._tol)
+        if v.size == 0:
+            v = grid.ac_pf(self.data.v_init, self._max_iter, self._tol)
+        iterations = int(grid.get_algo().get_nb_iter())
+        if v.size == 0:
+            return _not_converged(iterations)
+        self._v = np.array(v, dtype=complex)
+        return self._sample(iterations)
+
+    def _sample(self, iterations: int) -> GridSample:
+        grid, d = self._grid, self.data
+        p_gen, q_gen, _ = grid.get_gen_res()
+        vm = np.abs(self._v[d.report_bus])
+        line = np.maximum(grid.get_line_res1()[3], grid.get_line_res2()[3]) * self._line_factor
+        trafo = np.maximum(grid.get_trafo_res1()[3] * self._hv_factor,
+                           grid.get_trafo_res2()[3] * self._lv_factor)
+        return GridSample(p_ip_w=float(-p_gen[d.slack_gen] * 1e6),
+                          q_ip_var=float(-q_gen[d.slack_gen] * 1e6),
+                          vm_min_pu=float(vm.min()), vm_max_pu=float(vm.max()),
+                          line_loading_max_pct=_max(line), trafo_loading_max_pct=_max(trafo),
+                          converged=True, iterations=iterations)
+
+
+def _max(values: np.ndarray) -> float:
+    return float(values.max()) if values.size else math.nan
+
+
+def _not_converged(iterations: int) -> GridSample:
+    nan = math.nan
+    return GridSample(nan, nan, nan, nan, nan, nan, converged=False, iterations=int(iterations))

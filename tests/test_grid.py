@@ -1,0 +1,402 @@
+"""The grid model: study case, fast solver against pandapower's runpp, disk cache.
+
+Fast tests use a small hand-made net (HV slack, transformer, MV feeders, an open loop-line
+switch, loads, shunt, generators); the slow ones the SimBench grid of SPEC §6.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import warnings
+
+import numpy as np
+import pandapower as pp
+import pytest
+
+from adnmesh.grid import GridError, GridSolver, available_power_w, load_grid
+from adnmesh.grid.build import build_grid_data
+from adnmesh.grid.cache import cache_key, cache_path, cached, default_cache_dir, model_path
+from adnmesh.grid.data import from_arrays, to_arrays
+from adnmesh.grid.simbench_net import apply_study_case, grid_net, loads_as_impedances
+
+CODE = "1-MV-rural--0-no_sw"
+ACTUATORS = ("MV1.101 SGen 1", "MV1.101 MV SGen 2", "MV1.101 MV SGen 3", "MV1.101 MV SGen 4",
+             "MV1.101 MV SGen 5", "MV1.101 MV SGen 6", "MV1.101 MV SGen 7",
+             "MV1.101 MV SGen 8", "MV1.101 MV SGen 9", "MV1.101 MV SGen 10",
+             "MV1.101 MV SGen 12")
+SMALL_ACTUATORS = ("WT", "PV")
+
+
+# ---------------------------------------------------------------------------------------------
+# helpers
+
+
+def small_net():
+    """110 kV slack, 110/20 kV transformer, two MV feeders joined by an open loop line."""
+    net = pp.create_empty_network()
+    hv = pp.create_bus(net, 110.0, name="HV")
+    mv = [pp.create_bus(net, 20.0, name=f"MV{i}") for i in range(6)]
+    pp.create_ext_grid(net, hv, vm_pu=1.02)
+    pp.create_transformer(net, hv, mv[0], std_type="25 MVA 110/20 kV", name="T1")
+    cable = "NA2XS2Y 1x185 RM/25 12/20 kV"
+    for a, b, km in [(0, 1, 2.0), (1, 2, 3.0), (2, 3, 1.5), (0, 4, 4.0), (4, 5, 2.5)]:
+        pp.create_line(net, mv[a], mv[b], km, cable)
+    loop = pp.create_line(net, mv[3], mv[5], 1.2, cable, name="loop")
+    pp.create_switch(net, mv[5], loop, et="l", closed=False)
+    for bus, p, q in [(1, 1.2, 0.4), (3, 0.8, 0.3), (5, 1.5, 0.5)]:
+        pp.create_load(net, mv[bus], p_mw=p, q_mvar=q)
+    pp.create_shunt(net, mv[3], q_mvar=-0.2)
+    pp.create_sgen(net, mv[2], p_mw=4.0, name="WT")
+    pp.create_sgen(net, mv[4], p_mw=1.0, name="PV")
+    pp.create_sgen(net, mv[0], p_mw=0.5, q_mvar=0.1, name="fixed")
+    return net
+
+
+def small_data(load_model: str = "impedance"):
+    net = small_net()
+    if load_model == "impedance":
+        loads_as_impedances(net)
+    return build_grid_data(net, "small", "base", load_model)
+
+
+def runpp_sample(net, names, p_w):
+    """pandapower's own result with the named sgens at ``p_w``: (P_IP, Q_IP, vm min, vm max,
+    line loading max, trafo loading max), MV -> HV positive."""
+    index = net.sgen.index[net.sgen.name.isin(names)]
+    order = {n: i for i, n in enumerate(names)}
+    for i in index:
+        net.sgen.at[i, "p_mw"] = p_w[order[net.sgen.at[i, "name"]]] / 1e6
+    pp.runpp(net)
+    ext = net.res_ext_grid.iloc[0]
+    return (-ext.p_mw * 1e6, -ext.q_mvar * 1e6, net.res_bus.vm_pu.min(),
+            net.res_bus.vm_pu.max(), net.res_line.loading_percent.max(),
+            net.res_trafo.loading_percent.max())
+
+
+def as_tuple(sample):
+    return (sample.p_ip_w, sample.q_ip_var, sample.vm_min_pu, sample.vm_max_pu,
+            sample.line_loading_max_pct, sample.trafo_loading_max_pct)
+
+
+def assert_agrees(sample, reference, p_tol_w=1.0):
+    assert sample.converged
+    got = as_tuple(sample)
+    assert abs(got[0] - reference[0]) <= p_tol_w
+    assert abs(got[1] - reference[1]) <= p_tol_w
+    assert got[2:4] == pytest.approx(reference[2:4], abs=1e-7)
+    assert got[4:] == pytest.approx(reference[4:], abs=1e-5)
+
+
+# ---------------------------------------------------------------------------------------------
+# fast: the small net
+
+
+@pytest.mark.parametrize("load_model", ["power", "impedance"])
+def test_small_net_solver_equals_runpp_over_random_points(load_model):
+    reference_net = small_net()
+    if load_model == "impedance":      # pandapower's own ZIP model: no sgen shares a load's bus
+        reference_net.load["const_z_p_percent"] = 100.0
+        reference_net.load["const_z_q_percent"] = 100.0
+    data = small_data(load_model)
+    solver = GridSolver(data, SMALL_ACTUATORS)
+    available = available_power_w(data, SMALL_ACTUATORS)
+    rng = np.random.default_rng(7)
+    for _ in range(15):
+        p = rng.uniform(0.0, 1.0, 2) * available
+        assert_agrees(solver.solve(p), runpp_sample(reference_net, SMALL_ACTUATORS, p))
+
+
+def test_small_net_sign_convention_export_positive_import_negative():
+    data = small_data()
+    solver = GridSolver(data, SMALL_ACTUATORS)
+    export = solver.solve([4.0e6, 1.0e6])         # 5.5 MW of generation, 3.5 MW of load
+    importing = solver.solve([0.0, 0.0])
+    assert export.p_ip_w > 1.0e6
+    assert importing.p_ip_w < -2.0e6
+
+
+def test_small_net_keeps_the_loop_switch_open():
+    """The open switch leaves the loop line hanging at one end: closing it changes the flow."""
+    data = small_data()
+    closed = small_net()
+    closed.switch["closed"] = True
+    loads_as_impedances(closed)
+    closed_data = build_grid_data(closed, "small", "base", "impedance")
+    p = [2.0e6, 0.5e6]
+    assert data.lsgrid.total_bus() == closed_data.lsgrid.total_bus() + 1   # the open end's bus
+    open_, closed_ = (GridSolver(d, SMALL_ACTUATORS).solve(p) for d in (data, closed_data))
+    assert closed_.vm_min_pu - open_.vm_min_pu > 1e-3          # the loop supports the far end
+    assert abs(closed_.line_loading_max_pct - open_.line_loading_max_pct) > 0.3
+
+
+def test_small_net_loads_are_constant_impedances():
+    net = small_net()
+    data = small_data("impedance")
+    solver = GridSolver(data, SMALL_ACTUATORS)
+    p = np.array([3.0e6, 0.2e6])
+    sample = solver.solve(p)
+    v = np.abs(solver.voltages_pu)
+    lookup = {name: i for i, name in enumerate(net.bus.name)}
+    bus_of = data.report_bus
+    s_load = sum((row.p_mw + 1j * row.q_mvar) * v[bus_of[lookup[net.bus.name[row.bus]]]] ** 2
+                 for row in net.load.itertuples())
+    # the same operating point in pandapower with its ZIP loads at 100 % impedance
+    net.load["const_z_p_percent"] = 100.0
+    net.load["const_z_q_percent"] = 100.0
+    runpp_sample(net, SMALL_ACTUATORS, p)
+    assert net.res_load.p_mw.sum() + 1j * net.res_load.q_mvar.sum() == pytest.approx(
+        s_load, abs=1e-9)
+    assert sample.p_ip_w == pytest.approx(-net.res_ext_grid.p_mw.iloc[0] * 1e6, abs=1.0)
+
+
+def test_solver_rejects_bad_input():
+    data = small_data()
+    with pytest.raises(GridError, match="no static generator named 'nope'"):
+        GridSolver(data, ["WT", "nope"])
+    with pytest.raises(GridError, match="named twice"):
+        GridSolver(data, ["WT", "WT"])
+    solver = GridSolver(data, SMALL_ACTUATORS)
+    with pytest.raises(GridError, match="expected 2 finite actuator powers"):
+        solver.solve([1.0])
+    with pytest.raises(GridError, match="expected 2 finite actuator powers"):
+        solver.solve([1.0, math.nan])
+
+
+def test_build_rejects_unsupported_elements():
+    net = small_net()
+    pp.create_gen(net, 3, p_mw=1.0)
+    with pytest.raises(GridError, match="'gen' is not supported"):
+        build_grid_data(net, "small", "base", "power")
+
+
+def test_not_converged_gives_nan_and_keeps_the_last_solution():
+    data = small_data()
+    solver = GridSolver(data, SMALL_ACTUATORS)
+    good = solver.solve([1.0e6, 0.5e6])
+    v = solver.voltages_pu
+    bad = solver.solve([5.0e9, 0.0])             # 5 GW into a 20 kV cable: no solution
+    assert not bad.converged and math.isnan(bad.p_ip_w) and math.isnan(bad.vm_max_pu)
+    assert np.array_equal(solver.voltages_pu, v)
+    again = solver.solve([1.0e6, 0.5e6])
+    assert again.converged and again.p_ip_w == pytest.approx(good.p_ip_w, abs=1e-3)
+
+
+def test_warm_start_needs_fewer_iterations_for_a_small_step():
+    data = small_data()
+    solver = GridSolver(data, SMALL_ACTUATORS)
+    solver.solve([0.0, 0.0])
+    far = GridSolver(data, SMALL_ACTUATORS).solve([0.0, 0.0])    # from the case: 4 MW, 1 MW
+    near = solver.solve([1.0e3, 0.0])
+    assert near.iterations < far.iterations
+
+
+# ---------------------------------------------------------------------------------------------
+# fast: the cache
+
+
+def test_arrays_round_trip_is_exact():
+    data = small_data()
+    back = from_arrays(to_arrays(data), data.lsgrid.copy())
+    p = [2.5e6, 0.7e6]
+    assert GridSolver(back, SMALL_ACTUATORS).solve(p) == GridSolver(data, SMALL_ACTUATORS).solve(p)
+    assert back.sgen_names == data.sgen_names and back.converter == data.converter
+
+
+def _counting_builder():
+    calls = []
+
+    def build():
+        calls.append(1)
+        return small_data()
+    return build, calls
+
+
+def test_cache_builds_once_then_reads_identical_data(tmp_path):
+    key = cache_key("small", "base", "impedance")
+    build, calls = _counting_builder()
+    first = cached(key, build, tmp_path)
+    second = cached(key, build, tmp_path)
+    assert len(calls) == 1
+    p = [3.0e6, 0.1e6]
+    assert GridSolver(second, SMALL_ACTUATORS).solve(p) == \
+        GridSolver(first, SMALL_ACTUATORS).solve(p)
+    path = cache_path(key, tmp_path)
+    assert sorted(f.name for f in tmp_path.iterdir()) == sorted(
+        [path.name, model_path(path).name])                    # and no temporary file left
+
+
+@pytest.mark.parametrize("damage", ["garbage", "truncated", "other key", "model truncated",
+                                    "model missing", "other model"])
+def test_damaged_cache_file_is_rebuilt_with_a_warning(tmp_path, damage):
+    key = cache_key("small", "base", "impedance")
+    build, calls = _counting_builder()
+    cached(key, build, tmp_path)
+    path = cache_path(key, tmp_path)
+    model = model_path(path)
+    other = dict(key, code="other")
+    if damage == "garbage":
+        path.write_bytes(b"not a zip file at all")
+    elif damage == "truncated":
+        path.write_bytes(path.read_bytes()[:300])
+    elif damage == "other key":
+        cached(other, build, tmp_path)
+        cache_path(other, tmp_path).replace(path)
+    elif damage == "model truncated":
+        model.write_bytes(model.read_bytes()[:500])
+    elif damage == "model missing":
+        model.unlink()
+    else:                                      # a valid model, but not the one of the arrays
+        closed = small_net()
+        closed.switch["closed"] = True
+        build_grid_data(closed, "small", "base", "power").lsgrid.save_binary(str(model), True)
+    with pytest.warns(RuntimeWarning, match="rebuilding it"):
+        data = cached(key, build, tmp_path)
+    assert len(calls) == (3 if damage == "other key" else 2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        again = cached(key, build, tmp_path)       # the rebuilt file is good again
+    p = [1.0e6, 1.0e6]
+    assert GridSolver(again, SMALL_ACTUATORS).solve(p) == \
+        GridSolver(data, SMALL_ACTUATORS).solve(p)
+
+
+def test_unwritable_cache_is_a_warning_not_an_error(tmp_path):
+    not_a_dir = tmp_path / "file"
+    not_a_dir.write_text("x")
+    build, calls = _counting_builder()
+    with pytest.warns(RuntimeWarning, match="could not be written"):
+        data = cached(cache_key("small", "base", "impedance"), build, not_a_dir)
+    assert data.code == "small" and len(calls) == 1
+
+
+def test_cache_dir_from_environment(monkeypatch, tmp_path):
+    monkeypatch.setenv("ADNMESH_CACHE_DIR", str(tmp_path / "explicit"))
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert default_cache_dir() == tmp_path / "explicit"
+    monkeypatch.delenv("ADNMESH_CACHE_DIR")
+    assert default_cache_dir() == tmp_path / "xdg" / "adnmesh"
+    monkeypatch.delenv("XDG_CACHE_HOME")
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    assert default_cache_dir() == tmp_path / "home" / ".cache" / "adnmesh"
+
+
+def test_cache_key_holds_the_versions_and_the_format():
+    key = cache_key(CODE, "lW", "impedance")
+    assert set(key) == {"format", "code", "case", "load_model", "simbench", "pandapower",
+                        "lightsim2grid"}
+    assert cache_path(key, default_cache_dir()) != cache_path(dict(key, pandapower="0"),
+                                                             default_cache_dir())
+
+
+def test_load_grid_rejects_an_unknown_load_model(tmp_path):
+    with pytest.raises(GridError, match="load model must be one of impedance, power"):
+        load_grid(CODE, "lW", "zip", cache_dir=tmp_path)
+
+
+# ---------------------------------------------------------------------------------------------
+# slow: the SimBench grid
+
+
+@pytest.fixture(scope="module")
+def simbench_case_net():
+    """1-MV-rural at lW with constant-power loads (copy it before changing it)."""
+    return grid_net(CODE, "lW", "power")
+
+
+@pytest.fixture(scope="module")
+def simbench_nets(simbench_case_net):
+    """{load model: (net for runpp, solver data)}."""
+    nets = {}
+    for model in ("impedance", "power"):
+        net = copy.deepcopy(simbench_case_net)
+        if model == "impedance":
+            loads_as_impedances(net)
+        nets[model] = (net, build_grid_data(copy.deepcopy(net), CODE, "lW", model))
+    return nets
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("load_model", ["impedance", "power"])
+def test_simbench_at_the_study_case_equals_runpp(simbench_nets, load_model):
+    net, data = simbench_nets[load_model]
+    available = available_power_w(data, ACTUATORS)
+    sample = GridSolver(data, ACTUATORS).solve(available)
+    reference = runpp_sample(net, ACTUATORS, available)
+    assert_agrees(sample, reference, p_tol_w=1.0)       # 1 W, far inside 1 kW / 1 kvar
+    assert sample.p_ip_w > 1e7                           # lW: MV -> HV, P_IP > 0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("load_model", ["impedance", "power"])
+def test_simbench_random_operating_points_equal_runpp(simbench_nets, load_model):
+    net, data = simbench_nets[load_model]
+    solver = GridSolver(data, ACTUATORS)
+    available = available_power_w(data, ACTUATORS)
+    rng = np.random.default_rng(2024)
+    worst = 0.0
+    for _ in range(50):
+        p = rng.uniform(0.0, 1.0, len(ACTUATORS)) * available
+        sample = solver.solve(p)
+        reference = runpp_sample(net, ACTUATORS, p)
+        assert_agrees(sample, reference, p_tol_w=1.0)
+        worst = max(worst, abs(sample.p_ip_w - reference[0]))
+    assert worst < 1.0
+
+
+@pytest.mark.slow
+def test_simbench_loads_consume_s0_times_v_squared(simbench_case_net, simbench_nets):
+    """Independent of pandapower's load models: the active power balance closes with every
+    load taken as P0 |V|² (P0 and the bus from the net, |V| from the solution)."""
+    _, data = simbench_nets["impedance"]
+    solver = GridSolver(data, ACTUATORS)
+    p = 0.5 * available_power_w(data, ACTUATORS)
+    sample = solver.solve(p)
+    net = simbench_case_net
+    vm = dict(zip(net.bus.index, np.abs(solver.voltages_pu[data.report_bus])))
+    loads = net.load[net.load.in_service]
+    p_load = float(np.sum(loads.p_mw.to_numpy() * np.array([vm[b] for b in loads.bus]) ** 2))
+    sgen = data.sgen_p_mw.copy()
+    sgen[data.sgen_index(ACTUATORS)] = p / 1e6
+    model = solver.model
+    losses = sum(float(np.sum(model_res()[0])) for model_res in (
+        model.get_line_res1, model.get_line_res2, model.get_trafo_res1, model.get_trafo_res2))
+    residual = -sample.p_ip_w / 1e6 + sgen.sum() - p_load - losses
+    assert abs(residual) < 1e-6                          # MW: below 1 W
+    assert p_load > 1.05 * loads.p_mw.sum()              # and V² matters here (V > 1.02 p.u.)
+
+
+@pytest.mark.slow
+def test_simbench_study_case_values(simbench_case_net):
+    net = simbench_case_net
+    factors = net.loadcases.loc["lW"]
+    data = build_grid_data(copy.deepcopy(net), CODE, "lW", "power")
+    # installed power times the case's factor per type (SPEC §6 table, simbench's loadcases)
+    by_type = {"WT": ("MV1.101 SGen 1", 2.0e6, "Wind_p"), "CHP": ("MV1.101 MV SGen 5", 0.31e6,
+               "RES_p"), "PV": ("MV1.101 MV SGen 9", 0.195e6, "PV_p")}
+    for name, p_inst, column in by_type.values():
+        assert available_power_w(data, [name])[0] == pytest.approx(p_inst * factors[column])
+    assert net.ext_grid.vm_pu.iloc[0] == factors["Slack_vm"]
+    base = grid_net.__globals__["load_simbench_net"](CODE)
+    assert net.load.p_mw.to_numpy() == pytest.approx(base.load.p_mw.to_numpy() * factors["pload"])
+    assert net.load.q_mvar.to_numpy() == pytest.approx(
+        base.load.q_mvar.to_numpy() * factors["qload"])
+    with pytest.raises(GridError, match="unknown study case 'xx'.*hL, n1, hW, hPV, lW, lPV"):
+        apply_study_case(base, "xx")
+
+
+@pytest.mark.slow
+def test_simbench_cache_round_trip_gives_identical_results(tmp_path):
+    cold = load_grid(CODE, "lW", cache_dir=tmp_path)
+    warm = load_grid(CODE, "lW", cache_dir=tmp_path)
+    rng = np.random.default_rng(5)
+    a, b = GridSolver(cold, ACTUATORS), GridSolver(warm, ACTUATORS)
+    available = available_power_w(cold, ACTUATORS)
+    for _ in range(5):
+        p = rng.uniform(0.0, 1.0, len(ACTUATORS)) * available
+        assert a.solve(p) == b.solve(p)
+
+
+def test_unknown_simbench_code_is_a_one_line_error(tmp_path):
+    with pytest.raises(GridError, match="'1-MV-nowhere--0-no_sw' is not a SimBench code"):
+        load_grid("1-MV-nowhere--0-no_sw", "lW", cache_dir=tmp_path)
