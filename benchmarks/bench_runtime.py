@@ -8,9 +8,12 @@ Measures, each printed as it comes:
    announcement to the end of the clock), speed factor (simulated s per wall s), start-up time,
    clock grants per second, CPU seconds per process;
 2. the coordinator's time grants per second with N agents (N - 3 identical DERs, 60 s each);
-3. the same control loop as HELICS value federates (``../shared/bench/helics/run_helics.py``,
+3. ``--grid-cost``: the same scenario with the grid's AC power flow in the measurement agent
+   against the same config without ``grid_model`` (P_IP the summed infeeds), alternating, and
+   the ratio of their wall and CPU times;
+4. the same control loop as HELICS value federates (``../shared/bench/helics/run_helics.py``,
    14 federates, 10 ms steps) and the ratio of the speed factors, adnmesh / HELICS;
-4. with ``--secure``: the SimBench scenario also in the secure profile (mutual TLS on every
+5. with ``--secure``: the SimBench scenario also in the secure profile (mutual TLS on every
    link, Zenoh access control; certificates made for the run), alternating with the open
    profile run by run, and the cost of security as the ratio secure / open of wall time and of
    CPU time, per pair of runs.
@@ -200,6 +203,34 @@ def secure_vs_open(config_path: Path, table: Path, workdir: Path, repeat: int) -
     return found
 
 
+def without_grid(config_path: Path, workdir: Path) -> Path:
+    """The config without its ``grid_model`` (P_IP = rest_of_grid_w + the summed infeeds)."""
+    document = yaml.safe_load(config_path.read_text())
+    document.pop("grid_model", None)
+    path = workdir / f"{config_path.stem}-no-grid.yaml"
+    path.write_text(yaml.safe_dump(document, sort_keys=False))
+    return path
+
+
+def grid_cost(config_path: Path, workdir: Path, repeat: int) -> dict:
+    """Wall and CPU time with and without the grid, alternating runs; ratios of the medians."""
+    plain = without_grid(config_path, workdir)
+    tables = {"grid": simbench_table(load_config(config_path), workdir)}
+    tables["summed"] = simbench_table(load_config(plain), workdir / "plain")
+    runs: dict[str, list] = {"grid": [], "summed": []}
+    for _ in range(repeat):
+        for name, path in (("grid", config_path), ("summed", plain)):
+            figures = run_up(path, tables[name], workdir)
+            figures.pop("cpu_s")
+            runs[name].append(figures)
+            print(f"  {name:6s}: wall {figures['wall_s']} s, CPU {figures['cpu_s_total']} s "
+                  f"(load {figures['load']})", flush=True)
+    out = {name: {k: spread(r, k) for k in ("wall_s", "cpu_s_total")} for name, r in runs.items()}
+    for key in ("wall_s", "cpu_s_total"):
+        out[f"ratio_{key}"] = round(out["grid"][key]["median"] / out["summed"][key]["median"], 3)
+    return out
+
+
 def run_helics(python: str, steps: int, nfeds: int, core: str) -> dict:
     """One run of the HELICS baseline: the JSON line of ``run_helics.py``."""
     load_before = load()
@@ -227,6 +258,8 @@ def main() -> int:
     parser.add_argument("--repeat", type=int, default=3, help="runs of every measurement")
     parser.add_argument("--skip-simbench", action="store_true")
     parser.add_argument("--skip-helics", action="store_true")
+    parser.add_argument("--grid-cost", action="store_true",
+                        help="also: the scenario with the grid against without it")
     parser.add_argument("--helics-python", default="/tmp/venv-helics/bin/python")
     parser.add_argument("--helics-steps", type=int, default=60000,
                         help="10 ms steps (60000: the 600 s of the SimBench scenario)")
@@ -264,6 +297,13 @@ def main() -> int:
                                "cpu_s_total", " s")
                 show_range("secure / open, wall time", security, "wall_s_ratio")
                 show_range("secure / open, CPU time", security, "cpu_s_total_ratio")
+        if args.grid_cost:
+            print(f"grid cost: {args.repeat} runs each with and without grid_model ...",
+                  flush=True)
+            (workdir / "plain").mkdir()
+            figures["grid_cost"] = cost = grid_cost(Path(args.config), workdir, args.repeat)
+            print(f"  with the grid / summed infeeds: wall {cost['ratio_wall_s']}x, CPU "
+                  f"{cost['ratio_cpu_s_total']}x (medians)", flush=True)
         sweep = []
         for n in [int(x) for x in args.agents.split(",") if x.strip()]:
             path, table = wt_config(n - 3, args.sweep_s, workdir)

@@ -302,7 +302,9 @@ def _print_summary(args: argparse.Namespace, config: Config, run_id: str, result
     summary = summarize(result.series, end_ns=result.reached_ns,
                         band_pct=config.constraints.settling_band_pct,
                         wall_time_s=result.wall_time_s, extra=extra, realtime=realtime)
-    console = Console(highlight=False, markup=False, soft_wrap=True)
+    # piped into a file or another program: wide enough that no table cell is cut
+    console = Console(highlight=False, markup=False, soft_wrap=True,
+                      width=None if sys.stdout.isatty() else 200)
     for item in format_summary(summary):
         console.print(item)
     if args.summary_json:

@@ -164,6 +164,7 @@ class AgentProcess:
         self._up_gone_at: float | None = None   # since when (monotonic s), until it is back
         self.reconnects = 0                  # times up came back into sight
         self.said_bye = False
+        self._wake_ns: int | None = None      # realtime: the event time the main thread waits for
         self.dying = False                   # an injected kill was reached
         self.kill_acked = False              # ... and up has the last report
         self.reported = False                # the first report is sent (up was seen)
@@ -274,8 +275,17 @@ class AgentProcess:
             if self.mode == "sim":
                 if self.grants:
                     self._run_granted()
-            elif self.mode == "realtime":
+            elif self.mode == "realtime" and self._due_sooner():
                 self.lock.notify()
+
+    def _due_sooner(self) -> bool:
+        """Realtime: the node's next event is due before the main thread means to wake (a
+        message due later need not wake it: most arrive a link delay early)."""
+        wake = self._wake_ns
+        if wake is None:
+            return True
+        next_ns = self.node.next_event_ns()
+        return next_ns is not None and next_ns < wake
 
     def _on_clock(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
@@ -398,7 +408,9 @@ class AgentProcess:
                 wait_s = _WAIT_S if next_ns is None or next_ns > start.end_ns else \
                     min(_WAIT_S, clock.wait_s(next_ns))
                 if wait_s > 0:
+                    self._wake_ns = next_ns if wait_s < _WAIT_S else None
                     self.lock.wait(wait_s)
+                    self._wake_ns = None
 
     def _note_overrun(self, body: dict | None) -> None:
         if body is not None:
