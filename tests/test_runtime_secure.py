@@ -129,8 +129,8 @@ def test_the_secure_run_records_what_the_in_process_run_computes(attacked, tmp_p
     (the rogue session's attempts changed nothing; the config's fault took effect)."""
     assert attacked.still_running, "the run ended before the attack was over"
     assert attacked.returncode == 0, attacked.err
-    assert "secure: mutual TLS, access control" in attacked.err
     run = read_recording(attacked.tmp / "attacked.mcap")
+    assert run.run["profile"] == "secure (mutual TLS, access control)"
     assert agents_only(data_messages(run)) == agents_only(attacked.expected)
     # the config's fault changes what the agents send: up's faults reached them
     config, table = write_case(tmp_path, "unfaulted", scenario=CHANGES["scenario"])
@@ -203,7 +203,7 @@ def start_split(tmp: Path, config: Path, table: Path, out: Path, *router_flags: 
     central, site = (f"tls/127.0.0.1:{free_port()}" for _ in range(2))
     up = subprocess.Popen(up_argv(config, table, out, "--secure", "--certs", certs, "--listen",
                                   central, "--external", "der:SGen2,measurement", "--routers",
-                                  "site", "--startup-timeout", "60"),
+                                  "site", "--startup-timeout", "120"),
                           cwd=tmp, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     others = [subprocess.Popen([sys.executable, "-m", "adnmesh", *argv], cwd=tmp,
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -230,7 +230,7 @@ def end_all(processes) -> list[tuple[str, str]]:
     return outputs
 
 
-def wait_for_line(proc: subprocess.Popen, text: str, timeout_s: float = 90) -> list[str]:
+def wait_for_line(proc: subprocess.Popen, text: str, timeout_s: float = 150) -> list[str]:
     """Read ``proc``'s stderr until a line contains ``text`` (bounded); the lines read."""
     lines = []
     with selectors.DefaultSelector() as selector:
@@ -256,7 +256,7 @@ def test_two_linked_routers_with_agents_split_record_what_one_router_records(att
     (_, up_err), (_, router_err), *_ = outputs
     assert up.returncode == 0, "\n".join(err for _, err in outputs)
     assert [p.returncode for p in others] == [0, 0, 0]
-    assert "waiting up to 60 s for 2 external agent(s): der/SGen2, measurement" in up_err
+    assert "waiting up to 120 s for 2 external agent(s): der/SGen2, measurement" in up_err
     assert "adnmesh up is reachable" in router_err
     assert "security:" not in up_err
     assert data_messages(read_recording(out)) == attacked.expected

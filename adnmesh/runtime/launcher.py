@@ -490,7 +490,9 @@ def shutdown(launch: _Launch, reason: str) -> None:
     launch.outbox.send(launch.keys.stop, t_stop, reason=reason)
     deadline = time.monotonic() + options.shutdown_timeout_s
     while time.monotonic() < deadline:
-        if not roster.without_bye() & children.running():
+        # an external agent can say goodbye only while its session is up
+        waiting = children.running() - (options.external - roster.alive_now())
+        if not roster.without_bye() & waiting:
             break
         roster.wait(0.05)
     launch.withdraw_liveliness()   # every running agent's goodbye is in: they may close
