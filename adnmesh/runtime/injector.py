@@ -113,8 +113,9 @@ class FaultInjector:
             with self._lock:
                 self._restart_at.pop(agent, None)
             self._respawn(agent, at)
+        alive = launch.roster.alive_now()   # before the changes: a restart's token is among them
         self._sessions(launch.roster.session_changes())
-        for agent in sorted(self._spawned & launch.roster.alive_now()):
+        for agent in sorted(self._spawned & alive):
             self._spawned.discard(agent)
             launch.announce_start()
 
@@ -127,9 +128,9 @@ class FaultInjector:
         running = self.launch.children.running()
         for agent, back in changes:
             with self._lock:
-                expected = agent in self.dying
+                expected = agent in self.dying or agent in self._spawned
             if agent not in running or expected:
-                continue      # a death: the injector's own business
+                continue      # a death or a restart: the injector's own business
             what = "is back" if back else \
                 "dropped (the process runs): waiting for it to reconnect" \
                 if agent in self.launch.children.procs else \
