@@ -14,12 +14,14 @@ import sys
 from collections.abc import Sequence
 
 from adnmesh import __version__
-from adnmesh.commands import analyze, check, fault, inspect, margins, plot, replay, schema, tune, up
+from adnmesh.commands import (agent, analyze, certs, check, fault, inspect, margins, plot, replay,
+                              router, schema, tune, up)
 from adnmesh.errors import ConfigError, UsageError
 
 __all__ = ["COMMANDS", "EXIT_INTERRUPTED", "EXIT_USER_ERROR", "build_parser", "main"]
 
-COMMANDS = (check, margins, tune, analyze, up, fault, replay, plot, inspect, schema)
+COMMANDS = (check, margins, tune, analyze, up, fault, certs, agent, router, replay, plot, inspect,
+            schema)
 """Command modules, in the order ``adnmesh --help`` lists them."""
 
 EXIT_USER_ERROR = 2

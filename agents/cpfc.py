@@ -11,13 +11,11 @@ Logic: adnmesh.control.cpfc.CPFC.
 import argparse
 import sys
 
-import zenoh
-
 from adnmesh.control.cpfc import GainSchedule
 from adnmesh.control.registry import build_agent
 from adnmesh.errors import ConfigError
-from adnmesh.runtime.bus import session_config
-from adnmesh.runtime.process import AgentProcess, add_agent_arguments, load_config_or_exit
+from adnmesh.runtime.process import (AgentProcess, add_agent_arguments, load_config_or_exit,
+                                     open_session)
 from adnmesh.sim.node import Node
 from adnmesh.table import default_table_path, load_table
 
@@ -38,8 +36,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     node = Node.for_config(build_agent("cpfc", config, GainSchedule(config, table)), config,
                           start_ns=args.resume_at_ns)
-    with zenoh.open(session_config(args)) as session:
-        return AgentProcess(session, node, config.grid).serve()
+    with open_session(args, "cpfc") as session:
+        return AgentProcess(session, node, config.grid,
+                            publishers=args.certs is None).serve()
 
 
 if __name__ == "__main__":

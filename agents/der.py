@@ -9,11 +9,9 @@ reports its infeed and heartbeats. Logic: adnmesh.control.der.DERController.
 import argparse
 import sys
 
-import zenoh
-
 from adnmesh.control.registry import build_agent
-from adnmesh.runtime.bus import session_config
-from adnmesh.runtime.process import AgentProcess, add_agent_arguments, load_config_or_exit
+from adnmesh.runtime.process import (AgentProcess, add_agent_arguments, load_config_or_exit,
+                                     open_session)
 from adnmesh.sim.node import Node
 from adnmesh.wire.keys import der_agent_id
 
@@ -33,8 +31,9 @@ def main(argv: list[str] | None = None) -> int:
     agent = build_agent(der_agent_id(args.der), config, p_avail_w=args.p_avail_w)
     node = Node.for_config(agent, config,
                           start_ns=args.resume_at_ns)
-    with zenoh.open(session_config(args)) as session:
-        return AgentProcess(session, node, config.grid).serve()
+    with open_session(args, der_agent_id(args.der)) as session:
+        return AgentProcess(session, node, config.grid,
+                            publishers=args.certs is None).serve()
 
 
 if __name__ == "__main__":

@@ -8,11 +8,9 @@ Logic: adnmesh.control.measurement.Measurement.
 import argparse
 import sys
 
-import zenoh
-
 from adnmesh.control.registry import build_agent
-from adnmesh.runtime.bus import session_config
-from adnmesh.runtime.process import AgentProcess, add_agent_arguments, load_config_or_exit
+from adnmesh.runtime.process import (AgentProcess, add_agent_arguments, load_config_or_exit,
+                                     open_session)
 from adnmesh.sim.node import Node
 
 
@@ -25,8 +23,9 @@ def main(argv: list[str] | None = None) -> int:
     config = load_config_or_exit(args.config)
     node = Node.for_config(build_agent("measurement", config), config,
                           start_ns=args.resume_at_ns)
-    with zenoh.open(session_config(args)) as session:
-        return AgentProcess(session, node, config.grid).serve()
+    with open_session(args, "measurement") as session:
+        return AgentProcess(session, node, config.grid,
+                            publishers=args.certs is None).serve()
 
 
 if __name__ == "__main__":

@@ -12,7 +12,11 @@ Measures, each printed as it comes:
    against the same config without ``grid_model`` (P_IP the summed infeeds), alternating, and
    the ratio of their wall and CPU times;
 4. the same control loop as HELICS value federates (``../shared/bench/helics/run_helics.py``,
-   14 federates, 10 ms steps) and the ratio of the speed factors, adnmesh / HELICS.
+   14 federates, 10 ms steps) and the ratio of the speed factors, adnmesh / HELICS;
+5. with ``--secure``: the SimBench scenario also in the secure profile (mutual TLS on every
+   link, Zenoh access control; certificates made for the run), alternating with the open
+   profile run by run, and the cost of security as the ratio secure / open of wall time and of
+   CPU time, per pair of runs.
 
 It measures; it asserts nothing (targets: speed factor >= 30, ratio >= 3). Every measurement
 is repeated (``--repeat``, default 3) and reported as min / median / max, with the load average
@@ -24,6 +28,7 @@ time. Usage::
     .venv/bin/python benchmarks/bench_runtime.py --skip-helics --agents 4,14 --repeat 1
     .venv/bin/python benchmarks/bench_runtime.py --helics-python /tmp/venv-helics/bin/python \\
         --helics-steps 6000 --json out/bench.json
+    .venv/bin/python benchmarks/bench_runtime.py --secure --agents '' --skip-helics
 
 The gain table for the SimBench config is ``tables/simbench.<sha>.json`` if ``adnmesh tune``
 made one that holds the subsets the scenario needs; otherwise those two entries (all DERs; CHPs
@@ -126,13 +131,15 @@ def simbench_table(config, workdir: Path) -> Path:
     return out
 
 
-def run_up(config_path: Path, table: Path, workdir: Path) -> dict:
-    """One run of ``adnmesh up`` on the sim clock: its figures (CPU times include start-up)."""
+def run_up(config_path: Path, table: Path, workdir: Path, certs: Path | None = None) -> dict:
+    """One run of ``adnmesh up`` on the sim clock (secure profile with ``certs``): its
+    figures (CPU times include start-up)."""
     config = load_config(config_path)
     load_before = load()
     cpu0 = time.process_time()
     t0 = time.perf_counter()
-    result = run(UpOptions(config=config, table_path=table, out=workdir / "bench.mcap"))
+    result = run(UpOptions(config=config, table_path=table, out=workdir / "bench.mcap",
+                           certs=certs))
     total = time.perf_counter() - t0
     if result.exit_code != 0:
         raise SystemExit(f"adnmesh up failed: {result.reason}; {result.problems}")
@@ -168,6 +175,32 @@ def wt_config(n_ders: int, duration_s: float, workdir: Path) -> tuple[Path, Path
     table_path = workdir / f"wt{n_ders}.table.json"
     save_table(table, table_path)
     return path, table_path
+
+
+def secure_vs_open(config_path: Path, table: Path, workdir: Path, repeat: int) -> dict:
+    """The scenario in the open and the secure profile, alternating; the ratios per pair."""
+    from adnmesh.runtime.certs import issue
+    from adnmesh.runtime.identity import identities
+
+    certs = workdir / "certs"
+    issue(certs, identities(load_config(config_path)))
+    pairs = []
+    for _ in range(repeat):
+        pair = {"open": run_up(config_path, table, workdir),
+                "secure": run_up(config_path, table, workdir, certs)}
+        for key in ("wall_s", "cpu_s_total"):
+            pair[f"{key}_ratio"] = round(pair["secure"][key] / pair["open"][key], 3)
+        print(json.dumps({k: v if "ratio" in k else {f: v[f] for f in (
+            "wall_s", "speed_factor", "cpu_s_total", "messages", "load_before")}
+            for k, v in pair.items()}), flush=True)
+        pairs.append(pair)
+    found = {"pairs": pairs}
+    for profile in ("open", "secure"):
+        runs = [p[profile] for p in pairs]
+        found[profile] = {k: spread(runs, k) for k in ("wall_s", "speed_factor", "cpu_s_total")}
+    for key in ("wall_s_ratio", "cpu_s_total_ratio"):
+        found[key] = spread(pairs, key)
+    return found
 
 
 def without_grid(config_path: Path, workdir: Path) -> Path:
@@ -231,6 +264,9 @@ def main() -> int:
     parser.add_argument("--helics-steps", type=int, default=60000,
                         help="10 ms steps (60000: the 600 s of the SimBench scenario)")
     parser.add_argument("--helics-core", default="tcp")
+    parser.add_argument("--secure", action="store_true",
+                        help="also the SimBench scenario in the secure profile, alternating "
+                        "with the open one (the cost of mutual TLS and access control)")
     parser.add_argument("--json", metavar="PATH", help="also write every figure as JSON")
     args = parser.parse_args()
 
@@ -250,6 +286,17 @@ def main() -> int:
                                      ("cpu_s_total", "CPU time, all processes", " s"),
                                      ("grants_per_s", "grants/s", "")):
                 show_range(label, figures["simbench"], key, unit)
+            if args.secure:
+                print(f"SimBench scenario, open and secure profile alternating, {args.repeat} "
+                      "pairs ...", flush=True)
+                security = figures["secure_vs_open"] = secure_vs_open(config_path, table,
+                                                                      workdir, args.repeat)
+                for profile in ("open", "secure"):
+                    show_range(f"{profile}: wall time", security[profile], "wall_s", " s")
+                    show_range(f"{profile}: CPU time, all processes", security[profile],
+                               "cpu_s_total", " s")
+                show_range("secure / open, wall time", security, "wall_s_ratio")
+                show_range("secure / open, CPU time", security, "cpu_s_total_ratio")
         if args.grid_cost:
             print(f"grid cost: {args.repeat} runs each with and without grid_model ...",
                   flush=True)

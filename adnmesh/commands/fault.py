@@ -6,6 +6,9 @@ event on ``adn/<grid>/event/up`` that names the request: the fault injected (wit
 takes effect) or refused (why). RUN is the run's id (``logs/<run-id>.run.json``, which ``up``
 writes while it runs), the path of that file or of the run's recording, or the router's
 endpoint (``tcp/127.0.0.1:PORT``; the grid is then found from ``up``'s liveliness token).
+Against a run of the secure profile it connects with the ``operator`` certificate (``--certs``,
+by default the run's certificate directory named in its ``.run.json``): the only identity the
+run's access control lets publish a fault request.
 """
 
 from __future__ import annotations
@@ -62,6 +65,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--delay", type=float, metavar="S", help="link_delay: extra delay, s")
     parser.add_argument("--timeout", type=float, default=10.0, metavar="S",
                         help="how long to wait for the run's answer (default 10 s)")
+    parser.add_argument("--certs", metavar="DIR",
+                        help="secure profile: the directory with the operator's certificate "
+                        "(default: the run's, from its .run.json)")
     return parser
 
 
@@ -90,17 +96,19 @@ def _request(args: argparse.Namespace) -> dict:
     return body
 
 
-def _locate(ref: str) -> tuple[str, str | None]:
-    """``(endpoint, grid or None)`` of the run ``ref``."""
+def _locate(ref: str) -> tuple[str, str | None, str | None]:
+    """``(endpoint, grid or None, certificate directory or None)`` of the run ``ref``."""
     if ref.startswith(("tcp/", "tls/")):
-        return ref, None
+        return ref, None, None
     path = Path(ref)
     candidates = [path] if path.suffix == ".json" else \
         [run_file_path(path)] if path.suffix == ".mcap" else [Path("logs") / f"{ref}.run.json"]
     for candidate in candidates:
         try:
             info = json.loads(candidate.read_text())
-            return str(info["endpoint"]), str(info["grid"])
+            certs = info.get("certs")
+            return (str(info["endpoint"]), str(info["grid"]),
+                    None if certs is None else str(certs))
         except FileNotFoundError:
             raise UsageError(f"no running run {ref!r} ({candidate} does not exist; give the "
                              "run id, its .run.json or .mcap, or the router's endpoint)") from None
@@ -120,10 +128,15 @@ def _grid_of(session: zenoh.Session, timeout_s: float) -> str:
 def run(args: argparse.Namespace) -> int:
     """Send the request; print the run's answer; return the exit code."""
     body = _request(args)
-    endpoint, grid = _locate(args.run_ref)
+    endpoint, grid, certs = _locate(args.run_ref)
     answer: list = []
     got = threading.Event()
-    with zenoh.open(client_config([endpoint])) as session:
+    try:
+        session = zenoh.open(client_config([endpoint], args.certs or certs, OPERATOR))
+    except zenoh.ZError:
+        print(f"adnmesh fault: cannot connect to the run at {endpoint}")
+        return EXIT_NO_ANSWER
+    with session:
         keys = Keys(grid or _grid_of(session, args.timeout))
 
         def on_event(sample: zenoh.Sample) -> None:

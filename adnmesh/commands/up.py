@@ -57,8 +57,47 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--summary-json", metavar="PATH",
                         help="also write the summary as JSON to PATH")
     parser.add_argument("--listen", metavar="ENDPOINT",
-                        help="endpoint of the embedded router (default: tcp/127.0.0.1:<free port>)")
+                        help="endpoint of the embedded router (default: tcp/127.0.0.1:<free "
+                        "port>; tls/ with --secure)")
+    security = parser.add_argument_group("secure profile and agents on other hosts")
+    security.add_argument("--secure", action="store_true",
+                          help="mutual TLS on every link and Zenoh access control derived from "
+                          "the topology (certificates from --certs)")
+    security.add_argument("--certs", metavar="DIR",
+                          help="certificate directory of 'adnmesh certs' (default: certs; "
+                          "implies --secure)")
+    security.add_argument("--external", metavar="KIND[:ID],...",
+                          help="agents started elsewhere ('adnmesh agent'), e.g. "
+                          "der:SGen2,measurement; up waits for them")
+    security.add_argument("--routers", metavar="NAME,...",
+                          help="site routers ('adnmesh router --name NAME') that may link to "
+                          "this one")
+    security.add_argument("--print-zenoh-config", action="store_true",
+                          help="print the router's Zenoh configuration (JSON: mode, endpoints, "
+                          "TLS, access control) and exit")
+    security.add_argument("--startup-timeout", type=float, default=60.0, metavar="S",
+                          help="how long to wait for every agent to be ready (default 60 s)")
+    parser.add_argument("--stall-timeout", type=float, default=60.0, metavar="S",
+                        help="sim clock: stop the run when it made no progress for S wall "
+                        "seconds (default 60; 0: never)")
     return parser
+
+
+def external_agents(text: str | None, config: Config) -> frozenset[str]:
+    """The agent ids of ``--external`` (``cpfc``, ``der:SGen1`` or ``der/SGen1``, ...)."""
+    from adnmesh.sim.topology import Topology
+
+    agents = Topology.from_config(config).agents
+    found = set()
+    for item in (text or "").split(","):
+        item = item.strip().replace(":", "/", 1)
+        if not item:
+            continue
+        if item not in agents:
+            raise UsageError(f"--external: no agent {item!r} in {config.path} (agents: "
+                             f"{', '.join(agents)})")
+        found.add(item)
+    return frozenset(found)
 
 
 def scenario_subsets(config: Config) -> list[frozenset[str]]:
@@ -136,6 +175,32 @@ def _check_arguments(args: argparse.Namespace) -> None:
         raise UsageError(f"--speed must be in (0, 1e6], got {args.speed:g}")
     if args.seed is not None and not 0 <= args.seed < 2**63:
         raise UsageError(f"--seed must be in [0, 2**63), got {args.seed}")
+    if not 0 < args.startup_timeout <= 86400:
+        raise UsageError(f"--startup-timeout must be in (0, 86400] s, got "
+                         f"{args.startup_timeout:g}")
+    if not 0 <= args.stall_timeout <= 86400:
+        raise UsageError(f"--stall-timeout must be in [0, 86400] s, got {args.stall_timeout:g}")
+    if args.routers and not (args.secure or args.certs):
+        raise UsageError("--routers is for the secure profile (--secure); in the open profile "
+                         "any router may link")
+
+
+def _certs(args: argparse.Namespace) -> Path | None:
+    """The certificate directory of the secure profile (checked), or None (open profile);
+    the ``--listen`` endpoint must fit the profile."""
+    from adnmesh.runtime.identity import cert_files
+    from adnmesh.runtime.security import check_endpoints
+
+    secure = bool(args.secure or args.certs)
+    check_endpoints([args.listen] if args.listen else [], secure, flag="--listen")
+    if not secure:
+        return None
+    certs = Path(args.certs or "certs")
+    if not certs.is_dir():
+        raise UsageError(f"{certs}: no certificate directory; create it with 'adnmesh certs "
+                         f"{certs} --config {args.config}'")
+    cert_files(certs, "up").check()
+    return certs.resolve()
 
 
 def run(args: argparse.Namespace) -> int:
@@ -156,6 +221,11 @@ def run(args: argparse.Namespace) -> int:
     def log(line: str) -> None:
         err.print(f"adnmesh up: {line}")
 
+    certs = _certs(args)
+    external = external_agents(args.external, config)
+    routers = tuple(n.strip() for n in (args.routers or "").split(",") if n.strip())
+    if args.print_zenoh_config:
+        return _print_zenoh_config(args, config, certs, routers)
     run_id = f"{Path(config.path).stem}-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"
     out = Path(args.out) if args.out else Path("logs") / f"{run_id}.mcap"
     available = _operating_point(config, log)
@@ -165,6 +235,8 @@ def run(args: argparse.Namespace) -> int:
         speed=args.speed or 1.0,
         seed=config.runtime.seed if args.seed is None else args.seed,
         listen=args.listen, log=log, run_id=run_id, run_file=run_file_path(out),
+        certs=certs, external=external, routers=routers,
+        startup_timeout_s=args.startup_timeout, stall_timeout_s=args.stall_timeout,
         available_w=available, strict=args.strict,
         metadata={"run_id": run_id, "table_sha256":
                   hashlib.sha256(table_path.read_bytes()).hexdigest()},
@@ -175,6 +247,26 @@ def run(args: argparse.Namespace) -> int:
     log(f"recording: {out} ({sum(result.recorded.values())} messages)")
     _print_summary(args, config, run_id, result)
     return result.exit_code
+
+
+def _print_zenoh_config(args: argparse.Namespace, config: Config, certs, routers) -> int:
+    """Print the parts of the router's Zenoh config that adnmesh sets; return 0."""
+    from adnmesh.runtime.bus import DEFAULT_HOST
+    from adnmesh.runtime.launcher import UpOptions, embedded_router_config
+
+    scheme = "tcp" if certs is None else "tls"
+    endpoint = args.listen or f"{scheme}/{DEFAULT_HOST}:7447"
+    options = UpOptions(config=config, table_path=Path(), out=Path(), certs=certs,
+                        routers=routers)
+    full = json.loads(str(embedded_router_config(options, endpoint)))
+    link = full["transport"]["link"]
+    shown = {"mode": full["mode"], "listen": {"endpoints": full["listen"]["endpoints"]},
+             "scouting": {"multicast": {"enabled": full["scouting"]["multicast"]["enabled"]}},
+             "transport": {"link": {"protocols": link["protocols"], "tls": {
+                 k: v for k, v in link["tls"].items() if v is not None}}},
+             "access_control": full["access_control"]}
+    print(json.dumps(shown, indent=2))
+    return 0
 
 
 def _print_summary(args: argparse.Namespace, config: Config, run_id: str, result) -> None:
@@ -194,6 +286,9 @@ def _print_summary(args: argparse.Namespace, config: Config, run_id: str, result
         "rejected_by_recorder": sum(sum(r.values()) for r in result.rejected.values()),
         "lost_on_links": sum(b.lost for b in byes),
         "startup_s": round(result.startup_s, 3),
+        "profile": "secure" if args.secure or args.certs else "open",
+        "links_accepted": sum(result.sessions.opened.values()),
+        "unexpected_sessions": len(result.sessions.unexpected),
     }
     if args.clock == "sim":
         extra["clock_grants"] = result.grants

@@ -5,6 +5,10 @@ examples: ``--mode``, ``--connect``, ``--listen``, ``--zenoh-config``. Multicast
 off; endpoints are explicit. ``adnmesh up`` embeds the router (a session in mode ``router``,
 :func:`router_config`) listening on ``tcp/127.0.0.1:<port>`` by default; agents connect to it as
 clients. To run an agent on another host, point ``--connect`` at a router reachable from there.
+
+``--certs DIR`` (the ``certs`` and ``identity`` arguments below) selects the secure profile:
+mutual TLS with the identity's certificate from DIR, endpoints ``tls/HOST:PORT``, and on a
+router the access control of :mod:`adnmesh.runtime.acl` (:mod:`adnmesh.runtime.security`).
 """
 
 from __future__ import annotations
@@ -26,7 +30,8 @@ DEFAULT_ENDPOINT = f"tcp/{DEFAULT_HOST}:7447"
 
 
 def add_connection_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add ``--mode``, ``--connect``, ``--listen`` and ``--zenoh-config`` to ``parser``."""
+    """Add ``--mode``, ``--connect``, ``--listen``, ``--zenoh-config`` and ``--certs`` to
+    ``parser``."""
     group = parser.add_argument_group("Zenoh connection")
     group.add_argument("--mode", "-m", choices=["client", "peer"], default="client",
                        help="Zenoh session mode (default: client)")
@@ -37,10 +42,14 @@ def add_connection_arguments(parser: argparse.ArgumentParser) -> None:
                        help="endpoint to listen on (repeatable)")
     group.add_argument("--zenoh-config", metavar="FILE",
                        help="a Zenoh configuration file (JSON5); the flags above override it")
+    group.add_argument("--certs", metavar="DIR",
+                       help="secure profile: mutual TLS with this program's certificate from "
+                       "DIR (made by 'adnmesh certs'); endpoints tls/HOST:PORT")
 
 
-def session_config(args: argparse.Namespace) -> zenoh.Config:
-    """The Zenoh config of a session from the flags of :func:`add_connection_arguments`."""
+def session_config(args: argparse.Namespace, identity: str | None = None) -> zenoh.Config:
+    """The Zenoh config of a session from the flags of :func:`add_connection_arguments`
+    (``identity``: whose certificate ``--certs`` holds)."""
     config = (zenoh.Config.from_file(args.zenoh_config) if args.zenoh_config
               else zenoh.Config())
     config.insert_json5("mode", json.dumps(args.mode))
@@ -52,25 +61,56 @@ def session_config(args: argparse.Namespace) -> zenoh.Config:
     if args.listen:
         config.insert_json5("listen/endpoints", json.dumps(args.listen))
     config.insert_json5("scouting/multicast/enabled", "false")
+    certs = getattr(args, "certs", None)
+    if certs is not None or not args.zenoh_config:   # a config file may bring its own TLS
+        _profile(config, connect, args.listen, certs, identity, accepts=bool(args.listen))
     return config
 
 
-def client_config(connect: list[str]) -> zenoh.Config:
-    """The Zenoh config of a client session connecting to ``connect``."""
+def client_config(connect: list[str], certs=None, identity: str | None = None) -> zenoh.Config:
+    """The Zenoh config of a client session connecting to ``connect`` (secure profile: with
+    the certificate of ``identity`` from the directory ``certs``)."""
     config = zenoh.Config()
     config.insert_json5("mode", json.dumps("client"))
     config.insert_json5("connect/endpoints", json.dumps(connect))
     config.insert_json5("scouting/multicast/enabled", "false")
+    _profile(config, connect, (), certs, identity)
     return config
 
 
-def router_config(listen: list[str]) -> zenoh.Config:
-    """The Zenoh config of the embedded router listening on ``listen``."""
+def router_config(listen: list[str], connect=(), certs=None, identity: str | None = None,
+                  access_control: dict | None = None) -> zenoh.Config:
+    """The Zenoh config of a router listening on ``listen`` and linked to the routers at
+    ``connect``; secure profile: with the certificate of ``identity`` from ``certs`` and the
+    ``access_control`` section (:func:`adnmesh.runtime.acl.access_control`)."""
     config = zenoh.Config()
     config.insert_json5("mode", json.dumps("router"))
     config.insert_json5("listen/endpoints", json.dumps(listen))
+    if connect:
+        config.insert_json5("connect/endpoints", json.dumps(list(connect)))
     config.insert_json5("scouting/multicast/enabled", "false")
+    _profile(config, connect, listen, certs, identity, accepts=True)
+    if certs is not None:
+        from adnmesh.runtime.security import apply_access_control
+        apply_access_control(config, access_control or {"enabled": True})
     return config
+
+
+def _profile(config: zenoh.Config, connect, listen, certs, identity: str | None,
+             accepts: bool = False) -> None:
+    """Secure profile if ``certs`` is given (TLS with ``identity``'s certificate); else check
+    that no endpoint asks for TLS."""
+    from adnmesh.errors import UsageError
+    from adnmesh.runtime.security import apply_tls, check_endpoints
+
+    secure = certs is not None
+    check_endpoints(connect, secure)
+    check_endpoints(listen, secure, flag="--listen")
+    if secure:
+        if identity is None:
+            raise UsageError("--certs: this program has no identity of its own")
+        from adnmesh.runtime.identity import cert_files
+        apply_tls(config, cert_files(certs, identity), listen=accepts)
 
 
 def free_port(host: str = DEFAULT_HOST) -> int:

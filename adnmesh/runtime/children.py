@@ -3,6 +3,12 @@
 Every agent runs as ``sys.executable agents/<kind>.py CONFIG --connect ENDPOINT`` in its own
 session (so Ctrl-C reaches only ``up``), told to die with ``up`` (environment
 :data:`PARENT_ENV`, Linux ``PR_SET_PDEATHSIG``), and is stopped, if it has to be, by PID.
+
+An **external** agent (``adnmesh up --external``) runs elsewhere (``adnmesh agent`` on another
+host): it has no PID here; it counts as running until its session ends without a goodbye
+(:meth:`AgentProcesses.session_ended`: its host or its link went down) and does not come back
+within :data:`SESSION_GRACE_S` (Zenoh reconnects a session that dropped under load; the agent
+itself waits as long for ``up``), and then as dead.
 """
 
 from __future__ import annotations
@@ -11,18 +17,24 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
 from adnmesh.wire.keys import der_id_of
 
-__all__ = ["AGENTS_DIR", "AGENT_ZENOH_RUNTIME", "PARENT_ENV", "AgentProcesses", "agent_argv"]
+__all__ = ["AGENTS_DIR", "AGENT_ZENOH_RUNTIME", "PARENT_ENV", "SESSION_GRACE_S",
+           "AgentProcesses", "agent_argv"]
 
 AGENTS_DIR = Path(__file__).resolve().parents[2] / "agents"
 """Where the agent programs are (``agents/`` of the source tree)."""
 
 PARENT_ENV = "ADNMESH_PARENT_PID"
 """Environment variable with the PID of ``adnmesh up``; agents die with that process."""
+
+SESSION_GRACE_S = 10.0
+"""How long an external agent's session may stay away before it counts as dead, wall s: as
+long as an agent waits for ``up`` (:mod:`adnmesh.runtime.process`) before it stops."""
 
 AGENT_ZENOH_RUNTIME = "(rx: (worker_threads: 1))"
 """Zenoh's thread pools in the agent processes (environment ``ZENOH_RUNTIME``, unless it is
@@ -32,9 +44,9 @@ about 8 % of its CPU time on two cores."""
 
 
 def agent_argv(agent_id: str, config_path: Path, endpoint: str, table_path: Path,
-               p_avail_w: float | None = None) -> list[str]:
+               p_avail_w: float | None = None, certs: Path | None = None) -> list[str]:
     """Command line of the process of ``agent_id`` (a DER may be told its available power, W,
-    so that it need not load the grid to learn it)."""
+    so that it need not load the grid to learn it; secure profile: with ``--certs``)."""
     der_id = der_id_of(agent_id)
     kind = "der" if der_id is not None else agent_id
     argv = [sys.executable, str(AGENTS_DIR / f"{kind}.py"), str(config_path),
@@ -45,14 +57,46 @@ def agent_argv(agent_id: str, config_path: Path, endpoint: str, table_path: Path
             argv += ["--p-avail-w", repr(float(p_avail_w))]
     if kind == "cpfc":
         argv += ["--table", str(table_path)]
+    if certs is not None:
+        argv += ["--certs", str(certs)]
     return argv
 
 
 class AgentProcesses:
-    """The agent processes of a run, by agent id (tracked and stopped by PID only)."""
+    """The agent processes of a run, by agent id (tracked and stopped by PID only), and the
+    external agents (see the module docstring)."""
 
-    def __init__(self) -> None:
+    def __init__(self, external=(), grace_s: float = SESSION_GRACE_S) -> None:
         self.procs: dict[str, subprocess.Popen] = {}
+        self.external = frozenset(external)
+        self.grace_s = grace_s
+        self._ended: dict[str, float] = {}   # external agent -> when its session ended (mono s)
+        self._lock = threading.Lock()        # _ended: changed by Zenoh callbacks
+
+    def session_ended(self, agent_id: str) -> None:
+        """An agent's session ended without a goodbye: an external one is dead unless it is
+        back within the grace."""
+        if agent_id in self.external:
+            with self._lock:
+                self._ended.setdefault(agent_id, time.monotonic())
+
+    def session_back(self, agent_id: str) -> None:
+        """An agent's session is (back) up: an external one is not dead, unless it was
+        already (it stays dead: the run went on without it)."""
+        with self._lock:
+            ended = self._ended.get(agent_id)
+            if ended is not None and time.monotonic() - ended <= self.grace_s:
+                del self._ended[agent_id]
+
+    def expect_again(self, agent_id: str) -> None:
+        """An external agent is to be started again (a restart): it is no longer dead."""
+        with self._lock:
+            self._ended.pop(agent_id, None)
+
+    def describe(self, agent_id: str) -> str:
+        """``pid N``, or ``external`` for an agent that runs elsewhere."""
+        proc = self.procs.get(agent_id)
+        return "external" if proc is None else f"pid {proc.pid}"
 
     def spawn(self, agent_id: str, argv: list[str]) -> None:
         """Start ``argv`` as the process of ``agent_id``."""
@@ -65,16 +109,31 @@ class AgentProcesses:
         """The PIDs, space-separated."""
         return " ".join(str(p.pid) for p in self.procs.values())
 
-    def dead(self) -> list[tuple[str, int]]:
-        """``(agent id, exit code)`` of every process that has ended (negative: signal)."""
-        return [(a, p.returncode) for a, p in self.procs.items() if p.poll() is not None]
+    def dead(self) -> list[tuple[str, int | None]]:
+        """``(agent id, exit code)`` of every process that has ended (negative: signal; None:
+        an external agent whose session ended)."""
+        return [(a, p.returncode) for a, p in self.procs.items() if p.poll() is not None] + \
+            [(a, None) for a in sorted(self.gone())]
 
     def running(self) -> set[str]:
-        """The agents whose process still runs."""
-        return {a for a, p in self.procs.items() if p.poll() is None}
+        """The agents whose process still runs (external ones: whose session has not ended
+        for longer than the grace)."""
+        return {a for a, p in self.procs.items() if p.poll() is None} | \
+            (self.external - self.gone())
 
-    def describe_death(self, agent_id: str, code: int) -> str:
-        """``agent X (pid N) died (exit code C | signal S)``."""
+    def gone(self) -> set[str]:
+        """External agents whose session ended longer than the grace ago."""
+        now = time.monotonic()
+        with self._lock:
+            return {a for a, t in self._ended.items() if now - t > self.grace_s}
+
+    def describe_death(self, agent_id: str, code: int | None) -> str:
+        """``agent X (pid N) died (exit code C | signal S)``, or that an external agent's
+        session ended."""
+        if code is None:
+            return (f"external agent {agent_id}: its session ended without a goodbye and did "
+                    f"not come back within {self.grace_s:g} s (its process, host or link is "
+                    "down)")
         how = f"signal {-code}" if code < 0 else f"exit code {code}"
         return f"agent {agent_id} (pid {self.procs[agent_id].pid}) died ({how})"
 

@@ -113,8 +113,9 @@ class FaultInjector:
             with self._lock:
                 self._restart_at.pop(agent, None)
             self._respawn(agent, at)
+        alive = launch.roster.alive_now()   # before the changes: a restart's token is among them
         self._sessions(launch.roster.session_changes())
-        for agent in sorted(self._spawned & launch.roster.alive_now()):
+        for agent in sorted(self._spawned & alive):
             self._spawned.discard(agent)
             launch.announce_start()
 
@@ -127,10 +128,13 @@ class FaultInjector:
         running = self.launch.children.running()
         for agent, back in changes:
             with self._lock:
-                expected = agent in self.dying
+                expected = agent in self.dying or agent in self._spawned
             if agent not in running or expected:
-                continue      # a death: the injector's own business
-            what = "is back" if back else "dropped (the process runs): waiting for it to reconnect"
+                continue      # a death or a restart: the injector's own business
+            what = "is back" if back else \
+                "dropped (the process runs): waiting for it to reconnect" \
+                if agent in self.launch.children.procs else \
+                f"dropped: waiting up to {self.launch.children.grace_s:g} s for it to reconnect"
             self.launch.options.log(f"{agent}'s Zenoh session {what}")
             self._event(self._earliest_ns(), "INFO" if back else "WARNING",
                         "session_back" if back else "session_lost",
@@ -189,15 +193,24 @@ class FaultInjector:
         with self._lock:
             self.dying.pop(agent, None)
         self._spawned.add(agent)
-        launch.options.log(f"{agent} restarting at {at_ns / 1e9:g} s (pid "
-                           f"{launch.children.procs[agent].pid})")
+        launch.options.log(f"{agent} restarting at {at_ns / 1e9:g} s "
+                           f"({launch.children.describe(agent)})")
 
-    def _lost(self, agent: str, code: int) -> None:
+    def left_early(self, agent: str) -> None:
+        """``agent`` said goodbye while the run goes on (it was told to stop: SIGTERM on its
+        host, or a clock stop or a withdrawn liveliness of ``up`` that ``up`` did not send):
+        it is lost, the run goes on without it."""
+        if agent not in self.lost:
+            self._lost(agent, None, f"agent {agent} said goodbye before the end of the run "
+                       f"({self.launch.children.describe(agent)}; it was told to stop, but "
+                       "not by up)")
+
+    def _lost(self, agent: str, code: int | None, description: str | None = None) -> None:
         """A process ended without an injected kill (or its last report never came)."""
         launch = self.launch
         self.lost.append(agent)
         self.killed.add(agent)
-        description = launch.children.describe_death(agent, code)
+        description = description or launch.children.describe_death(agent, code)
         now = self._earliest_ns()
         with self._lock:
             restart = self._restart_at.get(agent)

@@ -19,8 +19,15 @@
 Around them, the embedded router (a Zenoh session in mode ``router``, ``tcp/127.0.0.1:<free
 port>`` unless told otherwise) carries one subscriber on ``adn/<grid>/**`` whose samples go
 through the recorder tap (:class:`~adnmesh.runtime.tap.RecorderTap`: validated, then recorded;
-clock reports on to the clock, goodbyes to the roster) and a liveliness subscriber that tells
-the :class:`~adnmesh.runtime.roster.Roster` when a session appears or ends.
+clock reports on to the clock, goodbyes to the roster), a liveliness subscriber that tells
+the :class:`~adnmesh.runtime.roster.Roster` when a session appears or ends, and a link-events
+listener that counts the links per identity (:class:`~adnmesh.runtime.sessions.SessionWatch`).
+
+**Secure profile** (``certs``): the router listens on ``tls/127.0.0.1:<free port>`` with
+mutual TLS and the access control derived from the topology (:mod:`adnmesh.runtime.acl`,
+:mod:`adnmesh.runtime.security`); every agent gets ``--certs``. **External agents**
+(``external``) are not started here: ``up`` waits for them (``adnmesh agent`` on their hosts,
+directly or through a site router named in ``routers``) as long as it waits for its own.
 """
 
 from __future__ import annotations
@@ -41,19 +48,24 @@ import zenoh
 from adnmesh import __version__
 from adnmesh.config import Config
 from adnmesh.recording import PUBLISHED_METADATA, UNCOUNTED_METADATA, Recorder
+from adnmesh.runtime import acl
 from adnmesh.runtime.bus import DEFAULT_HOST, free_port, router_config
 from adnmesh.runtime.children import AgentProcesses, agent_argv
+from adnmesh.runtime.identity import router_identity
 from adnmesh.runtime.injector import FaultInjector
 from adnmesh.runtime.launcher_bus import LauncherOutbox, SimClockDriver
 from adnmesh.runtime.realtime import tolerance_ns
 from adnmesh.runtime.roster import Roster
+from adnmesh.runtime.sessions import SessionReport, SessionWatch
 from adnmesh.runtime.summary import RunSeries
 from adnmesh.runtime.tap import RecorderTap, recording_schemas
 from adnmesh.sim.clock import Coordinator
 from adnmesh.sim.topology import Topology
+from adnmesh.wire.keys import LAUNCHER
 from adnmesh.wire.units import ns
 
-__all__ = ["EXIT_FAILED", "EXIT_NOT_REALTIME", "EXIT_OK", "UpOptions", "UpResult", "run"]
+__all__ = ["EXIT_FAILED", "EXIT_NOT_REALTIME", "EXIT_OK", "UpOptions", "UpResult",
+           "embedded_router_config", "run"]
 
 EXIT_OK, EXIT_FAILED, EXIT_NOT_REALTIME, EXIT_SIGINT, EXIT_SIGTERM = 0, 1, 3, 130, 143
 NOT_REALTIME = "not real time"
@@ -96,6 +108,16 @@ class UpOptions:
         DER id -> its available power, W, handed to the DER processes.
     strict : bool
         Realtime: stop the run at the first overrun (exit code 3).
+    certs : Path, optional
+        The secure profile: the certificate directory (``adnmesh certs``).
+    external : frozenset of str
+        Agent ids started elsewhere (``adnmesh agent``); ``up`` waits for them.
+    routers : tuple of str
+        Names of the site routers (``adnmesh router --name``) that may link to this one.
+    stall_timeout_s : float
+        Sim clock: stop the run when no grant was issued for this long, wall s (0: never).
+        Nothing legitimate stalls the clock for long (a restarted process rejoins in seconds);
+        in the open profile a forged message can (see the README's security section).
     """
 
     config: Config
@@ -113,6 +135,10 @@ class UpOptions:
     run_file: Path | None = None
     available_w: dict = field(default_factory=dict)
     strict: bool = False
+    certs: Path | None = None
+    external: frozenset = frozenset()
+    routers: tuple = ()
+    stall_timeout_s: float = 60.0
 
 
 @dataclass
@@ -144,6 +170,8 @@ class UpResult:
         ``key -> {reason -> count}`` of what the recorder tap rejected.
     grants : int
         Clock grants issued (sim).
+    sessions : SessionReport
+        The links the router accepted, per identity, and the unexpected ones.
     problems : list of str
         What went wrong, one line each.
     tolerance_ns : int
@@ -162,6 +190,7 @@ class UpResult:
     byes: dict = field(default_factory=dict)
     rejected: dict = field(default_factory=dict)
     grants: int = 0
+    sessions: SessionReport = field(default_factory=SessionReport)
     problems: list = field(default_factory=list)
     tolerance_ns: int = 0
 
@@ -174,10 +203,13 @@ class _Launch:
         self.config = options.config
         self.topology = Topology.from_config(self.config)
         self.keys = self.topology.keys
-        self.endpoint = options.listen or f"tcp/{DEFAULT_HOST}:{free_port()}"
+        scheme = "tcp" if options.certs is None else "tls"
+        self.endpoint = options.listen or f"{scheme}/{DEFAULT_HOST}:{free_port()}"
         self.result = UpResult(end_ns=ns(self.config.scenario.duration_s))
         self.roster = Roster(self.topology.agents)
-        self.children = AgentProcesses()
+        self.children = AgentProcesses(options.external)
+        self.peers = tuple(router_identity(n) for n in options.routers)
+        self.sessions = SessionWatch((*self.topology.agents, *self.peers))
         self.interrupted: list[int] = []
         self.recorder = Recorder(options.out, metadata=_metadata(options),
                                  schemas=recording_schemas())
@@ -209,14 +241,21 @@ class _Launch:
             session.declare_subscriber(self.keys.all, self.on_sample,
                                        allowed_origin=zenoh.Locality.REMOTE),
             session.liveliness().declare_subscriber(f"{self.keys.root}/alive/**",
-                                                    self.roster.on_alive, history=True),
+                                                    self.on_alive, history=True),
         ]
+        self.sessions.declare(session)
         self._token = session.liveliness().declare_token(self.keys.liveliness("up"))
         if self.options.run_file is not None:
+            certs = self.options.certs
             self.options.run_file.parent.mkdir(parents=True, exist_ok=True)
             self.options.run_file.write_text(json.dumps({
                 "run_id": self.options.run_id, "endpoint": self.endpoint,
-                "grid": self.config.grid, "pid": os.getpid(), "clock": self.options.clock}))
+                "grid": self.config.grid, "pid": os.getpid(), "clock": self.options.clock,
+                "certs": None if certs is None else str(Path(certs).resolve())}))
+
+    def router_config(self):
+        """The Zenoh config of the embedded router (secure profile: mTLS and access control)."""
+        return embedded_router_config(self.options, self.endpoint)
 
     def withdraw_liveliness(self) -> None:
         """Withdraw ``up``'s liveliness token (once): agents waiting after their goodbye close."""
@@ -228,9 +267,20 @@ class _Launch:
         if self.options.run_file is not None:
             self.options.run_file.unlink(missing_ok=True)
         self.withdraw_liveliness()
+        self.sessions.undeclare()
         for handle in self._handles:
             handle.undeclare()
         self._handles = []
+
+    def on_alive(self, sample: zenoh.Sample) -> None:
+        """Liveliness: to the roster; an external agent whose session ended (and does not come
+        back within the grace) is dead."""
+        self.roster.on_alive(sample)
+        agent = str(sample.key_expr).split("/alive/", 1)[1]
+        if sample.kind == zenoh.SampleKind.PUT:
+            self.children.session_back(agent)
+        elif agent not in self.roster.byes:
+            self.children.session_ended(agent)
 
     def on_sample(self, sample: zenoh.Sample) -> None:
         """Every sample an agent sends: through the tap; reports, goodbyes and fault requests
@@ -266,13 +316,31 @@ class _Launch:
     # -- for the phases and the injector -------------------------------------------------------
 
     def spawn(self, agent_id: str, resume_ns: int = 0) -> None:
-        """Start the process of ``agent_id`` (a restarted one begins at ``resume_ns``)."""
+        """Start the process of ``agent_id`` (a restarted one begins at ``resume_ns``); for an
+        external agent, say how to start it on its host."""
+        if agent_id in self.options.external:
+            self.children.expect_again(agent_id)
+            self.options.log(f"external agent {agent_id}: start it on its host with "
+                             f"{self.agent_command(agent_id, resume_ns)}")
+            return
         der_id = agent_id[4:] if agent_id.startswith("der/") else None
         argv = agent_argv(agent_id, Path(self.config.path), self.endpoint,
-                          self.options.table_path, self.options.available_w.get(der_id))
+                          self.options.table_path, self.options.available_w.get(der_id),
+                          self.options.certs)
         if resume_ns:
             argv += ["--resume-at-ns", str(resume_ns)]
         self.children.spawn(agent_id, argv)
+
+    def agent_command(self, agent_id: str, resume_ns: int = 0) -> str:
+        """The ``adnmesh agent`` command line that runs ``agent_id`` against this router."""
+        kind, _, der = agent_id.partition("/")
+        words = ["adnmesh agent", kind, *(["--id", der] if der else []), str(self.config.path),
+                 "--connect", self.endpoint]
+        if self.options.certs is not None:
+            words += ["--certs", "DIR"]
+        if resume_ns:
+            words += ["--resume-at-ns", str(resume_ns)]
+        return "'" + " ".join(words) + "'"
 
     def announce_start(self) -> None:
         """Publish ``clock/start`` (again, for an agent that restarted)."""
@@ -293,6 +361,12 @@ class _Launch:
             return f"clock: {self.clock.error}"
         if self.not_realtime is not None:
             return f"{NOT_REALTIME}: {self.not_realtime}"
+        timeout = self.options.stall_timeout_s
+        if self.clock is not None and timeout and self.clock.stalled_s() > timeout:
+            with self.clock.lock:
+                busy = self.clock.coordinator.busy()
+            return (f"clock: no progress for {timeout:g} s (waiting for the report of "
+                    f"{', '.join(busy) or 'nobody'})")
         return None
 
     def startup_failure(self) -> str | None:
@@ -304,11 +378,30 @@ class _Launch:
         return self.failure()
 
 
+def embedded_router_config(options: UpOptions, endpoint: str) -> zenoh.Config:
+    """The Zenoh config of ``up``'s router listening on ``endpoint``: in the secure profile
+    with ``up``'s certificate and the access control derived from the topology."""
+    if options.certs is None:
+        return router_config([endpoint])
+    return router_config([endpoint], certs=options.certs, identity=LAUNCHER,
+                         access_control=_access_control(options))
+
+
+def _access_control(options: UpOptions) -> dict:
+    """The router's access control: the topology's rules, the site routers as peers."""
+    return acl.access_control(Topology.from_config(options.config),
+                              [router_identity(n) for n in options.routers])
+
+
 def _metadata(options: UpOptions) -> dict[str, str]:
     config = options.config
+    security = {"profile": "open"}
+    if options.certs is not None:
+        security = {"profile": "secure (mutual TLS, access control)",
+                    "zenoh_access_control": json.dumps(_access_control(options))}
     return {"config": Path(config.path).read_text(), "config_path": str(config.path),
             "config_sha256": config.sha256, "adnmesh_version": __version__,
-            "seed": str(options.seed), "clock": options.clock, "t0_ns": "0",
+            "seed": str(options.seed), "clock": options.clock, "t0_ns": "0", **security,
             **{k: str(v) for k, v in options.metadata.items()}}
 
 
@@ -318,20 +411,38 @@ def _metadata(options: UpOptions) -> dict[str, str]:
 def startup(launch: _Launch) -> str | None:
     """Spawn every agent and wait until all are ready; return why that failed, or None."""
     options, t0 = launch.options, time.monotonic()
-    for agent_id in launch.topology.agents:
+    local = [a for a in launch.topology.agents if a not in options.external]
+    for agent_id in local:
         launch.spawn(agent_id)
-    options.log(f"router on {launch.endpoint}; started {len(launch.topology.agents)} agents "
+    profile = "" if options.certs is None else " (secure: mutual TLS, access control)"
+    options.log(f"router on {launch.endpoint}{profile}; started {len(local)} agents "
                 f"(pids {launch.children.pids()})")
+    if options.external:
+        options.log(f"waiting up to {options.startup_timeout_s:g} s for "
+                    f"{len(options.external)} external agent(s): "
+                    f"{', '.join(sorted(options.external))}")
     deadline = t0 + options.startup_timeout_s
     reason = None
     while reason is None and launch.roster.not_ready():
         reason = launch.startup_failure()
         if reason is None and time.monotonic() > deadline:
-            reason = (f"agents not ready after {options.startup_timeout_s:g} s: "
-                      f"{', '.join(launch.roster.not_ready())}")
+            reason = _not_ready(launch)
         launch.roster.wait(_POLL_S)
     launch.result.startup_s = time.monotonic() - t0
     return reason
+
+
+def _not_ready(launch: _Launch) -> str:
+    """Who is missing after the startup timeout, external agents with how to start them."""
+    missing = launch.roster.not_ready()
+    alive = launch.roster.alive_now()
+    external = [a for a in missing if a in launch.options.external and a not in alive]
+    named = [f"{a} (connected, no clock report)" if a in alive else a for a in missing]
+    text = f"agents not ready after {launch.options.startup_timeout_s:g} s: {', '.join(named)}"
+    if external:
+        text += (f" (external, not connected: {', '.join(external)}; start each on its host, "
+                 f"e.g. {launch.agent_command(external[0])})")
+    return text
 
 
 def run_clock(launch: _Launch) -> str:
@@ -359,6 +470,8 @@ def run_clock(launch: _Launch) -> str:
         reason = "finished" if done else launch.failure()
         if reason is None:
             launch.injector.supervise()
+            for agent in sorted(launch.roster.byes):   # gone before up said stop
+                launch.injector.left_early(agent)
             launch.roster.wait(_POLL_S)
     result.wall_time_s = time.perf_counter() - t_start
     if reason == "finished":
@@ -377,7 +490,9 @@ def shutdown(launch: _Launch, reason: str) -> None:
     launch.outbox.send(launch.keys.stop, t_stop, reason=reason)
     deadline = time.monotonic() + options.shutdown_timeout_s
     while time.monotonic() < deadline:
-        if not roster.without_bye() & children.running():
+        # an external agent can say goodbye only while its session is up
+        waiting = children.running() - (options.external - roster.alive_now())
+        if not roster.without_bye() & waiting:
             break
         roster.wait(0.05)
     launch.withdraw_liveliness()   # every running agent's goodbye is in: they may close
@@ -449,7 +564,7 @@ def run(options: UpOptions) -> UpResult:
     result = launch.result
     previous = _catch_signals(launch.interrupted, launch.roster.changed)
     try:
-        with zenoh.open(router_config([launch.endpoint])) as session:
+        with zenoh.open(launch.router_config()) as session:
             launch.open(session)
             try:
                 reason = startup(launch) or run_clock(launch)
@@ -465,7 +580,9 @@ def run(options: UpOptions) -> UpResult:
             signal.signal(signum, handler)
     result.byes = dict(launch.roster.byes)
     result.rejected = launch.tap.rejected
-    result.problems = launch.tap.problems + result.problems
+    result.sessions = launch.sessions.report()
+    result.problems = launch.tap.problems + result.problems + [
+        f"security: {line}" for line in result.sessions.unexpected]
     if launch.clock is not None:
         result.grants = launch.clock.grants_issued
     return result

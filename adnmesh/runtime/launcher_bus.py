@@ -9,6 +9,7 @@ takes only what comes from the agents). :class:`SimClockDriver` feeds clock repo
 from __future__ import annotations
 
 import threading
+import time
 
 import zenoh
 from msgspec import UNSET
@@ -80,6 +81,7 @@ class SimClockDriver:
         self._started = False
         self.finished = False
         self.error: str | None = None
+        self.last_grant_s = time.monotonic()   # when the clock last moved, monotonic s
 
     def on_report(self, message) -> None:
         """Take an agent's clock report; publish the grants that follow."""
@@ -134,7 +136,14 @@ class SimClockDriver:
     def grants_issued(self) -> int:
         return self.coordinator.grants_issued
 
+    def stalled_s(self) -> float:
+        """Wall seconds since the last grant (0 before the start)."""
+        with self.lock:
+            return time.monotonic() - self.last_grant_s if self._started else 0.0
+
     def _send(self, grants) -> None:   # with the lock held
+        if grants:
+            self.last_grant_s = time.monotonic()
         t = self.coordinator.now_ns() if grants else 0
         for g in grants:
             self._outbox.send(self._keys.grant(g.agent), t, until_ns=g.until_ns, expect=g.expect)

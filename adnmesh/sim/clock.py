@@ -224,6 +224,10 @@ class Coordinator:
         taken, self.rejoined = self.rejoined, []
         return taken
 
+    def busy(self) -> list[str]:
+        """Live agents granted a window whose report has not come yet."""
+        return [a for i, a in enumerate(self.agents) if not self._idle[i] and not self._dead[i]]
+
     def is_dead(self, agent: str) -> bool:
         return self._dead[self._index[agent]]
 

@@ -1,0 +1,91 @@
+"""``adnmesh router CONFIG --name NAME --connect ENDPOINT [--listen ENDPOINT] [--certs DIR]``.
+
+A site router: a Zenoh router session (no daemon) on another host, linked to ``adnmesh up``'s
+router; the agents of that site (``adnmesh agent ... --connect`` this router's endpoint) reach
+the run through it. In the secure profile it presents the certificate ``router/NAME``, accepts
+only clients with certificates of the run's CA and enforces the same access control as
+``up``'s router on them (:mod:`adnmesh.runtime.acl`; ``up`` is its peer); ``up`` must be told
+of it (``adnmesh up --routers NAME``). Runs until SIGINT/SIGTERM, or with ``--until-run-ends``
+until ``up``'s liveliness, once seen, is withdrawn.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+
+from adnmesh.commands import add_config_argument
+
+__all__ = ["add_parser", "run"]
+
+
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    """Add the ``router`` subparser."""
+    parser = subparsers.add_parser(
+        "router", help="run a site router linked to the router of 'adnmesh up'",
+        description="Run a Zenoh router for the agents of one site, linked to the router of "
+        "'adnmesh up' (--connect). With --certs: mutual TLS with the certificate router/NAME "
+        "and the run's access control on its own clients. Exit code 0 after SIGINT/SIGTERM or "
+        "the end of the run (--until-run-ends), 1 if the router cannot start.")
+    add_config_argument(parser)
+    parser.add_argument("--name", required=True, help="the site's name (identity router/NAME)")
+    parser.add_argument("--connect", "-e", metavar="ENDPOINT", action="append", required=True,
+                        help="the router of adnmesh up (tcp/HOST:PORT, tls/ with --certs)")
+    parser.add_argument("--listen", "-l", metavar="ENDPOINT", action="append",
+                        help="where this router listens (default: 127.0.0.1, a free port)")
+    parser.add_argument("--certs", metavar="DIR", help="secure profile: certificate directory")
+    parser.add_argument("--until-run-ends", action="store_true",
+                        help="exit when the run ends (up's liveliness is withdrawn)")
+    return parser
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the router until told to stop."""
+    import zenoh
+
+    from adnmesh.config import load_config
+    from adnmesh.runtime import acl
+    from adnmesh.runtime.bus import DEFAULT_HOST, free_port, router_config
+    from adnmesh.runtime.identity import router_identity
+    from adnmesh.sim.topology import Topology
+    from adnmesh.wire.keys import LAUNCHER
+
+    topology = Topology.from_config(load_config(args.config))
+    identity = router_identity(args.name)
+    scheme = "tcp" if args.certs is None else "tls"
+    listen = args.listen or [f"{scheme}/{DEFAULT_HOST}:{free_port()}"]
+    config = router_config(listen, args.connect, certs=args.certs, identity=identity,
+                           access_control=acl.access_control(topology, [LAUNCHER]))
+    done, seen = threading.Event(), threading.Event()
+
+    def on_up(sample: zenoh.Sample) -> None:
+        if sample.kind == zenoh.SampleKind.PUT:
+            seen.set()
+            print(f"adnmesh router {identity}: adnmesh up is reachable", file=sys.stderr,
+                  flush=True)
+        elif seen.is_set() and args.until_run_ends:
+            done.set()
+
+    try:
+        session = zenoh.open(config)
+    except zenoh.ZError as exc:
+        print(f"adnmesh router {identity}: cannot start: {str(exc).split(' at ')[0]}",
+              file=sys.stderr)
+        return 1
+    previous = {s: signal.signal(s, lambda *_: done.set()) for s in (signal.SIGINT,
+                                                                    signal.SIGTERM)}
+    try:
+        watcher = session.liveliness().declare_subscriber(
+            topology.keys.liveliness(LAUNCHER), on_up, history=True)
+        print(f"adnmesh router {identity}: listening on {', '.join(listen)}, linked to "
+              f"{', '.join(args.connect)}", file=sys.stderr, flush=True)
+        while not done.wait(0.5):
+            pass
+        watcher.undeclare()
+    finally:
+        session.close()
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+    return 0

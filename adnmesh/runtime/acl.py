@@ -1,0 +1,150 @@
+"""Zenoh access control of the secure profile, derived from the topology (bus-free).
+
+Every identity (the CN of its certificate, :mod:`adnmesh.runtime.certs`) gets exactly the rights
+the message graph of the config gives it, and nothing else: the router denies by default.
+
+=================  ==========================================  ==================================
+identity           may publish (``put``, ingress)              may subscribe to and is sent
+=================  ==========================================  ==================================
+``cpfc``           ``cpfc/p_y``, ``scenario/p_ref``            ``measurement/p_ip``,
+                                                               ``availability/si``, heartbeats
+``der/<id>``       ``der/<id>/state``, ``der/<id>/heartbeat``  ``cpfc/p_y``
+``measurement``    ``measurement/p_ip``                        every ``der/<id>/state``
+``availability``   ``availability/si``                         every ``der/<id>/heartbeat``
+every agent        ``event/<agent>``, ``clock/report/<agent>``  ``faults``, ``clock/start``,
+                   ``clock/bye/<agent>``; liveliness token     ``clock/stop``,
+                   ``alive/<agent>``                           ``clock/grant/<agent>``,
+                                                               ``clock/kill/<agent>``; the
+                                                               liveliness of ``alive/up``
+``operator``       ``control/fault``                           ``event/up``
+=================  ==========================================  ==================================
+
+``up`` is the router's own session (grants, start, stop, kill, faults, the recorder's
+subscription to everything): Zenoh filters transports, not the router's local session. A **peer
+router** (a site router of ``adnmesh router``, or ``up`` seen from one) carries the messages of
+the agents behind it: it may publish every key of the run except ``up``'s own and forward the
+agents' liveliness tokens (``up`` may publish all keys and tokens), declare subscribers and
+liveliness subscribers on ``adn/<grid>/**``, and is sent everything; each router enforces the
+rules above on its own clients.
+
+:func:`rights` is the table above computed from a :class:`~adnmesh.sim.topology.Topology`;
+:func:`access_control` turns it into the ``access_control`` section of a router's Zenoh config.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from adnmesh.sim.topology import Topology
+from adnmesh.wire.keys import LAUNCHER, OPERATOR
+
+__all__ = ["Rights", "access_control", "launcher_keys", "rights"]
+
+_INGRESS, _EGRESS = ["ingress"], ["egress"]
+_PEER_DECLARATIONS = ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"]
+
+
+@dataclass(frozen=True)
+class Rights:
+    """What one identity may do on the bus.
+
+    Attributes
+    ----------
+    identity : str
+    publishes : tuple of str
+        Keys it may put.
+    receives : tuple of str
+        Keys it may subscribe to, and that the router sends it.
+    token : str or None
+        Its liveliness token.
+    watches : tuple of str
+        Liveliness keys it may subscribe to (and whose tokens it is sent).
+    """
+
+    identity: str
+    publishes: tuple[str, ...]
+    receives: tuple[str, ...]
+    token: str | None = None
+    watches: tuple[str, ...] = ()
+
+
+def launcher_keys(topology: Topology) -> tuple[str, ...]:
+    """The keys only ``up`` publishes: clock start, stop, grants and kills; faults; its
+    events."""
+    keys = topology.keys
+    return (keys.start, keys.stop, keys.faults, keys.event(LAUNCHER),
+            *(keys.grant(a) for a in topology.agents), *(keys.kill(a) for a in topology.agents))
+
+
+def rights(topology: Topology) -> dict[str, Rights]:
+    """The rights of every client identity of a run (agents and ``operator``), by identity."""
+    keys = topology.keys
+    found = {}
+    for agent in topology.agents:
+        publishes = (*topology.publishes(agent), keys.report(agent), keys.bye(agent))
+        receives = (*topology.subscriptions[agent], keys.grant(agent), keys.start, keys.stop,
+                    keys.kill(agent))
+        found[agent] = Rights(agent, publishes, receives, keys.liveliness(agent),
+                              (keys.liveliness(LAUNCHER),))
+    found[OPERATOR] = Rights(OPERATOR, (keys.fault_request,), (keys.event(LAUNCHER),))
+    return found
+
+
+def access_control(topology: Topology, peers=()) -> dict:
+    """The ``access_control`` section of a router's Zenoh config (deny by default).
+
+    Parameters
+    ----------
+    topology : Topology
+    peers : iterable of str
+        Identities of the routers this one links to (``up``, ``router/<name>``).
+    """
+    rules, subjects, policies = [], [], []
+
+    def allow(identity: str, what: str, flows, messages, key_exprs) -> str | None:
+        if not key_exprs:
+            return None
+        rule_id = f"{identity} {what}"
+        rules.append({"id": rule_id, "permission": "allow", "flows": flows,
+                      "messages": messages, "key_exprs": sorted(set(key_exprs))})
+        return rule_id
+
+    def subject(identity: str, rule_ids) -> None:
+        subjects.append({"id": identity, "cert_common_names": [identity]})
+        policies.append({"id": identity, "rules": [r for r in rule_ids if r is not None],
+                         "subjects": [identity]})
+
+    for r in rights(topology).values():
+        subject(r.identity, [
+            allow(r.identity, "publishes", _INGRESS, ["put"], r.publishes),
+            allow(r.identity, "subscribes", _INGRESS, ["declare_subscriber"], r.receives),
+            allow(r.identity, "receives", _EGRESS, ["put"], r.receives),
+            allow(r.identity, "is alive", _INGRESS, ["liveliness_token"],
+                  [r.token] if r.token else []),
+            allow(r.identity, "watches", _INGRESS, ["declare_liveliness_subscriber"],
+                  r.watches),
+            allow(r.identity, "is told", _EGRESS, ["liveliness_token"], r.watches),
+        ])
+    everything = topology.keys.all
+    every_key = _every_key(topology)
+    for peer in dict.fromkeys(peers):
+        own = set(launcher_keys(topology))
+        carried = every_key if peer == LAUNCHER else [k for k in every_key if k not in own]
+        tokens = [everything] if peer == LAUNCHER else [
+            topology.keys.liveliness(a) for a in topology.agents]
+        subject(peer, [
+            allow(peer, "forwards", _INGRESS, ["put"], carried),
+            allow(peer, "is sent", _EGRESS, ["put", "liveliness_token"], [everything]),
+            allow(peer, "declares", ["ingress", "egress"], _PEER_DECLARATIONS, [everything]),
+            allow(peer, "forwards tokens", _INGRESS, ["liveliness_token"], tokens),
+        ])
+    return {"enabled": True, "default_permission": "deny", "rules": rules,
+            "subjects": subjects, "policies": policies}
+
+
+def _every_key(topology: Topology) -> list[str]:
+    """Every key anyone of the run may publish."""
+    found = list(launcher_keys(topology))
+    for r in rights(topology).values():
+        found += r.publishes
+    return sorted(set(found))

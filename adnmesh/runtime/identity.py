@@ -1,0 +1,76 @@
+"""Identities of the secure profile, and where their certificates are.
+
+An **identity** is who a process is on the bus: an agent id (``cpfc``, ``measurement``,
+``availability``, ``der/<id>``), ``up`` (``adnmesh up``: router, recorder, clock), ``operator``
+(``adnmesh fault``) or ``router/<name>`` (a site router, ``adnmesh router``). It is the
+certificate's common name (CN), which Zenoh's access control matches
+(:mod:`adnmesh.runtime.acl`), and the file name below the certificate directory::
+
+    DIR/ca.pem  DIR/ca.key                       the CA (its key signs; keep it off the hosts)
+    DIR/<identity>.pem  DIR/<identity>.key       e.g. DIR/der/SGen1.pem, DIR/router/site.key
+
+Creating them: :mod:`adnmesh.runtime.certs` (``adnmesh certs``).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+from adnmesh.errors import UsageError
+from adnmesh.wire.keys import AGENT_PATTERN, ID_PATTERN, LAUNCHER, OPERATOR, der_agent_id
+
+__all__ = ["CA", "CertFiles", "cert_files", "check_identity", "identities", "router_identity"]
+
+CA = "ca"
+"""File stem of the CA's certificate and key."""
+
+_IDENTITY = re.compile(rf"^(?:{AGENT_PATTERN}|{LAUNCHER}|{OPERATOR}|router/{ID_PATTERN})$")
+
+
+def router_identity(name: str) -> str:
+    """Identity of the site router ``name``: ``router/<name>``."""
+    return check_identity(f"router/{name}")
+
+
+def check_identity(identity: str) -> str:
+    """``identity`` if it is one (see the module docstring); else a :class:`UsageError`."""
+    if len(identity) > 80 or not _IDENTITY.match(identity):
+        raise UsageError(f"not an identity: {identity!r} (cpfc, measurement, availability, "
+                         "der/<id>, up, operator, router/<name>)")
+    return identity
+
+
+def identities(config) -> tuple[str, ...]:
+    """Every identity a run of ``config`` needs: its agents, ``up`` and ``operator``."""
+    return ("cpfc", "measurement", "availability", *(der_agent_id(d) for d in config.der_ids()),
+            LAUNCHER, OPERATOR)
+
+
+@dataclass(frozen=True)
+class CertFiles:
+    """Where an identity's certificate and key are, and the CA that signed them."""
+
+    identity: str
+    cert: Path
+    key: Path
+    ca: Path
+
+    def check(self) -> CertFiles:
+        """Self, if all three files are readable; else a one-line :class:`UsageError`."""
+        for path in (self.ca, self.cert, self.key):
+            if not os.access(path, os.R_OK):
+                raise UsageError(f"{path}: missing or unreadable (the certificate of "
+                                 f"{self.identity}; create it with 'adnmesh certs "
+                                 f"{self.ca.parent} --config CONFIG')")
+        return self
+
+
+def cert_files(directory: str | os.PathLike, identity: str) -> CertFiles:
+    """The files of ``identity`` below ``directory`` (not checked; see :meth:`CertFiles.check`)."""
+    root = Path(directory)
+    stem = root / check_identity(identity)
+    return CertFiles(identity, stem.with_suffix(".pem"), stem.with_suffix(".key"),
+                     root / f"{CA}.pem")
