@@ -288,31 +288,35 @@ def _step_after(recording, summary, t_s: float) -> tuple[dict, float]:
     return step, before["p_ip_w"] - (step["p_ref_w"] - step["step_w"])
 
 
-@pytest.mark.parametrize("outage_s", [2.0, 20.0])
-def test_an_ict_outage_of_any_length_leaves_no_wind_up(tmp_path: Path, outage_s: float) -> None:
-    """The opening case of the fault issue: an outage of cpfc_to_der, then a step of P_ref.
-    The DERs fall back to their schedules after the watchdog time, the CPFC learns it from
-    their acknowledgements, undoes the samples the fault disturbed and switches bumplessly; when
-    the outage ends they follow again. Bound: once P_IP is back near P_ref the loop is at a
-    steady state of the same operating point, so the step from there is the undisturbed step
-    plus the response to the residual deviation r at the step instant; by superposition the
-    overshoot can exceed the undisturbed one by at most 100 |r| / |step| %."""
-    scenario = {"duration_s": 40, "p_ref_steps": [{"t_s": 30, "delta_w": 1.0e6}],
+def test_an_ict_outage_of_any_length_leaves_no_wind_up(tmp_path: Path) -> None:
+    """The opening case of the fault issue: an outage of cpfc_to_der, then a step of P_ref —
+    here a short (2 s) and a long (20 s) outage, each before its own step. The DERs fall back
+    to their schedules after the watchdog time, the CPFC learns it from their
+    acknowledgements, undoes the samples the fault disturbed and switches bumplessly; when the
+    outage ends they follow again. Bound: once P_IP is back near P_ref the loop is at a steady
+    state of the same operating point, so the step from there is the undisturbed step plus the
+    response to the residual deviation r at the step instant; by superposition the overshoot
+    can exceed the undisturbed one by at most 100 |r| / |step| %."""
+    scenario = {"duration_s": 80, "p_ref_steps": [{"t_s": 20, "delta_w": 1.0e6},
+                                                  {"t_s": 70, "delta_w": -1.0e6}],
                 "availability": []}
     config, table = write_case(tmp_path, "clean", scenario=scenario)
     _, clean_run, clean = run_up(tmp_path, config, table, "clean")
-    faults = [{"kind": "link_outage", "link": "cpfc_to_der", "t_s": 5, "duration_s": outage_s}]
+    faults = [{"kind": "link_outage", "link": "cpfc_to_der", "t_s": 5, "duration_s": 2},
+              {"kind": "link_outage", "link": "cpfc_to_der", "t_s": 30, "duration_s": 20}]
     config, table = write_case(tmp_path, "outage", scenario=scenario,
                                runtime={"faults": faults})
     _, faulty_run, faulty = run_up(tmp_path, config, table, "outage")
-    assert ("der/SGen1", "watchdog_fallback") in [(e["src"], e["kind"])
-                                                 for e in events(faulty_run)]
-    step, residual = _step_after(faulty_run, faulty, 30.0)
-    reference, _ = _step_after(clean_run, clean, 30.0)
+    fallbacks = [e["t_send_ns"] * 1e-9
+                 for e in events(faulty_run, "watchdog_fallback")]
+    assert any(5 < t < 7 for t in fallbacks) and any(30 < t < 50 for t in fallbacks)
     limit = load_config(config).constraints.overshoot_max_pct
-    bound = 100 * abs(residual) / abs(step["step_w"])
-    assert reference["figures"]["overshoot_pct"] < limit
-    assert step["figures"]["overshoot_pct"] <= reference["figures"]["overshoot_pct"] + bound \
-        + 1e-6, (step, residual)
-    assert step["figures"]["overshoot_pct"] < limit + bound
-    assert abs(step["figures"]["rise_time_s"] - reference["figures"]["rise_time_s"]) < 0.05
+    for t_step in (20.0, 70.0):
+        step, residual = _step_after(faulty_run, faulty, t_step)
+        reference, _ = _step_after(clean_run, clean, t_step)
+        bound = 100 * abs(residual) / abs(step["step_w"])
+        assert reference["figures"]["overshoot_pct"] < limit
+        assert step["figures"]["overshoot_pct"] <= reference["figures"]["overshoot_pct"] + \
+            bound + 1e-6, (step, residual)
+        assert step["figures"]["overshoot_pct"] < limit + bound
+        assert abs(step["figures"]["rise_time_s"] - reference["figures"]["rise_time_s"]) < 0.05

@@ -186,14 +186,13 @@ def test_two_sim_runs_with_the_same_seed_send_identical_messages(tmp_path: Path)
 
 
 @pytest.mark.slow
-def test_a_realtime_run_at_speed_1_gives_the_sim_runs_figures(tmp_path: Path) -> None:
+def test_a_realtime_run_at_speed_1_gives_the_sim_runs_figures(reference_run) -> None:
     """Messages carry their scheduled times, so a realtime run processes the same inputs at the
     same times as the sim run unless a message arrives after its delivery time. With no late
     arrival the figures are equal; with some (a loaded machine), each late message acts as a
     longer delay once, which moves a crossing of P_IP by at most the largest delivery error plus
     one PI period, twice for a rise time (two crossings). README "Real time" has the derivation."""
-    config, table = write_case(tmp_path, "rt")
-    _, _, sim = run_up(tmp_path, config, table, "sim")
+    tmp_path, config, table, _, _, sim = reference_run          # the sim run of the same case
     result, recording, real = run_up(tmp_path, config, table, "rt", "--clock", "realtime",
                                      "--speed", "1")
     assert recording.run["clock"] == "realtime"
