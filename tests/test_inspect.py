@@ -62,7 +62,8 @@ def test_inspect_prints_the_metadata_on_request(fake: Path, capsys) -> None:
 def test_inspect_recovers_a_truncated_recording(fake: Path, tmp_path: Path, capsys) -> None:
     # a killed recorder: the fake run with a flush every 500 messages, cut mid-chunk
     path = tmp_path / "killed.mcap"
-    recorder = Recorder(path, metadata={"run_id": "killed"}, schemas=FAKE_SCHEMAS)
+    recorder = Recorder(path, metadata={"run_id": "killed"}, schemas=FAKE_SCHEMAS,
+                        flush_interval_s=3600)   # chunks end where the test flushes, not by time
     for i, m in enumerate(fake_run()):
         recorder.write(m.topic, m.schema_name, m.payload, log_time_ns=m.t_deliver_ns,
                        publish_time_ns=m.t_send_ns)

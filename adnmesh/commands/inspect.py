@@ -6,6 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
+import numpy as np
 import yaml
 from rich.console import Console
 from rich.table import Table
@@ -22,7 +23,8 @@ from adnmesh.recording import (
     validate_recording,
 )
 from adnmesh.recording.figures import run_figures, step_table
-from adnmesh.recording.series import RunData, extract
+from adnmesh.recording.series import RunData, read_run
+from adnmesh.recording.stream import ScannedRecording
 
 __all__ = ["EXIT_PROBLEMS", "add_parser", "run", "settling_band_pct", "topic_table"]
 
@@ -61,21 +63,16 @@ def _s(t_ns: int, t0_ns: int) -> str:
     return f"{(t_ns - t0_ns) / 1e9:.3f}"
 
 
-def topic_table(recording: Recording, t0_ns: int) -> Table:
+def topic_table(recording: ScannedRecording, t0_ns: int) -> Table:
     """Return the per-topic table: type, count, first and last send time, s."""
-    table = Table(title=f"{len(recording.channels)} topics", title_justify="left")
+    table = Table(title=f"{len(recording.channel_stats)} topics", title_justify="left")
     for column in ("topic", "type", "messages", "first [s]", "last [s]"):
         table.add_column(column, justify="left" if column in ("topic", "type") else "right")
-    first: dict[str, int] = {}
-    last: dict[str, int] = {}
-    for m in recording.messages:
-        first[m.topic] = min(first.get(m.topic, m.publish_time_ns), m.publish_time_ns)
-        last[m.topic] = max(last.get(m.topic, m.publish_time_ns), m.publish_time_ns)
-    for topic, count in recording.counts().items():
-        info = recording.channels[topic]
-        table.add_row(topic, info.schema_name or "-", str(count),
-                      _s(first[topic], t0_ns) if topic in first else "-",
-                      _s(last[topic], t0_ns) if topic in last else "-")
+    for topic, stats in recording.channel_stats.items():
+        seen = stats.count > 0
+        table.add_row(topic, stats.info.schema_name or "-", str(stats.count),
+                      _s(stats.first_publish_ns, t0_ns) if seen else "-",
+                      _s(stats.last_publish_ns, t0_ns) if seen else "-")
     return table
 
 
@@ -91,20 +88,82 @@ def settling_band_pct(recording: Recording) -> float:
     return float(band) if valid else Constraints().settling_band_pct
 
 
-def _print_faults_and_grid(console: Console, recording: Recording, band_pct: float) -> None:
-    """The per-fault and grid figures of ``adnmesh up``'s summary, from the same series."""
-    from adnmesh.runtime.summary import MESSAGE_TYPES, RunSeries, fault_table, grid_line, \
-        summarize
+class _SummaryMessages:
+    """The messages ``adnmesh up``'s summary reads (:class:`~adnmesh.runtime.summary.RunSeries`),
+    taken in the same pass as the series: ``P_IP`` as columns, ``p_y`` only where it carries a
+    switch record, the few others whole."""
 
-    series = RunSeries()
-    for message in sorted(recording.messages, key=lambda m: m.publish_time_ns):
-        if message.schema_name in MESSAGE_TYPES:
+    def __init__(self) -> None:
+        from adnmesh.runtime.summary import MESSAGE_TYPES
+
+        self.types = MESSAGE_TYPES
+        self.p_ip: list[tuple[np.ndarray, ...]] = []
+        self.whole: list[tuple[int, int, str, bytes]] = []
+
+    def sink_for(self, info):
+        kind = info.schema_name
+        if kind not in self.types:
+            return None
+        if kind == "p_ip":
+            return _Fields(("t_send_ns", "p_ip_w"), self._p_ip)
+        if kind == "p_y":
+            return _Fields(("switch",), self._p_y)
+        return lambda batch: self._keep(kind, batch, range(len(batch)))
+
+    def _p_ip(self, batch, columns) -> None:
+        t, p = columns.columns["t_send_ns"], columns.columns["p_ip_w"]
+        rows = [i for i in range(len(t)) if columns.valid[i] and isinstance(t[i], int)
+                and isinstance(p[i], int | float)]
+        self.p_ip.append((batch.publish_time_ns[rows], batch.ordinal[rows],
+                          np.asarray([t[i] for i in rows], dtype=np.int64),
+                          np.asarray([p[i] for i in rows], dtype=np.float64)))
+
+    def _p_y(self, batch, columns) -> None:
+        switch = columns.columns["switch"]
+        self._keep("p_y", batch, [i for i, s in enumerate(switch) if isinstance(s, dict)])
+
+    def _keep(self, kind: str, batch, rows) -> None:
+        payloads = batch.payloads
+        for i in rows:
+            self.whole.append((int(batch.publish_time_ns[i]), int(batch.ordinal[i]), kind,
+                               payloads[i]))
+
+    def series(self):
+        """The :class:`~adnmesh.runtime.summary.RunSeries` of the messages taken."""
+        from adnmesh.runtime.summary import RunSeries
+
+        series = RunSeries()
+        if self.p_ip:
+            publish, ordinal, t_ns, p_w = (np.concatenate(c) for c in zip(*self.p_ip))
+            order = np.lexsort((ordinal, publish))
+            series.p_ip_t_ns, series.p_ip_w = t_ns[order].tolist(), p_w[order].tolist()
+        for _, _, kind, payload in sorted(self.whole, key=lambda m: m[:2]):
             try:
-                series.add(message.schema_name, json.loads(message.data))
+                series.add(kind, json.loads(payload))
             except (ValueError, KeyError, TypeError):
                 continue                  # not one of adnmesh's messages: no figures from it
-    end = max((m.publish_time_ns for m in recording.messages), default=0)
-    summary = summarize(series, end_ns=end, band_pct=band_pct)
+        return series
+
+
+class _Fields:
+    """A sink that wants the payload fields ``fields`` decoded."""
+
+    def __init__(self, fields: tuple[str, ...], take) -> None:
+        self.fields, self._take = fields, take
+
+    def __call__(self, batch) -> None:
+        from adnmesh.recording.stream import decode_fields
+
+        self._take(batch, batch.columns or decode_fields(batch, self.fields))
+
+
+def _print_faults_and_grid(console: Console, recording, messages: _SummaryMessages,
+                           band_pct: float) -> None:
+    """The per-fault and grid figures of ``adnmesh up``'s summary, from the same series."""
+    from adnmesh.runtime.summary import fault_table, grid_line, summarize
+
+    ends = [s.last_publish_ns for s in recording.channel_stats.values() if s.count]
+    summary = summarize(messages.series(), end_ns=max(ends, default=0), band_pct=band_pct)
     if summary.faults:
         console.print(fault_table(summary.faults))
     if summary.grid is not None:
@@ -112,7 +171,7 @@ def _print_faults_and_grid(console: Console, recording: Recording, band_pct: flo
 
 
 def _print_figures(console: Console, run_data: RunData, band_pct: float,
-                   recording: Recording) -> None:
+                   recording, messages: _SummaryMessages) -> None:
     figures = run_figures(run_data, band_pct=band_pct)
     if figures.steps:
         console.print(step_table(figures.steps, figures.band_pct))
@@ -122,7 +181,7 @@ def _print_figures(console: Console, run_data: RunData, band_pct: float,
     console.print(f"events: {figures.gain_switches} gain switches, "
                   f"{figures.availability_changes} availability changes, {figures.faults} fault "
                   f"events, {figures.mode_changes} DER mode changes")
-    _print_faults_and_grid(console, recording, band_pct)
+    _print_faults_and_grid(console, recording, messages, band_pct)
     initial = next((e for e in run_data.events if e.kind == "availability"), None)
     for event in run_data.events:
         if event is not initial:  # the first availability event is the initial state
@@ -155,11 +214,12 @@ def run(args: argparse.Namespace) -> int:
     """Read ``args.recording`` and print its summary; recover it if it is truncated."""
     console = Console(highlight=False, markup=False, soft_wrap=True)
     path = Path(args.recording)
-    recording = read_recording(path)
+    found, messages = read_run(path, also=_SummaryMessages)
+    recording, run_data = found.recording, found.run
     size = path.stat().st_size
     state = "complete" if recording.complete else "TRUNCATED"
-    console.print(f"{path}: {state} MCAP recording, {len(recording.messages)} messages on "
-                  f"{len(recording.channels)} topics, {size} bytes ({recording.library})")
+    console.print(f"{path}: {state} MCAP recording, {recording.message_count} messages on "
+                  f"{len(recording.channel_stats)} topics, {size} bytes ({recording.library})")
     if not recording.complete:
         out = args.recover_to or path.with_name(path.stem + ".recovered.mcap")
         recovered = recover(path, out)
@@ -175,22 +235,26 @@ def run(args: argparse.Namespace) -> int:
             console.print(f"metadata {name}:")
             for key, value in data.items():
                 console.print(f"  {key}: " + value.replace("\n", "\n    ").rstrip())
-    run_data = extract(recording)
     span = recording.time_range_ns()
     if span is not None:
         console.print(f"time: {_s(span[0], run_data.t0_ns)} to {_s(span[1], run_data.t0_ns)} s "
                       f"(sim_time, send and delivery times)")
     console.print(topic_table(recording, run_data.t0_ns))
-    _print_figures(console, run_data, settling_band_pct(recording), recording)
+    _print_figures(console, run_data, settling_band_pct(recording), recording, messages)
     ok = _check_counts(console, recording)
     if args.validate:
-        problems = validate_recording(recording, limit=20)
-        if problems:
-            ok = False
-            console.print(f"schema check: {len(problems)}{'+' if len(problems) == 20 else ''} "
-                          "problems")
-            for problem in problems:
-                console.print(f"  {problem}")
-        else:
-            console.print(f"schema check: all {len(recording.messages)} messages valid")
+        ok = _validate(console, read_recording(path)) and ok
     return 0 if ok else EXIT_PROBLEMS
+
+
+def _validate(console: Console, recording: Recording) -> bool:
+    """Check every message against its schema (reads the whole file: on request only)."""
+    problems = validate_recording(recording, limit=20)
+    if problems:
+        console.print(f"schema check: {len(problems)}{'+' if len(problems) == 20 else ''} "
+                      "problems")
+        for problem in problems:
+            console.print(f"  {problem}")
+        return False
+    console.print(f"schema check: all {len(recording.messages)} messages valid")
+    return True

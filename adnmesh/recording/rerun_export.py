@@ -23,6 +23,7 @@ import numpy as np
 
 from adnmesh.recording.reader import Recording
 from adnmesh.recording.series import RunData, Series, extract
+from adnmesh.recording.stream import ScannedRecording
 
 __all__ = [
     "APPLICATION_ID",
@@ -117,8 +118,12 @@ def log_run(rec, run: RunData) -> None:
                                        level=[_LEVELS.get(e.level, "INFO") for e in events]))
 
 
-def export_rrd(recording: Recording, out_path: str | Path, *, run: RunData | None = None) -> Path:
+def export_rrd(recording: Recording | ScannedRecording, out_path: str | Path, *,
+               run: RunData | None = None) -> Path:
     """Write ``recording`` as a Rerun ``.rrd`` file with its blueprint; return the path.
+
+    ``run`` is its series (:func:`~adnmesh.recording.series.read_run` reads both in one pass);
+    without it they are extracted from ``recording`` (a :class:`Recording`).
 
     Needs no display and starts no viewer or server.
     """
