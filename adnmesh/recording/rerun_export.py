@@ -106,6 +106,7 @@ def log_run(rec, run: RunData) -> None:
 
     for series in run.series.values():
         _log_series(rec, series, run.t0_ns)
+        rec.flush()     # encoded and written: its Arrow copies are let go (memory)
     by_path: dict[str, list] = {}
     for event in run.events:
         by_path.setdefault(rerun_entity_path(f"/{event.topic}/events"), []).append(event)

@@ -498,10 +498,9 @@ class _Collector:
             return
         entry = self.columns.get(path)
         if entry is None:
-            entry = self.columns[path] = (spec, name, topic, [])
+            entry = self.columns[path] = (spec, name, topic, _Samples())
             self.first[path] = first
-        entry[3].append((np.asarray(t_ns, dtype=np.int64), np.asarray(log_ns, dtype=np.int64),
-                         np.asarray(values, dtype=np.float64)))
+        entry[3].append(t_ns, log_ns, values)
 
     def event(self, key: tuple, t_ns: int, kind: str, found, topic: str) -> None:
         level, text, data = found
@@ -529,17 +528,52 @@ class _Collector:
                                step=True),
                          f"{der} available", topic, [t_ns], [log_ns], [float(der in available)],
                          (1, number))
-        series = {}
+        series, times = {}, {}
         for path in sorted(self.columns, key=self.first.__getitem__):
-            spec, name, topic, pieces = self.columns[path]
+            spec, name, topic, pieces = self.columns.pop(path)   # one series' copy at a time
             spec = spec or Field(path.rsplit("/", 1)[-1], name, "other", unit="")
-            t_ns, log_ns, values = (np.concatenate([p[i] for p in pieces]) for i in range(3))
+            t_ns, log_ns, values = pieces.arrays()
+            shared = times.get(topic)          # series of one key mostly share their times
+            if shared is not None and np.array_equal(shared[0], t_ns) and \
+                    np.array_equal(shared[1], log_ns):
+                t_ns, log_ns = shared
+            else:
+                times[topic] = (t_ns, log_ns)
             series[path] = Series(name=name, entity_path=path, role=spec.role, unit=spec.unit,
                                   step=spec.step, color=spec.color, topic=topic, t_ns=t_ns,
                                   log_time_ns=log_ns, values=values)
         self.events.sort(key=lambda item: item[0])
         return RunData(series=series, events=[e for _, e in self.events],
                        der_ids=sorted(self.ders), t0_ns=t0_ns)
+
+
+class _Samples:
+    """The samples of one series as they come, in few large blocks (small pieces are merged
+    once there are enough of them, so that their memory is reused, not left fragmented)."""
+
+    _MERGE = 1 << 16
+
+    def __init__(self) -> None:
+        self.blocks: list[tuple[np.ndarray, ...]] = []
+        self.pieces: list[tuple[np.ndarray, ...]] = []
+        self.size = 0
+
+    def append(self, t_ns, log_ns, values) -> None:
+        self.pieces.append((np.asarray(t_ns, dtype=np.int64), np.asarray(log_ns, dtype=np.int64),
+                            np.asarray(values, dtype=np.float64)))
+        self.size += self.pieces[-1][0].size
+        if self.size >= self._MERGE:
+            self.blocks.append(self._merge(self.pieces))
+            self.pieces, self.size = [], 0
+
+    @staticmethod
+    def _merge(parts) -> tuple[np.ndarray, ...]:
+        return tuple(np.concatenate([p[i] for p in parts]) for i in range(3))
+
+    def arrays(self) -> tuple[np.ndarray, ...]:
+        """Send times, delivery times (ns) and values, all of them; the blocks are let go."""
+        parts, self.blocks, self.pieces = self.blocks + self.pieces, [], []
+        return self._merge(parts)
 
 
 class _Channel:
