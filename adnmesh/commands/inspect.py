@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +24,7 @@ from adnmesh.recording import (
     recover,
     validate_recording,
 )
-from adnmesh.recording.figures import run_figures, step_table
+from adnmesh.recording.figures import RunFigures, run_figures, step_table
 from adnmesh.recording.series import RunData, read_run
 from adnmesh.recording.stream import ScannedRecording
 
@@ -56,6 +58,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         help="check every message against its channel's JSON Schema")
     parser.add_argument("--metadata", action="store_true",
                         help="print every metadata record in full (including the config)")
+    parser.add_argument("--json", action="store_true",
+                        help="print one JSON object instead (file, run, topics, counts, "
+                        "figures, events; times in s of sim time, powers in W)")
     return parser
 
 
@@ -142,6 +147,8 @@ class _SummaryMessages:
                 series.add(kind, json.loads(payload))
             except (ValueError, KeyError, TypeError):
                 continue                  # not one of adnmesh's messages: no figures from it
+        if not series.p_ref_t_ns:         # P_IP without P_ref: no deviations to figure
+            series.p_ip_t_ns, series.p_ip_w = [], []
         return series
 
 
@@ -157,22 +164,17 @@ class _Fields:
         self._take(batch, batch.columns or decode_fields(batch, self.fields))
 
 
-def _print_faults_and_grid(console: Console, recording, messages: _SummaryMessages,
-                           band_pct: float) -> None:
-    """The per-fault and grid figures of ``adnmesh up``'s summary, from the same series."""
-    from adnmesh.runtime.summary import fault_table, grid_line, summarize
+def _summary(recording: ScannedRecording, messages: _SummaryMessages, band_pct: float):
+    """``adnmesh up``'s summary of the recorded run (its per-fault and grid figures)."""
+    from adnmesh.runtime.summary import summarize
 
     ends = [s.last_publish_ns for s in recording.channel_stats.values() if s.count]
-    summary = summarize(messages.series(), end_ns=max(ends, default=0), band_pct=band_pct)
-    if summary.faults:
-        console.print(fault_table(summary.faults))
-    if summary.grid is not None:
-        console.print(grid_line(summary.grid))
+    return summarize(messages.series(), end_ns=max(ends, default=0), band_pct=band_pct)
 
 
-def _print_figures(console: Console, run_data: RunData, band_pct: float,
-                   recording, messages: _SummaryMessages) -> None:
-    figures = run_figures(run_data, band_pct=band_pct)
+def _print_figures(console: Console, run_data: RunData, figures: RunFigures, summary) -> None:
+    from adnmesh.runtime.summary import fault_table, grid_line
+
     if figures.steps:
         console.print(step_table(figures.steps, figures.band_pct))
     if figures.rms_error_w is not None:
@@ -181,28 +183,45 @@ def _print_figures(console: Console, run_data: RunData, band_pct: float,
     console.print(f"events: {figures.gain_switches} gain switches, "
                   f"{figures.availability_changes} availability changes, {figures.faults} fault "
                   f"events, {figures.mode_changes} DER mode changes")
-    _print_faults_and_grid(console, recording, messages, band_pct)
+    if summary.faults:
+        console.print(fault_table(summary.faults))
+    if summary.grid is not None:
+        console.print(grid_line(summary.grid))
+    for event in _shown_events(run_data):
+        console.print(f"  {run_data.seconds(event.t_ns):9.3f} s  {event.text}")
+
+
+def _shown_events(run_data: RunData) -> list:
+    """The events, without the first availability event (the initial state)."""
     initial = next((e for e in run_data.events if e.kind == "availability"), None)
-    for event in run_data.events:
-        if event is not initial:  # the first availability event is the initial state
-            console.print(f"  {run_data.seconds(event.t_ns):9.3f} s  {event.text}")
+    return [e for e in run_data.events if e is not initial]
 
 
-def _check_counts(console: Console, recording: Recording) -> bool:
+def _count_check(recording: ScannedRecording) -> tuple[str, list, dict]:
+    """("absent" | "ok" | "mismatch", the differences, the topics not counted and why)."""
     published = recording.metadata.get(PUBLISHED_METADATA)
     if published is None:
-        console.print("published counts: not in the recording (not checked)")
-        return True
+        return "absent", [], {}
     uncounted = recording.metadata.get(UNCOUNTED_METADATA, {})
     recorded = {k: v for k, v in recording.counts().items() if k not in uncounted}
     differences = count_differences({k: int(v) for k, v in published.items()}, recorded)
-    if not differences:
-        total = sum(recorded.values())
+    shown = {topic: why for topic, why in uncounted.items() if topic in recording.channels}
+    return ("mismatch" if differences else "ok"), differences, shown
+
+
+def _check_counts(console: Console, recording: ScannedRecording) -> bool:
+    state, differences, uncounted = _count_check(recording)
+    if state == "absent":
+        console.print("published counts: not in the recording (not checked)")
+        return True
+    if state == "ok":
+        published = recording.metadata[PUBLISHED_METADATA]
+        total = sum(v for k, v in recording.counts().items()
+                    if k not in recording.metadata.get(UNCOUNTED_METADATA, {}))
         console.print(f"published counts: every message recorded ({total} on {len(published)} "
                       "topics)")
         for topic, why in uncounted.items():
-            if topic in recording.channels:
-                console.print(f"  not counted: {topic} ({why})")
+            console.print(f"  not counted: {topic} ({why})")
         return True
     console.print(f"published counts: MISMATCH on {len(differences)} topic(s)")
     for difference in differences:
@@ -212,25 +231,52 @@ def _check_counts(console: Console, recording: Recording) -> bool:
 
 def run(args: argparse.Namespace) -> int:
     """Read ``args.recording`` and print its summary; recover it if it is truncated."""
-    console = Console(highlight=False, markup=False, soft_wrap=True)
     path = Path(args.recording)
     found, messages = read_run(path, also=_SummaryMessages)
     recording, run_data = found.recording, found.run
-    size = path.stat().st_size
+    recovered_to = None
+    if not recording.complete:
+        recovered_to = args.recover_to or path.with_name(path.stem + ".recovered.mcap")
+        recover(path, recovered_to)
+    band = settling_band_pct(recording)
+    figures, summary = run_figures(run_data, band_pct=band), _summary(recording, messages, band)
+    problems = validate_recording(read_recording(path), limit=20) if args.validate else None
+    if args.json:
+        report = _json_report(path, recording, run_data, figures, summary, recovered_to,
+                              problems)
+        sys.stdout.write(json.dumps(report, indent=1) + "\n")
+        ok = report["counts"]["check"] != "mismatch" and not problems
+        return 0 if ok else EXIT_PROBLEMS
+    console = Console(highlight=False, markup=False, soft_wrap=True,
+                      width=None if sys.stdout.isatty() else _PIPE_WIDTH)
+    _print_head(console, path, recording, run_data, recovered_to, args.metadata)
+    console.print(topic_table(recording, run_data.t0_ns))
+    _print_figures(console, run_data, figures, summary)
+    ok = _check_counts(console, recording)
+    if problems is not None:
+        ok = _print_problems(console, problems, recording.message_count) and ok
+    return 0 if ok else EXIT_PROBLEMS
+
+
+_PIPE_WIDTH = 10_000
+"""Console width when the output is no terminal: tables at their natural width, no name cut."""
+
+
+def _print_head(console: Console, path: Path, recording: ScannedRecording, run_data: RunData,
+                recovered_to: Path | None, metadata: bool) -> None:
     state = "complete" if recording.complete else "TRUNCATED"
     console.print(f"{path}: {state} MCAP recording, {recording.message_count} messages on "
-                  f"{len(recording.channel_stats)} topics, {size} bytes ({recording.library})")
-    if not recording.complete:
-        out = args.recover_to or path.with_name(path.stem + ".recovered.mcap")
-        recovered = recover(path, out)
-        console.print(f"recovered {recovered} messages into {out} "
+                  f"{len(recording.channel_stats)} topics, {path.stat().st_size} bytes "
+                  f"({recording.library})")
+    if recovered_to is not None:
+        console.print(f"recovered {recording.message_count} messages into {recovered_to} "
                       f"({recording.dropped_bytes} bytes of an unfinished record dropped)")
     run_meta = recording.run
     if run_meta:
         console.print("run: " + ", ".join(f"{k} {run_meta[k]}" for k in _RUN_KEYS if k in run_meta))
     else:
         console.print(f"run: no {RUN_METADATA} metadata (not an adnmesh recording?)")
-    if args.metadata:
+    if metadata:
         for name, data in recording.metadata_records:
             console.print(f"metadata {name}:")
             for key, value in data.items():
@@ -239,22 +285,75 @@ def run(args: argparse.Namespace) -> int:
     if span is not None:
         console.print(f"time: {_s(span[0], run_data.t0_ns)} to {_s(span[1], run_data.t0_ns)} s "
                       f"(sim_time, send and delivery times)")
-    console.print(topic_table(recording, run_data.t0_ns))
-    _print_figures(console, run_data, settling_band_pct(recording), recording, messages)
-    ok = _check_counts(console, recording)
-    if args.validate:
-        ok = _validate(console, read_recording(path)) and ok
-    return 0 if ok else EXIT_PROBLEMS
 
 
-def _validate(console: Console, recording: Recording) -> bool:
-    """Check every message against its schema (reads the whole file: on request only)."""
-    problems = validate_recording(recording, limit=20)
+def _print_problems(console: Console, problems: list, messages: int) -> bool:
+    """The schema check's result (``--validate``); True if every message is valid."""
     if problems:
         console.print(f"schema check: {len(problems)}{'+' if len(problems) == 20 else ''} "
                       "problems")
         for problem in problems:
             console.print(f"  {problem}")
         return False
-    console.print(f"schema check: all {len(recording.messages)} messages valid")
+    console.print(f"schema check: all {messages} messages valid")
     return True
+
+
+def _json_report(path: Path, recording: ScannedRecording, run_data: RunData,
+                 figures: RunFigures, summary, recovered_to: Path | None,
+                 problems: list | None) -> dict:
+    """``inspect --json``: one object with the file, topics, counts, figures and events.
+
+    Times are s of sim time from t0; powers W; gains 1/W and 1/(W s); figures that do not
+    exist (no 90 % crossing, not settled in the window) are null.
+    """
+    def seconds(t_ns):
+        return None if t_ns is None else (t_ns - run_data.t0_ns) / 1e9
+
+    state, differences, uncounted = _count_check(recording)
+    span = recording.time_range_ns()
+    topics = [{"topic": topic, "type": stats.info.schema_name or None, "messages": stats.count,
+               "first_s": seconds(stats.first_publish_ns),
+               "last_s": seconds(stats.last_publish_ns)}
+              for topic, stats in recording.channel_stats.items()]
+    steps = [{"t_s": s.t_s, "step_w": s.step_w, "p_ref_w": s.p_ref_w, "window_s": s.window_s,
+              "steady_error_w": s.steady_error_w,
+              "settled": bool(s.figures is not None
+                              and np.isfinite(s.figures.settling_time_s)),
+              **({} if s.figures is None else dataclasses.asdict(s.figures))}
+             for s in figures.steps]
+    summary_json = summary.to_json()
+    return _finite({
+        "file": str(path), "complete": recording.complete, "bytes": path.stat().st_size,
+        "library": recording.library, "messages": recording.message_count,
+        "dropped_bytes": recording.dropped_bytes,
+        "recovered_to": None if recovered_to is None else str(recovered_to),
+        "run": {k: v for k, v in recording.run.items() if k != "config"},
+        "time_s": None if span is None else [seconds(span[0]), seconds(span[1])],
+        "topics": topics,
+        "counts": {"check": state, "uncounted": uncounted,
+                   "differences": [dataclasses.asdict(d) for d in differences]},
+        "figures": {"band_pct": figures.band_pct, "steps": steps,
+                    "rms_error_w": figures.rms_error_w, "max_error_w": figures.max_error_w,
+                    "gain_switches": figures.gain_switches,
+                    "availability_changes": figures.availability_changes,
+                    "faults": figures.faults, "mode_changes": figures.mode_changes,
+                    "switches": summary_json["switches"],
+                    "fault_figures": summary_json["faults"], "grid": summary_json["grid"]},
+        "events": [{"t_s": seconds(e.t_ns), "kind": e.kind, "level": e.level, "text": e.text,
+                    "topic": e.topic} for e in _shown_events(run_data)],
+        "schema_check": None if problems is None else [str(p) for p in problems],
+    })
+
+
+def _finite(value):
+    """``value`` with NaN and infinities as None (JSON has neither)."""
+    if isinstance(value, float):
+        return value if np.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite(v) for v in value]
+    if isinstance(value, np.generic):
+        return _finite(value.item())
+    return value
