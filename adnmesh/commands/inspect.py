@@ -202,7 +202,9 @@ def _count_check(recording: ScannedRecording) -> tuple[str, list, dict]:
     published = recording.metadata.get(PUBLISHED_METADATA)
     if published is None:
         return "absent", [], {}
-    uncounted = recording.metadata.get(UNCOUNTED_METADATA, {})
+    uncounted = dict(recording.metadata.get(UNCOUNTED_METADATA, {}))
+    if recording.run.get("events_topic"):
+        uncounted[recording.run["events_topic"]] = "the recorder's log of the run's events"
     recorded = {k: v for k, v in recording.counts().items() if k not in uncounted}
     differences = count_differences({k: int(v) for k, v in published.items()}, recorded)
     shown = {topic: why for topic, why in uncounted.items() if topic in recording.channels}
@@ -216,8 +218,7 @@ def _check_counts(console: Console, recording: ScannedRecording) -> bool:
         return True
     if state == "ok":
         published = recording.metadata[PUBLISHED_METADATA]
-        total = sum(v for k, v in recording.counts().items()
-                    if k not in recording.metadata.get(UNCOUNTED_METADATA, {}))
+        total = sum(v for k, v in recording.counts().items() if k not in uncounted)
         console.print(f"published counts: every message recorded ({total} on {len(published)} "
                       "topics)")
         for topic, why in uncounted.items():

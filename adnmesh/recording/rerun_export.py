@@ -14,6 +14,7 @@ setpoints, availability, the gains and the event log.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import shutil
 import sys
@@ -30,7 +31,9 @@ __all__ = [
     "DELIVERY_TIMELINE",
     "SIM_TIMELINE",
     "blueprint",
+    "HOLD_PERIOD_NS",
     "export_rrd",
+    "held",
     "log_run",
     "rerun_entity_path",
     "rerun_executable",
@@ -66,7 +69,15 @@ def blueprint(run: RunData):
     import rerun.blueprint as rrb
 
     def plot(name: str, *roles: str):
-        return rrb.TimeSeriesView(name=name, origin="/", contents=_views(run, roles) or [])
+        return rrb.TimeSeriesView(name=name, origin="/", contents=_views(run, roles) or [],
+                                  time_ranges=whole, axis_x=rrb.TimeAxis(view_range=everything))
+
+    import rerun as rr
+
+    everything = rr.encodings.TimeRange(start=rrb.TimeRangeBoundary.infinite(),
+                                        end=rrb.TimeRangeBoundary.infinite())
+    whole = rrb.VisibleTimeRange(SIM_TIMELINE, start=rrb.TimeRangeBoundary.infinite(),
+                                 end=rrb.TimeRangeBoundary.infinite())    # the whole run
 
     events = sorted({rerun_entity_path(f"/{e.topic}/events") for e in run.events})
     return rrb.Blueprint(
@@ -82,8 +93,34 @@ def blueprint(run: RunData):
         ),
         rrb.BlueprintPanel(state="collapsed"),
         rrb.SelectionPanel(state="collapsed"),
-        rrb.TimePanel(timeline=SIM_TIMELINE, state="collapsed"),
+        rrb.TimePanel(timeline=SIM_TIMELINE, state="collapsed", play_state="paused"),
     )
+
+
+HOLD_PERIOD_NS = 1_000_000_000
+"""A step series (P_ref, availability, gains) gets a sample at least this often, ns, with the
+value it holds, up to the run's end: it is drawn in any window of the view, however short."""
+
+
+def held(series: Series, end_ns: int | None, period_ns: int = HOLD_PERIOD_NS) -> Series:
+    """``series`` with the value it holds repeated every ``period_ns`` between its samples
+    and after the last up to ``end_ns`` (a step series only; a dense one is left as it is)."""
+    t = series.t_ns
+    if not series.step or not t.size:
+        return series
+    end = max(int(t[-1]), end_ns or 0)
+    gaps = np.diff(np.append(t, end))
+    if gaps.max(initial=0) <= period_ns:
+        return series
+    grid = np.arange(int(t[0]), end + 1, period_ns, dtype=np.int64)
+    grid = grid[~np.isin(grid, t)]
+    at = np.searchsorted(t, grid, side="right") - 1
+    order = np.argsort(np.concatenate([t, grid]), kind="stable")
+    delay = series.log_time_ns - series.t_ns
+    return dataclasses.replace(
+        series, t_ns=np.concatenate([t, grid])[order],
+        log_time_ns=np.concatenate([series.log_time_ns, grid + delay[at]])[order],
+        values=np.concatenate([series.values, series.values[at]])[order])
 
 
 def _log_series(rec, series: Series, t0_ns: int) -> None:
@@ -104,8 +141,11 @@ def log_run(rec, run: RunData) -> None:
     """Log every series and event of ``run`` to the Rerun recording stream ``rec``."""
     import rerun as rr
 
+    from adnmesh.recording.figures import run_end_ns
+
+    end_ns = run_end_ns(run)
     for series in run.series.values():
-        _log_series(rec, series, run.t0_ns)
+        _log_series(rec, held(series, end_ns), run.t0_ns)
         rec.flush()     # encoded and written: its Arrow copies are let go (memory)
     by_path: dict[str, list] = {}
     for event in run.events:

@@ -28,6 +28,7 @@ from pathlib import Path
 import msgspec
 import numpy as np
 
+from adnmesh.recording.eventlog import FOXGLOVE_LOG
 from adnmesh.recording.reader import ChannelInfo, Recording
 from adnmesh.recording.stream import MessageBatch, ScannedRecording, Sink, decode_fields, scan
 
@@ -484,6 +485,8 @@ class _Collector:
         self.last_available: frozenset[str] | None = None
 
     def sink_for(self, info) -> Sink | None:
+        if info.schema_name == FOXGLOVE_LOG:   # the recorder's copy of the events
+            return None
         plan = _plan(info.topic, self.series_rules, self.event_rules)
         if plan.empty:
             return None
