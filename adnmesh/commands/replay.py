@@ -57,8 +57,9 @@ def run(args: argparse.Namespace) -> int:
     recording, run_data = found.recording, found.run
     note_if_truncated(recording)
     out = args.rrd or Path(args.recording).with_suffix(".rrd")
-    export_rrd(recording, out, run=run_data)
-    print(f"{out}: {len(run_data.series)} series, {len(run_data.events)} events from "
+    series = len(run_data.series)
+    export_rrd(recording, out, run=run_data, release=True)
+    print(f"{out}: {series} series, {len(run_data.events)} events from "
           f"{recording.message_count} messages")
     if args.spawn:
         subprocess.Popen(viewer_command(out), start_new_session=True,  # noqa: S603

@@ -130,23 +130,32 @@ def _log_series(rec, series: Series, t0_ns: int) -> None:
     rec.log(path, rr.SeriesLines(names=series.name, colors=series.color,
                                  interpolation_mode="StepAfter" if series.step else "Linear"),
             static=True)
-    rec.send_columns(path,
-                     indexes=[rr.TimeColumn(SIM_TIMELINE, duration=_durations(series.t_ns, t0_ns)),
-                              rr.TimeColumn(DELIVERY_TIMELINE,
-                                            duration=_durations(series.log_time_ns, t0_ns))],
-                     columns=rr.Scalars.columns(scalars=series.values))
+    for at in range(0, series.t_ns.size, _SEND_ROWS):   # in slices: Rerun's memory is per row
+        rows = slice(at, at + _SEND_ROWS)
+        rec.send_columns(
+            path,
+            indexes=[rr.TimeColumn(SIM_TIMELINE, duration=_durations(series.t_ns[rows], t0_ns)),
+                     rr.TimeColumn(DELIVERY_TIMELINE,
+                                   duration=_durations(series.log_time_ns[rows], t0_ns))],
+            columns=rr.Scalars.columns(scalars=series.values[rows]))
 
 
-def log_run(rec, run: RunData) -> None:
-    """Log every series and event of ``run`` to the Rerun recording stream ``rec``."""
+_SEND_ROWS = 8192
+
+
+def log_run(rec, run: RunData, *, release: bool = False) -> None:
+    """Log every series and event of ``run`` to the Rerun recording stream ``rec``.
+
+    With ``release``, each series is removed from ``run.series`` once it is sent (memory).
+    """
     import rerun as rr
 
-    from adnmesh.recording.figures import run_end_ns
-
-    end_ns = run_end_ns(run)
-    for series in run.series.values():
+    end_ns = run.end_ns()
+    for path in list(run.series):
+        series = run.series.pop(path) if release else run.series[path]
         _log_series(rec, held(series, end_ns), run.t0_ns)
         rec.flush()     # encoded and written: its Arrow copies are let go (memory)
+        del series
     by_path: dict[str, list] = {}
     for event in run.events:
         by_path.setdefault(rerun_entity_path(f"/{event.topic}/events"), []).append(event)
@@ -160,11 +169,13 @@ def log_run(rec, run: RunData) -> None:
 
 
 def export_rrd(recording: Recording | ScannedRecording, out_path: str | Path, *,
-               run: RunData | None = None) -> Path:
+               run: RunData | None = None, release: bool = False) -> Path:
     """Write ``recording`` as a Rerun ``.rrd`` file with its blueprint; return the path.
 
     ``run`` is its series (:func:`~adnmesh.recording.series.read_run` reads both in one pass);
-    without it they are extracted from ``recording`` (a :class:`Recording`).
+    without it they are extracted from ``recording`` (a :class:`Recording`). With ``release``
+    the series are taken out of ``run`` as they are written (for a caller that is done with
+    them: less memory).
 
     Needs no display and starts no viewer or server.
     """
@@ -178,7 +189,7 @@ def export_rrd(recording: Recording | ScannedRecording, out_path: str | Path, *,
     try:
         rec.save(out_path, default_blueprint=blueprint(run))
         rec.send_recording_name(recording_id)
-        log_run(rec, run)
+        log_run(rec, run, release=release)
         rec.flush()
     finally:
         rec.disconnect()

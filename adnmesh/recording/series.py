@@ -369,6 +369,15 @@ class RunData:
         found = self.by_role(role)
         return found[0] if found else None
 
+    def end_ns(self) -> int | None:
+        """End of the run, ns: the ``end_ns`` of its start message, else the last P_IP
+        sample; None without either."""
+        start = next((e for e in self.events if e.kind == "run_start"), None)
+        if start is not None:
+            return int(start.data["end_ns"])
+        p_ip = self.one("p_ip")
+        return int(p_ip.t_ns.max()) if p_ip is not None and p_ip.t_ns.size else None
+
     def seconds(self, t_ns: np.ndarray | int) -> np.ndarray | float:
         """Convert send times in ns to seconds on the ``sim_time`` axis."""
         return (np.asarray(t_ns, dtype=np.int64) - self.t0_ns) / 1e9
