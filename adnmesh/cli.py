@@ -10,19 +10,33 @@ traceback.
 from __future__ import annotations
 
 import argparse
+import importlib
 import sys
 from collections.abc import Sequence
+from types import ModuleType
 
 from adnmesh import __version__
-from adnmesh.commands import (agent, analyze, certs, check, fault, inspect, margins, plot, replay,
-                              router, schema, tune, up)
 from adnmesh.errors import ConfigError, UsageError
 
-__all__ = ["COMMANDS", "EXIT_INTERRUPTED", "EXIT_USER_ERROR", "build_parser", "main"]
+__all__ = ["COMMANDS", "COMMAND_NAMES", "EXIT_INTERRUPTED", "EXIT_USER_ERROR", "build_parser",
+           "main"]
 
-COMMANDS = (check, margins, tune, analyze, up, fault, certs, agent, router, replay, plot, inspect,
-            schema)
-"""Command modules, in the order ``adnmesh --help`` lists them."""
+COMMAND_NAMES = ("check", "margins", "tune", "analyze", "up", "fault", "certs", "agent", "router",
+                 "replay", "plot", "inspect", "schema")
+"""The commands, in the order ``adnmesh --help`` lists them: each is the module
+``adnmesh.commands.<name>``, imported only when needed (a command that reads a recording does
+not wait for the libraries of the analysis)."""
+
+
+def _command(name: str) -> ModuleType:
+    return importlib.import_module(f"adnmesh.commands.{name}")
+
+
+def __getattr__(name: str):
+    if name == "COMMANDS":   # the command modules, in COMMAND_NAMES order (imports them all)
+        return tuple(_command(n) for n in COMMAND_NAMES)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 EXIT_USER_ERROR = 2
 """Exit code for an invalid config or command line (the same code argparse uses)."""
@@ -31,8 +45,9 @@ EXIT_INTERRUPTED = 130
 """Exit code after Ctrl-C (128 + SIGINT)."""
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """Return the argument parser with one subparser per module in :data:`COMMANDS`."""
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """Return the argument parser with one subparser per module in :data:`COMMANDS` (with
+    ``only``, a name in :data:`COMMAND_NAMES`: that command's alone)."""
     parser = argparse.ArgumentParser(
         prog="adnmesh",
         description="Adaptive cross-voltage-level power flow control of an active distribution "
@@ -40,7 +55,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"adnmesh {__version__}")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for module in COMMANDS:
+    for name in (only,) if only in COMMAND_NAMES else COMMAND_NAMES:
+        module = _command(name)
         module.add_parser(subparsers).set_defaults(run=module.run)
     return parser
 
@@ -55,7 +71,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line with ``argv`` (default: ``sys.argv[1:]``); return the exit code."""
     try:
         try:
-            args = build_parser().parse_args(argv)
+            argv = list(sys.argv[1:] if argv is None else argv)
+            args = build_parser(argv[0] if argv else None).parse_args(argv)
         except SystemExit as exc:  # argparse after --help, --version or a usage error
             return exc.code if isinstance(exc.code, int) else EXIT_USER_ERROR * bool(exc.code)
         return args.run(args)

@@ -62,7 +62,8 @@ def test_inspect_prints_the_metadata_on_request(fake: Path, capsys) -> None:
 def test_inspect_recovers_a_truncated_recording(fake: Path, tmp_path: Path, capsys) -> None:
     # a killed recorder: the fake run with a flush every 500 messages, cut mid-chunk
     path = tmp_path / "killed.mcap"
-    recorder = Recorder(path, metadata={"run_id": "killed"}, schemas=FAKE_SCHEMAS)
+    recorder = Recorder(path, metadata={"run_id": "killed"}, schemas=FAKE_SCHEMAS,
+                        flush_interval_s=3600)   # chunks end where the test flushes, not by time
     for i, m in enumerate(fake_run()):
         recorder.write(m.topic, m.schema_name, m.payload, log_time_ns=m.t_deliver_ns,
                        publish_time_ns=m.t_send_ns)
@@ -225,3 +226,40 @@ def test_inspect_finds_the_windows_of_up_s_summary(tmp_path: Path) -> None:
                             [dataclasses.astuple(x) for x in summary.steps])
 
 
+
+
+def test_inspect_json_is_one_object_with_topics_counts_figures_and_events(fake: Path,
+                                                                          capsys) -> None:
+    import json
+
+    assert main(["inspect", str(fake), "--json"]) == 0
+    out, err = capsys.readouterr()
+    report = json.loads(out)                 # the whole output is one JSON object
+    assert err == ""
+    assert report["complete"] is True and report["messages"] == 3917
+    assert report["run"]["run_id"] == "fake" and "config" not in report["run"]
+    topics = {t["topic"]: t for t in report["topics"]}
+    assert topics["adn/fake/measurement/p_ip"] == {
+        "topic": "adn/fake/measurement/p_ip", "type": "p_ip", "messages": 601, "first_s": 0.0,
+        "last_s": 60.0}
+    assert report["counts"]["check"] == "ok"
+    figures = report["figures"]
+    first = figures["steps"][0]
+    assert (first["t_s"], first["step_w"], first["window_s"]) == (5.0, 1.0e6, 10.0)
+    assert round(first["rise_time_s"], 3) == 1.186 and first["settled"] is True
+    assert (figures["gain_switches"], figures["availability_changes"], figures["faults"],
+            figures["mode_changes"]) == (1, 1, 1, 4)
+    kinds = [e["kind"] for e in report["events"]]
+    assert "gain_switch" in kinds and "fault" in kinds
+    assert any(e["text"] == "CHP1: mode control -> watchdog" and e["t_s"] == 41.0
+               for e in report["events"])
+
+
+def test_piped_tables_keep_long_topic_names_whole(tmp_path: Path, capsys) -> None:
+    path = tmp_path / "long.mcap"
+    topic = "adn/" + "a-very-long-grid-name-" * 5 + "/measurement/p_ip"
+    with Recorder(path, metadata={"run_id": "long"}, schemas=FAKE_SCHEMAS) as recorder:
+        recorder.write(topic, "p_ip", b'{"v":1,"type":"p_ip","src":"m","seq":0,"t_send_ns":0,'
+                       b'"t_deliver_ns":0,"p_ip_w":1.0}', log_time_ns=0, publish_time_ns=0)
+    assert main(["inspect", str(path)]) == 0
+    assert f"{topic} p_ip 1 0.000 0.000" in _lines(capsys.readouterr().out)

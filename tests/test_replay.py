@@ -72,7 +72,26 @@ def _rrd_values(rrd, path: str) -> list[tuple[int, int, float]]:
 def test_values_read_back_from_the_rrd_equal_the_mcap_values(fake, rrd, topic, field) -> None:
     expected = _mcap_values(read_recording(fake), topic, field)
     assert len(expected) > 1
-    assert _rrd_values(rrd, f"/{topic}/{field}") == expected  # exact: times in ns, float64
+    got = _rrd_values(rrd, f"/{topic}/{field}")
+    sent = {t for t, _, _ in expected}
+    assert [v for v in got if v[0] in sent] == expected  # exact: times in ns, float64
+    for t, _, value in (v for v in got if v[0] not in sent):   # a step series' held value
+        assert value == [v for s, _, v in expected if s <= t][-1]
+
+
+def test_step_series_hold_their_value_through_the_whole_run(fake) -> None:
+    from adnmesh.recording.rerun_export import HOLD_PERIOD_NS, held
+
+    run = extract(read_recording(fake))
+    p_ref = run.one("p_ref")
+    shown = held(p_ref, 60_100_000_000)
+    assert 60_100_000_000 - HOLD_PERIOD_NS < shown.t_ns[-1] <= 60_100_000_000   # to the end
+    assert np.diff(np.append(shown.t_ns, 60_100_000_000)).max() <= HOLD_PERIOD_NS
+    index = np.searchsorted(p_ref.t_ns, shown.t_ns, side="right") - 1
+    assert np.array_equal(shown.values, p_ref.values[index])       # the step function itself
+    assert np.all(shown.log_time_ns >= shown.t_ns)
+    p_ip = run.one("p_ip")
+    assert held(p_ip, 60_100_000_000) is p_ip                       # not a step series
 
 
 def test_named_series_and_step_interpolation_in_the_rrd(rrd) -> None:

@@ -67,10 +67,11 @@ def run_up(tmp_path: Path, config: Path, table: Path, name: str, *extra: str):
 
 
 def data_messages(recording) -> list[tuple[str, bytes]]:
-    """The data plane (everything but the clock's own traffic, rejected payloads and a
-    person's fault requests), in a fixed order."""
+    """The data plane (everything but the clock's own traffic, rejected payloads, a person's
+    fault requests and the recorder's log of events), in a fixed order."""
     messages = [m for m in recording.messages if "/clock/" not in m.topic
-                and not m.topic.endswith(("/rejected", "/control/fault"))]
+                and not m.topic.endswith(("/rejected", "/control/fault"))
+                and m.schema_name != "foxglove.Log"]
     messages.sort(key=lambda m: (m.log_time_ns, m.topic, json.loads(m.data)["seq"]))
     return [(m.topic, bytes(m.data)) for m in messages]
 

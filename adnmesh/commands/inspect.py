@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
+import sys
 from pathlib import Path
 
+import numpy as np
 import yaml
 from rich.console import Console
 from rich.table import Table
@@ -21,8 +24,9 @@ from adnmesh.recording import (
     recover,
     validate_recording,
 )
-from adnmesh.recording.figures import run_figures, step_table
-from adnmesh.recording.series import RunData, extract
+from adnmesh.recording.figures import RunFigures, run_figures, step_table
+from adnmesh.recording.series import RunData, read_run
+from adnmesh.recording.stream import ScannedRecording
 
 __all__ = ["EXIT_PROBLEMS", "add_parser", "run", "settling_band_pct", "topic_table"]
 
@@ -54,6 +58,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         help="check every message against its channel's JSON Schema")
     parser.add_argument("--metadata", action="store_true",
                         help="print every metadata record in full (including the config)")
+    parser.add_argument("--json", action="store_true",
+                        help="print one JSON object instead (file, run, topics, counts, "
+                        "figures, events; times in s of sim time, powers in W)")
     return parser
 
 
@@ -61,21 +68,16 @@ def _s(t_ns: int, t0_ns: int) -> str:
     return f"{(t_ns - t0_ns) / 1e9:.3f}"
 
 
-def topic_table(recording: Recording, t0_ns: int) -> Table:
+def topic_table(recording: ScannedRecording, t0_ns: int) -> Table:
     """Return the per-topic table: type, count, first and last send time, s."""
-    table = Table(title=f"{len(recording.channels)} topics", title_justify="left")
+    table = Table(title=f"{len(recording.channel_stats)} topics", title_justify="left")
     for column in ("topic", "type", "messages", "first [s]", "last [s]"):
         table.add_column(column, justify="left" if column in ("topic", "type") else "right")
-    first: dict[str, int] = {}
-    last: dict[str, int] = {}
-    for m in recording.messages:
-        first[m.topic] = min(first.get(m.topic, m.publish_time_ns), m.publish_time_ns)
-        last[m.topic] = max(last.get(m.topic, m.publish_time_ns), m.publish_time_ns)
-    for topic, count in recording.counts().items():
-        info = recording.channels[topic]
-        table.add_row(topic, info.schema_name or "-", str(count),
-                      _s(first[topic], t0_ns) if topic in first else "-",
-                      _s(last[topic], t0_ns) if topic in last else "-")
+    for topic, stats in recording.channel_stats.items():
+        seen = stats.count > 0
+        table.add_row(topic, stats.info.schema_name or "-", str(stats.count),
+                      _s(stats.first_publish_ns, t0_ns) if seen else "-",
+                      _s(stats.last_publish_ns, t0_ns) if seen else "-")
     return table
 
 
@@ -91,29 +93,88 @@ def settling_band_pct(recording: Recording) -> float:
     return float(band) if valid else Constraints().settling_band_pct
 
 
-def _print_faults_and_grid(console: Console, recording: Recording, band_pct: float) -> None:
-    """The per-fault and grid figures of ``adnmesh up``'s summary, from the same series."""
-    from adnmesh.runtime.summary import MESSAGE_TYPES, RunSeries, fault_table, grid_line, \
-        summarize
+class _SummaryMessages:
+    """The messages ``adnmesh up``'s summary reads (:class:`~adnmesh.runtime.summary.RunSeries`),
+    taken in the same pass as the series: ``P_IP`` as columns, ``p_y`` only where it carries a
+    switch record, the few others whole."""
 
-    series = RunSeries()
-    for message in sorted(recording.messages, key=lambda m: m.publish_time_ns):
-        if message.schema_name in MESSAGE_TYPES:
+    def __init__(self) -> None:
+        from adnmesh.runtime.summary import MESSAGE_TYPES
+
+        self.types = MESSAGE_TYPES
+        self.p_ip: list[tuple[np.ndarray, ...]] = []
+        self.whole: list[tuple[int, int, str, bytes]] = []
+
+    def sink_for(self, info):
+        kind = info.schema_name
+        if kind not in self.types:
+            return None
+        if kind == "p_ip":
+            return _Fields(("t_send_ns", "p_ip_w"), self._p_ip)
+        if kind == "p_y":
+            return _Fields(("switch",), self._p_y)
+        return lambda batch: self._keep(kind, batch, range(len(batch)))
+
+    def _p_ip(self, batch, columns) -> None:
+        t, p = columns.columns["t_send_ns"], columns.columns["p_ip_w"]
+        rows = [i for i in range(len(t)) if columns.valid[i] and isinstance(t[i], int)
+                and isinstance(p[i], int | float)]
+        self.p_ip.append((batch.publish_time_ns[rows], batch.ordinal[rows],
+                          np.asarray([t[i] for i in rows], dtype=np.int64),
+                          np.asarray([p[i] for i in rows], dtype=np.float64)))
+
+    def _p_y(self, batch, columns) -> None:
+        switch = columns.columns["switch"]
+        self._keep("p_y", batch, [i for i, s in enumerate(switch) if isinstance(s, dict)])
+
+    def _keep(self, kind: str, batch, rows) -> None:
+        payloads = batch.payloads
+        for i in rows:
+            self.whole.append((int(batch.publish_time_ns[i]), int(batch.ordinal[i]), kind,
+                               payloads[i]))
+
+    def series(self):
+        """The :class:`~adnmesh.runtime.summary.RunSeries` of the messages taken."""
+        from adnmesh.runtime.summary import RunSeries
+
+        series = RunSeries()
+        if self.p_ip:
+            publish, ordinal, t_ns, p_w = (np.concatenate(c) for c in zip(*self.p_ip))
+            order = np.lexsort((ordinal, publish))
+            series.p_ip_t_ns, series.p_ip_w = t_ns[order].tolist(), p_w[order].tolist()
+        for _, _, kind, payload in sorted(self.whole, key=lambda m: m[:2]):
             try:
-                series.add(message.schema_name, json.loads(message.data))
+                series.add(kind, json.loads(payload))
             except (ValueError, KeyError, TypeError):
                 continue                  # not one of adnmesh's messages: no figures from it
-    end = max((m.publish_time_ns for m in recording.messages), default=0)
-    summary = summarize(series, end_ns=end, band_pct=band_pct)
-    if summary.faults:
-        console.print(fault_table(summary.faults))
-    if summary.grid is not None:
-        console.print(grid_line(summary.grid))
+        if not series.p_ref_t_ns:         # P_IP without P_ref: no deviations to figure
+            series.p_ip_t_ns, series.p_ip_w = [], []
+        return series
 
 
-def _print_figures(console: Console, run_data: RunData, band_pct: float,
-                   recording: Recording) -> None:
-    figures = run_figures(run_data, band_pct=band_pct)
+class _Fields:
+    """A sink that wants the payload fields ``fields`` decoded."""
+
+    def __init__(self, fields: tuple[str, ...], take) -> None:
+        self.fields, self._take = fields, take
+
+    def __call__(self, batch) -> None:
+        from adnmesh.recording.stream import decode_fields
+
+        self._take(batch, batch.columns or decode_fields(batch, self.fields))
+
+
+def _summary(recording: ScannedRecording, messages: _SummaryMessages, band_pct: float):
+    """``adnmesh up``'s summary of the recorded run (its per-fault and grid figures)."""
+    from adnmesh.runtime.summary import summarize
+
+    ends = [s.last_publish_ns for s in recording.channel_stats.values() if s.count]
+    return summarize(messages.series(), end_ns=max(ends, default=0), band_pct=band_pct)
+
+
+def _print_figures(console: Console, run_data: RunData, figures: RunFigures, summary) -> None:
+    from adnmesh.runtime.summary import fault_table, grid_line
+
     if figures.steps:
         console.print(step_table(figures.steps, figures.band_pct))
     if figures.rms_error_w is not None:
@@ -122,28 +183,46 @@ def _print_figures(console: Console, run_data: RunData, band_pct: float,
     console.print(f"events: {figures.gain_switches} gain switches, "
                   f"{figures.availability_changes} availability changes, {figures.faults} fault "
                   f"events, {figures.mode_changes} DER mode changes")
-    _print_faults_and_grid(console, recording, band_pct)
+    if summary.faults:
+        console.print(fault_table(summary.faults))
+    if summary.grid is not None:
+        console.print(grid_line(summary.grid))
+    for event in _shown_events(run_data):
+        console.print(f"  {run_data.seconds(event.t_ns):9.3f} s  {event.text}")
+
+
+def _shown_events(run_data: RunData) -> list:
+    """The events, without the first availability event (the initial state)."""
     initial = next((e for e in run_data.events if e.kind == "availability"), None)
-    for event in run_data.events:
-        if event is not initial:  # the first availability event is the initial state
-            console.print(f"  {run_data.seconds(event.t_ns):9.3f} s  {event.text}")
+    return [e for e in run_data.events if e is not initial]
 
 
-def _check_counts(console: Console, recording: Recording) -> bool:
+def _count_check(recording: ScannedRecording) -> tuple[str, list, dict]:
+    """("absent" | "ok" | "mismatch", the differences, the topics not counted and why)."""
     published = recording.metadata.get(PUBLISHED_METADATA)
     if published is None:
-        console.print("published counts: not in the recording (not checked)")
-        return True
-    uncounted = recording.metadata.get(UNCOUNTED_METADATA, {})
+        return "absent", [], {}
+    uncounted = dict(recording.metadata.get(UNCOUNTED_METADATA, {}))
+    if recording.run.get("events_topic"):
+        uncounted[recording.run["events_topic"]] = "the recorder's log of the run's events"
     recorded = {k: v for k, v in recording.counts().items() if k not in uncounted}
     differences = count_differences({k: int(v) for k, v in published.items()}, recorded)
-    if not differences:
-        total = sum(recorded.values())
+    shown = {topic: why for topic, why in uncounted.items() if topic in recording.channels}
+    return ("mismatch" if differences else "ok"), differences, shown
+
+
+def _check_counts(console: Console, recording: ScannedRecording) -> bool:
+    state, differences, uncounted = _count_check(recording)
+    if state == "absent":
+        console.print("published counts: not in the recording (not checked)")
+        return True
+    if state == "ok":
+        published = recording.metadata[PUBLISHED_METADATA]
+        total = sum(v for k, v in recording.counts().items() if k not in uncounted)
         console.print(f"published counts: every message recorded ({total} on {len(published)} "
                       "topics)")
         for topic, why in uncounted.items():
-            if topic in recording.channels:
-                console.print(f"  not counted: {topic} ({why})")
+            console.print(f"  not counted: {topic} ({why})")
         return True
     console.print(f"published counts: MISMATCH on {len(differences)} topic(s)")
     for difference in differences:
@@ -153,44 +232,129 @@ def _check_counts(console: Console, recording: Recording) -> bool:
 
 def run(args: argparse.Namespace) -> int:
     """Read ``args.recording`` and print its summary; recover it if it is truncated."""
-    console = Console(highlight=False, markup=False, soft_wrap=True)
     path = Path(args.recording)
-    recording = read_recording(path)
-    size = path.stat().st_size
-    state = "complete" if recording.complete else "TRUNCATED"
-    console.print(f"{path}: {state} MCAP recording, {len(recording.messages)} messages on "
-                  f"{len(recording.channels)} topics, {size} bytes ({recording.library})")
+    found, messages = read_run(path, also=_SummaryMessages)
+    recording, run_data = found.recording, found.run
+    recovered_to = None
     if not recording.complete:
-        out = args.recover_to or path.with_name(path.stem + ".recovered.mcap")
-        recovered = recover(path, out)
-        console.print(f"recovered {recovered} messages into {out} "
+        recovered_to = args.recover_to or path.with_name(path.stem + ".recovered.mcap")
+        recover(path, recovered_to)
+    band = settling_band_pct(recording)
+    figures, summary = run_figures(run_data, band_pct=band), _summary(recording, messages, band)
+    problems = validate_recording(read_recording(path), limit=20) if args.validate else None
+    if args.json:
+        report = _json_report(path, recording, run_data, figures, summary, recovered_to,
+                              problems)
+        sys.stdout.write(json.dumps(report, indent=1) + "\n")
+        ok = report["counts"]["check"] != "mismatch" and not problems
+        return 0 if ok else EXIT_PROBLEMS
+    console = Console(highlight=False, markup=False, soft_wrap=True,
+                      width=None if sys.stdout.isatty() else _PIPE_WIDTH)
+    _print_head(console, path, recording, run_data, recovered_to, args.metadata)
+    console.print(topic_table(recording, run_data.t0_ns))
+    _print_figures(console, run_data, figures, summary)
+    ok = _check_counts(console, recording)
+    if problems is not None:
+        ok = _print_problems(console, problems, recording.message_count) and ok
+    return 0 if ok else EXIT_PROBLEMS
+
+
+_PIPE_WIDTH = 10_000
+"""Console width when the output is no terminal: tables at their natural width, no name cut."""
+
+
+def _print_head(console: Console, path: Path, recording: ScannedRecording, run_data: RunData,
+                recovered_to: Path | None, metadata: bool) -> None:
+    state = "complete" if recording.complete else "TRUNCATED"
+    console.print(f"{path}: {state} MCAP recording, {recording.message_count} messages on "
+                  f"{len(recording.channel_stats)} topics, {path.stat().st_size} bytes "
+                  f"({recording.library})")
+    if recovered_to is not None:
+        console.print(f"recovered {recording.message_count} messages into {recovered_to} "
                       f"({recording.dropped_bytes} bytes of an unfinished record dropped)")
     run_meta = recording.run
     if run_meta:
         console.print("run: " + ", ".join(f"{k} {run_meta[k]}" for k in _RUN_KEYS if k in run_meta))
     else:
         console.print(f"run: no {RUN_METADATA} metadata (not an adnmesh recording?)")
-    if args.metadata:
+    if metadata:
         for name, data in recording.metadata_records:
             console.print(f"metadata {name}:")
             for key, value in data.items():
                 console.print(f"  {key}: " + value.replace("\n", "\n    ").rstrip())
-    run_data = extract(recording)
     span = recording.time_range_ns()
     if span is not None:
         console.print(f"time: {_s(span[0], run_data.t0_ns)} to {_s(span[1], run_data.t0_ns)} s "
                       f"(sim_time, send and delivery times)")
-    console.print(topic_table(recording, run_data.t0_ns))
-    _print_figures(console, run_data, settling_band_pct(recording), recording)
-    ok = _check_counts(console, recording)
-    if args.validate:
-        problems = validate_recording(recording, limit=20)
-        if problems:
-            ok = False
-            console.print(f"schema check: {len(problems)}{'+' if len(problems) == 20 else ''} "
-                          "problems")
-            for problem in problems:
-                console.print(f"  {problem}")
-        else:
-            console.print(f"schema check: all {len(recording.messages)} messages valid")
-    return 0 if ok else EXIT_PROBLEMS
+
+
+def _print_problems(console: Console, problems: list, messages: int) -> bool:
+    """The schema check's result (``--validate``); True if every message is valid."""
+    if problems:
+        console.print(f"schema check: {len(problems)}{'+' if len(problems) == 20 else ''} "
+                      "problems")
+        for problem in problems:
+            console.print(f"  {problem}")
+        return False
+    console.print(f"schema check: all {messages} messages valid")
+    return True
+
+
+def _json_report(path: Path, recording: ScannedRecording, run_data: RunData,
+                 figures: RunFigures, summary, recovered_to: Path | None,
+                 problems: list | None) -> dict:
+    """``inspect --json``: one object with the file, topics, counts, figures and events.
+
+    Times are s of sim time from t0; powers W; gains 1/W and 1/(W s); figures that do not
+    exist (no 90 % crossing, not settled in the window) are null.
+    """
+    def seconds(t_ns):
+        return None if t_ns is None else (t_ns - run_data.t0_ns) / 1e9
+
+    state, differences, uncounted = _count_check(recording)
+    span = recording.time_range_ns()
+    topics = [{"topic": topic, "type": stats.info.schema_name or None, "messages": stats.count,
+               "first_s": seconds(stats.first_publish_ns),
+               "last_s": seconds(stats.last_publish_ns)}
+              for topic, stats in recording.channel_stats.items()]
+    steps = [{"t_s": s.t_s, "step_w": s.step_w, "p_ref_w": s.p_ref_w, "window_s": s.window_s,
+              "steady_error_w": s.steady_error_w,
+              "settled": bool(s.figures is not None
+                              and np.isfinite(s.figures.settling_time_s)),
+              **({} if s.figures is None else dataclasses.asdict(s.figures))}
+             for s in figures.steps]
+    summary_json = summary.to_json()
+    return _finite({
+        "file": str(path), "complete": recording.complete, "bytes": path.stat().st_size,
+        "library": recording.library, "messages": recording.message_count,
+        "dropped_bytes": recording.dropped_bytes,
+        "recovered_to": None if recovered_to is None else str(recovered_to),
+        "run": {k: v for k, v in recording.run.items() if k != "config"},
+        "time_s": None if span is None else [seconds(span[0]), seconds(span[1])],
+        "topics": topics,
+        "counts": {"check": state, "uncounted": uncounted,
+                   "differences": [dataclasses.asdict(d) for d in differences]},
+        "figures": {"band_pct": figures.band_pct, "steps": steps,
+                    "rms_error_w": figures.rms_error_w, "max_error_w": figures.max_error_w,
+                    "gain_switches": figures.gain_switches,
+                    "availability_changes": figures.availability_changes,
+                    "faults": figures.faults, "mode_changes": figures.mode_changes,
+                    "switches": summary_json["switches"],
+                    "fault_figures": summary_json["faults"], "grid": summary_json["grid"]},
+        "events": [{"t_s": seconds(e.t_ns), "kind": e.kind, "level": e.level, "text": e.text,
+                    "topic": e.topic} for e in _shown_events(run_data)],
+        "schema_check": None if problems is None else [str(p) for p in problems],
+    })
+
+
+def _finite(value):
+    """``value`` with NaN and infinities as None (JSON has neither)."""
+    if isinstance(value, float):
+        return value if np.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite(v) for v in value]
+    if isinstance(value, np.generic):
+        return _finite(value.item())
+    return value

@@ -7,8 +7,7 @@ from pathlib import Path
 
 from adnmesh.commands.replay import note_if_truncated
 from adnmesh.errors import UsageError
-from adnmesh.recording import read_recording
-from adnmesh.recording.series import extract
+from adnmesh.recording.series import read_run
 
 __all__ = ["add_parser", "run"]
 
@@ -39,10 +38,11 @@ def run(args: argparse.Namespace) -> int:
     if out.suffix.lstrip(".").lower() not in formats:
         raise UsageError(f"{out}: unknown figure format {out.suffix or '(no suffix)'!r} "
                          f"(known: {', '.join(sorted(formats))})")
-    recording = read_recording(args.recording)
+    found, _ = read_run(args.recording)
+    recording = found.recording
     note_if_truncated(recording)
     title = recording.run.get("run_id") or Path(args.recording).stem
     clock = recording.run.get("clock")
-    save_plot(extract(recording), out, title=f"{title} ({clock} clock)" if clock else title)
+    save_plot(found.run, out, title=f"{title} ({clock} clock)" if clock else title)
     print(f"{out}: written")
     return 0

@@ -9,8 +9,7 @@ import sys
 from pathlib import Path
 
 from adnmesh.errors import UsageError
-from adnmesh.recording import read_recording
-from adnmesh.recording.series import extract
+from adnmesh.recording.series import read_run
 
 __all__ = ["add_parser", "run", "note_if_truncated"]
 
@@ -54,13 +53,14 @@ def run(args: argparse.Namespace) -> int:
 
     if not 0 < args.web_port < 65536:
         raise UsageError(f"--web-port must be a port number (1-65535), got {args.web_port}")
-    recording = read_recording(args.recording)
+    found, _ = read_run(args.recording)
+    recording, run_data = found.recording, found.run
     note_if_truncated(recording)
     out = args.rrd or Path(args.recording).with_suffix(".rrd")
-    run_data = extract(recording)
-    export_rrd(recording, out, run=run_data)
-    print(f"{out}: {len(run_data.series)} series, {len(run_data.events)} events from "
-          f"{len(recording.messages)} messages")
+    series = len(run_data.series)
+    export_rrd(recording, out, run=run_data, release=True)
+    print(f"{out}: {series} series, {len(run_data.events)} events from "
+          f"{recording.message_count} messages")
     if args.spawn:
         subprocess.Popen(viewer_command(out), start_new_session=True,  # noqa: S603
                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)

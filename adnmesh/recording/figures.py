@@ -61,12 +61,9 @@ def window_ends(run: RunData) -> list[int]:
 
 
 def run_end_ns(run: RunData) -> int | None:
-    """End of the run, ns: the ``end_ns`` of its start message, else the last P_IP sample."""
-    start = next((e for e in run.events if e.kind == "run_start"), None)
-    if start is not None:
-        return int(start.data["end_ns"])
-    p_ip = run.one("p_ip")
-    return int(p_ip.t_ns.max()) if p_ip is not None and p_ip.t_ns.size else None
+    """End of the run, ns: the ``end_ns`` of its start message, else the last P_IP sample
+    (:meth:`RunData.end_ns`)."""
+    return run.end_ns()
 
 
 def run_figures(run: RunData, *, band_pct: float = 5.0) -> RunFigures:

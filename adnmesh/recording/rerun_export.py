@@ -14,6 +14,7 @@ setpoints, availability, the gains and the event log.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import shutil
 import sys
@@ -23,13 +24,16 @@ import numpy as np
 
 from adnmesh.recording.reader import Recording
 from adnmesh.recording.series import RunData, Series, extract
+from adnmesh.recording.stream import ScannedRecording
 
 __all__ = [
     "APPLICATION_ID",
     "DELIVERY_TIMELINE",
     "SIM_TIMELINE",
     "blueprint",
+    "HOLD_PERIOD_NS",
     "export_rrd",
+    "held",
     "log_run",
     "rerun_entity_path",
     "rerun_executable",
@@ -65,7 +69,15 @@ def blueprint(run: RunData):
     import rerun.blueprint as rrb
 
     def plot(name: str, *roles: str):
-        return rrb.TimeSeriesView(name=name, origin="/", contents=_views(run, roles) or [])
+        return rrb.TimeSeriesView(name=name, origin="/", contents=_views(run, roles) or [],
+                                  time_ranges=whole, axis_x=rrb.TimeAxis(view_range=everything))
+
+    import rerun as rr
+
+    everything = rr.encodings.TimeRange(start=rrb.TimeRangeBoundary.infinite(),
+                                        end=rrb.TimeRangeBoundary.infinite())
+    whole = rrb.VisibleTimeRange(SIM_TIMELINE, start=rrb.TimeRangeBoundary.infinite(),
+                                 end=rrb.TimeRangeBoundary.infinite())    # the whole run
 
     events = sorted({rerun_entity_path(f"/{e.topic}/events") for e in run.events})
     return rrb.Blueprint(
@@ -81,8 +93,34 @@ def blueprint(run: RunData):
         ),
         rrb.BlueprintPanel(state="collapsed"),
         rrb.SelectionPanel(state="collapsed"),
-        rrb.TimePanel(timeline=SIM_TIMELINE, state="collapsed"),
+        rrb.TimePanel(timeline=SIM_TIMELINE, state="collapsed", play_state="paused"),
     )
+
+
+HOLD_PERIOD_NS = 1_000_000_000
+"""A step series (P_ref, availability, gains) gets a sample at least this often, ns, with the
+value it holds, up to the run's end: it is drawn in any window of the view, however short."""
+
+
+def held(series: Series, end_ns: int | None, period_ns: int = HOLD_PERIOD_NS) -> Series:
+    """``series`` with the value it holds repeated every ``period_ns`` between its samples
+    and after the last up to ``end_ns`` (a step series only; a dense one is left as it is)."""
+    t = series.t_ns
+    if not series.step or not t.size:
+        return series
+    end = max(int(t[-1]), end_ns or 0)
+    gaps = np.diff(np.append(t, end))
+    if gaps.max(initial=0) <= period_ns:
+        return series
+    grid = np.arange(int(t[0]), end + 1, period_ns, dtype=np.int64)
+    grid = grid[~np.isin(grid, t)]
+    at = np.searchsorted(t, grid, side="right") - 1
+    order = np.argsort(np.concatenate([t, grid]), kind="stable")
+    delay = series.log_time_ns - series.t_ns
+    return dataclasses.replace(
+        series, t_ns=np.concatenate([t, grid])[order],
+        log_time_ns=np.concatenate([series.log_time_ns, grid + delay[at]])[order],
+        values=np.concatenate([series.values, series.values[at]])[order])
 
 
 def _log_series(rec, series: Series, t0_ns: int) -> None:
@@ -92,19 +130,32 @@ def _log_series(rec, series: Series, t0_ns: int) -> None:
     rec.log(path, rr.SeriesLines(names=series.name, colors=series.color,
                                  interpolation_mode="StepAfter" if series.step else "Linear"),
             static=True)
-    rec.send_columns(path,
-                     indexes=[rr.TimeColumn(SIM_TIMELINE, duration=_durations(series.t_ns, t0_ns)),
-                              rr.TimeColumn(DELIVERY_TIMELINE,
-                                            duration=_durations(series.log_time_ns, t0_ns))],
-                     columns=rr.Scalars.columns(scalars=series.values))
+    for at in range(0, series.t_ns.size, _SEND_ROWS):   # in slices: Rerun's memory is per row
+        rows = slice(at, at + _SEND_ROWS)
+        rec.send_columns(
+            path,
+            indexes=[rr.TimeColumn(SIM_TIMELINE, duration=_durations(series.t_ns[rows], t0_ns)),
+                     rr.TimeColumn(DELIVERY_TIMELINE,
+                                   duration=_durations(series.log_time_ns[rows], t0_ns))],
+            columns=rr.Scalars.columns(scalars=series.values[rows]))
 
 
-def log_run(rec, run: RunData) -> None:
-    """Log every series and event of ``run`` to the Rerun recording stream ``rec``."""
+_SEND_ROWS = 8192
+
+
+def log_run(rec, run: RunData, *, release: bool = False) -> None:
+    """Log every series and event of ``run`` to the Rerun recording stream ``rec``.
+
+    With ``release``, each series is removed from ``run.series`` once it is sent (memory).
+    """
     import rerun as rr
 
-    for series in run.series.values():
-        _log_series(rec, series, run.t0_ns)
+    end_ns = run.end_ns()
+    for path in list(run.series):
+        series = run.series.pop(path) if release else run.series[path]
+        _log_series(rec, held(series, end_ns), run.t0_ns)
+        rec.flush()     # encoded and written: its Arrow copies are let go (memory)
+        del series
     by_path: dict[str, list] = {}
     for event in run.events:
         by_path.setdefault(rerun_entity_path(f"/{event.topic}/events"), []).append(event)
@@ -117,8 +168,14 @@ def log_run(rec, run: RunData) -> None:
                                        level=[_LEVELS.get(e.level, "INFO") for e in events]))
 
 
-def export_rrd(recording: Recording, out_path: str | Path, *, run: RunData | None = None) -> Path:
+def export_rrd(recording: Recording | ScannedRecording, out_path: str | Path, *,
+               run: RunData | None = None, release: bool = False) -> Path:
     """Write ``recording`` as a Rerun ``.rrd`` file with its blueprint; return the path.
+
+    ``run`` is its series (:func:`~adnmesh.recording.series.read_run` reads both in one pass);
+    without it they are extracted from ``recording`` (a :class:`Recording`). With ``release``
+    the series are taken out of ``run`` as they are written (for a caller that is done with
+    them: less memory).
 
     Needs no display and starts no viewer or server.
     """
@@ -132,7 +189,7 @@ def export_rrd(recording: Recording, out_path: str | Path, *, run: RunData | Non
     try:
         rec.save(out_path, default_blueprint=blueprint(run))
         rec.send_recording_name(recording_id)
-        log_run(rec, run)
+        log_run(rec, run, release=release)
         rec.flush()
     finally:
         rec.disconnect()

@@ -23,24 +23,32 @@ import re
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from functools import lru_cache
+from pathlib import Path
 
+import msgspec
 import numpy as np
 
-from adnmesh.recording.reader import Recording
+from adnmesh.recording.eventlog import FOXGLOVE_LOG
+from adnmesh.recording.reader import ChannelInfo, Recording
+from adnmesh.recording.stream import MessageBatch, ScannedRecording, Sink, decode_fields, scan
 
 __all__ = [
     "AVAILABILITY_KEYS",
     "ENVELOPE_FIELDS",
     "EVENTS",
     "Event",
+    "EventRule",
     "Field",
     "QUIET_KEYS",
     "RunData",
+    "RunFile",
     "SERIES",
     "Series",
     "available_ders",
     "extract",
+    "feed_recording",
     "match_key",
+    "read_run",
 ]
 
 ENVELOPE_FIELDS = frozenset({"v", "type", "src", "seq", "t_send_ns", "t_deliver_ns"})
@@ -216,19 +224,48 @@ def _agent_event(body: dict, previous: dict | None,
             {k: body[k] for k in ("kind", "subject", "fault_id") if k in body})
 
 
-EventRule = Callable[[dict, "dict | None", dict], "tuple[str, str, dict] | None"]
+RuleFunction = Callable[[dict, "dict | None", dict], "tuple[str, str, dict] | None"]
 
-EVENTS: dict[str, tuple[str, EventRule]] = {
-    "adn/{grid}/cpfc/p_y": ("gain_switch", _gain_switch),
-    "adn/{grid}/der/{der}/state": ("der_mode", _der_mode),
-    "adn/{grid}/der/{der}/heartbeat": ("der_available", _der_available),
-    "adn/{grid}/faults": ("fault", _fault),
-    "adn/{grid}/event/**": ("event", _agent_event),
-    "adn/{grid}/clock/start": ("run_start", _run_start),
+
+@dataclass(frozen=True)
+class EventRule:
+    """How to find one kind of event in the messages on a key.
+
+    Attributes
+    ----------
+    kind : str
+        The event kind (:attr:`Event.kind`).
+    rule : callable
+        Gets the payload body, the body of the previous message on the same key (None for the
+        first) and the key's captures; returns (level, text, data) or None.
+    fields : tuple of str, optional
+        The body fields ``rule`` reads (of both bodies); None: it may read any.
+    watch, present : tuple of str
+        Where ``fields`` is given, the rule is asked only about the first message and those
+        in which a ``watch`` field differs from the previous message's or a ``present`` field
+        is there (not null); empty both: about every message.
+    """
+
+    kind: str
+    rule: RuleFunction
+    fields: tuple[str, ...] | None = None
+    watch: tuple[str, ...] = ()
+    present: tuple[str, ...] = ()
+
+
+EVENTS: dict[str, EventRule] = {
+    "adn/{grid}/cpfc/p_y": EventRule("gain_switch", _gain_switch,
+                                     ("kp", "ki", "p_y", "entry", "switch", "w"),
+                                     watch=("kp", "ki"), present=("switch",)),
+    "adn/{grid}/der/{der}/state": EventRule("der_mode", _der_mode, ("mode",), watch=("mode",)),
+    "adn/{grid}/der/{der}/heartbeat": EventRule("der_available", _der_available,
+                                                ("available",), watch=("available",)),
+    "adn/{grid}/faults": EventRule("fault", _fault),
+    "adn/{grid}/event/**": EventRule("event", _agent_event),
+    "adn/{grid}/clock/start": EventRule("run_start", _run_start, ("end_ns", "clock")),
 }
-"""Key pattern -> (event kind, rule). A rule gets the payload body, the body of the previous
-message on the same key (None for the first) and the key's captures, and returns
-(level, text, data) or None. Availability changes come from :data:`AVAILABILITY_KEYS`."""
+"""Key pattern -> its :class:`EventRule`. Availability changes come from
+:data:`AVAILABILITY_KEYS`."""
 
 
 def available_ders(body: Mapping) -> tuple[set[str], set[str]]:
@@ -332,6 +369,15 @@ class RunData:
         found = self.by_role(role)
         return found[0] if found else None
 
+    def end_ns(self) -> int | None:
+        """End of the run, ns: the ``end_ns`` of its start message, else the last P_IP
+        sample; None without either."""
+        start = next((e for e in self.events if e.kind == "run_start"), None)
+        if start is not None:
+            return int(start.data["end_ns"])
+        p_ip = self.one("p_ip")
+        return int(p_ip.t_ns.max()) if p_ip is not None and p_ip.t_ns.size else None
+
     def seconds(self, t_ns: np.ndarray | int) -> np.ndarray | float:
         """Convert send times in ns to seconds on the ``sim_time`` axis."""
         return (np.asarray(t_ns, dtype=np.int64) - self.t0_ns) / 1e9
@@ -380,108 +426,393 @@ def _t0(recording: Recording) -> int:
     return int(value) if value.isdigit() else 0
 
 
+class _Unordered(Exception):
+    """A channel's messages are not in send-time order across chunks."""
+
+
+@dataclass
+class _Plan:
+    """What :func:`extract` takes from the messages on one key."""
+
+    specs: list[tuple[int, dict, Field]]            # (order, captures, field)
+    is_si: bool
+    rules: list[tuple[int, EventRule, dict]]        # (order, rule, captures)
+    others: bool                                    # keep unmatched numbers too
+    ders: set[str]
+
+    @property
+    def fields(self) -> tuple[str, ...] | None:
+        """The payload fields to decode; None: the whole payload is needed."""
+        if self.is_si or self.others or any(r.fields is None for _, r, _ in self.rules):
+            return None
+        names = [spec.field for _, _, spec in self.specs]
+        names += [name for _, r, _ in self.rules for name in r.fields]
+        return tuple(dict.fromkeys(names))
+
+    @property
+    def empty(self) -> bool:
+        return not (self.specs or self.is_si or self.rules or self.others)
+
+
+def _plan(topic: str, series_rules: Mapping[str, Iterable[Field]],
+          event_rules: Mapping[str, EventRule]) -> _Plan:
+    specs, ders = [], set()
+    for pattern, fields in series_rules.items():
+        captures = match_key(pattern, topic)
+        if captures is not None:
+            specs += [(0, captures, spec) for spec in fields]
+            if "der" in captures:
+                ders.add(captures["der"])
+    specs = [(order, captures, spec) for order, (_, captures, spec) in enumerate(specs)]
+    is_si = any(match_key(p, topic) is not None for p in AVAILABILITY_KEYS)
+    rules = [(1 + order, rule, captures) for order, (p, rule) in enumerate(event_rules.items())
+             if (captures := match_key(p, topic)) is not None]
+    quiet = bool(specs or is_si or rules) or any(
+        match_key(p, topic) is not None for p in QUIET_KEYS)
+    return _Plan(specs, is_si, rules, not quiet, ders)
+
+
+def _floats(values: list) -> np.ndarray:
+    """Numbers as float64 (booleans 0/1), NaN for anything else."""
+    try:
+        return np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError):
+        return np.asarray([np.nan if (v := _number(x)) is None else v for x in values],
+                          dtype=np.float64)
+
+
+class _Collector:
+    """The series, events and DERs of a recording, channel by channel (see :func:`extract`)."""
+
+    def __init__(self, series_rules, event_rules) -> None:
+        self.series_rules, self.event_rules = series_rules, event_rules
+        self.columns: dict[str, tuple[Field | None, str, str, list]] = {}
+        self.first: dict[str, tuple] = {}
+        self.events: list[tuple[tuple, Event]] = []
+        self.ders: set[str] = set()
+        self.availability: list[tuple[int, int, str, frozenset[str]]] = []
+        self.last_available: frozenset[str] | None = None
+
+    def sink_for(self, info) -> Sink | None:
+        if info.schema_name == FOXGLOVE_LOG:   # the recorder's copy of the events
+            return None
+        plan = _plan(info.topic, self.series_rules, self.event_rules)
+        if plan.empty:
+            return None
+        if plan.fields is None:
+            return _WholeChannel(self, info.topic, plan)
+        return _FieldChannel(self, info.topic, plan)
+
+    def add(self, path: str, spec: Field | None, name: str, topic: str, t_ns, log_ns, values,
+            first: tuple) -> None:
+        """Append samples (arrays, in send-time order) to the series at ``path``."""
+        if len(values) == 0:
+            return
+        entry = self.columns.get(path)
+        if entry is None:
+            entry = self.columns[path] = (spec, name, topic, _Samples())
+            self.first[path] = first
+        entry[3].append(t_ns, log_ns, values)
+
+    def event(self, key: tuple, t_ns: int, kind: str, found, topic: str) -> None:
+        level, text, data = found
+        self.events.append((key, Event(t_ns, kind, level, text, topic, data)))
+
+    def si(self, t_ns: int, log_ns: int, order: int, topic: str, body: dict) -> None:
+        """One SI message: the count of available DERs and, on a change, an event."""
+        available, known = available_ders(body)
+        self.ders.update(known)
+        self.availability.append((t_ns, log_ns, topic, frozenset(available)))
+        self.add(f"/{topic}/available_count", _COUNT, _COUNT.name, topic, [t_ns], [log_ns],
+                 [float(len(available))], (0, t_ns, order, 10_000))
+        if frozenset(available) != self.last_available:
+            self.last_available = frozenset(available)
+            text = f"availability: {len(available)} available: {', '.join(sorted(available))}"
+            self.events.append(((t_ns, order, 0), Event(t_ns, "availability", "INFO", text, topic,
+                                                        {"available": sorted(available)})))
+
+    def result(self, t0_ns: int) -> RunData:
+        # one 0/1 step series per DER from SI, now that every DER id is known
+        for number, (t_ns, log_ns, topic, available) in enumerate(self.availability):
+            for der in sorted(self.ders):
+                self.add(f"/{topic}/available/{der}",
+                         Field("available", f"{der} available", "availability", unit="1",
+                               step=True),
+                         f"{der} available", topic, [t_ns], [log_ns], [float(der in available)],
+                         (1, number))
+        series, times = {}, {}
+        for path in sorted(self.columns, key=self.first.__getitem__):
+            spec, name, topic, pieces = self.columns.pop(path)   # one series' copy at a time
+            spec = spec or Field(path.rsplit("/", 1)[-1], name, "other", unit="")
+            t_ns, log_ns, values = pieces.arrays()
+            shared = times.get(topic)          # series of one key mostly share their times
+            if shared is not None and np.array_equal(shared[0], t_ns) and \
+                    np.array_equal(shared[1], log_ns):
+                t_ns, log_ns = shared
+            else:
+                times[topic] = (t_ns, log_ns)
+            series[path] = Series(name=name, entity_path=path, role=spec.role, unit=spec.unit,
+                                  step=spec.step, color=spec.color, topic=topic, t_ns=t_ns,
+                                  log_time_ns=log_ns, values=values)
+        self.events.sort(key=lambda item: item[0])
+        return RunData(series=series, events=[e for _, e in self.events],
+                       der_ids=sorted(self.ders), t0_ns=t0_ns)
+
+
+class _Samples:
+    """The samples of one series as they come, in few large blocks (small pieces are merged
+    once there are enough of them, so that their memory is reused, not left fragmented)."""
+
+    _MERGE = 1 << 16
+
+    def __init__(self) -> None:
+        self.blocks: list[tuple[np.ndarray, ...]] = []
+        self.pieces: list[tuple[np.ndarray, ...]] = []
+        self.size = 0
+
+    def append(self, t_ns, log_ns, values) -> None:
+        self.pieces.append((np.asarray(t_ns, dtype=np.int64), np.asarray(log_ns, dtype=np.int64),
+                            np.asarray(values, dtype=np.float64)))
+        self.size += self.pieces[-1][0].size
+        if self.size >= self._MERGE:
+            self.blocks.append(self._merge(self.pieces))
+            self.pieces, self.size = [], 0
+
+    @staticmethod
+    def _merge(parts) -> tuple[np.ndarray, ...]:
+        return tuple(np.concatenate([p[i] for p in parts]) for i in range(3))
+
+    def arrays(self) -> tuple[np.ndarray, ...]:
+        """Send times, delivery times (ns) and values, all of them; the blocks are let go."""
+        parts, self.blocks, self.pieces = self.blocks + self.pieces, [], []
+        return self._merge(parts)
+
+
+class _Channel:
+    """The messages on one key, a batch at a time, in send-time order."""
+
+    def __init__(self, collector: _Collector, topic: str, plan: _Plan) -> None:
+        self.collector, self.topic, self.plan = collector, topic, plan
+        self.last_t_ns: int | None = None
+        self.seen = False
+
+    def __call__(self, batch: MessageBatch) -> None:
+        order = np.argsort(batch.publish_time_ns, kind="stable")
+        if np.any(order[1:] < order[:-1]):
+            batch = batch.select(order)
+        t_ns = batch.publish_time_ns
+        if self.last_t_ns is not None and t_ns.size and t_ns[0] < self.last_t_ns:
+            raise _Unordered(self.topic)
+        if t_ns.size:
+            self.last_t_ns = int(t_ns[-1])
+            self.take(batch)
+
+    def found_bodies(self) -> None:
+        if not self.seen:
+            self.seen = True
+            self.collector.ders.update(self.plan.ders)
+
+
+class _FieldChannel(_Channel):
+    """A key whose rules read known fields: columns decoded by msgspec, rules asked only where
+    a watched field changes."""
+
+    def __init__(self, collector: _Collector, topic: str, plan: _Plan) -> None:
+        super().__init__(collector, topic, plan)
+        self.names = self.fields = plan.fields
+        self.previous: dict | None = None
+
+    def take(self, batch: MessageBatch) -> None:
+        t_ns, log_ns, ordinal = batch.publish_time_ns, batch.log_time_ns, batch.ordinal
+        decoded = batch.columns or decode_fields(batch, self.names)
+        columns, valid = decoded.columns, decoded.valid
+        if not valid.all():
+            keep = np.flatnonzero(valid)
+            t_ns, log_ns, ordinal = t_ns[keep], log_ns[keep], ordinal[keep]
+            columns = {k: [v[i] for i in keep.tolist()] for k, v in columns.items()}
+        if not t_ns.size:
+            return
+        self.found_bodies()
+        for order, captures, spec in self.plan.specs:
+            values = _floats(columns[spec.field])
+            ok = np.isfinite(values)
+            if ok.any():
+                first = int(np.argmax(ok))
+                self.collector.add(f"/{self.topic}/{spec.field}", spec,
+                                   spec.name.format(**captures), self.topic, t_ns[ok],
+                                   log_ns[ok], values[ok],
+                                   (0, int(t_ns[first]), int(ordinal[first]), order))
+        for order, rule, captures in self.plan.rules:
+            self.apply(rule, order, captures, columns, t_ns, ordinal)
+        self.previous = self.body(columns, t_ns.size - 1)
+
+    def body(self, columns: dict[str, list], i: int) -> dict:
+        return {k: v[i] for k, v in columns.items() if v[i] is not msgspec.UNSET}
+
+    def apply(self, rule: EventRule, order: int, captures: dict, columns, t_ns, ordinal) -> None:
+        """Ask ``rule`` about the messages of this batch where it may find an event."""
+        n = t_ns.size
+        if rule.watch or rule.present:
+            asked = np.zeros(n, dtype=bool)
+            asked[0] = True
+            for name in rule.watch:
+                values = np.fromiter(columns[name], dtype=object, count=n)
+                asked[1:] |= (values[1:] != values[:-1]).astype(bool)
+            for name in rule.present:
+                asked |= np.fromiter((v is not msgspec.UNSET and v is not None
+                                      for v in columns[name]), dtype=bool, count=n)
+            rows = np.flatnonzero(asked).tolist()
+        else:
+            rows = range(n)
+        for i in rows:
+            previous = self.previous if i == 0 else self.body(columns, i - 1)
+            found = rule.rule(self.body(columns, i), previous, captures)
+            if found is not None:
+                self.collector.event((int(t_ns[i]), int(ordinal[i]), order), int(t_ns[i]),
+                                     rule.kind, found, self.topic)
+
+
+class _WholeChannel(_Channel):
+    """A key whose messages are needed whole (SI, faults, agents' events, unmatched keys):
+    message by message, as decoded JSON."""
+
+    def __init__(self, collector: _Collector, topic: str, plan: _Plan) -> None:
+        super().__init__(collector, topic, plan)
+        self.previous: dict | None = None
+
+    def take(self, batch: MessageBatch) -> None:
+        series: dict[str, tuple[Field | None, str, list, tuple]] = {}
+        for t, log, number, payload in zip(batch.publish_time_ns.tolist(),
+                                           batch.log_time_ns.tolist(), batch.ordinal.tolist(),
+                                           batch.payloads):
+            body = _body(_json(payload))
+            if body:
+                self.found_bodies()
+                self.message(t, log, number, body, series)
+        for path, (spec, name, samples, first) in series.items():
+            t, log, values = zip(*samples)
+            self.collector.add(path, spec, name, self.topic, t, log, values, first)
+
+    def message(self, t: int, log: int, number: int, body: dict, series: dict) -> None:
+        def add(path, spec, name, value, order):
+            entry = series.setdefault(path, (spec, name, [], (0, t, number, order)))
+            entry[2].append((t, log, value))
+
+        for order, captures, spec in self.plan.specs:
+            value = _number(body.get(spec.field))
+            if value is not None:
+                add(f"/{self.topic}/{spec.field}", spec, spec.name.format(**captures), value,
+                    order)
+        if self.plan.is_si:
+            self.collector.si(t, log, number, self.topic, body)
+        for order, rule, captures in self.plan.rules:
+            found = rule.rule(body, self.previous, captures)
+            if found is not None:
+                self.collector.event((t, number, order), t, rule.kind, found, self.topic)
+        if self.plan.rules:
+            self.previous = body
+        if self.plan.others:
+            for k, (name, raw) in enumerate(body.items()):
+                value = None if name in ENVELOPE_FIELDS or isinstance(raw, bool) else \
+                    _number(raw)
+                if value is not None:
+                    add(f"/{self.topic}/{name}", None, f"{self.topic}/{name}", value,
+                        20_000 + k)
+
+
+def _json(payload: bytes) -> object:
+    try:
+        return msgspec.json.decode(payload)
+    except msgspec.DecodeError:
+        pass
+    try:
+        return json.loads(payload)
+    except ValueError:
+        return None
+
+
 def extract(recording: Recording, *, series_rules: Mapping[str, Iterable[Field]] = SERIES,
-            event_rules: Mapping[str, tuple[str, EventRule]] = EVENTS) -> RunData:
+            event_rules: Mapping[str, EventRule] = EVENTS) -> RunData:
     """Turn a recording's messages into named series and events, using the tables above.
 
-    Messages whose payload is not a JSON object are skipped.
+    Messages whose payload is not a JSON object are skipped. :func:`read_run` gives the same
+    result for a file, reading it in one streaming pass.
     """
-    columns: dict[str, tuple[Field | None, str, str, list, list, list]] = {}
-    events: list[Event] = []
-    previous: dict[str, dict] = {}  # the last body per key, for the event rules
-    ders: set[str] = set()
-    last_available: frozenset[str] | None = None
-    availability: list[tuple[int, int, str, frozenset[str]]] = []
+    collector = _Collector(series_rules, event_rules)
+    feed_recording(recording, collector.sink_for)
+    return collector.result(_t0(recording))
 
-    def add(path: str, spec: Field | None, name: str, topic: str, m, value: float) -> None:
-        entry = columns.get(path)
-        if entry is None:
-            entry = columns[path] = (spec, name, topic, [], [], [])
-        entry[3].append(m.publish_time_ns)
-        entry[4].append(m.log_time_ns)
-        entry[5].append(value)
 
-    plans: dict[str, tuple[list, bool, list, bool]] = {}
-
-    def plan(topic: str) -> tuple[list, bool, list, bool]:
-        """Which series rules (with captures), whether SI, which event rules apply to topic."""
-        specs = []
-        for pattern, fields in series_rules.items():
-            captures = match_key(pattern, topic)
-            if captures is not None:
-                specs.append((captures, fields))
-                if "der" in captures:
-                    ders.add(captures["der"])
-        is_si = any(match_key(p, topic) is not None for p in AVAILABILITY_KEYS)
-        rules = [(kind, rule, captures) for p, (kind, rule) in event_rules.items()
-                 if (captures := match_key(p, topic)) is not None]
-        quiet = bool(specs or is_si or rules) or any(
-            match_key(p, topic) is not None for p in QUIET_KEYS)
-        return specs, is_si, rules, quiet
-
-    for m in sorted(recording.messages, key=lambda m: m.publish_time_ns):  # stable
-        try:
-            body = _body(json.loads(m.data))
-        except ValueError:
+def feed_recording(recording: Recording, sink_for: Callable[[ChannelInfo], Sink | None]) -> None:
+    """Give the messages of ``recording`` (read whole) to sinks, as :func:`scan` gives a file's:
+    one batch per channel, in send-time order."""
+    by_topic: dict[str, list[int]] = {}
+    for number, m in enumerate(recording.messages):
+        by_topic.setdefault(m.topic, []).append(number)
+    for topic, info in recording.channels.items():
+        sink = sink_for(info)
+        numbers = by_topic.get(topic, [])
+        if sink is None or not numbers:
             continue
-        if not body:
-            continue
-        if m.topic not in plans:
-            plans[m.topic] = plan(m.topic)
-        specs, is_si, rules, quiet = plans[m.topic]
-        for captures, fields in specs:
-            for spec in fields:
-                value = _number(body.get(spec.field))
-                if value is not None:
-                    add(f"/{m.topic}/{spec.field}", spec, spec.name.format(**captures), m.topic,
-                        m, value)
-        if is_si:
-            available, known = available_ders(body)
-            ders.update(known)
-            availability.append((m.publish_time_ns, m.log_time_ns, m.topic, frozenset(available)))
-            add(f"/{m.topic}/available_count", _COUNT, _COUNT.name, m.topic, m,
-                float(len(available)))
-            if frozenset(available) != last_available:
-                last_available = frozenset(available)
-                text = f"availability: {len(available)} available: {', '.join(sorted(available))}"
-                events.append(Event(m.publish_time_ns, "availability", "INFO", text, m.topic,
-                                    {"available": sorted(available)}))
-        for kind, rule, captures in rules:
-            found = rule(body, previous.get(m.topic), captures)
-            if found is not None:
-                level, text, data = found
-                events.append(Event(m.publish_time_ns, kind, level, text, m.topic, data))
-        if rules:
-            previous[m.topic] = body
-        if not quiet:
-            for name, raw in body.items():
-                value = None if name in ENVELOPE_FIELDS or isinstance(raw, bool) else _number(raw)
-                if value is not None:
-                    add(f"/{m.topic}/{name}", None, f"{m.topic}/{name}", m.topic, m, value)
-
-    # one 0/1 step series per DER from SI, now that every DER id is known
-    for t_ns, log_ns, topic, available in availability:
-        for der in sorted(ders):
-            add(f"/{topic}/available/{der}",
-                Field("available", f"{der} available", "availability", unit="1", step=True),
-                f"{der} available", topic, _Stamp(t_ns, log_ns), float(der in available))
-
-    series = {}
-    for path, (spec, name, topic, t_ns, log_ns, values) in columns.items():
-        spec = spec or Field(path.rsplit("/", 1)[-1], name, "other", unit="")
-        series[path] = Series(name=name, entity_path=path, role=spec.role, unit=spec.unit,
-                              step=spec.step, color=spec.color, topic=topic,
-                              t_ns=np.asarray(t_ns, dtype=np.int64),
-                              log_time_ns=np.asarray(log_ns, dtype=np.int64),
-                              values=np.asarray(values, dtype=np.float64))
-    events.sort(key=lambda e: e.t_ns)
-    return RunData(series=series, events=events, der_ids=sorted(ders), t0_ns=_t0(recording))
-
-
-_COUNT = Field("available_count", "DERs available", "available_count", unit="1", step=True)
+        messages = [recording.messages[i] for i in numbers]
+        sink(MessageBatch(np.asarray([m.publish_time_ns for m in messages], dtype=np.int64),
+                          np.asarray([m.log_time_ns for m in messages], dtype=np.int64),
+                          np.asarray(numbers, dtype=np.int64), [m.data for m in messages]))
 
 
 @dataclass(frozen=True)
-class _Stamp:
-    publish_time_ns: int
-    log_time_ns: int
+class RunFile:
+    """A recording read by :func:`read_run`: the file's description and its series."""
+
+    recording: ScannedRecording
+    run: RunData
+
+
+def read_run(path: str | Path, *, also: Callable[[], object] | None = None,
+             series_rules: Mapping[str, Iterable[Field]] = SERIES,
+             event_rules: Mapping[str, EventRule] = EVENTS) -> tuple[RunFile, object]:
+    """Read the recording ``path`` in one streaming pass: its series and events, as
+    :func:`extract` finds them, without holding its messages.
+
+    Parameters
+    ----------
+    path : str or Path
+        An MCAP file, complete or truncated.
+    also : callable, optional
+        Makes another consumer of the same pass: an object with a ``sink_for(info)`` method
+        (see :func:`~adnmesh.recording.stream.scan`); it is returned beside the result.
+
+    Returns
+    -------
+    (RunFile, object)
+        The file and its run data, and the object ``also`` made (None without it).
+
+    Raises
+    ------
+    RecordingError
+        As :func:`~adnmesh.recording.stream.scan`.
+    """
+    collector = _Collector(series_rules, event_rules)
+    other = also() if also is not None else None
+
+    def sink_for(info: ChannelInfo) -> Sink | None:
+        sinks = [s for s in (collector.sink_for(info),
+                             other.sink_for(info) if other is not None else None) if s]
+        if len(sinks) < 2:
+            return sinks[0] if sinks else None
+        return lambda batch: [sink(batch) for sink in sinks]
+
+    try:
+        scanned = scan(path, sink_for)
+    except _Unordered:   # messages of a key out of send-time order: read it whole
+        from adnmesh.recording.reader import read_recording
+
+        recording = read_recording(path)
+        collector = _Collector(series_rules, event_rules)
+        other = also() if also is not None else None
+        feed_recording(recording, sink_for)
+        scanned = scan(path, lambda info: None)
+    return RunFile(scanned, collector.result(_t0(scanned))), other
+
+
+_COUNT = Field("available_count", "DERs available", "available_count", unit="1", step=True)

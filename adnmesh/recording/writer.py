@@ -31,9 +31,11 @@ import json
 import os
 import struct
 import threading
+import time
 import zlib
 from collections.abc import Iterable, Mapping
 from concurrent.futures import Future, ThreadPoolExecutor
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import BinaryIO
 
@@ -56,6 +58,7 @@ from mcap.records import (
 from mcap.writer import LIBRARY_IDENTIFIER, MCAP0_MAGIC
 
 from adnmesh import __version__
+from adnmesh.recording.eventlog import FOXGLOVE_LOG, FOXGLOVE_LOG_SCHEMA, EventLog
 
 __all__ = [
     "FORMAT_VERSION",
@@ -105,6 +108,10 @@ RUN_METADATA_KEYS = {
     "t0_ns": "time of the run's start on the recorded time axis, ns (default 0)",
     "recording_format": "FORMAT_VERSION (filled in)",
     "flush_interval_s": "the recorder's flush interval, s (filled in)",
+    "start_utc": "wall-clock time the recording started, ISO 8601 UTC (filled in); message "
+                 "times stay on the run's own axis",
+    "start_unix_ns": "the same instant, ns since the Unix epoch (filled in)",
+    "events_topic": "the topic of the run's events as foxglove.Log messages, if recorded",
 }
 """The keys of the :data:`RUN_METADATA` record and what they hold; all values are strings.
 The recorder requires none of them but fills in the ones marked *filled in*."""
@@ -335,6 +342,11 @@ class Recorder:
         written get a schema record.
     flush_interval_s : float
         Wall-clock seconds between flushes to disk (> 0). Bounds what a killed run loses.
+    events_topic : str, optional
+        Also write the run's events (gain switches, availability changes, faults, the agents'
+        events such as watchdog fallbacks and overruns, rejected payloads) as ``foxglove.Log``
+        messages on this topic (:mod:`adnmesh.recording.eventlog`), for Foxglove's log panel.
+        They are not in :meth:`counts`.
 
     Examples
     --------
@@ -351,6 +363,7 @@ class Recorder:
         metadata: Mapping[str, str],
         schemas: Mapping[str, Mapping],
         flush_interval_s: float = 1.0,
+        events_topic: str | None = None,
     ) -> None:
         if not flush_interval_s > 0:
             raise ValueError(f"flush_interval_s must be > 0, got {flush_interval_s!r}")
@@ -365,11 +378,23 @@ class Recorder:
         run.setdefault("adnmesh_version", __version__)
         run.setdefault("recording_format", FORMAT_VERSION)
         run.setdefault("flush_interval_s", f"{self._flush_interval_s:g}")
+        start = time.time_ns()
+        run.setdefault("start_utc", datetime.fromtimestamp(start / 1e9, timezone.utc)
+                       .isoformat(timespec="microseconds"))
+        run.setdefault("start_unix_ns", str(start))
+        self._events_topic = events_topic
+        self._events = None
+        if events_topic is not None:
+            self._events = EventLog()
+            self._schemas[FOXGLOVE_LOG] = json.dumps(FOXGLOVE_LOG_SCHEMA,
+                                                     sort_keys=True).encode()
+            run["events_topic"] = events_topic
 
         self._lock = threading.Lock()
         self._schema_ids: dict[str, int] = {}
         self._channels: dict[str, tuple[int, str]] = {}  # topic -> (channel id, schema name)
         self._counts: dict[str, int] = {}
+        self._event_count = 0
         self._dirty = False
         self._closed = False
         self._failure: BaseException | None = None
@@ -446,6 +471,22 @@ class Recorder:
                 for payload, log_time, publish_time in messages))
             self._counts[topic] = first - 1 + written
             self._dirty = True
+            if self._events is not None:
+                self._log_events(topic, schema_name, messages)
+
+    def _log_events(self, topic: str, schema_name: str, messages) -> None:
+        """Write the events in ``messages`` on the events topic (``foxglove.Log``; not in
+        :meth:`counts`: no agent publishes them)."""
+        logs = [(record, publish_time, publish_time) for payload, _, publish_time in messages
+                for record in self._events.observe(topic, schema_name, bytes(payload),
+                                                   int(publish_time))]
+        if not logs:
+            return
+        channel = self._channels.get(self._events_topic)
+        if channel is None:
+            channel = (self._register(self._events_topic, FOXGLOVE_LOG), FOXGLOVE_LOG)
+            self._channels[self._events_topic] = channel
+        self._event_count += self._writer.add_messages(channel[0], self._event_count + 1, logs)
 
     def add_metadata(self, name: str, data: Mapping[str, str]) -> None:
         """Add a metadata record ``name`` (e.g. :data:`PUBLISHED_METADATA`) and flush."""

@@ -212,7 +212,7 @@ class _Launch:
         self.sessions = SessionWatch((*self.topology.agents, *self.peers))
         self.interrupted: list[int] = []
         self.recorder = Recorder(options.out, metadata=_metadata(options),
-                                 schemas=recording_schemas())
+                                 schemas=recording_schemas(), events_topic=f"{self.keys.root}/log")
         self.clock: SimClockDriver | None = None
         self.tap = RecorderTap(self.recorder, self.topology, self.result.series,
                                lambda: self.clock.now_ns() if self.clock else 0)

@@ -1,0 +1,71 @@
+"""Tests of the run's events as foxglove.Log messages written by the recorder."""
+
+from __future__ import annotations
+
+import json
+from datetime import datetime
+from pathlib import Path
+
+import jsonschema
+import pytest
+
+from adnmesh.recording import Recorder, read_recording
+from adnmesh.recording.eventlog import FOXGLOVE_LOG, FOXGLOVE_LOG_SCHEMA, LOG_LEVELS, log_record
+from adnmesh.recording.series import extract, read_run
+from synthetic_runs import FAKE_SCHEMAS, fake_run
+
+EVENTS = "adn/fake/log"
+
+
+@pytest.fixture(scope="module")
+def logged(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("log") / "fake.mcap"
+    with Recorder(path, metadata={"run_id": "log"}, schemas=FAKE_SCHEMAS,
+                  events_topic=EVENTS) as recorder:
+        for m in fake_run():
+            recorder.write(m.topic, m.schema_name, m.payload, log_time_ns=m.t_deliver_ns,
+                           publish_time_ns=m.t_send_ns)
+        assert EVENTS not in recorder.counts()          # no agent publishes them
+    return path
+
+
+def test_events_are_foxglove_log_messages_beside_the_run(logged: Path) -> None:
+    recording = read_recording(logged)
+    assert recording.channels[EVENTS].schema_name == FOXGLOVE_LOG
+    assert recording.channels[EVENTS].message_encoding == "json"
+    assert recording.schemas[FOXGLOVE_LOG] == FOXGLOVE_LOG_SCHEMA
+    logs = [m for m in recording.messages if m.topic == EVENTS]
+    for m in logs:
+        body = m.payload()
+        jsonschema.validate(body, FOXGLOVE_LOG_SCHEMA)
+        assert set(body) == {"timestamp", "level", "message", "name", "file", "line"}
+        t = body["timestamp"]
+        assert t["sec"] * 10**9 + t["nsec"] == m.publish_time_ns == m.log_time_ns
+    # the same texts replay and inspect show (DER mode changes come as agents' events)
+    shown = {(e.t_ns, e.text) for e in extract(recording).events if e.kind != "der_mode"}
+    assert {(m.publish_time_ns, m.payload()["message"]) for m in logs} == shown
+    levels = {m.payload()["message"]: m.payload()["level"] for m in logs}
+    assert any(text.startswith("gain switch") and level == LOG_LEVELS["INFO"]
+               for text, level in levels.items())
+    assert any(text.startswith("fault ") and level == LOG_LEVELS["WARN"]
+               for text, level in levels.items())
+
+
+def test_the_wall_clock_start_is_in_the_metadata(logged: Path) -> None:
+    run = read_recording(logged).run
+    start = datetime.fromisoformat(run["start_utc"])
+    assert start.utcoffset().total_seconds() == 0
+    assert abs(start.timestamp() * 1e9 - int(run["start_unix_ns"])) < 1e3
+    assert run["events_topic"] == EVENTS
+
+
+def test_the_log_is_neither_a_series_nor_an_event_twice(logged: Path) -> None:
+    found, _ = read_run(logged)
+    assert not any(s.topic == EVENTS for s in found.run.series.values())
+    assert not any(e.topic == EVENTS for e in found.run.events)
+
+
+def test_log_record_splits_the_time_and_maps_the_level() -> None:
+    body = json.loads(log_record(12_345_678_901, "WARN", "text", "name", "a/b"))
+    assert body == {"timestamp": {"sec": 12, "nsec": 345_678_901}, "level": 3,
+                    "message": "text", "name": "name", "file": "a/b", "line": 0}
