@@ -110,6 +110,8 @@ def fault_figures(faults: Sequence[dict], events: Sequence[tuple[float, str, str
     t_ip = np.asarray(t_ip_s, dtype=float)
     p_ip = np.asarray(p_ip_w, dtype=float)
     ref_t, ref_v = np.asarray(p_ref_t_s, dtype=float), np.asarray(p_ref_w, dtype=float)
+    if ref_v.size == 0:               # no P_ref recorded (a cut recording): no deviation
+        ref_t, ref_v = np.zeros(1), np.full(1, np.nan)
     idx = np.searchsorted(ref_t, t_ip, side="right") - 1
     dev = np.where(idx >= 0, np.abs(p_ip - ref_v[np.maximum(idx, 0)]), 0.0)
     starts = sorted({f["start_ns"] * 1e-9 for f in faults})

@@ -83,3 +83,15 @@ def test_connection_flags_and_session_config() -> None:
     assert json.loads(router.get_json("mode")) == "router"
     assert json.loads(router.get_json("listen/endpoints")) == ["tcp/127.0.0.1:5678"]
     assert 0 < free_port() < 65536
+
+
+def test_a_recording_with_p_ip_and_a_fault_but_no_p_ref_still_has_a_summary() -> None:
+    """A cut recording (P_IP samples, a fault, no P_ref message): no steps, the fault's
+    deviations unknown, no IndexError."""
+    series = RunSeries(p_ip_t_ns=[0, 10_000_000, 20_000_000], p_ip_w=[1e6, 1e6, 1e6])
+    series.faults[0] = {"fault_id": 0, "kind": "ict_outage", "start_ns": 5_000_000,
+                        "end_ns": 15_000_000}
+    summary = summarize(series, end_ns=30_000_000)
+    assert summary.steps == ()
+    (fault,) = summary.faults
+    assert json.loads(json.dumps(summary.to_json()))["faults"][0]["kind"] == "ict_outage"

@@ -9,7 +9,7 @@ A command module exposes
     :class:`~adnmesh.errors.ConfigError` or :class:`~adnmesh.errors.UsageError` for user errors;
     :func:`adnmesh.cli.main` prints them as one line and exits with code 2.
 
-To add a command, write ``adnmesh/commands/<name>.py`` and list it in ``adnmesh.cli.COMMANDS``.
+To add a command, write ``adnmesh/commands/<name>.py`` and list it in ``adnmesh.cli.COMMAND_NAMES``.
 """
 
 import argparse

@@ -197,6 +197,8 @@ def _finite(value):
 def _p_ref_at(series: RunSeries, t_ns: np.ndarray) -> np.ndarray:
     ref_t = np.asarray(series.p_ref_t_ns, dtype=np.int64)
     ref_v = np.asarray(series.p_ref_w, dtype=float)
+    if ref_v.size == 0:
+        return np.full(np.shape(t_ns), np.nan)
     idx = np.searchsorted(ref_t, t_ns, side="right") - 1
     return np.where(idx >= 0, ref_v[np.maximum(idx, 0)], np.nan)
 
