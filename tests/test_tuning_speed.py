@@ -110,3 +110,53 @@ def test_cli_tunes_only_the_subsets_asked_for(tmp_path):
     assert sorted(tuple(e["ders"]) for e in obj["entries"]) == [("D0",), ("D0", "D1")]
     assert obj["complete"] is False
     assert obj["static"]["kp"] > 0          # static over the subsets, the single DERs and all
+
+
+def _reference_table(method="global"):
+    from adnmesh.table import SchedulingTable
+    ref = json.loads((DATA / f"tuning_reference_mixed4_{method}.json").read_text())
+    return SchedulingTable.from_json(ref)
+
+
+def test_on_demand_tuning_of_unseen_plants_is_certified_and_near_the_optimum():
+    from adnmesh.loop import evaluate
+    from adnmesh.plant import plant_from_ders
+    from adnmesh.tuning.ondemand import OnDemandTuner
+
+    config = load_config(CONFIGS / "mixed-4.yaml")
+    table = _reference_table()
+    problem = TuningProblem(config)
+    c = config.constraints
+    used = set()
+    for ders in [("SGen1", "SGen5"), ("SGen2", "SGen5", "SGen9"), ("SGen1", "SGen2", "SGen9")]:
+        key = problem.key(problem.fractions(ders)[0])
+        tuner = OnDemandTuner(config)
+        tuner.add_table(table, exclude={key})          # the plant is unseen
+        entry = tuner.tune(ders)
+        # on this sparse table (15 subsets) the neighbour's ray may miss: global search then
+        assert entry.feasible and entry.figures["tuned_by"] in (
+            "on demand (nearest table plant)", "global")
+        used.add(entry.figures["tuned_by"])
+        plant = plant_from_ders(config.ders_by_id(entry.ders), config.design_t_com_s,
+                                config.t_meas_s, weights=entry.w)
+        f = evaluate(plant, entry.kp, entry.ki, classical=False).row(0)
+        assert f["stable"] and f["disk_margin"] >= c.disk_margin_min
+        assert f["overshoot_pct"] < c.overshoot_max_pct
+        best = table.lookup(ders).figures["design_rise_time_s"]
+        assert entry.figures["design_rise_time_s"] <= 1.20 * best   # sparse table: far neighbours
+        assert tuner.tune(list(reversed(ders))) is entry          # cached
+    assert "on demand (nearest table plant)" in used
+
+
+def test_the_cpfc_schedule_tunes_a_subset_its_table_lacks_from_the_table():
+    from adnmesh.control.cpfc import GainSchedule
+
+    config = load_config(CONFIGS / "mixed-4.yaml")
+    table = _reference_table()
+    missing = frozenset({"SGen2", "SGen5", "SGen9"})
+    del table.entries[missing]
+    schedule = GainSchedule(config, table)
+    entry, source = schedule.lookup(missing)
+    assert source == "tuned" and entry.feasible
+    assert entry.figures["tuned_by"] in ("on demand (nearest table plant)", "global")
+    assert schedule.lookup(missing)[0] is entry
