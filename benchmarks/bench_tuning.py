@@ -12,6 +12,12 @@ on ``plant_from_ders`` with the entry's weights, full step info). Figures are ra
     .venv/bin/python benchmarks/bench_tuning.py [--config configs/simbench.yaml]
         [--methods paper,global] [--workers 2] [--repeats 3] [--baseline-rev 2b468a6]
     .venv/bin/python benchmarks/bench_tuning.py --audit tables/simbench.<sha12>.json
+    .venv/bin/python benchmarks/bench_tuning.py --on-demand 100 --table T.json
+
+``--on-demand N`` tunes N random subsets of the config on demand (:class:`OnDemandTuner`), each
+with every entry of its *plant* left out of the table (an unseen plant), and prints wall and
+CPU per subset (median, p99), how many the global search had to decide and the rise time over
+the table's.
 """
 from __future__ import annotations
 
@@ -116,6 +122,39 @@ def _phases(config, method: str, workers: int) -> int:
     return audit(config, table)
 
 
+def on_demand(config, table, n: int) -> None:
+    """On-demand tuning of ``n`` random subsets, each on an unseen plant."""
+    from adnmesh.tuning import TuningProblem
+    from adnmesh.tuning.ondemand import OnDemandTuner
+    from adnmesh.tuning.subsets import random_subsets
+
+    problem = TuningProblem(config)
+    subsets = random_subsets(config.der_ids(), n, seed=1)[1:]
+    warm = OnDemandTuner(config, table)
+    warm.tune(subsets[0])                               # numba and caches warm
+    walls, cpus, ratio, fallback, bad = [], [], [], 0, 0
+    for s in subsets:
+        tuner = OnDemandTuner(config)
+        tuner.add_table(table, exclude={problem.key(problem.fractions(s)[0])})
+        c0, w0 = time.process_time(), time.perf_counter()
+        e = tuner.tune(s)
+        walls.append(time.perf_counter() - w0)
+        cpus.append(time.process_time() - c0)
+        fallback += e.figures.get("tuned_by") == "global"
+        bad += not e.feasible
+        ref = table.lookup(s)
+        if ref is not None and ref.feasible:
+            ratio.append(e.figures["design_rise_time_s"] / ref.figures["design_rise_time_s"])
+    w, c = np.array(walls) * 1e3, np.array(cpus) * 1e3
+    print(f"on demand, {len(subsets)} random subsets on unseen plants: wall median "
+          f"{np.median(w):.0f} ms, p99 {np.quantile(w, 0.99):.0f} ms; CPU median "
+          f"{np.median(c):.0f} ms, p99 {np.quantile(c, 0.99):.0f} ms; global search decided "
+          f"{fallback}; not certified {bad}")
+    if ratio:
+        r = np.array(ratio)
+        print(f"  rise time / table's: median {np.median(r):.3f}, worst {r.max():.3f}")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--config", default=str(ROOT / "configs" / "simbench.yaml"))
@@ -125,10 +164,18 @@ def main(argv=None) -> int:
     ap.add_argument("--baseline-rev", help="git revision to compare with (temporary worktree)")
     ap.add_argument("--no-phases", action="store_true", help="skip the per-phase run and audit")
     ap.add_argument("--audit", help="only audit this table")
+    ap.add_argument("--on-demand", type=int, metavar="N",
+                    help="only benchmark on-demand tuning of N random subsets (needs --table)")
+    ap.add_argument("--table", help="table of the config (for --on-demand)")
     args = ap.parse_args(argv)
     config = load_config(args.config)
     if args.audit:
         return 1 if audit(config, load_table(args.audit, config)) else 0
+    if args.on_demand:
+        if not args.table:
+            ap.error("--on-demand needs --table")
+        on_demand(config, load_table(args.table, config), args.on_demand)
+        return 0
     methods = args.methods.split(",")
     with tempfile.TemporaryDirectory(prefix="bench-tuning-") as tmp:
         base = None
