@@ -13,6 +13,8 @@ from adnmesh.commands import add_config_argument
 from adnmesh.config import load_config
 from adnmesh.errors import UsageError
 from adnmesh.table import default_table_path
+#: shown in --help; equals adnmesh.tuning.subsets.MAX_ALL_DERS (not imported: the CLI stays light)
+MAX_ALL_DERS = 16
 
 __all__ = ["add_parser", "run"]
 
@@ -32,6 +34,10 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1,
                         help="worker processes (default: the number of CPUs, here %(default)s)")
     parser.add_argument("--out", type=Path, help="table path (JSON); the CSV goes beside it")
+    parser.add_argument("--subsets", default="all", metavar="all|scenario|random:N|FILE",
+                        help="which subsets: all (default; refused beyond %d DERs), those the "
+                        "scenario meets, N random ones plus the set of all DERs, or those "
+                        "listed in FILE (one subset per line, DER ids)" % MAX_ALL_DERS)
     parser.add_argument("--resume", action="store_true",
                         help="continue an interrupted run's partial table at --out")
     parser.add_argument("--disk-margin-min", type=float, help="override the config's alpha limit")
@@ -42,6 +48,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     """Tune, showing progress; Ctrl-C keeps the partial table (exit 130)."""
     from adnmesh.tuning import tune_table, write_csv
+    from adnmesh.tuning.subsets import select_subsets
 
     if args.workers < 1:
         raise UsageError(f"--workers must be >= 1, got {args.workers}")
@@ -50,6 +57,7 @@ def run(args: argparse.Namespace) -> int:
     if args.overshoot_max_pct is not None and not args.overshoot_max_pct > 0:
         raise UsageError(f"--overshoot-max-pct must be positive, got {args.overshoot_max_pct:g}")
     config = load_config(args.config)
+    subsets = select_subsets(config, args.subsets)
     out = args.out or default_table_path(config)
     if args.resume and not out.exists():
         raise UsageError(f"--resume: no partial table at {out}")
@@ -69,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
 
         try:
             table = tune_table(config, args.method, args.workers, out, args.resume,
-                               constraints or None, on_progress=progress)
+                               constraints or None, on_progress=progress, subsets=subsets)
         except KeyboardInterrupt:
             console.print(f"interrupted: partial table kept at {out} (continue with --resume)")
             return 130

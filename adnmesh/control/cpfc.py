@@ -31,7 +31,8 @@ are undone: the PI goes back to its state then, so that an outage leaves no trac
 integrator, whatever its length.
 
 Gains come from a :class:`GainSchedule`: the table entry of the subset, else an entry tuned on
-demand (:func:`adnmesh.tuning.tune_subset`, when that module exists), else the table's static
+demand (:class:`adnmesh.tuning.ondemand.OnDemandTuner`, warm-started from the table's nearest
+plant, when that module exists), else the table's static
 controller with unit weights; if none exists the CPFC keeps its gains and says so in its stats.
 
 **Holding** (SPEC §5: no wind-up, no jump). The CPFC holds its output and its integrator —
@@ -108,8 +109,9 @@ class GainSchedule:
     table : SchedulingTable or None
         The gain-scheduling table (None: only on-demand tuning).
     tune : callable, optional
-        ``tune(config, der_ids) -> TableEntry``; default: :func:`adnmesh.tuning.tune_subset`
-        if importable.
+        ``tune(config, der_ids) -> TableEntry``; default: an
+        :class:`adnmesh.tuning.ondemand.OnDemandTuner` warm-started from ``table`` (the global
+        search of :func:`adnmesh.tuning.tune_subset` without a table), if importable.
     on_demand : bool
         Tune missing subsets at all (False: table, then static controller).
     """
@@ -134,7 +136,9 @@ class GainSchedule:
             return self._count(self._tuned[available], "tuned")
         tune = None
         if self.on_demand:
-            tune = self._tune if self._tune is not None else _tuner()
+            if self._tune is None:
+                self._tune = _tuner(self.config, self.table)
+            tune = self._tune
         if tune is not None and available:
             ids = [d for d in self.config.der_ids() if d in available]
             entry = tune(self.config, ids)
@@ -152,12 +156,13 @@ class GainSchedule:
         return entry, source
 
 
-def _tuner():
+def _tuner(config: Config, table: SchedulingTable | None):
+    """The on-demand tuner, warm-started from ``table``'s nearest plant (cached), or None."""
     try:
-        from adnmesh.tuning import tune_subset
+        from adnmesh.tuning.ondemand import OnDemandTuner
     except ImportError:
         return None
-    return tune_subset
+    return OnDemandTuner(config, table)
 
 
 @dataclass(frozen=True)

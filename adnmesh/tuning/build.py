@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import csv
 import os
+import time
+from contextlib import contextmanager
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,13 +25,36 @@ from .problem import TuningProblem, all_subsets
 from .static import static_controller
 from .weights import find_weights
 
-__all__ = ["tune_table", "tune_subset", "paper_path", "write_csv", "PlantGroup", "METHODS"]
+__all__ = ["tune_table", "tune_subset", "paper_path", "write_csv", "PlantGroup", "METHODS",
+           "PHASES"]
 
 METHODS = ("paper", "global")
 #: ``tuned_by`` of a paper-method entry whose path search never found a feasible point
 PAPER_FALLBACK = "global (the paper's path found no feasible point)"
 CHUNK = 48
 BACK_OFF_STEPS = 50
+#: phases of a chunk whose CPU and wall time :func:`tune_table` reports (``phases=``)
+PHASES = ("initial values", "global search", "paper path", "find W", "back-off",
+          "as-deployed figures")
+
+
+class _Clock:
+    """CPU and wall seconds per phase, summed over chunks (``{phase: [cpu, wall]}``)."""
+
+    def __init__(self):
+        self.times = {p: [0.0, 0.0] for p in PHASES}
+
+    @contextmanager
+    def phase(self, name: str):
+        c0, w0 = time.process_time(), time.perf_counter()
+        try:
+            yield
+        finally:
+            self.times[name][0] += time.process_time() - c0
+            self.times[name][1] += time.perf_counter() - w0
+
+
+_NO_CLOCK = _Clock()
 
 
 @dataclass(frozen=True)
@@ -52,7 +77,7 @@ def group_subsets(problem: TuningProblem, subsets: Sequence[Sequence[str]]) -> l
 
 
 def _entries(problem: TuningProblem, groups: list[PlantGroup], kp_n, ki_n, feasible, reasons,
-             global_rise, design_rise, tuned_by) -> list[TableEntry]:
+             global_rise, design_rise, tuned_by, clock: _Clock = _NO_CLOCK) -> list[TableEntry]:
     """Table entries (absolute gains, weights, as-deployed figures) for tuned plant groups.
 
     ``design_rise`` is the tuning method's rise time on the unweighted plant, ``global_rise``
@@ -73,15 +98,18 @@ def _entries(problem: TuningProblem, groups: list[PlantGroup], kp_n, ki_n, feasi
                                       reasons[g], {"global_rise_time_s": None}))
     if not rows:
         return out
-    weights = find_weights(problem, [(r[0], r[1], r[2]) for r in rows])
+    with clock.phase("find W"):
+        weights = find_weights(problem, [(r[0], r[1], r[2]) for r in rows])
     gains = np.array([problem.group_power(r[0], w) for r, w in zip(rows, weights)])
     kp = np.array([r[1] for r in rows])
     ki = np.array([r[2] for r in rows])
     usable = gains.sum(axis=1) > 0
     gains[~usable] = 1.0                     # placeholder; such rows are reported infeasible
-    scale = _back_off(problem, gains, kp, ki)
+    with clock.phase("back-off"):
+        scale = _back_off(problem, gains, kp, ki)
     kp, ki = kp * np.nan_to_num(scale, nan=1.0), ki * np.nan_to_num(scale, nan=1.0)
-    fig = problem.figures(gains, kp, ki)
+    with clock.phase("as-deployed figures"):
+        fig = problem.figures(gains, kp, ki)
     for i, ((s, _, _, grise, drise, by), w) in enumerate(zip(rows, weights)):
         row = fig.row(i)
         figures = {k: row[k] for k in FIGURE_KEYS}
@@ -119,21 +147,26 @@ def _back_off(problem: TuningProblem, gains, kp, ki) -> np.ndarray:
     return scale
 
 
-def _tune_chunk(args) -> list[TableEntry]:
-    """Worker: tune a chunk of plant groups (picklable entry point)."""
+def _tune_chunk(args) -> tuple[list[TableEntry], dict]:
+    """Worker: tune a chunk of plant groups (picklable entry point); returns the entries and
+    the CPU and wall seconds per phase."""
     config, constraints, method, groups, single_thread = args
     if single_thread:
         import numba
         numba.set_num_threads(1)
+    clock = _Clock()
     problem = TuningProblem(config, constraints["disk_margin_min"], constraints["overshoot_max_pct"])
     fractions = np.array([g.fractions for g in groups])
-    kp0, ki0 = initial_values(problem, fractions)
-    glob = tune_global(problem, fractions, kp0, ki0)
+    with clock.phase("initial values"):
+        kp0, ki0 = initial_values(problem, fractions)
+    with clock.phase("global search"):
+        glob = tune_global(problem, fractions, kp0, ki0)
     if method == "global":
         kp, ki, feas, rise = glob.kp, glob.ki, glob.feasible, glob.rise_time_s
         tuned_by = ["global"] * len(groups)
     else:
-        res = tune_paper(problem, fractions)
+        with clock.phase("paper path"):
+            res = tune_paper(problem, fractions)
         # where the paper's path never met the feasible set, the global search's pair is used
         lost = ~res.feasible & glob.feasible
         kp = np.where(lost, glob.kp, res.kp)
@@ -143,14 +176,15 @@ def _tune_chunk(args) -> list[TableEntry]:
         tuned_by = [PAPER_FALLBACK if x else "paper" for x in lost]
     reasons = ["no feasible pair: every candidate violates the disk margin or overshoot limit"
                if not f else None for f in feas]
-    return _entries(problem, groups, kp, ki, feas, reasons, glob.rise_time_s, rise, tuned_by)
+    return _entries(problem, groups, kp, ki, feas, reasons, glob.rise_time_s, rise, tuned_by,
+                    clock), clock.times
 
 
 def tune_table(config, method: str = "paper", workers: int = 1, out: Path | None = None,
                resume: bool = False, constraints: dict | None = None,
                on_progress: Callable[[int, int], None] | None = None,
                subsets: Sequence[Sequence[str]] | None = None,
-               chunk_size: int = CHUNK) -> SchedulingTable:
+               chunk_size: int = CHUNK, phases: dict | None = None) -> SchedulingTable:
     """Tune CP for ``config`` (all 2^m - 1 subsets unless ``subsets`` is given).
 
     Parameters
@@ -169,6 +203,9 @@ def tune_table(config, method: str = "paper", workers: int = 1, out: Path | None
     chunk_size : int
         Normalised plants tuned together. Chunks are fixed from the full subset list, so a
         resumed run tunes exactly the batches an uninterrupted run would (same results).
+    phases : dict, optional
+        Filled with ``{phase: [cpu s, wall s]}`` summed over chunks (:data:`PHASES`, plus
+        ``static controller``); worker processes' CPU included.
     """
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}")
@@ -189,8 +226,14 @@ def tune_table(config, method: str = "paper", workers: int = 1, out: Path | None
         on_progress(done, len(wanted))
     jobs = [(config, problem.constraints, method, c, workers > 1) for c in chunks]
 
-    def absorb(entries):
+    def absorb(result):
         nonlocal done
+        entries, times = result
+        if phases is not None:
+            for k, (c, w) in times.items():
+                acc = phases.setdefault(k, [0.0, 0.0])
+                acc[0] += c
+                acc[1] += w
         for e in entries:
             table.add(e)
         done += len(entries)
@@ -211,18 +254,25 @@ def tune_table(config, method: str = "paper", workers: int = 1, out: Path | None
         if out is not None:
             save_table(table, out)
         raise
-    if table.static is None and subsets is None:
-        table.static = _static_entry(problem, ids)
+    if table.static is None:
+        c0, w0 = time.process_time(), time.perf_counter()
+        table.static = _static_entry(problem, ids, None if subsets is None else wanted)
+        if phases is not None:
+            phases["static controller"] = [time.process_time() - c0, time.perf_counter() - w0]
     table.complete = subsets is None
     if out is not None:
         save_table(table, out)
     return table
 
 
-def _static_entry(problem: TuningProblem, ids: list[str]) -> TableEntry:
-    """The static controller over every subset, with its worst-case figures."""
+def _static_entry(problem: TuningProblem, ids: list[str],
+                  subsets: Sequence[Sequence[str]] | None = None) -> TableEntry:
+    """The static controller over every subset (or over ``subsets``, each single DER and the
+    set of all: the extremes of the installed power), with its worst-case figures."""
+    cases = all_subsets(ids) if subsets is None else (
+        list(subsets) + [(d,) for d in ids] + [tuple(ids)])
     # absolute gains meet each subset through its group powers: one case per distinct vector
-    powers = np.unique(np.array([problem.group_power(s) for s in all_subsets(ids)]), axis=0)
+    powers = np.unique(np.array([problem.group_power(s) for s in cases]), axis=0)
     tot = powers.sum(axis=1)
     f = powers / tot[:, None]
     kp0, _ = initial_values(problem, f)
@@ -231,7 +281,7 @@ def _static_entry(problem: TuningProblem, ids: list[str]) -> TableEntry:
         return TableEntry(tuple(ids), float("nan"), float("nan"), {d: 1.0 for d in ids}, False,
                           "no pair is feasible on every subset", {})
     fig = problem.figures(powers, np.full(len(tot), res.kp), np.full(len(tot), res.ki))
-    worst = next(s for s in all_subsets(ids)
+    worst = next(s for s in cases
                  if np.allclose(problem.group_power(s), powers[res.worst_plant]))
     figures = {
         "worst_rise_time_s": res.worst_rise_time_s,

@@ -1,0 +1,101 @@
+"""On-demand tuning of one subset a table lacks, warm-started from the table's nearest plant.
+
+Neighbouring normalised plants have nearly the same optimum (the plants of a config form a
+low-dimensional family: the power fractions per dynamics class). So an unseen subset starts
+from the normalised gains of the table entry whose fractions are nearest (L1 distance), and
+one batch of candidates along that pair's ray (``RAY_FACTORS`` times it) is checked on the exact
+model; the feasible one with the lowest rise time is taken. Find W, the back-off and the
+as-deployed figures then follow exactly as for a table entry (:func:`tune_subset`'s path), so
+the entry is certified: both constraints re-checked on the exact loop with W applied.
+
+Without a table, or when no candidate of the ray is feasible, the global search decides
+(:func:`adnmesh.tuning.build.tune_subset`, about a second).
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+from ..table import SchedulingTable, TableEntry
+from .build import PlantGroup, _entries, tune_subset
+from .problem import TuningProblem
+
+__all__ = ["OnDemandTuner", "RAY_FACTORS"]
+
+#: candidates along the neighbour's ray, times its normalised pair
+RAY_FACTORS = np.geomspace(0.6, 1.25, 16)
+
+
+class OnDemandTuner:
+    """Tunes subsets on demand for one config, warm-started from ``table``, with a cache.
+
+    Parameters
+    ----------
+    config : Config
+    table : SchedulingTable, optional
+        Entries to start from (feasible ones only).
+    constraints : dict, optional
+        ``disk_margin_min`` / ``overshoot_max_pct`` overriding the config's.
+    """
+
+    def __init__(self, config, table: SchedulingTable | None = None,
+                 constraints: dict | None = None):
+        self.config = config
+        self.constraints = constraints
+        self.problem = TuningProblem(config, **(constraints or {}))
+        self.cache: dict[frozenset, TableEntry] = {}
+        self._fractions = np.zeros((0, len(self.problem.actuators)))
+        self._gains = np.zeros((0, 2))
+        if table is not None:
+            self.add_table(table)
+
+    def add_table(self, table: SchedulingTable, exclude=None) -> None:
+        """Use the feasible entries of ``table`` as starting points (``exclude``: plant keys
+        to leave out, e.g. to test on unseen plants)."""
+        fr, gains = [], []
+        for e in table.entries.values():
+            if not e.feasible:
+                continue
+            f, total = self.problem.fractions(e.ders)
+            if exclude is not None and self.problem.key(f) in exclude:
+                continue
+            back = e.figures.get("gain_back_off") or 1.0
+            fr.append(f)
+            gains.append((e.kp / back * total, e.ki / back * total))
+        if fr:
+            self._fractions = np.vstack([self._fractions, np.array(fr)])
+            self._gains = np.vstack([self._gains, np.array(gains)])
+
+    def tune(self, der_ids: Sequence[str]) -> TableEntry:
+        """The certified entry of subset ``der_ids`` (cached)."""
+        key = frozenset(der_ids)
+        if key not in self.cache:
+            self.cache[key] = self._tune(der_ids)
+        return self.cache[key]
+
+    def __call__(self, config, der_ids: Sequence[str]) -> TableEntry:
+        """``tune(config, der_ids)``, the signature :class:`GainSchedule` expects."""
+        return self.tune(der_ids)
+
+    def _tune(self, der_ids: Sequence[str]) -> TableEntry:
+        ders = tuple(d for d in self.config.der_ids() if d in set(der_ids))
+        if len(ders) != len(set(der_ids)):
+            self.config.ders_by_id(der_ids)      # raises ConfigError naming the unknown id
+        if not self._fractions.shape[0]:
+            return tune_subset(self.config, ders, self.constraints)
+        problem = self.problem
+        f, _ = problem.fractions(ders)
+        near = int(np.argmin(np.abs(self._fractions - f).sum(axis=1)))
+        kp = self._gains[near, 0] * RAY_FACTORS
+        ki = self._gains[near, 1] * RAY_FACTORS
+        chk = problem.check(np.broadcast_to(f, (kp.size, f.size)), kp, ki)
+        if not chk.feasible.any():
+            return tune_subset(self.config, ders, self.constraints)
+        best = int(np.nanargmin(np.where(chk.feasible, chk.rise_time_s, np.nan)))
+        entry = _entries(problem, [PlantGroup(f, (ders,))], kp[[best]], ki[[best]],
+                         np.array([True]), [None], np.array([np.nan]),
+                         chk.rise_time_s[[best]], ["on demand (nearest table plant)"])[0]
+        if not entry.feasible:
+            return tune_subset(self.config, ders, self.constraints)
+        return entry
