@@ -214,6 +214,8 @@ class AgentProcess:
         with self.lock:
             while self.start is None and not self._up_lost():
                 self.lock.wait(_WAIT_S)
+                if self.start is None and self.reported and not self._up_lost():
+                    self._report()   # again until the start: a first report can be lost
             if self.stop is not None:
                 return
             self.node.reseed(self.start.seed)

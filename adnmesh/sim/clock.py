@@ -144,6 +144,8 @@ class Coordinator:
         self._granted = [0] * n           # until_ns of its last grant
         self._idle = [False] * n          # reported since its last grant
         self._reported = [False] * n
+        self._hello = [False] * n         # its last report is a first one (no grant since):
+        #                                   an agent repeats it until the start (a lost one)
         self._dead = [False] * n
         self._restarts: dict[int, int] = {}       # agent -> planned restart time, ns
         self._rejoining: dict[int, Report] = {}   # first reports of restarted agents, held
@@ -167,8 +169,9 @@ class Coordinator:
                 self._rejoining[i] = report      # the restarted process: taken at the barrier
                 return self._after_change()
             return []                             # a dead process's late report
-        if self._reported[i] and self._idle[i]:
+        if self._reported[i] and self._idle[i] and not (self._hello[i] and not report.sent):
             raise ClockError(f"{report.agent}: second report without a grant")
+        self._hello[i] = not self._reported[i] or self._hello[i]   # a first report, or again
         self.reports_received += 1
         self._next[i] = _INF if report.next_ns is None else report.next_ns
         self._received[i] = report.received
@@ -298,7 +301,7 @@ class Coordinator:
             self._pending[i] = self._pending_new[i] = _INF
             self._expected[i] = self._received[i] = report.received
             self._granted[i] = at
-            self._idle[i] = self._reported[i] = True
+            self._idle[i] = self._reported[i] = self._hello[i] = True
             self.reports_received += 1
             self.rejoined.append((self.agents[i], at))
             if self._on_rejoin is not None:
@@ -344,7 +347,7 @@ class Coordinator:
         for b, until, _ in chosen:
             granted[b] = until
             self.grants_per_agent[b] += 1
-            self._idle[b] = False
+            self._idle[b] = self._hello[b] = False
             self._pending_new[b] = _INF
             out.append(Grant(self.agents[b], until, self._expected[b]))
         self.grants_issued += len(out)
