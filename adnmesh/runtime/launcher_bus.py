@@ -91,6 +91,9 @@ class SimClockDriver:
         with self.lock:
             if self.error is not None:
                 return
+            last = self.coordinator.last_grant_ns(message.src)
+            if killed is None and last is not None and message.granted_ns < last:
+                return     # a repeated first report that crossed the agent's first grant
             try:
                 grants = self.coordinator.on_report(report)
                 if self._started:

@@ -197,6 +197,11 @@ class Coordinator:
             self._die(i, report.killed_ns)
         return self._after_change()
 
+    def last_grant_ns(self, agent: str) -> int | None:
+        """``until_ns`` of the last grant to ``agent`` (0 before any; None: not an agent)."""
+        i = self._index.get(agent)
+        return None if i is None else self._granted[i]
+
     def kill(self, agent: str, at_ns: int | None = None) -> list[Grant]:
         """Declare ``agent`` dead (its process ended without a last report); return grants."""
         i = self._index[agent]
