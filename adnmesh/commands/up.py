@@ -101,17 +101,11 @@ def external_agents(text: str | None, config: Config) -> frozenset[str]:
 
 
 def scenario_subsets(config: Config) -> list[frozenset[str]]:
-    """The sets of available DERs the scenario goes through, in order (all DERs first)."""
-    available = set(config.der_ids())
-    subsets = [frozenset(available)]
-    for change in config.scenario.availability:
-        if change.available:
-            available |= set(change.ders)
-        else:
-            available -= set(change.ders)
-        if available and frozenset(available) not in subsets:
-            subsets.append(frozenset(available))
-    return subsets
+    """The sets of available DERs the scenario goes through, in order (all DERs first): those
+    ``adnmesh tune --subsets scenario`` tunes."""
+    from adnmesh.tuning.subsets import scenario_subsets as in_config_order
+
+    return [frozenset(s) for s in in_config_order(config)]
 
 
 def _tuner():
