@@ -187,6 +187,23 @@ def test_coordinator_refuses_to_start_before_every_report(config: Config) -> Non
         clock.start()
 
 
+def test_coordinator_drops_a_repeated_first_report_that_crossed_a_grant(config: Config) -> None:
+    """An agent repeats its first report until the start; one that arrives after the agent's
+    first grant (it says granted_ns 0, behind that grant) is stale and changes nothing, while
+    a report without granted_ns (in-process) is taken as the grant's report."""
+    topo = Topology.from_config(config)
+    clock = Coordinator(topo, end_ns=ns(1.0))
+    for agent in topo.agents:
+        clock.on_report(Report(agent, 0, 0, {}, granted_ns=0))
+    grants = {g.agent: g for g in clock.start()}
+    agent = next(a for a, g in grants.items() if g.until_ns > 0)
+    taken = clock.reports_received
+    assert clock.on_report(Report(agent, 0, 0, {}, granted_ns=0)) == []
+    assert agent in clock.busy() and clock.reports_received == taken
+    clock.on_report(Report(agent, 0, 0, {}))                      # taken as the grant's report
+    assert clock.reports_received == taken + 1
+
+
 # --- node ---------------------------------------------------------------------------------------
 
 

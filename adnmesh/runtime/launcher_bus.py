@@ -87,13 +87,11 @@ class SimClockDriver:
         """Take an agent's clock report; publish the grants that follow."""
         killed = None if message.killed_ns is UNSET else message.killed_ns
         report = Report(message.src, message.next_ns, message.received,
-                        {k: (v[0], v[1]) for k, v in message.sent.items()}, killed)
+                        {k: (v[0], v[1]) for k, v in message.sent.items()}, killed,
+                        message.granted_ns)
         with self.lock:
             if self.error is not None:
                 return
-            last = self.coordinator.last_grant_ns(message.src)
-            if killed is None and last is not None and message.granted_ns < last:
-                return     # a repeated first report that crossed the agent's first grant
             try:
                 grants = self.coordinator.on_report(report)
                 if self._started:

@@ -91,6 +91,10 @@ class Report:
         ``key -> (count, earliest delivery ns)`` of the messages it sent since its last report.
     killed_ns : int or None
         Set when an injected kill ended the agent at that time (this is its last report).
+    granted_ns : int or None
+        The end of the last grant the agent had taken when it reported, ns (None: not known,
+        as in-process). A report behind the coordinator's last grant to the agent is a
+        repeated first report that crossed that grant on the bus, and is dropped.
     """
 
     agent: str
@@ -98,6 +102,7 @@ class Report:
     received: int
     sent: Mapping[str, tuple[int, int]]
     killed_ns: int | None = None
+    granted_ns: int | None = None
 
 
 class Coordinator:
@@ -164,6 +169,9 @@ class Coordinator:
         i = self._index.get(report.agent)
         if i is None:
             raise ClockError(f"report from unknown agent {report.agent!r}")
+        if report.killed_ns is None and report.granted_ns is not None \
+                and report.granted_ns < self._granted[i]:
+            return []                             # a repeated first report, crossed a grant
         if self._dead[i]:
             if i in self._restarts and i not in self._rejoining:
                 self._rejoining[i] = report      # the restarted process: taken at the barrier
@@ -196,11 +204,6 @@ class Coordinator:
         if report.killed_ns is not None:
             self._die(i, report.killed_ns)
         return self._after_change()
-
-    def last_grant_ns(self, agent: str) -> int | None:
-        """``until_ns`` of the last grant to ``agent`` (0 before any; None: not an agent)."""
-        i = self._index.get(agent)
-        return None if i is None else self._granted[i]
 
     def kill(self, agent: str, at_ns: int | None = None) -> list[Grant]:
         """Declare ``agent`` dead (its process ended without a last report); return grants."""
