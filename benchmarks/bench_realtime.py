@@ -45,7 +45,7 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
 from adnmesh.config import load_config  # noqa: E402
-from adnmesh.runtime.rt_tuning import SPIN_ENV  # noqa: E402
+from adnmesh.runtime.rt_tuning import SPIN_ENV, raise_priority  # noqa: E402
 
 
 def cut_config(source: Path, duration_s: float, workdir: Path) -> Path:
@@ -137,13 +137,16 @@ def compare(real: dict, sim: dict, pi_period_s: float) -> dict:
 
 class WakeUpPeer(threading.Thread):
     """The machine's own timer error while a run goes: ``Condition.wait(period)`` overshoot,
-    ms, sampled in this (otherwise idle) process until stopped."""
+    ms, sampled in this (otherwise idle) process until stopped, at the run's ``priority``
+    (``--rt-priority``: the floor under the agents' errors at that priority)."""
 
-    def __init__(self, period_s: float = 2e-3) -> None:
+    def __init__(self, period_s: float = 2e-3, priority: str = "off") -> None:
         super().__init__(daemon=True)
         self.period_s, self.errors, self.done = period_s, [], threading.Event()
+        self.priority = priority
 
     def run(self) -> None:
+        raise_priority(self.priority, threads=lambda: [threading.get_native_id()])
         condition = threading.Condition()
         with condition:
             while not self.done.is_set():
@@ -188,7 +191,7 @@ def main() -> int:
         for speed, _, variant in ((s, r, v) for s in speeds for r in range(args.repeat)
                                   for v in variants):
             extra, env = variant_args(variant)
-            peer = WakeUpPeer()
+            peer = WakeUpPeer(priority=variant.partition("+")[0])
             peer.start()
             real = up(config, table, workdir, "--clock", "realtime", "--speed",
                       f"{speed:g}", *extra, env=env)

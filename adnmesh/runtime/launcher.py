@@ -10,11 +10,13 @@
    realtime: the wall clock — until the scenario's end or Ctrl-C / SIGTERM; faults requested
    meanwhile, injected kills and restarts, and agents that die on their own are the
    :class:`~adnmesh.runtime.injector.FaultInjector`'s (the run goes on without a dead agent);
-3. :func:`shutdown`: announce ``clock/stop``, collect every agent's goodbye (what it published
-   per key), withdraw ``up``'s liveliness so the agents may close, wait for the processes and
-   kill by PID whatever is left;
+3. :func:`shutdown`: announce ``clock/stop`` (realtime: again every second to agents without
+   a goodbye), collect every agent's goodbye (what it published per key), withdraw ``up``'s
+   liveliness so the agents may close, wait for the processes and kill by PID whatever is left;
 4. :func:`verify`: compare what the agents (and ``up`` itself) published with what was
-   recorded, per key, and fail loudly on any difference.
+   recorded, per key, and fail loudly on any difference -- except, in a realtime run that could
+   not keep up, what the overload explains (:mod:`adnmesh.runtime.accounting`: agents without
+   a goodbye, messages lost on sessions that dropped), said as faults.
 
 Around them, the embedded router (a Zenoh session in mode ``router``, ``tcp/127.0.0.1:<free
 port>`` unless told otherwise) carries one subscriber on ``adn/<grid>/**`` whose samples go
@@ -75,6 +77,7 @@ NOT_REALTIME = "not real time"
 
 _POLL_S = 0.1   # longest wait between checks of the processes, s
 _STOP_AGAIN_S = 1.0   # realtime: the stop is said again this often to agents without goodbye
+_LATE_BYES = 3        # ... and up to this many shutdown timeouts waited for them, not kept up
 
 
 @dataclass
@@ -231,6 +234,7 @@ class _Launch:
                                                 self.topology)
         self.not_realtime: str | None = None      # the first overrun, with --strict
         self.overrun_reports = 0                  # overrun events seen
+        self.dropped: set[str] = set()            # agents whose session ended before the bye
         self.killed_at_shutdown: set[str] = set()
         self._overrun_log = [0.0, 0]              # next wall time to say one, how many unsaid
         self._start_body: dict | None = None
@@ -289,7 +293,8 @@ class _Launch:
         agent = str(sample.key_expr).split("/alive/", 1)[1]
         if sample.kind == zenoh.SampleKind.PUT:
             self.children.session_back(agent)
-        elif agent not in self.roster.byes:
+        elif agent not in self.roster.byes and agent in self.topology.agents:
+            self.dropped.add(agent)
             self.children.session_ended(agent)
 
     def on_sample(self, sample: zenoh.Sample) -> None:
@@ -521,7 +526,10 @@ def shutdown(launch: _Launch, reason: str) -> None:
     t_stop = launch.clock.now_ns() if launch.clock is not None else 0
     launch.outbox.send(launch.keys.stop, t_stop, reason=reason)
     deadline = time.monotonic() + options.shutdown_timeout_s
-    again = time.monotonic() + _STOP_AGAIN_S
+    # realtime, not kept up: agents far behind drain their backlog first; while goodbyes
+    # still come, wait on, up to _LATE_BYES times the timeout in all
+    last = time.monotonic() + _LATE_BYES * options.shutdown_timeout_s
+    again, heard = time.monotonic() + _STOP_AGAIN_S, len(roster.byes)
     while time.monotonic() < deadline:
         # an external agent can say goodbye only while its session is up
         waiting = children.running() - (options.external - roster.alive_now())
@@ -531,6 +539,10 @@ def shutdown(launch: _Launch, reason: str) -> None:
             # a session that dropped under load and came back missed the stop: say it again
             launch.outbox.send(launch.keys.stop, t_stop, reason=reason)
             again = time.monotonic() + _STOP_AGAIN_S
+            if len(roster.byes) > heard and launch.overloaded():
+                heard = len(roster.byes)
+                deadline = min(last, max(deadline, time.monotonic()
+                                         + options.shutdown_timeout_s / 2))
         roster.wait(0.05)
     launch.withdraw_liveliness()   # every running agent's goodbye is in: they may close
     children.wait_all(max(0.5, deadline - time.monotonic()))
@@ -569,6 +581,7 @@ def verify(launch: _Launch) -> None:
         result.problems.append(f"no goodbye from {', '.join(missing)}")
     differences = sorted(k for k in set(result.published) | set(result.recorded)
                          if result.published.get(k, 0) != result.recorded.get(k, 0))
+    differences = _short_by_overload(launch, differences)
     if result.exit_code == EXIT_OK and differences:
         shown = "; ".join(f"{k}: published {result.published.get(k, 0)}, recorded "
                           f"{result.recorded.get(k, 0)}" for k in differences[:3])
@@ -604,11 +617,27 @@ def _overloaded_agents(launch: _Launch) -> set[str]:
                              set(launch.injector.lost), crashed, overloaded=True,
                              recorded=per_agent)
     launch.result.problems.extend(account.lines)
-    if account.overloaded:
-        launch.options.log(f"{len(account.said_bye)} of {len(launch.topology.agents)} agents "
-                           f"said goodbye; {len(account.overloaded)} lost to the overload "
-                           "(not real time)")
+    launch.options.log(f"{len(account.said_bye)} of {len(launch.topology.agents)} agents said "
+                       f"goodbye; {len(account.overloaded)} lost to the overload (not real time)")
     return set(account.overloaded)
+
+
+def _short_by_overload(launch: _Launch, differences: list[str]) -> list[str]:
+    """The count differences that fail the run: in a realtime run that could not keep up,
+    a key of an agent whose session dropped (what it sent while it was down is lost) with
+    fewer recorded than published is a fault of the overload, said in one line instead."""
+    if launch.options.clock != "realtime" or not launch.overloaded():
+        return differences
+    result, dropped = launch.result, _keys_of(launch, launch.dropped)
+    short = [k for k in differences if k in dropped
+             and result.recorded.get(k, 0) < result.published.get(k, 0)]
+    if short:
+        lost = sum(result.published.get(k, 0) - result.recorded.get(k, 0) for k in short)
+        result.problems.append(
+            f"{lost} message(s) on {len(short)} key(s) of {len(launch.dropped)} agent(s) whose "
+            f"session dropped under the overload were lost while it was down (not real time): "
+            f"{', '.join(sorted(launch.dropped))}")
+    return [k for k in differences if k not in short]
 
 
 def _keys_of(launch: _Launch, agents) -> set[str]:

@@ -18,7 +18,10 @@ three named phases:
      the main thread sleeps until the next event or message and processes what is due, measuring
      every event's delivery error per link (a message that arrives after its delivery time is
      processed at once and counted as late); an error beyond the announced tolerance is
-     published at once as an ``overrun`` event;
+     published at once as an ``overrun`` event. Its wake-ups are tightened
+     (:mod:`adnmesh.runtime.rt_tuning`: timer slack, GIL switch interval, the priority ``up``
+     hands over in :data:`~adnmesh.runtime.rt_tuning.PRIORITY_ENV`, an optional spin before
+     each event);
 
    until ``clock/stop``, the disappearance of ``adnmesh up``, or SIGTERM/SIGINT;
 3. :meth:`~AgentProcess.goodbye`: send what the agent wants sent at the end
