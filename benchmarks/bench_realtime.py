@@ -184,7 +184,9 @@ def main() -> int:
         pi_period_s = load_config(config).runtime.pi_period_s
         table = Path(args.table) if args.table else table_for(config, workdir)
         sim = up(config, table, workdir)
-        print(f"{config.name}: sim clock {sim['speed_factor']:.1f}x real time; steps "
+        figures["sim"] = {"speed_factor": sim["speed_factor"], "cpu_s": sim["cpu_s"]}
+        print(f"{config.name}: sim clock {sim['speed_factor']:.1f}x real time, CPU "
+              f"{sim['cpu_s']:.0f} s; steps "
               f"(rise s, settling s, overshoot %): "
               f"{[tuple(round(v, 3) for v in f) for f in step_figures(sim)]}", flush=True)
         variants = [v.strip() for v in args.variants.split(",") if v.strip()]

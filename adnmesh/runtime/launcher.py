@@ -526,10 +526,11 @@ def shutdown(launch: _Launch, reason: str) -> None:
     t_stop = launch.clock.now_ns() if launch.clock is not None else 0
     launch.outbox.send(launch.keys.stop, t_stop, reason=reason)
     deadline = time.monotonic() + options.shutdown_timeout_s
-    # realtime, not kept up: agents far behind drain their backlog first; while goodbyes
-    # still come, wait on, up to _LATE_BYES times the timeout in all
+    # realtime, not kept up: agents far behind, and the router's queue to the recorder, drain
+    # their backlog first; while goodbyes or recorded messages still come, wait on, up to
+    # _LATE_BYES times the timeout in all
     last = time.monotonic() + _LATE_BYES * options.shutdown_timeout_s
-    again, heard = time.monotonic() + _STOP_AGAIN_S, len(roster.byes)
+    again, heard = time.monotonic() + _STOP_AGAIN_S, _progress(launch)
     while time.monotonic() < deadline:
         # an external agent can say goodbye only while its session is up
         waiting = children.running() - (options.external - roster.alive_now())
@@ -539,8 +540,8 @@ def shutdown(launch: _Launch, reason: str) -> None:
             # a session that dropped under load and came back missed the stop: say it again
             launch.outbox.send(launch.keys.stop, t_stop, reason=reason)
             again = time.monotonic() + _STOP_AGAIN_S
-            if len(roster.byes) > heard and launch.overloaded():
-                heard = len(roster.byes)
+            if _progress(launch) > heard and launch.overloaded():
+                heard = _progress(launch)
                 deadline = min(last, max(deadline, time.monotonic()
                                          + options.shutdown_timeout_s / 2))
         roster.wait(0.05)
@@ -558,6 +559,11 @@ def shutdown(launch: _Launch, reason: str) -> None:
         if all(recorded.get(k, 0) >= v for k, v in expected.items()):
             break
         roster.wait(0.01)
+
+
+def _progress(launch: _Launch) -> tuple[int, int]:
+    """Goodbyes heard and messages recorded so far (they grow while a backlog drains)."""
+    return len(launch.roster.byes), sum(launch.recorder.counts().values())
 
 
 def verify(launch: _Launch) -> None:
