@@ -619,12 +619,14 @@ def _overloaded_agents(launch: _Launch) -> set[str]:
     recorded = launch.recorder.counts()
     per_agent = {a: sum(recorded.get(k, 0) for k in _keys_of(launch, [a]))
                  for a in launch.topology.agents}
-    account = account_agents(launch.topology.agents, set(launch.roster.byes),
+    planned = launch.injector.killed - set(launch.injector.lost)   # injected kills: said
+    account = account_agents(set(launch.topology.agents) - planned, set(launch.roster.byes),
                              set(launch.injector.lost), crashed, overloaded=True,
                              recorded=per_agent)
     launch.result.problems.extend(account.lines)
-    launch.options.log(f"{len(account.said_bye)} of {len(launch.topology.agents)} agents said "
-                       f"goodbye; {len(account.overloaded)} lost to the overload (not real time)")
+    launch.options.log(f"{len(account.said_bye)} of {len(launch.topology.agents) - len(planned)}"
+                       f" agents said goodbye; {len(account.overloaded)} lost to the overload "
+                       "(not real time)")
     return set(account.overloaded)
 
 
