@@ -15,14 +15,20 @@ a user would (the CLI, ``--summary-json``), and prints per run:
   difference against the bound of tests/test_runtime_up.py (2 x (largest delivery error + PI
   period)), and whether the run was real time.
 
-The highest sustainable speed is the highest with no overrun in every repeat. Beside it, the
-peer measured during each run: the machine's own wake-up error (``threading.Condition.wait``
-for 2 ms, again and again in this process while the run goes: p50, p99, max), the floor under
-any delivery error. It measures, it
+``--variants`` runs each speed once per variant, interleaved: ``off``, ``nice`` or ``fifo``
+(``up --rt-priority``), each optionally with ``+spin:US`` (``ADNMESH_RT_SPIN_US``: the agents
+poll the clock for the last US µs before each event); every row also gives the CPU time of
+``up`` and its agents.
+
+The highest sustainable speed is the highest with no overrun in every repeat (of the first
+variant). Beside it, the peer measured during each run: the machine's own wake-up error
+(``threading.Condition.wait`` for 2 ms, again and again in this process while the run goes, at
+the variant's priority: p50, p99, max), the floor under any delivery error. It measures, it
 asserts nothing. Usage::
 
     .venv/bin/python benchmarks/bench_realtime.py                       # SimBench 120 s; 1,2,4,8
     .venv/bin/python benchmarks/bench_realtime.py --speeds 1,2 --duration 60 --repeat 2
+    .venv/bin/python benchmarks/bench_realtime.py --speeds 1 --variants off,fifo,fifo+spin:300
 """
 
 from __future__ import annotations
