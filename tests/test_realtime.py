@@ -63,6 +63,8 @@ def test_the_scaled_clock_runs_at_its_speed_from_its_epoch() -> None:
     assert -8.2e9 < now < -7.5e9                    # (wall - epoch) * speed
     assert clock.wait_s(0) == pytest.approx(2.0, abs=0.1)
     assert clock.wait_s(4_000_000_000) - clock.wait_s(0) == pytest.approx(1.0, abs=0.05)
+    # the monotonic reading of a sim instant: a quarter of its sim distance per wall unit
+    assert clock.monotonic_ns(4_000_000_000) - clock.monotonic_ns(0) == 1_000_000_000
 
 
 def test_overruns_are_counted_always_and_said_once_per_sim_second() -> None:

@@ -324,3 +324,10 @@ def test_an_agent_closes_its_session_only_after_up_has_its_goodbye() -> None:
             sub.undeclare()
     assert closed_early == [False]
     assert time.monotonic() - t0 < 30
+
+
+def test_rt_priority_needs_the_realtime_clock(capsys) -> None:
+    from adnmesh.cli import main
+
+    assert main(["up", str(CASE), "--rt-priority", "fifo"]) == 2
+    assert capsys.readouterr().err == "adnmesh: error: --rt-priority needs --clock realtime\n"

@@ -48,6 +48,10 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         "falls behind the scaled wall clock by more than the tolerance "
                         "(runtime.realtime_tolerance_s); without it the run goes on and its "
                         "summary says it was not real time")
+    parser.add_argument("--rt-priority", choices=["off", "nice", "fifo"],
+                        help="realtime only: scheduling priority of up and its agents (default "
+                        "off; nice: nice -10; fifo: SCHED_FIFO); refused by the OS (no root or "
+                        "CAP_SYS_NICE), the run goes on at the ordinary priority and says so")
     parser.add_argument("--seed", type=int, metavar="N",
                         help="seed of the ICT random streams (default: runtime.seed of CONFIG)")
     parser.add_argument("--table", metavar="PATH",
@@ -165,6 +169,8 @@ def _check_arguments(args: argparse.Namespace) -> None:
         raise UsageError("--speed needs --clock realtime")
     if args.strict and args.clock != "realtime":
         raise UsageError("--strict needs --clock realtime")
+    if args.rt_priority is not None and args.clock != "realtime":
+        raise UsageError("--rt-priority needs --clock realtime")
     if args.speed is not None and not 0 < args.speed <= 1e6:
         raise UsageError(f"--speed must be in (0, 1e6], got {args.speed:g}")
     if args.seed is not None and not 0 <= args.seed < 2**63:
@@ -231,7 +237,7 @@ def run(args: argparse.Namespace) -> int:
         listen=args.listen, log=log, run_id=run_id, run_file=run_file_path(out),
         certs=certs, external=external, routers=routers,
         startup_timeout_s=args.startup_timeout, stall_timeout_s=args.stall_timeout,
-        available_w=available, strict=args.strict,
+        available_w=available, strict=args.strict, rt_priority=args.rt_priority or "off",
         metadata={"run_id": run_id, "table_sha256":
                   hashlib.sha256(table_path.read_bytes()).hexdigest()},
     )

@@ -72,6 +72,7 @@ class AgentProcesses:
         self.grace_s = grace_s
         self._ended: dict[str, float] = {}   # external agent -> when its session ended (mono s)
         self._lock = threading.Lock()        # _ended: changed by Zenoh callbacks
+        self.env: dict[str, str] = {}        # more environment for the processes
 
     def session_ended(self, agent_id: str) -> None:
         """An agent's session ended without a goodbye: an external one is dead unless it is
@@ -100,7 +101,7 @@ class AgentProcesses:
 
     def spawn(self, agent_id: str, argv: list[str]) -> None:
         """Start ``argv`` as the process of ``agent_id``."""
-        env = dict(os.environ, **{PARENT_ENV: str(os.getpid())})
+        env = dict(os.environ, **self.env, **{PARENT_ENV: str(os.getpid())})
         env.setdefault("ZENOH_RUNTIME", AGENT_ZENOH_RUNTIME)
         self.procs[agent_id] = subprocess.Popen(argv, env=env, start_new_session=True,
                                                 stdin=subprocess.DEVNULL)

@@ -10,11 +10,13 @@
    realtime: the wall clock — until the scenario's end or Ctrl-C / SIGTERM; faults requested
    meanwhile, injected kills and restarts, and agents that die on their own are the
    :class:`~adnmesh.runtime.injector.FaultInjector`'s (the run goes on without a dead agent);
-3. :func:`shutdown`: announce ``clock/stop``, collect every agent's goodbye (what it published
-   per key), withdraw ``up``'s liveliness so the agents may close, wait for the processes and
-   kill by PID whatever is left;
+3. :func:`shutdown`: announce ``clock/stop`` (realtime: again every second to agents without
+   a goodbye), collect every agent's goodbye (what it published per key), withdraw ``up``'s
+   liveliness so the agents may close, wait for the processes and kill by PID whatever is left;
 4. :func:`verify`: compare what the agents (and ``up`` itself) published with what was
-   recorded, per key, and fail loudly on any difference.
+   recorded, per key, and fail loudly on any difference -- except, in a realtime run that could
+   not keep up, what the overload explains (:mod:`adnmesh.runtime.accounting`: agents without
+   a goodbye, messages lost on sessions that dropped), said as faults.
 
 Around them, the embedded router (a Zenoh session in mode ``router``, ``tcp/127.0.0.1:<free
 port>`` unless told otherwise) carries one subscriber on ``adn/<grid>/**`` whose samples go
@@ -49,6 +51,7 @@ from adnmesh import __version__
 from adnmesh.config import Config
 from adnmesh.recording import PUBLISHED_METADATA, UNCOUNTED_METADATA, Recorder
 from adnmesh.runtime import acl
+from adnmesh.runtime.accounting import account_agents
 from adnmesh.runtime.bus import DEFAULT_HOST, free_port, router_config
 from adnmesh.runtime.children import AgentProcesses, agent_argv
 from adnmesh.runtime.identity import router_identity
@@ -56,6 +59,7 @@ from adnmesh.runtime.injector import FaultInjector
 from adnmesh.runtime.launcher_bus import LauncherOutbox, SimClockDriver
 from adnmesh.runtime.realtime import tolerance_ns
 from adnmesh.runtime.roster import Roster
+from adnmesh.runtime.rt_tuning import PRIORITY_ENV, raise_priority
 from adnmesh.runtime.sessions import SessionReport, SessionWatch
 from adnmesh.runtime.summary import RunSeries
 from adnmesh.runtime.tap import RecorderTap, recording_schemas
@@ -72,6 +76,8 @@ NOT_REALTIME = "not real time"
 """How the reason of a run stopped by ``--strict`` begins."""
 
 _POLL_S = 0.1   # longest wait between checks of the processes, s
+_STOP_AGAIN_S = 1.0   # realtime: the stop is said again this often to agents without goodbye
+_LATE_BYES = 3        # ... and up to this many shutdown timeouts waited for them, not kept up
 
 
 @dataclass
@@ -118,6 +124,10 @@ class UpOptions:
         Sim clock: stop the run when no grant was issued for this long, wall s (0: never).
         Nothing legitimate stalls the clock for long (a restarted process rejoins in seconds);
         in the open profile a forged message can (see the README's security section).
+    rt_priority : str
+        Realtime: the scheduling priority of ``up`` and its agents
+        (:data:`adnmesh.runtime.rt_tuning.PRIORITIES`: ``off``, ``nice``, ``fifo``); if the
+        OS refuses it the run goes on at the ordinary priority and says so.
     """
 
     config: Config
@@ -139,6 +149,7 @@ class UpOptions:
     external: frozenset = frozenset()
     routers: tuple = ()
     stall_timeout_s: float = 60.0
+    rt_priority: str = "off"
 
 
 @dataclass
@@ -222,6 +233,9 @@ class _Launch:
         self.result.tolerance_ns = tolerance_ns(self.config.runtime.realtime_tolerance_s,
                                                 self.topology)
         self.not_realtime: str | None = None      # the first overrun, with --strict
+        self.overrun_reports = 0                  # overrun events seen
+        self.dropped: set[str] = set()            # agents whose session ended before the bye
+        self.killed_at_shutdown: set[str] = set()
         self._overrun_log = [0.0, 0]              # next wall time to say one, how many unsaid
         self._start_body: dict | None = None
         self._handles: list = []
@@ -279,7 +293,8 @@ class _Launch:
         agent = str(sample.key_expr).split("/alive/", 1)[1]
         if sample.kind == zenoh.SampleKind.PUT:
             self.children.session_back(agent)
-        elif agent not in self.roster.byes:
+        elif agent not in self.roster.byes and agent in self.topology.agents:
+            self.dropped.add(agent)
             self.children.session_ended(agent)
 
     def on_sample(self, sample: zenoh.Sample) -> None:
@@ -302,6 +317,7 @@ class _Launch:
     def on_overrun(self, message) -> None:
         """An agent cannot keep up: say so at once (at most once a second, with the count of
         those not said); with ``--strict`` stop the run."""
+        self.overrun_reports += 1
         now, (next_s, unsaid) = time.monotonic(), self._overrun_log
         if now < next_s:
             self._overrun_log[1] = unsaid + 1
@@ -314,6 +330,12 @@ class _Launch:
             self.roster.changed.set()
 
     # -- for the phases and the injector -------------------------------------------------------
+
+    def overloaded(self) -> bool:
+        """Realtime: an agent fell behind the tolerance (an overrun event, or one counted in
+        a goodbye): the run is not real time."""
+        return self.overrun_reports > 0 or any(
+            bye.stats.get("overruns", 0) > 0 for bye in list(self.roster.byes.values()))
 
     def spawn(self, agent_id: str, resume_ns: int = 0) -> None:
         """Start the process of ``agent_id`` (a restarted one begins at ``resume_ns``); for an
@@ -411,6 +433,7 @@ def _metadata(options: UpOptions) -> dict[str, str]:
 def startup(launch: _Launch) -> str | None:
     """Spawn every agent and wait until all are ready; return why that failed, or None."""
     options, t0 = launch.options, time.monotonic()
+    _raise_priority(launch)
     local = [a for a in launch.topology.agents if a not in options.external]
     for agent_id in local:
         launch.spawn(agent_id)
@@ -430,6 +453,20 @@ def startup(launch: _Launch) -> str | None:
         launch.roster.wait(_POLL_S)
     launch.result.startup_s = time.monotonic() - t0
     return reason
+
+
+def _raise_priority(launch: _Launch) -> None:
+    """Realtime with ``rt_priority``: raise ``up``'s own (its router forwards every message);
+    if granted, its agents raise theirs as they start, else say once that it was refused."""
+    priority = launch.options.rt_priority
+    if launch.options.clock != "realtime" or priority == "off":
+        return
+    granted = raise_priority(priority)
+    if granted.granted:
+        launch.children.env[PRIORITY_ENV] = priority
+        launch.options.log(f"realtime priority: {granted.text} for up and its agents")
+    else:
+        launch.options.log(f"warning: {granted.text}")
 
 
 def _not_ready(launch: _Launch) -> str:
@@ -489,15 +526,29 @@ def shutdown(launch: _Launch, reason: str) -> None:
     t_stop = launch.clock.now_ns() if launch.clock is not None else 0
     launch.outbox.send(launch.keys.stop, t_stop, reason=reason)
     deadline = time.monotonic() + options.shutdown_timeout_s
+    # realtime, not kept up: agents far behind, and the router's queue to the recorder, drain
+    # their backlog first; while goodbyes or recorded messages still come, wait on, up to
+    # _LATE_BYES times the timeout in all
+    last = time.monotonic() + _LATE_BYES * options.shutdown_timeout_s
+    again, heard = time.monotonic() + _STOP_AGAIN_S, _progress(launch)
     while time.monotonic() < deadline:
         # an external agent can say goodbye only while its session is up
         waiting = children.running() - (options.external - roster.alive_now())
         if not roster.without_bye() & waiting:
             break
+        if options.clock == "realtime" and time.monotonic() > again:
+            # a session that dropped under load and came back missed the stop: say it again
+            launch.outbox.send(launch.keys.stop, t_stop, reason=reason)
+            again = time.monotonic() + _STOP_AGAIN_S
+            if _progress(launch) > heard and launch.overloaded():
+                heard = _progress(launch)
+                deadline = min(last, max(deadline, time.monotonic()
+                                         + options.shutdown_timeout_s / 2))
         roster.wait(0.05)
     launch.withdraw_liveliness()   # every running agent's goodbye is in: they may close
     children.wait_all(max(0.5, deadline - time.monotonic()))
     killed = children.kill_all()
+    launch.killed_at_shutdown = set(killed)
     if killed:
         launch.result.problems.append(f"killed after the shutdown timeout: {', '.join(killed)}")
     # wait (bounded) until the recorder has everything the agents say they published
@@ -510,10 +561,16 @@ def shutdown(launch: _Launch, reason: str) -> None:
         roster.wait(0.01)
 
 
+def _progress(launch: _Launch) -> tuple[int, int]:
+    """Goodbyes heard and messages recorded so far (they grow while a backlog drains)."""
+    return len(launch.roster.byes), sum(launch.recorder.counts().values())
+
+
 def verify(launch: _Launch) -> None:
     """Compare published and recorded counts per key; record the agents' counts."""
     result = launch.result
-    unverified = _keys_of(launch, launch.injector.killed)
+    excused = _overloaded_agents(launch)
+    unverified = _keys_of(launch, launch.injector.killed | excused)
     not_counted = unverified | {launch.keys.fault_request}   # a person's commands: uncounted
     result.published = {k: v for k, v in launch.roster.published(launch.outbox.counts()).items()
                         if k not in not_counted}
@@ -524,12 +581,13 @@ def verify(launch: _Launch) -> None:
                                f"{', '.join(sorted(launch.injector.killed))} (a process of "
                                "theirs died and could not say what it sent)")
     missing = sorted(launch.roster.without_bye() - launch.injector.killed
-                     - set(launch.injector.lost))
+                     - set(launch.injector.lost) - excused)
     if result.exit_code == EXIT_OK and missing:
         result.exit_code = EXIT_FAILED
         result.problems.append(f"no goodbye from {', '.join(missing)}")
     differences = sorted(k for k in set(result.published) | set(result.recorded)
                          if result.published.get(k, 0) != result.recorded.get(k, 0))
+    differences = _short_by_overload(launch, differences)
     if result.exit_code == EXIT_OK and differences:
         shown = "; ".join(f"{k}: published {result.published.get(k, 0)}, recorded "
                           f"{result.recorded.get(k, 0)}" for k in differences[:3])
@@ -537,16 +595,57 @@ def verify(launch: _Launch) -> None:
         result.exit_code = EXIT_FAILED
     if launch.tap.record_errors and result.exit_code == EXIT_OK:
         result.exit_code = EXIT_FAILED
-    if launch.injector.lost and result.exit_code == EXIT_OK:
+    lost = sorted(set(launch.injector.lost) - excused)
+    if lost and result.exit_code == EXIT_OK:
         result.exit_code = EXIT_FAILED     # the run went on, but an agent died unplanned
-        result.problems.append(f"agent(s) lost during the run: "
-                               f"{', '.join(sorted(set(launch.injector.lost)))}")
+        result.problems.append(f"agent(s) lost during the run: {', '.join(lost)}")
     launch.recorder.add_metadata(PUBLISHED_METADATA,
                                  {k: str(v) for k, v in result.published.items()})
     uncounted = {launch.tap.rejected_key: "payloads the recorder rejected",
                  launch.keys.fault_request: "a person's fault requests",
                  **{k: "a process of its agent died" for k in unverified}}
     launch.recorder.add_metadata(UNCOUNTED_METADATA, uncounted)
+
+
+def _overloaded_agents(launch: _Launch) -> set[str]:
+    """A realtime run that could not keep up: the agents without a goodbye, or lost, that
+    did not crash -- faults of the overload, said as such, not failures of the run
+    (:mod:`adnmesh.runtime.accounting`). None otherwise."""
+    if launch.options.clock != "realtime" or not launch.overloaded():
+        return set()
+    codes = {a: p.returncode for a, p in launch.children.procs.items()}
+    crashed = {a for a in launch.injector.lost if codes.get(a) not in (0, None)
+               and a not in launch.killed_at_shutdown}
+    recorded = launch.recorder.counts()
+    per_agent = {a: sum(recorded.get(k, 0) for k in _keys_of(launch, [a]))
+                 for a in launch.topology.agents}
+    planned = launch.injector.killed - set(launch.injector.lost)   # injected kills: said
+    account = account_agents(set(launch.topology.agents) - planned, set(launch.roster.byes),
+                             set(launch.injector.lost), crashed, overloaded=True,
+                             recorded=per_agent)
+    launch.result.problems.extend(account.lines)
+    launch.options.log(f"{len(account.said_bye)} of {len(launch.topology.agents) - len(planned)}"
+                       f" agents said goodbye; {len(account.overloaded)} lost to the overload "
+                       "(not real time)")
+    return set(account.overloaded)
+
+
+def _short_by_overload(launch: _Launch, differences: list[str]) -> list[str]:
+    """The count differences that fail the run: in a realtime run that could not keep up,
+    a key of an agent whose session dropped (what it sent while it was down is lost) with
+    fewer recorded than published is a fault of the overload, said in one line instead."""
+    if launch.options.clock != "realtime" or not launch.overloaded():
+        return differences
+    result, dropped = launch.result, _keys_of(launch, launch.dropped)
+    short = [k for k in differences if k in dropped
+             and result.recorded.get(k, 0) < result.published.get(k, 0)]
+    if short:
+        lost = sum(result.published.get(k, 0) - result.recorded.get(k, 0) for k in short)
+        result.problems.append(
+            f"{lost} message(s) on {len(short)} key(s) of {len(launch.dropped)} agent(s) whose "
+            f"session dropped under the overload were lost while it was down (not real time): "
+            f"{', '.join(sorted(launch.dropped))}")
+    return [k for k in differences if k not in short]
 
 
 def _keys_of(launch: _Launch, agents) -> set[str]:

@@ -18,7 +18,10 @@ three named phases:
      the main thread sleeps until the next event or message and processes what is due, measuring
      every event's delivery error per link (a message that arrives after its delivery time is
      processed at once and counted as late); an error beyond the announced tolerance is
-     published at once as an ``overrun`` event;
+     published at once as an ``overrun`` event. Its wake-ups are tightened
+     (:mod:`adnmesh.runtime.rt_tuning`: timer slack, GIL switch interval, the priority ``up``
+     hands over in :data:`~adnmesh.runtime.rt_tuning.PRIORITY_ENV`, an optional spin before
+     each event);
 
    until ``clock/stop``, the disappearance of ``adnmesh up``, or SIGTERM/SIGINT;
 3. :meth:`~AgentProcess.goodbye`: send what the agent wants sent at the end
@@ -51,6 +54,8 @@ import zenoh
 
 from adnmesh.runtime.children import SESSION_GRACE_S
 from adnmesh.runtime.realtime import OverrunWatch, ScaledClock
+from adnmesh.runtime.rt_tuning import (PRIORITIES, PRIORITY_ENV, SpinPlan, raise_priority,
+                                       spin_ns_from_env, tighten_timers)
 from adnmesh.sim.node import Node
 from adnmesh.wire.envelope import MessageError, decode, encode, frames, split_frame
 from adnmesh.wire.keys import Keys, route
@@ -91,6 +96,9 @@ def open_session(args, identity: str) -> zenoh.Session:
             raise UsageError(f"--connect-timeout must be in [0, 86400] s, got "
                              f"{args.connect_timeout:g}")
         config = session_config(args, identity)
+        priority = os.environ.get(PRIORITY_ENV)
+        if priority in PRIORITIES:    # before the session's threads exist: they inherit it
+            raise_priority(priority)  # up has said whether it is granted (the same for all)
         if args.connect_timeout:
             config.insert_json5("connect/timeout_ms", str(int(args.connect_timeout * 1000)))
         return zenoh.open(config)
@@ -416,6 +424,8 @@ class AgentProcess:
         hold = start.tolerance_ns if node.instant_inputs else 0
         clock = ScaledClock(start.epoch_ns + int(hold / start.speed), start.speed)
         watch = self.overruns = OverrunWatch(self.agent, start.tolerance_ns, start.speed)
+        tighten_timers()
+        spin = SpinPlan(spin_ns_from_env(), time.monotonic_ns)
         with self.lock:
             while not self._up_lost():
                 self._take_arrivals()
@@ -435,15 +445,24 @@ class AgentProcess:
                     self.dying = True
                     self._report()
                     return
-                next_ns = node.next_event_ns()
-                wait_s = _WAIT_S if next_ns is None or next_ns > start.end_ns else \
-                    min(_WAIT_S, clock.wait_s(next_ns))
-                if wait_s > 0:
-                    self._wake_ns = next_ns if wait_s < _WAIT_S else None
-                    self._sleeping = True
-                    if not self._arrivals:        # none came since they were taken
-                        self.lock.wait(wait_s)
-                    self._sleeping, self._wake_ns = False, None
+                self._sleep_until(node.next_event_ns(), clock, spin)
+
+    def _sleep_until(self, next_ns: int | None, clock: ScaledClock, spin: SpinPlan) -> None:
+        """Realtime: sleep until sim time ``next_ns`` (at most :data:`_WAIT_S`), the last
+        ``spin.spin_ns`` of it polling the clock, or until a sample wakes us."""
+        if next_ns is None or next_ns > self.start.end_ns:
+            wait_s = _WAIT_S
+        else:
+            target = clock.monotonic_ns(next_ns)
+            wait_s = min(_WAIT_S, spin.sleep_s(target))
+            if wait_s <= 0:      # within the spin: poll (samples queue meanwhile)
+                spin.spin(target, lambda: bool(self._arrivals))
+                return
+        self._wake_ns = next_ns if wait_s < _WAIT_S else None
+        self._sleeping = True
+        if not self._arrivals:        # none came since they were taken
+            self.lock.wait(wait_s)
+        self._sleeping, self._wake_ns = False, None
 
     def _let_callbacks_in(self) -> None:
         """Release the lock for a moment (the main thread holds it while it processes)."""

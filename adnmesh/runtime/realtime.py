@@ -60,6 +60,10 @@ class ScaledClock:
         """Sim time now, ns (negative before the start)."""
         return int((time.monotonic_ns() - self._zero) * self.speed)
 
+    def monotonic_ns(self, t_sim_ns: int) -> int:
+        """The monotonic clock's reading (:func:`time.monotonic_ns`) at sim time ``t_sim_ns``."""
+        return int(t_sim_ns / self.speed) + self._zero
+
     def wait_s(self, t_sim_ns: int) -> float:
         """Wall seconds until sim time ``t_sim_ns``."""
         return (t_sim_ns / self.speed + self._zero - time.monotonic_ns()) * 1e-9
