@@ -36,3 +36,21 @@ def test_a_subset_too_large_is_refused_in_one_line(adn100, monkeypatch) -> None:
     monkeypatch.setattr(ondemand, "MAX_DERS", 50)
     with pytest.raises(UsageError, match="too large to tune on demand"):
         OnDemandTuner(adn100).tune(adn100.der_ids())
+
+
+def test_the_static_pair_from_the_extremes_is_the_enumerated_one(configs_dir: Path) -> None:
+    # tests/data/tuning_reference_mixed4_global.json holds the static pair designed over all
+    # 15 subsets of mixed-4; designed on its extreme plants and verified on every subset
+    import json
+
+    from adnmesh.tuning.static import extreme_subsets, static_any_size
+
+    config = load_config(configs_dir / "examples" / "mixed-4.yaml")
+    problem = TuningProblem(config)
+    ref = json.loads((Path(__file__).parent / "data" / "tuning_reference_mixed4_global.json")
+                     .read_text())["static"]
+    assert len(extreme_subsets(problem, config.der_ids())) < 15
+    got = static_any_size(problem, config.der_ids(), sample=100)
+    assert got.result.feasible and got.verified == 15
+    assert got.result.kp == pytest.approx(ref["kp"], rel=1e-6)
+    assert got.result.ki == pytest.approx(ref["ki"], rel=1e-6)
