@@ -122,6 +122,16 @@ def _phases(config, method: str, workers: int) -> int:
     return audit(config, table)
 
 
+def _peer(problem) -> float:
+    """CPU s of a fixed peer task of the same kind (one 16-candidate constraint check of a
+    fixed SimBench-like plant), to compare runs under different machine load."""
+    f = np.full(len(problem.actuators), 1.0 / len(problem.actuators))
+    kp, ki = np.geomspace(0.05, 0.5, 16), np.geomspace(0.01, 0.1, 16)
+    c0 = time.process_time()
+    problem.check(np.broadcast_to(f, (16, f.size)), kp, ki)
+    return time.process_time() - c0
+
+
 def on_demand(config, table, n: int) -> None:
     """On-demand tuning of ``n`` random subsets, each on an unseen plant."""
     from adnmesh.tuning import TuningProblem
@@ -132,7 +142,8 @@ def on_demand(config, table, n: int) -> None:
     subsets = random_subsets(config.der_ids(), n, seed=1)[1:]
     warm = OnDemandTuner(config, table)
     warm.tune(subsets[0])                               # numba and caches warm
-    walls, cpus, ratio, fallback, bad = [], [], [], 0, 0
+    _peer(problem)
+    walls, cpus, peers, ratio, fallback, bad = [], [], [], [], 0, 0
     for s in subsets:
         tuner = OnDemandTuner(config)
         tuner.add_table(table, exclude={problem.key(problem.fractions(s)[0])})
@@ -140,16 +151,20 @@ def on_demand(config, table, n: int) -> None:
         e = tuner.tune(s)
         walls.append(time.perf_counter() - w0)
         cpus.append(time.process_time() - c0)
+        peers.append(_peer(problem))
         fallback += e.figures.get("tuned_by") == "global"
         bad += not e.feasible
         ref = table.lookup(s)
         if ref is not None and ref.feasible:
             ratio.append(e.figures["design_rise_time_s"] / ref.figures["design_rise_time_s"])
-    w, c = np.array(walls) * 1e3, np.array(cpus) * 1e3
+    w, c, p = np.array(walls) * 1e3, np.array(cpus) * 1e3, np.array(peers) * 1e3
     print(f"on demand, {len(subsets)} random subsets on unseen plants: wall median "
           f"{np.median(w):.0f} ms, p99 {np.quantile(w, 0.99):.0f} ms; CPU median "
           f"{np.median(c):.0f} ms, p99 {np.quantile(c, 0.99):.0f} ms; global search decided "
           f"{fallback}; not certified {bad}")
+    print(f"  peer (one 16-candidate check) CPU median {np.median(p):.1f} ms; "
+          f"subset CPU / peer: median {np.median(c / p):.2f}, p99 {np.quantile(c / p, 0.99):.1f}; "
+          f"load average {os.getloadavg()[0]:.1f}")
     if ratio:
         r = np.array(ratio)
         print(f"  rise time / table's: median {np.median(r):.3f}, worst {r.max():.3f}")

@@ -113,11 +113,20 @@ def scenario_subsets(config: Config) -> list[frozenset[str]]:
 
 
 def _tuner():
+    """``tune(config, der_ids)`` for the subsets a missing table lacks: on-demand tuning
+    (:class:`adnmesh.tuning.ondemand.OnDemandTuner`, each entry a starting point for the next;
+    a subset too large is a one-line error), or None without the tuning package."""
     try:
-        from adnmesh.tuning import tune_subset
+        from adnmesh.tuning.ondemand import OnDemandTuner
     except ImportError:
         return None
-    return tune_subset
+    tuners: dict[str, OnDemandTuner] = {}
+
+    def tune(config: Config, der_ids):
+        if config.sha256 not in tuners:
+            tuners[config.sha256] = OnDemandTuner(config)
+        return tuners[config.sha256].tune(der_ids)
+    return tune
 
 
 def _table(args, config: Config, run_dir: Path, run_id: str, log) -> Path:

@@ -34,6 +34,8 @@ Gains come from a :class:`GainSchedule`: the table entry of the subset, else an 
 demand (:class:`adnmesh.tuning.ondemand.OnDemandTuner`, warm-started from the table's nearest
 plant, when that module exists), else the table's static
 controller with unit weights; if none exists the CPFC keeps its gains and says so in its stats.
+While an on-demand tuning runs, the CPFC uses the static controller and switches to the tuned
+entry (bumplessly, a second switch of the same set) at the first sample after it is ready.
 
 **Holding** (SPEC §5: no wind-up, no jump). The CPFC holds its output and its integrator —
 ``P_Y`` stays as it was and carries ``hold`` — while
@@ -70,7 +72,7 @@ from adnmesh.wire.messages import Envelope, Switch
 from adnmesh.wire.units import ns
 from adnmesh.table import SchedulingTable, TableEntry
 
-__all__ = ["CPFC", "GainSchedule", "SwitchEvent", "initial_p_ref_w", "output_limits"]
+__all__ = ["CPFC", "GainSchedule", "TUNING_DELAY_S", "SwitchEvent", "initial_p_ref_w", "output_limits"]
 
 
 def initial_p_ref_w(config: Config) -> float:
@@ -100,8 +102,24 @@ def output_limits(config: Config, weights: dict[str, float],
     return min(lows), max(highs)
 
 
+#: sim time an on-demand tuning is taken to last on the sim clock (see :class:`GainSchedule`), s
+TUNING_DELAY_S = 1.0
+
+
 class GainSchedule:
     """Resolves a set of available DERs to its gains and weights.
+
+    A subset the table lacks is tuned on demand. Until its entry is ready the CPFC runs the
+    table's static controller (source ``static_tuning``) and switches (bumplessly) to the
+    tuned entry at the first PI sample after it is ready (:meth:`ready`):
+
+    - on the sim clock (``background`` False) the tuning is computed at once, so runs stay
+      deterministic, but its result is released only ``tuning_delay_s`` of sim time later: the
+      time it would take on a machine, as a fixed figure;
+    - in realtime runs (``background`` True) it runs in a background thread and is ready when
+      it is done.
+
+    Without a static controller the CPFC waits for the tuning (computed at once).
 
     Parameters
     ----------
@@ -114,20 +132,32 @@ class GainSchedule:
         search of :func:`adnmesh.tuning.tune_subset` without a table), if importable.
     on_demand : bool
         Tune missing subsets at all (False: table, then static controller).
+    tuning_delay_s : float
+        Sim time an on-demand tuning takes on the sim clock, s (0: ready at the next sample).
+    background : bool
+        Tune in a background thread (realtime runs); ``tuning_delay_s`` is then not used.
     """
 
     def __init__(self, config: Config, table: SchedulingTable | None,
                  tune: Callable[[Config, list[str]], TableEntry] | None = None,
-                 on_demand: bool = True) -> None:
+                 on_demand: bool = True, tuning_delay_s: float = TUNING_DELAY_S,
+                 background: bool = False) -> None:
         self.config = config
         self.table = table
         self._tune = tune
         self.on_demand = on_demand
+        self.tuning_delay_ns = ns(tuning_delay_s)
+        self.background = background
         self._tuned: dict[frozenset, TableEntry] = {}
+        self._jobs: dict[frozenset, tuple] = {}     # set -> (ready at ns, entry) or (future,)
+        self._pool = None
         self.sources: dict[str, int] = {}
 
-    def lookup(self, available: frozenset[str]) -> tuple[TableEntry | None, str]:
-        """Return ``(entry, source)``; source is ``table``, ``tuned``, ``static`` or ``none``."""
+    def lookup(self, available: frozenset[str], t_ns: int | None = None
+               ) -> tuple[TableEntry | None, str]:
+        """Return ``(entry, source)``; source is ``table``, ``tuned``, ``static``,
+        ``static_tuning`` (an on-demand tuning started at ``t_ns`` is not ready yet) or
+        ``none``. Without ``t_ns`` a missing subset is tuned at once."""
         if self.table is not None:
             entry = self.table.lookup(available)
             if entry is not None and entry.feasible:
@@ -139,17 +169,51 @@ class GainSchedule:
             if self._tune is None:
                 self._tune = _tuner(self.config, self.table)
             tune = self._tune
+        static = self._static(available)
         if tune is not None and available:
             ids = [d for d in self.config.der_ids() if d in available]
-            entry = tune(self.config, ids)
-            self._tuned[available] = entry
-            return self._count(entry, "tuned")
-        if self.table is not None and self.table.static is not None and available:
-            static = self.table.static
-            ids = tuple(d for d in self.config.der_ids() if d in available)
-            return self._count(TableEntry(ids, static.kp, static.ki, dict.fromkeys(ids, 1.0)),
-                               "static")
+            if t_ns is None or static is None:
+                self._tuned[available] = tune(self.config, ids)
+                return self._count(self._tuned[available], "tuned")
+            if available not in self._jobs:
+                self._jobs[available] = self._start(tune, ids, t_ns)
+            return self._count(static, "static_tuning")
+        if static is not None:
+            return self._count(static, "static")
         return self._count(None, "none")
+
+    def ready(self, available: frozenset[str], t_ns: int) -> bool:
+        """Whether the on-demand tuning of ``available`` is done by ``t_ns`` (its entry is then
+        what :meth:`lookup` returns)."""
+        job = self._jobs.get(available)
+        if job is None:
+            return available in self._tuned
+        if len(job) == 1:
+            if not job[0].done():
+                return False
+            entry = job[0].result()
+        elif t_ns < job[0]:
+            return False
+        else:
+            entry = job[1]
+        self._tuned[available] = entry
+        del self._jobs[available]
+        return True
+
+    def _start(self, tune, ids: list[str], t_ns: int) -> tuple:
+        if self.background:
+            if self._pool is None:
+                from concurrent.futures import ThreadPoolExecutor
+                self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="tuning")
+            return (self._pool.submit(tune, self.config, ids),)
+        return (t_ns + self.tuning_delay_ns, tune(self.config, ids))
+
+    def _static(self, available: frozenset[str]) -> TableEntry | None:
+        if self.table is None or self.table.static is None or not available:
+            return None
+        static = self.table.static
+        ids = tuple(d for d in self.config.der_ids() if d in available)
+        return TableEntry(ids, static.kp, static.ki, dict.fromkeys(ids, 1.0))
 
     def _count(self, entry, source):
         self.sources[source] = self.sources.get(source, 0) + 1
@@ -215,6 +279,7 @@ class CPFC(Agent):
         self._next_step = 0
         self.available = frozenset(self._ids)
         self._pending: frozenset[str] | None = None
+        self._awaiting: frozenset[str] | None = None     # set whose tuning is running
         entry, source = schedule.lookup(self.available)
         if entry is None:
             raise ValueError("no gains for the set of all DERs (table and tuning unavailable)")
@@ -299,6 +364,9 @@ class CPFC(Agent):
             p_y = self.pi.output
             self.counts["held_samples"] += 1
         body = {"p_y": p_y, "p_ref_w": self.p_ref_w, "kp": self.pi.kp, "ki": self.pi.ki}
+        if (self._pending is None and self._awaiting is not None
+                and self.schedule.ready(self._awaiting, t_ns)):
+            self._pending, self._awaiting = self._awaiting, None    # the tuned gains are in
         if self._pending is not None:
             self._apply_switch(t_ns, body, out)
         body["entry"] = self.entry_index
@@ -398,7 +466,8 @@ class CPFC(Agent):
 
     def _switch(self, t_ns: int, available: frozenset[str]) -> SwitchRecord | None:
         self.available = available
-        entry, source = self.schedule.lookup(available) if available else (None, "none")
+        entry, source = self.schedule.lookup(available, t_ns) if available else (None, "none")
+        self._awaiting = available if source == "static_tuning" else None
         if entry is None:
             # no actuators or no gains: keep the gains, hold the output where it is
             self.counts["no_gains"] += 1

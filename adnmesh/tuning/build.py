@@ -8,6 +8,7 @@ atomically, so an interrupted run leaves a valid partial table that ``resume`` c
 from __future__ import annotations
 
 import csv
+import dataclasses
 import os
 import time
 from contextlib import contextmanager
@@ -105,11 +106,18 @@ def _entries(problem: TuningProblem, groups: list[PlantGroup], kp_n, ki_n, feasi
     ki = np.array([r[2] for r in rows])
     usable = gains.sum(axis=1) > 0
     gains[~usable] = 1.0                     # placeholder; such rows are reported infeasible
-    with clock.phase("back-off"):
-        scale = _back_off(problem, gains, kp, ki)
-    kp, ki = kp * np.nan_to_num(scale, nan=1.0), ki * np.nan_to_num(scale, nan=1.0)
     with clock.phase("as-deployed figures"):
         fig = problem.figures(gains, kp, ki)
+    # the figures are the full check of the unscaled gains: back off only where they fail
+    scale = np.ones(kp.size)
+    bad = np.nonzero(~_meets(problem, fig))[0]
+    if bad.size:
+        with clock.phase("back-off"):
+            scale[bad] = _back_off(problem, gains[bad], kp[bad], ki[bad])
+        kp, ki = kp * np.nan_to_num(scale, nan=1.0), ki * np.nan_to_num(scale, nan=1.0)
+        with clock.phase("as-deployed figures"):
+            again = problem.figures(gains[bad], kp[bad], ki[bad])
+        fig = _replace_rows(fig, bad, again)
     for i, ((s, _, _, grise, drise, by), w) in enumerate(zip(rows, weights)):
         row = fig.row(i)
         figures = {k: row[k] for k in FIGURE_KEYS}
@@ -126,6 +134,29 @@ def _entries(problem: TuningProblem, groups: list[PlantGroup], kp_n, ki_n, feasi
                                   else "as-deployed loop violates a constraint")
         out.append(TableEntry(s, float(kp[i]), float(ki[i]), w, ok, reason, figures))
     return out
+
+
+def _meets(problem: TuningProblem, fig) -> np.ndarray:
+    """Both constraints met by full figures, as :meth:`TuningProblem.check` decides them."""
+    return (fig.stable & (fig.disk_margin >= problem.disk_margin_min)
+            & (fig.overshoot_pct < problem.overshoot_max_pct)
+            & np.isfinite(fig.rise_time_s) & np.isfinite(fig.settling_time_s))
+
+
+def _replace_rows(fig, rows: np.ndarray, new):
+    """``fig`` (LoopFigures) with the candidates ``rows`` taken from ``new``."""
+    out = {}
+    for f in dataclasses.fields(fig):
+        old = getattr(fig, f.name)
+        if isinstance(old, np.ndarray):
+            old = old.copy()
+            old[rows] = getattr(new, f.name)
+        else:                                                  # per-candidate lists
+            old = list(old)
+            for i, r in enumerate(rows):
+                old[r] = getattr(new, f.name)[i]
+        out[f.name] = old
+    return type(fig)(**out)
 
 
 def _back_off(problem: TuningProblem, gains, kp, ki) -> np.ndarray:

@@ -3,13 +3,23 @@
 Neighbouring normalised plants have nearly the same optimum (the plants of a config form a
 low-dimensional family: the power fractions per dynamics class). So an unseen subset starts
 from the normalised gains of the table entry whose fractions are nearest (L1 distance), and
-one batch of candidates along that pair's ray (``RAY_FACTORS`` times it) is checked on the exact
-model; the feasible one with the lowest rise time is taken. Find W, the back-off and the
+one batch of candidates along that pair's ray (``RAY_FACTORS`` times it) is screened for the
+disk margin, and the largest candidates that pass are checked on the exact model (step
+response); the feasible one with the lowest rise time is taken. Find W, the back-off and the
 as-deployed figures then follow exactly as for a table entry (:func:`tune_subset`'s path), so
 the entry is certified: both constraints re-checked on the exact loop with W applied.
 
 Without a table, or when no candidate of the ray is feasible, the global search decides
-(:func:`adnmesh.tuning.build.tune_subset`, about a second).
+(:func:`adnmesh.tuning.build.tune_subset`, about a second). Every entry tuned becomes a
+starting point for the next.
+
+**Large configs.** When DERs' dynamics are spread per DER, every DER is its own dynamics class
+and the searches would run on plants with as many groups as DERs. Beyond
+``MAX_EXACT_CLASSES`` classes the searches run on a *design* plant with one group per DER type
+(the installed-power-weighted mean delay and lag of its DERs); Find W, the back-off and the
+as-deployed check still run on the exact plant, so the entry is certified all the same. A
+subset of more than ``MAX_DERS`` DERs is refused (:class:`~adnmesh.errors.UsageError`, one
+line) instead of tuned for minutes.
 """
 from __future__ import annotations
 
@@ -17,14 +27,24 @@ from typing import Sequence
 
 import numpy as np
 
+from ..errors import UsageError
 from ..table import SchedulingTable, TableEntry
 from .build import PlantGroup, _entries, tune_subset
+from .global_search import tune_global
+from .paper import initial_values
 from .problem import TuningProblem
 
-__all__ = ["OnDemandTuner", "RAY_FACTORS"]
+__all__ = ["OnDemandTuner", "RAY_FACTORS", "SIMULATED", "MAX_EXACT_CLASSES", "MAX_DERS"]
+
+#: more distinct dynamics than this: the searches run on the per-type design plant
+MAX_EXACT_CLASSES = 8
+#: largest subset tuned on demand
+MAX_DERS = 300
 
 #: candidates along the neighbour's ray, times its normalised pair
 RAY_FACTORS = np.geomspace(0.6, 1.25, 16)
+#: candidates of the ray (the largest meeting the disk margin) whose step response is simulated
+SIMULATED = 3
 
 
 class OnDemandTuner:
@@ -44,8 +64,10 @@ class OnDemandTuner:
         self.config = config
         self.constraints = constraints
         self.problem = TuningProblem(config, **(constraints or {}))
+        self.design = (self.problem if len(self.problem.actuators) <= MAX_EXACT_CLASSES
+                       else TuningProblem(config, **(constraints or {}), by_type=True))
         self.cache: dict[frozenset, TableEntry] = {}
-        self._fractions = np.zeros((0, len(self.problem.actuators)))
+        self._fractions = np.zeros((0, len(self.design.actuators)))
         self._gains = np.zeros((0, 2))
         if table is not None:
             self.add_table(table)
@@ -57,8 +79,8 @@ class OnDemandTuner:
         for e in table.entries.values():
             if not e.feasible:
                 continue
-            f, total = self.problem.fractions(e.ders)
-            if exclude is not None and self.problem.key(f) in exclude:
+            f, total = self.design.fractions(e.ders)
+            if exclude is not None and self.design.key(f) in exclude:
                 continue
             back = e.figures.get("gain_back_off") or 1.0
             fr.append(f)
@@ -71,31 +93,77 @@ class OnDemandTuner:
         """The certified entry of subset ``der_ids`` (cached)."""
         key = frozenset(der_ids)
         if key not in self.cache:
-            self.cache[key] = self._tune(der_ids)
+            if len(key) > MAX_DERS:
+                raise UsageError(f"a subset of {len(key)} DERs is too large to tune on demand "
+                                 f"(at most {MAX_DERS})")
+            entry = self.cache[key] = self._tune(der_ids)
+            if entry.feasible:
+                self._learn(entry)
         return self.cache[key]
+
+    def _learn(self, entry: TableEntry) -> None:
+        """Use a tuned entry as a starting point for the next subsets."""
+        f, total = self.design.fractions(entry.ders)
+        back = entry.figures.get("gain_back_off") or 1.0
+        self._fractions = np.vstack([self._fractions, f])
+        self._gains = np.vstack([self._gains, [(entry.kp / back * total,
+                                                entry.ki / back * total)]])
 
     def __call__(self, config, der_ids: Sequence[str]) -> TableEntry:
         """``tune(config, der_ids)``, the signature :class:`GainSchedule` expects."""
         return self.tune(der_ids)
 
+    def _best_on_ray(self, f: np.ndarray, kp: np.ndarray, ki: np.ndarray):
+        """(index, rise time s) of the fastest feasible candidate on the ray; None if none is
+        feasible.
+
+        The disk margin screens the whole ray at once (frequency domain only); step
+        responses are simulated for the ``SIMULATED`` largest candidates that pass it (rise
+        time falls as the gains grow along the ray), then for the rest if none of those is
+        feasible.
+        """
+        gains = np.broadcast_to(f, (kp.size, f.size))
+        screen = self.design.check(gains, kp, ki, simulate=np.zeros(kp.size, bool))
+        passing = np.nonzero(screen.reason == "")[0][::-1]          # largest first
+        for part in (passing[:SIMULATED], passing[SIMULATED:]):
+            if part.size == 0:
+                continue
+            chk = self.design.check(gains[part], kp[part], ki[part])
+            if chk.feasible.any():
+                i = int(np.nanargmin(np.where(chk.feasible, chk.rise_time_s, np.nan)))
+                return int(part[i]), float(chk.rise_time_s[i])
+        return None
+
     def _tune(self, der_ids: Sequence[str]) -> TableEntry:
         ders = tuple(d for d in self.config.der_ids() if d in set(der_ids))
         if len(ders) != len(set(der_ids)):
             self.config.ders_by_id(der_ids)      # raises ConfigError naming the unknown id
+        f, _ = self.design.fractions(ders)
         if not self._fractions.shape[0]:
-            return tune_subset(self.config, ders, self.constraints)
-        problem = self.problem
-        f, _ = problem.fractions(ders)
+            return self._global(ders, f)
         near = int(np.argmin(np.abs(self._fractions - f).sum(axis=1)))
         kp = self._gains[near, 0] * RAY_FACTORS
         ki = self._gains[near, 1] * RAY_FACTORS
-        chk = problem.check(np.broadcast_to(f, (kp.size, f.size)), kp, ki)
-        if not chk.feasible.any():
-            return tune_subset(self.config, ders, self.constraints)
-        best = int(np.nanargmin(np.where(chk.feasible, chk.rise_time_s, np.nan)))
-        entry = _entries(problem, [PlantGroup(f, (ders,))], kp[[best]], ki[[best]],
+        found = self._best_on_ray(f, kp, ki)
+        if found is None:
+            return self._global(ders, f)
+        best, rise = found
+        exact, _ = self.problem.fractions(ders)
+        entry = _entries(self.problem, [PlantGroup(exact, (ders,))], kp[[best]], ki[[best]],
                          np.array([True]), [None], np.array([np.nan]),
-                         chk.rise_time_s[[best]], ["on demand (nearest table plant)"])[0]
+                         np.array([rise]), ["on demand (nearest table plant)"])[0]
         if not entry.feasible:
-            return tune_subset(self.config, ders, self.constraints)
+            return self._global(ders, f)
         return entry
+
+    def _global(self, ders: tuple[str, ...], f: np.ndarray) -> TableEntry:
+        """The global search's entry (on the design plant; certified on the exact one)."""
+        if self.design is self.problem:
+            return tune_subset(self.config, ders, self.constraints)
+        kp0, ki0 = initial_values(self.design, f[None])
+        glob = tune_global(self.design, f[None], kp0, ki0)
+        exact, _ = self.problem.fractions(ders)
+        reasons = [None if glob.feasible[0] else "no feasible pair on the global grid"]
+        return _entries(self.problem, [PlantGroup(exact, (ders,))], glob.kp, glob.ki,
+                        glob.feasible, reasons, glob.rise_time_s, glob.rise_time_s,
+                        ["global (per-type design plant)"])[0]

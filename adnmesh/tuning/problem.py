@@ -43,6 +43,20 @@ def all_subsets(ids: Sequence[str]) -> list[tuple[str, ...]]:
     return [c for k in range(1, len(ids) + 1) for c in combinations(ids, k)]
 
 
+def _nominal_by_type(config) -> dict:
+    """Per DER type, the actuator with the installed-power-weighted mean delay (to 10 ms) and
+    lag, s."""
+    out = {}
+    for t in dict.fromkeys(d.type for d in config.ders):
+        ders = [d for d in config.ders if d.type == t]
+        p = np.array([float(d.p_inst_w) for d in ders])
+        # to 10 ms: a mean of delays is no common multiple of them (tiny simulation steps)
+        delay = round(float(np.dot(p, [float(d.t_delay_s) for d in ders]) / p.sum()), 2)
+        lag = float(np.dot(p, [config.t_lag_s(d) for d in ders]) / p.sum())
+        out[t] = Actuator(delay, lag)
+    return out
+
+
 class TuningProblem:
     """Normalised plants of a config's subsets and the constraint check.
 
@@ -53,10 +67,14 @@ class TuningProblem:
         Constraint alpha >= this (default: the config's).
     overshoot_max_pct : float, optional
         Constraint overshoot < this, percent (default: the config's).
+    by_type : bool
+        One *design* group per DER type, with the installed-power-weighted mean delay (to
+        10 ms) and lag of its DERs (a reduced plant for configs whose DERs all differ; entries are still
+        certified on the exact plant), instead of one group per distinct dynamics.
     """
 
     def __init__(self, config, disk_margin_min: float | None = None,
-                 overshoot_max_pct: float | None = None):
+                 overshoot_max_pct: float | None = None, by_type: bool = False):
         self.config = config
         c = config.constraints
         self.disk_margin_min = c.disk_margin_min if disk_margin_min is None else disk_margin_min
@@ -65,8 +83,9 @@ class TuningProblem:
         self.band_pct = c.settling_band_pct
         groups: dict[Actuator, int] = {}
         self.group_of: dict[str, int] = {}
+        nominal = _nominal_by_type(config) if by_type else {}
         for der in config.ders:
-            act = Actuator(float(der.t_delay_s), config.t_lag_s(der))
+            act = nominal.get(der.type) or Actuator(float(der.t_delay_s), config.t_lag_s(der))
             self.group_of[der.id] = groups.setdefault(act, len(groups))
         self.actuators = tuple(groups)
         self.p_inst = {d.id: float(d.p_inst_w) for d in config.ders}

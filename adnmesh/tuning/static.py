@@ -28,7 +28,8 @@ import numpy as np
 
 from .problem import T_MAX_S, TuningProblem
 
-__all__ = ["StaticResult", "static_controller", "RATIOS"]
+__all__ = ["StaticResult", "static_controller", "RATIOS", "AnySizeStatic", "extreme_subsets",
+           "static_any_size"]
 
 #: initial rays K_I / K_P, 1/s
 RATIOS = np.geomspace(0.01, 10.0, 13)
@@ -175,3 +176,67 @@ def static_controller(problem: TuningProblem, fractions, totals, kp_init) -> Sta
     best = seen[best_lr]
     return StaticResult(best.kp, best.kp * float(np.exp(best_lr)), best.worst_rise_time_s,
                         best.worst_plant, True)
+
+
+@dataclass
+class AnySizeStatic:
+    """The static pair designed on the extreme plants, verified on a random sample.
+
+    ``designed_on`` counts the distinct plants (group-power vectors) of the final design;
+    ``verified`` the sampled subsets checked, ``added`` those that failed a design and joined
+    the next one.
+    """
+
+    result: StaticResult
+    designed_on: int
+    verified: int
+    added: int
+
+
+def extreme_subsets(problem: TuningProblem, ids) -> list[tuple[str, ...]]:
+    """Subsets whose plants bound a config's family: every single DER, the set of all, each
+    dynamics class alone and the set of all less each class (by class: the largest and the
+    smallest installed power of each mix)."""
+    ids = list(ids)
+    classes = sorted({problem.group_of[d] for d in ids})
+    out = [(d,) for d in ids] + [tuple(ids)]
+    for g in classes:
+        alone = tuple(d for d in ids if problem.group_of[d] == g)
+        rest = tuple(d for d in ids if problem.group_of[d] != g)
+        out += [s for s in (alone, rest) if s]
+    return list(dict.fromkeys(out))
+
+
+def static_any_size(problem: TuningProblem, ids, sample: int = 1000, seed: int = 7,
+                    rounds: int = 3) -> AnySizeStatic:
+    """The static pair of a config whose subsets cannot be enumerated.
+
+    Designed (:func:`static_controller`) on :func:`extreme_subsets`, then every subset of a
+    random sample of ``sample`` is checked at the pair (w = 1, absolute gains); the failing
+    ones join the design, at most ``rounds`` times. Not feasible if a sample subset still fails.
+    """
+    from .paper import initial_values
+    from .subsets import random_subsets
+
+    cases = extreme_subsets(problem, ids)
+    drawn = random_subsets(ids, sample, seed)
+    checked = np.array([problem.group_power(s) for s in drawn])
+    added = 0
+    for _ in range(rounds + 1):
+        powers = np.unique(np.array([problem.group_power(s) for s in cases]), axis=0)
+        tot = powers.sum(axis=1)
+        f = powers / tot[:, None]
+        kp0, _ = initial_values(problem, f)
+        res = static_controller(problem, f, tot, kp0)
+        if not res.feasible:
+            break
+        n = len(checked)
+        ok = problem.check(checked, np.full(n, res.kp), np.full(n, res.ki)).feasible
+        if ok.all():
+            return AnySizeStatic(res, len(powers), n, added)
+        bad = [drawn[i] for i in np.nonzero(~ok)[0]]
+        added += len(bad)
+        cases += bad
+    res = StaticResult(res.kp, res.ki, res.worst_rise_time_s, res.worst_plant, False)
+    return AnySizeStatic(res, len(cases), len(checked), added)
+

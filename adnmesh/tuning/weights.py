@@ -8,19 +8,19 @@ that meets both constraints (0.0 if none does).
 How that first weight is found without checking the whole sequence
 (:func:`find_weights`; :func:`find_weights_sequential` is the plain scan, kept as reference):
 
-1. every single-DER loop is checked at w = 1 in one batch;
-2. for the violating ones, the step ``k`` (w = 1 - 0.001 k) where the loop meets the disk
-   margin is bisected on the exact (certified) frequency-domain check, ten rounds for 999
-   steps, every pending DER in one batch; the weight found is then checked fully (step
-   response too);
-3. the sequence above the bisected step is screened on the sampled frequency response
-   (``L_w = w L_1`` on a fine grid: the balanced disk margin of every weight at once); each
-   weight the screen cannot rule out (sampled alpha within ``SCREEN_SLACK`` of the limit) is
-   checked exactly, and the first feasible one wins. A bisection that ends on a weight the
-   exact check rejects falls back to the sequential scan for that DER.
+1. identical single-DER loops (same group, same loop gains) are checked once, every single-DER
+   loop at w = 1 in one batch;
+2. for the violating ones, the weights 0.999, 0.998, ... are screened on the sampled frequency
+   response (``L_w = w L_1`` on a fixed grid: the balanced disk margin of 64 weights at a
+   time, refined 20 x finer around each weight's coarse peak). A sampled peak of
+   ``2 |S - 1/2|`` never exceeds the true one, so a weight whose sampled alpha is below the
+   limit (less ``SCREEN_SLACK``) violates for certain and is skipped;
+3. the weights the screen cannot rule out are checked exactly in sequence order, a few per
+   DER and all DERs in one batch: the certified disk margin first, then the step response of
+   each DER's first weight that meets it; the first feasible one is the answer.
 
-So the answer is the sequential scan's whenever the sampled disk margin is within
-``SCREEN_SLACK`` of the exact one (tests compare both on many loops).
+No weight the scan would accept is ever skipped, so the answer is the sequential scan's
+(tests compare both on many loops); a typical Find W is one screen and one or two batches.
 """
 from __future__ import annotations
 
@@ -74,56 +74,90 @@ def _scan(problem, gains, kp, ki, violating) -> np.ndarray:
     return found
 
 
-def _bisect(problem, gains, kp, ki, jobs_v) -> np.ndarray:
-    """Smallest step k (1..999) whose weight meets the disk margin, assuming the violation
-    ends once: ``hi`` passes, ``lo`` fails (k = 0 is the violating w = 1). Frequency domain
-    only; the caller checks the result fully."""
-    lo = np.zeros(jobs_v.size, int)
-    hi = np.full(jobs_v.size, _N_STEPS + 1)                  # virtual passing end (w = 0)
-    while np.any(hi - lo > 1):
-        act = np.nonzero(hi - lo > 1)[0]
-        mid = (lo[act] + hi[act]) // 2
-        w = _weight(mid)
-        rows = jobs_v[act]
-        chk = problem.check(gains[rows] * w[:, None], kp[rows], ki[rows],
-                            simulate=np.zeros(rows.size, bool))
-        ok = chk.reason == ""                    # meets the disk margin (not simulated)
-        hi[act] = np.where(ok, mid, hi[act])
-        lo[act] = np.where(ok, lo[act], mid)
-    return hi
+def _screen_block(l_c, l_f, k, limit) -> np.ndarray:
+    """Steps ``k`` whose sampled disk margin (coarse ``l_c``, fine ``l_f`` response of one
+    single-DER loop at w = 1) is not below ``limit``: the others violate for certain."""
+    w = _weight(k)[:, None]
+    lw = w * l_c[None, :]
+    q = np.abs(1.0 - lw) / np.abs(1.0 + lw)
+    keep = 2.0 / q.max(axis=1) >= limit
+    if keep.any():
+        peak = np.argmax(q[keep], axis=1)
+        win = (np.clip(peak, 1, _SCREEN_OMEGA.size - 2)[:, None] - 1) * _FINE + _WINDOW
+        lf = w[keep] * l_f[win]
+        qf = np.abs(1.0 - lf) / np.abs(1.0 + lf)
+        keep[np.nonzero(keep)[0]] = 2.0 / np.maximum(qf.max(axis=1), q[keep].max(axis=1)) \
+            >= limit
+    return k[keep]
 
 
-def _screen(problem, gains, kp, ki, jobs_v, k_hit) -> list[np.ndarray]:
-    """Steps k < k_hit per job whose sampled disk margin does not rule them out.
+class _Candidates:
+    """Screened steps of one single-DER loop, generated lazily in blocks of ``_BLOCK``."""
 
-    A sampled peak of ``2 |S - 1/2|`` is at most the true one, so a sampled alpha below the
-    limit rules a weight out for certain (stable or not: alpha is 0 if unstable). The coarse
-    grid rules out most weights; the rest are sampled again 20 x finer around their coarse
-    peak, and what still reaches ``limit - SCREEN_SLACK`` is returned for an exact check.
-    """
-    plant = problem.plant(gains[jobs_v])
-    l_c = loop_response(plant, kp[jobs_v], ki[jobs_v], _SCREEN_OMEGA)             # (J, N)
-    l_f = loop_response(plant, kp[jobs_v], ki[jobs_v], _FINE_OMEGA)               # (J, 20N)
+    def __init__(self, l_c, l_f, limit):
+        self.l_c, self.l_f, self.limit = l_c, l_f, limit
+        self.next_k = 1
+        self.buffer = np.zeros(0, int)
+
+    def take(self, n: int) -> np.ndarray:
+        """The next ``n`` (or fewer, at the end of the sequence) screened steps, in order."""
+        while self.buffer.size < n and self.next_k <= _N_STEPS:
+            k = np.arange(self.next_k, min(_N_STEPS, self.next_k + _BLOCK - 1) + 1)
+            self.next_k = int(k[-1]) + 1
+            self.buffer = np.concatenate([self.buffer,
+                                          _screen_block(self.l_c, self.l_f, k, self.limit)])
+        out, self.buffer = self.buffer[:n], self.buffer[n:]
+        return out
+
+    def put_back(self, k: np.ndarray) -> None:
+        """Return steps taken but not checked to the front of the queue."""
+        self.buffer = np.concatenate([k, self.buffer])
+
+
+#: screened weights whose exact disk margin is checked per DER and batch
+_PER_BATCH = 8
+
+
+def _screened_scan(problem, gains, kp, ki, violating) -> np.ndarray:
+    """First feasible weight per job in ``violating`` (0.0 if none): the sequential scan's
+    answer, with every weight the sampled disk margin rules out skipped."""
+    plant = problem.plant(gains[violating])
+    l_c = loop_response(plant, kp[violating], ki[violating], _SCREEN_OMEGA)
+    l_f = loop_response(plant, kp[violating], ki[violating], _FINE_OMEGA)
     limit = problem.disk_margin_min - SCREEN_SLACK
-    out = []
-    for j in range(jobs_v.size):
-        k = np.arange(1, k_hit[j])
-        if k.size == 0:
-            out.append(k)
-            continue
-        w = _weight(k)[:, None]
-        lw = w * l_c[j][None, :]
-        q = np.abs(1.0 - lw) / np.abs(1.0 + lw)
-        keep = 2.0 / q.max(axis=1) >= limit
-        if keep.any():
-            peak = np.argmax(q[keep], axis=1)
-            win = (np.clip(peak, 1, _SCREEN_OMEGA.size - 2)[:, None] - 1) * _FINE + _WINDOW
-            lf = w[keep] * l_f[j][win]
-            qf = np.abs(1.0 - lf) / np.abs(1.0 + lf)
-            keep[np.nonzero(keep)[0]] = 2.0 / np.maximum(qf.max(axis=1), q[keep].max(axis=1)) \
-                >= limit
-        out.append(k[keep])
-    return out
+    gens = [_Candidates(l_c[j], l_f[j], limit) for j in range(violating.size)]
+    found = np.zeros(violating.size)
+    pending = list(range(violating.size))
+    while pending:
+        batch = [(j, gens[j].take(_PER_BATCH)) for j in pending]
+        batch = [(j, k) for j, k in batch if k.size]
+        if not batch:
+            break
+        rows = np.concatenate([np.full(k.size, j) for j, k in batch])
+        ks = np.concatenate([k for _, k in batch])
+        jr = violating[rows]
+        # exact disk margin of the batch first; a step response only for each DER's first
+        # weight that meets it (the weights after it go back to the DER's queue)
+        dm_ok = problem.check(gains[jr] * _weight(ks)[:, None], kp[jr], ki[jr],
+                              simulate=np.zeros(ks.size, bool)).reason == ""
+        sim_j, sim_k = [], []
+        for j, k in batch:
+            hit = np.nonzero(dm_ok[rows == j])[0]
+            if hit.size:
+                sim_j.append(j)
+                sim_k.append(k[hit[0]])
+                gens[j].put_back(k[hit[0] + 1:])
+        done = set()
+        if sim_j:
+            jr = violating[np.array(sim_j)]
+            ks = np.array(sim_k)
+            ok = problem.check(gains[jr] * _weight(ks)[:, None], kp[jr], ki[jr]).feasible
+            for j, k, good in zip(sim_j, sim_k, ok):
+                if good:
+                    found[j] = _weight(k)
+                    done.add(j)
+        pending = [j for j, _ in batch if j not in done]
+    return found
 
 
 def find_weights(problem: TuningProblem, entries: list[tuple[tuple[str, ...], float, float]]):
@@ -136,33 +170,17 @@ def find_weights(problem: TuningProblem, entries: list[tuple[tuple[str, ...], fl
     jobs, gains, kp, ki = _jobs(problem, entries)
     if not jobs:
         return weights
-    violating = np.nonzero(~problem.check(gains, kp, ki).feasible)[0]
-    found = np.zeros(violating.size)
+    # identical single-DER loops are one job
+    _, first, inverse = np.unique(np.column_stack([gains, kp, ki]), axis=0, return_index=True,
+                                  return_inverse=True)
+    inverse = inverse.ravel()
+    g_u, kp_u, ki_u = gains[first], kp[first], ki[first]
+    w_u = np.ones(first.size)
+    violating = np.nonzero(~problem.check(g_u, kp_u, ki_u).feasible)[0]
     if violating.size:
-        k_hit = _bisect(problem, gains, kp, ki, violating)
-        in_range = k_hit <= _N_STEPS
-        chk = problem.check(gains[violating[in_range]] * _weight(k_hit[in_range])[:, None],
-                            kp[violating[in_range]], ki[violating[in_range]])
-        good = np.zeros(violating.size, bool)
-        good[np.nonzero(in_range)[0][chk.feasible]] = True
-        found[good] = _weight(k_hit[good])
-        # weights above the bisected one that the sampled disk margin cannot rule out
-        idx = np.nonzero(good)[0]
-        cand = _screen(problem, gains, kp, ki, violating[idx], k_hit[idx])
-        rows = np.concatenate([np.full(c.size, i) for i, c in zip(idx, cand)] + [[]]).astype(int)
-        ks = np.concatenate(cand + [[]]).astype(int)
-        if rows.size:
-            jr = violating[rows]
-            ok = problem.check(gains[jr] * _weight(ks)[:, None], kp[jr], ki[jr]).feasible
-            for i in np.unique(rows[ok]):
-                found[i] = _weight(ks[ok & (rows == i)].min())
-        # a bisection that ended on a rejected weight: the sequential scan decides
-        rest = np.nonzero(~good)[0]
-        if rest.size:
-            found[rest] = _scan(problem, gains, kp, ki, violating[rest])
-    for j, w_found in zip(violating, found):
-        e, d = jobs[j]
-        weights[e][d] = float(w_found)
+        w_u[violating] = _screened_scan(problem, g_u, kp_u, ki_u, violating)
+    for j, (e, d) in enumerate(jobs):
+        weights[e][d] = float(w_u[inverse[j]])
     return weights
 
 

@@ -1,0 +1,56 @@
+"""On-demand tuning of large configs: the per-type design plant and the size limit (fast)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from adnmesh.config import load_config
+from adnmesh.errors import UsageError
+from adnmesh.tuning import TuningProblem
+from adnmesh.tuning import ondemand
+from adnmesh.tuning.ondemand import OnDemandTuner
+
+
+@pytest.fixture(scope="module")
+def adn100(configs_dir: Path):
+    return load_config(configs_dir / "examples" / "adn-100.yaml")
+
+
+def test_dynamics_spread_per_der_get_one_design_group_per_type(adn100) -> None:
+    exact = TuningProblem(adn100)
+    design = TuningProblem(adn100, by_type=True)
+    assert len(exact.actuators) > ondemand.MAX_EXACT_CLASSES
+    assert len(design.actuators) == len({d.type for d in adn100.ders}) == 3
+    for act in design.actuators:                    # delays a multiple of 10 ms
+        assert abs(act.t_delay_s * 100 - round(act.t_delay_s * 100)) < 1e-9
+    wts = [d for d in adn100.ders if d.type == "WT"]
+    lag = sum(d.p_inst_w * adn100.t_lag_s(d) for d in wts) / sum(d.p_inst_w for d in wts)
+    assert design.actuators[design.group_of[wts[0].id]].t_lag_s == pytest.approx(lag)
+    tuner = OnDemandTuner(adn100)
+    assert tuner.design.actuators == design.actuators and tuner.problem.actuators == \
+        exact.actuators
+
+
+def test_a_subset_too_large_is_refused_in_one_line(adn100, monkeypatch) -> None:
+    monkeypatch.setattr(ondemand, "MAX_DERS", 50)
+    with pytest.raises(UsageError, match="too large to tune on demand"):
+        OnDemandTuner(adn100).tune(adn100.der_ids())
+
+
+def test_the_static_pair_from_the_extremes_is_the_enumerated_one(configs_dir: Path) -> None:
+    # tests/data/tuning_reference_mixed4_global.json holds the static pair designed over all
+    # 15 subsets of mixed-4; designed on its extreme plants and verified on every subset
+    import json
+
+    from adnmesh.tuning.static import extreme_subsets, static_any_size
+
+    config = load_config(configs_dir / "examples" / "mixed-4.yaml")
+    problem = TuningProblem(config)
+    ref = json.loads((Path(__file__).parent / "data" / "tuning_reference_mixed4_global.json")
+                     .read_text())["static"]
+    assert len(extreme_subsets(problem, config.der_ids())) < 15
+    got = static_any_size(problem, config.der_ids(), sample=100)
+    assert got.result.feasible and got.verified == 15
+    assert got.result.kp == pytest.approx(ref["kp"], rel=1e-6)
+    assert got.result.ki == pytest.approx(ref["ki"], rel=1e-6)
