@@ -116,3 +116,12 @@ def test_without_a_static_controller_the_cpfc_waits_for_the_tuning(config) -> No
     out = _run(cpfc, 0, 4600 * MS, si_at=4500 * MS)
     (t_switch, body), = [(t, b) for t, b in out if "switch" in b]
     assert t_switch == 4500 * MS and (body["kp"], body["ki"]) == TUNED
+
+
+def test_the_cpfc_tunes_in_the_background_once_it_knows_the_run_is_realtime(config) -> None:
+    schedule = GainSchedule(config, _table(config))
+    cpfc = CPFC(config, schedule)
+    cpfc.on_clock("sim")
+    assert schedule.background is False
+    cpfc.on_clock("realtime")
+    assert schedule.background is True

@@ -47,6 +47,9 @@ class Agent(ABC):
     def on_message(self, t_ns: int, message: Envelope) -> list[Outgoing]:
         """Handle ``message`` (validated, from the key's sender) delivered at ``t_ns``."""
 
+    def on_clock(self, mode: str) -> None:
+        """The run's clock is known, ``"sim"`` or ``"realtime"`` (called before any event)."""
+
     def resume(self, t_ns: int) -> None:
         """Start at ``t_ns`` instead of 0: a restarted agent (called before any event)."""
         raise NotImplementedError(f"{type(self).__name__} cannot be restarted")

@@ -305,6 +305,11 @@ class CPFC(Agent):
         return {**{k: float(v) for k, v in self.counts.items()},
                 **{f"gains_{k}": float(v) for k, v in self.schedule.sources.items()}}
 
+    def on_clock(self, mode: str) -> None:
+        """In realtime runs a subset the table lacks is tuned in a background thread (the
+        static controller meanwhile); on the sim clock its tuning takes ``tuning_delay_s``."""
+        self.schedule.background = mode == "realtime"
+
     def resume(self, t_ns: int) -> None:
         """A restarted CPFC at ``t_ns``: hold until the DERs' acknowledgements are in."""
         self.next_sample_ns = self._next_weights_ns = -(-t_ns // self.period_ns) * self.period_ns

@@ -228,6 +228,7 @@ class AgentProcess:
                 return
             self.node.reseed(self.start.seed)
             self.mode = self.start.clock
+            self.node.agent.on_clock(self.mode)
             if self.mode == "sim":
                 self._run_granted()
                 while not self._up_lost() and not self.dying:
