@@ -157,6 +157,7 @@ def test_the_web_viewer_listens_on_127_0_0_1_only(tmp_path) -> None:
         while len(found) < 2 and time.monotonic() < deadline:   # poll the process's sockets
             found = _listening(pid)
             threading.Event().wait(0.05)
+        assert view.error is None
         assert f"127.0.0.1:{web_port}" in found
         assert found and all(a.startswith("127.0.0.1:") for a in found), found
     finally:

@@ -268,12 +268,8 @@ def _launch_with_view(args, options, launch, err: Console, log):
         if args.progress or err.is_terminal else None
     on_events = bar.events if bar is not None else None
     view = None
-    if target is not None:
+    if target is not None or bar is not None:     # without a target: the bar's events only
         view = open_view(target, options.run_id, log, on_events=on_events)
-    elif bar is not None:
-        from adnmesh.recording.live import LiveView
-
-        view = LiveView(None, on_events=on_events).start()   # the events, for the bar
     options.view = view
     options.progress = bar.update if bar is not None else None
     try:
