@@ -33,8 +33,8 @@ time. Usage::
         --helics-steps 6000 --json out/bench.json
     .venv/bin/python benchmarks/bench_runtime.py --secure --agents '' --skip-helics
     .venv/bin/python benchmarks/bench_runtime.py --view --only-pairs --agents '' --skip-helics
-    .venv/bin/python benchmarks/bench_runtime.py --view --view-wt 8 --skip-simbench \
-        --agents '' --skip-helics
+    .venv/bin/python benchmarks/bench_runtime.py --view --view-config CASE.yaml \
+        --view-table CASE.table.json --skip-simbench --agents '' --skip-helics
 
 The gain table for the SimBench config is ``tables/simbench.<sha>.json`` if ``adnmesh tune``
 made one that holds the subsets the scenario needs; otherwise those two entries (all DERs; CHPs
@@ -161,6 +161,8 @@ def run_up(config_path: Path, table: Path, workdir: Path, certs: Path | None = N
     sim_s = config.scenario.duration_s
     cpu = {"up (router, recorder, clock)": time.process_time() - cpu0,
            **{a: b.stats["cpu_s"] for a, b in sorted(result.byes.items())}}
+    if live is not None:
+        cpu["live view process"] = live.cpu_s
     return {
         "agents": len(result.byes), "sim_s": sim_s,
         "wall_s": round(result.wall_time_s, 2),
@@ -291,11 +293,11 @@ def run_helics(python: str, steps: int, nfeds: int, core: str) -> dict:
 
 
 def view_pairs(figures: dict, args, config_path: Path, table: Path, workdir: Path) -> None:
-    """Without and with the live view, alternating (SimBench, or ``--view-wt`` WTs)."""
+    """Without and with the live view, alternating (SimBench, or ``--view-config``)."""
     what = "SimBench scenario"
-    if args.view_wt:
-        config_path, table = wt_config(args.view_wt, args.sweep_s, workdir)
-        what = f"{args.view_wt} WTs, {args.sweep_s:g} s"
+    if args.view_config:
+        config_path, table = Path(args.view_config), Path(args.view_table)
+        what = f"{config_path.name}, {load_config(config_path).scenario.duration_s:g} s"
     print(f"{what} without and with the live view (--view FILE.rrd) alternating, "
           f"{args.repeat} pairs ...", flush=True)
     live = figures["view_vs_plain"] = view_vs_plain(config_path, table, workdir, args.repeat)
@@ -337,9 +339,10 @@ def main() -> int:
     parser.add_argument("--view", action="store_true",
                         help="also the SimBench scenario with the live view (--view FILE.rrd), "
                         "alternating with plain runs (the cost of --view)")
-    parser.add_argument("--view-wt", type=int, metavar="N",
-                        help="with --view: measure on N identical WTs for --sweep-s sim s "
-                        "instead of the SimBench scenario")
+    parser.add_argument("--view-config", metavar="YAML",
+                        help="with --view: measure on this config (with --view-table) instead "
+                        "of the SimBench scenario")
+    parser.add_argument("--view-table", metavar="JSON", help="the gain table of --view-config")
     parser.add_argument("--only-pairs", action="store_true",
                         help="with --secure or --view: skip the plain SimBench runs before")
     parser.add_argument("--json", metavar="PATH", help="also write every figure as JSON")
@@ -359,9 +362,9 @@ def main() -> int:
                 security = figures["secure_vs_open"] = secure_vs_open(config_path, table,
                                                                       workdir, args.repeat)
                 show_pairs(security, ("open", "secure"))
-            if args.view and not args.view_wt:
+            if args.view and not args.view_config:
                 view_pairs(figures, args, config_path, table, workdir)
-        if args.view and args.view_wt:
+        if args.view and args.view_config:
             view_pairs(figures, args, None, None, workdir)
         if args.grid_cost:
             print(f"grid cost: {args.repeat} runs each with and without grid_model ...",

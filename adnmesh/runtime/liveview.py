@@ -86,6 +86,7 @@ class ViewProcess:
                  viewer_pid: int | None = None, period_s: float = VIEW_PERIOD_S) -> None:
         self.viewer_pid, self.on_events, self.period_s = viewer_pid, on_events, period_s
         self.error: str | None = None
+        self.cpu_s = 0.0            # CPU time of the view's process, s (once closed)
         self._pending: list = []
         self._lock = threading.Lock()
         self._stop = threading.Event()
@@ -146,7 +147,8 @@ class ViewProcess:
             if kind == "events" and self.on_events is not None:
                 self.on_events(value)
             elif kind == "done":
-                self.error = value or self.error
+                error, self.cpu_s = value
+                self.error = error or self.error
                 return
 
 
@@ -172,7 +174,8 @@ def _serve(conn, sink: tuple, run_id: str, events: bool) -> None:
             view.send_pending()
     finally:
         view.close()
-        conn.send(("done", view.error))
+        times = os.times()
+        conn.send(("done", (view.error, times.user + times.system)))
 
 
 def open_view(target: ViewTarget | None, run_id: str, log: Callable[[str], None],
