@@ -16,7 +16,10 @@ Measures, each printed as it comes:
 5. with ``--secure``: the SimBench scenario also in the secure profile (mutual TLS on every
    link, Zenoh access control; certificates made for the run), alternating with the open
    profile run by run, and the cost of security as the ratio secure / open of wall time and of
-   CPU time, per pair of runs.
+   CPU time, per pair of runs;
+6. with ``--view``: the SimBench scenario with the live view streamed to a file (``up --view
+   FILE.rrd``: the same work as for a viewer, without one), alternating with plain runs, and
+   its cost as the ratio view / plain of wall and CPU time per pair (target: <= 1.10).
 
 It measures; it asserts nothing (targets: speed factor >= 30, ratio >= 3). Every measurement
 is repeated (``--repeat``, default 3) and reported as min / median / max, with the load average
@@ -29,6 +32,9 @@ time. Usage::
     .venv/bin/python benchmarks/bench_runtime.py --helics-python /tmp/venv-helics/bin/python \\
         --helics-steps 6000 --json out/bench.json
     .venv/bin/python benchmarks/bench_runtime.py --secure --agents '' --skip-helics
+    .venv/bin/python benchmarks/bench_runtime.py --view --only-pairs --agents '' --skip-helics
+    .venv/bin/python benchmarks/bench_runtime.py --view --view-config CASE.yaml \
+        --view-table CASE.table.json --skip-simbench --agents '' --skip-helics
 
 The gain table for the SimBench config is ``tables/simbench.<sha>.json`` if ``adnmesh tune``
 made one that holds the subsets the scenario needs; otherwise those two entries (all DERs; CHPs
@@ -131,21 +137,32 @@ def simbench_table(config, workdir: Path) -> Path:
     return out
 
 
-def run_up(config_path: Path, table: Path, workdir: Path, certs: Path | None = None) -> dict:
-    """One run of ``adnmesh up`` on the sim clock (secure profile with ``certs``): its
-    figures (CPU times include start-up)."""
+def run_up(config_path: Path, table: Path, workdir: Path, certs: Path | None = None,
+           view: Path | None = None) -> dict:
+    """One run of ``adnmesh up`` on the sim clock (secure profile with ``certs``; the live
+    view streamed to the file ``view``, as ``--view FILE.rrd``): its figures (CPU times
+    include start-up; with ``view``, the view's thread and its last send after the run)."""
+    from adnmesh.runtime.liveview import ViewTarget, open_view
+
     config = load_config(config_path)
     load_before = load()
     cpu0 = time.process_time()
     t0 = time.perf_counter()
+    live = open_view(ViewTarget("file", view), "bench", lambda line: None) if view else None
     result = run(UpOptions(config=config, table_path=table, out=workdir / "bench.mcap",
-                           certs=certs))
+                           certs=certs, view=live))
+    if live is not None:
+        live.close()
+        if live.error:
+            raise SystemExit(live.error)
     total = time.perf_counter() - t0
     if result.exit_code != 0:
         raise SystemExit(f"adnmesh up failed: {result.reason}; {result.problems}")
     sim_s = config.scenario.duration_s
     cpu = {"up (router, recorder, clock)": time.process_time() - cpu0,
            **{a: b.stats["cpu_s"] for a, b in sorted(result.byes.items())}}
+    if live is not None:
+        cpu["live view process"] = live.cpu_s
     return {
         "agents": len(result.byes), "sim_s": sim_s,
         "wall_s": round(result.wall_time_s, 2),
@@ -177,6 +194,28 @@ def wt_config(n_ders: int, duration_s: float, workdir: Path) -> tuple[Path, Path
     return path, table_path
 
 
+def alternating(measures: dict, repeat: int) -> dict:
+    """Run the two ``measures`` (name -> callable giving a run's figures) in turn, ``repeat``
+    pairs; each pair's ratios (second / first) of wall and CPU time, and the spreads."""
+    (first, _), (second, _) = measures.items()
+    pairs = []
+    for _ in range(repeat):
+        pair = {name: measure() for name, measure in measures.items()}
+        for key in ("wall_s", "cpu_s_total"):
+            pair[f"{key}_ratio"] = round(pair[second][key] / pair[first][key], 3)
+        print(json.dumps({k: v if "ratio" in k else {f: v[f] for f in (
+            "wall_s", "speed_factor", "cpu_s_total", "messages", "load_before")}
+            for k, v in pair.items()}), flush=True)
+        pairs.append(pair)
+    found = {"pairs": pairs}
+    for name in measures:
+        runs = [p[name] for p in pairs]
+        found[name] = {k: spread(runs, k) for k in ("wall_s", "speed_factor", "cpu_s_total")}
+    for key in ("wall_s_ratio", "cpu_s_total_ratio"):
+        found[key] = spread(pairs, key)
+    return found
+
+
 def secure_vs_open(config_path: Path, table: Path, workdir: Path, repeat: int) -> dict:
     """The scenario in the open and the secure profile, alternating; the ratios per pair."""
     from adnmesh.runtime.certs import issue
@@ -184,23 +223,27 @@ def secure_vs_open(config_path: Path, table: Path, workdir: Path, repeat: int) -
 
     certs = workdir / "certs"
     issue(certs, identities(load_config(config_path)))
-    pairs = []
-    for _ in range(repeat):
-        pair = {"open": run_up(config_path, table, workdir),
-                "secure": run_up(config_path, table, workdir, certs)}
-        for key in ("wall_s", "cpu_s_total"):
-            pair[f"{key}_ratio"] = round(pair["secure"][key] / pair["open"][key], 3)
-        print(json.dumps({k: v if "ratio" in k else {f: v[f] for f in (
-            "wall_s", "speed_factor", "cpu_s_total", "messages", "load_before")}
-            for k, v in pair.items()}), flush=True)
-        pairs.append(pair)
-    found = {"pairs": pairs}
-    for profile in ("open", "secure"):
-        runs = [p[profile] for p in pairs]
-        found[profile] = {k: spread(runs, k) for k in ("wall_s", "speed_factor", "cpu_s_total")}
-    for key in ("wall_s_ratio", "cpu_s_total_ratio"):
-        found[key] = spread(pairs, key)
+    return alternating({"open": lambda: run_up(config_path, table, workdir),
+                        "secure": lambda: run_up(config_path, table, workdir, certs)}, repeat)
+
+
+def view_vs_plain(config_path: Path, table: Path, workdir: Path, repeat: int) -> dict:
+    """The scenario without and with the live view (``--view FILE.rrd``), alternating; the
+    ratios per pair and the size of the view's file."""
+    rrd = workdir / "view.rrd"
+    found = alternating({"plain": lambda: run_up(config_path, table, workdir),
+                         "view": lambda: run_up(config_path, table, workdir, view=rrd)},
+                        repeat)
+    found["view_rrd_bytes"] = rrd.stat().st_size
     return found
+
+
+def show_pairs(found: dict, names: tuple[str, str]) -> None:
+    for name in names:
+        show_range(f"{name}: wall time", found[name], "wall_s", " s")
+        show_range(f"{name}: CPU time, all processes", found[name], "cpu_s_total", " s")
+    show_range(f"{names[1]} / {names[0]}, wall time", found, "wall_s_ratio")
+    show_range(f"{names[1]} / {names[0]}, CPU time", found, "cpu_s_total_ratio")
 
 
 def without_grid(config_path: Path, workdir: Path) -> Path:
@@ -249,6 +292,32 @@ def run_helics(python: str, steps: int, nfeds: int, core: str) -> dict:
     return data
 
 
+def view_pairs(figures: dict, args, config_path: Path, table: Path, workdir: Path) -> None:
+    """Without and with the live view, alternating (SimBench, or ``--view-config``)."""
+    what = "SimBench scenario"
+    if args.view_config:
+        config_path, table = Path(args.view_config), Path(args.view_table)
+        what = f"{config_path.name}, {load_config(config_path).scenario.duration_s:g} s"
+    print(f"{what} without and with the live view (--view FILE.rrd) alternating, "
+          f"{args.repeat} pairs ...", flush=True)
+    live = figures["view_vs_plain"] = view_vs_plain(config_path, table, workdir, args.repeat)
+    live["case"] = what
+    show_pairs(live, ("plain", "view"))
+    print(f"  view file: {live['view_rrd_bytes'] / 1e6:.1f} MB", flush=True)
+
+
+def simbench_runs(figures: dict, config_path: Path, table: Path, workdir: Path,
+                  repeat: int) -> None:
+    print(f"SimBench scenario ({config_path.name}), sim clock, {repeat} runs ...", flush=True)
+    figures["simbench"] = repeated(lambda: run_up(config_path, table, workdir), repeat,
+                                   lambda f: print(json.dumps(f), flush=True))
+    for key, label, unit in (("speed_factor", "speed factor", "x"),
+                             ("wall_s", "wall time", " s"),
+                             ("cpu_s_total", "CPU time, all processes", " s"),
+                             ("grants_per_s", "grants/s", "")):
+        show_range(label, figures["simbench"], key, unit)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--config", default=str(REPO / "configs" / "simbench.yaml"))
@@ -267,6 +336,15 @@ def main() -> int:
     parser.add_argument("--secure", action="store_true",
                         help="also the SimBench scenario in the secure profile, alternating "
                         "with the open one (the cost of mutual TLS and access control)")
+    parser.add_argument("--view", action="store_true",
+                        help="also the SimBench scenario with the live view (--view FILE.rrd), "
+                        "alternating with plain runs (the cost of --view)")
+    parser.add_argument("--view-config", metavar="YAML",
+                        help="with --view: measure on this config (with --view-table) instead "
+                        "of the SimBench scenario")
+    parser.add_argument("--view-table", metavar="JSON", help="the gain table of --view-config")
+    parser.add_argument("--only-pairs", action="store_true",
+                        help="with --secure or --view: skip the plain SimBench runs before")
     parser.add_argument("--json", metavar="PATH", help="also write every figure as JSON")
     args = parser.parse_args()
 
@@ -276,27 +354,18 @@ def main() -> int:
         if not args.skip_simbench:
             config_path = Path(args.config)
             table = simbench_table(load_config(config_path), workdir)
-            print(f"SimBench scenario ({config_path.name}), sim clock, {args.repeat} runs ...",
-                  flush=True)
-            figures["simbench"] = repeated(lambda: run_up(config_path, table, workdir),
-                                           args.repeat, lambda f: print(json.dumps(f),
-                                                                        flush=True))
-            for key, label, unit in (("speed_factor", "speed factor", "x"),
-                                     ("wall_s", "wall time", " s"),
-                                     ("cpu_s_total", "CPU time, all processes", " s"),
-                                     ("grants_per_s", "grants/s", "")):
-                show_range(label, figures["simbench"], key, unit)
+            if not args.only_pairs:
+                simbench_runs(figures, config_path, table, workdir, args.repeat)
             if args.secure:
                 print(f"SimBench scenario, open and secure profile alternating, {args.repeat} "
                       "pairs ...", flush=True)
                 security = figures["secure_vs_open"] = secure_vs_open(config_path, table,
                                                                       workdir, args.repeat)
-                for profile in ("open", "secure"):
-                    show_range(f"{profile}: wall time", security[profile], "wall_s", " s")
-                    show_range(f"{profile}: CPU time, all processes", security[profile],
-                               "cpu_s_total", " s")
-                show_range("secure / open, wall time", security, "wall_s_ratio")
-                show_range("secure / open, CPU time", security, "cpu_s_total_ratio")
+                show_pairs(security, ("open", "secure"))
+            if args.view and not args.view_config:
+                view_pairs(figures, args, config_path, table, workdir)
+        if args.view and args.view_config:
+            view_pairs(figures, args, None, None, workdir)
         if args.grid_cost:
             print(f"grid cost: {args.repeat} runs each with and without grid_model ...",
                   flush=True)

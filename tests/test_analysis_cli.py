@@ -3,6 +3,7 @@ import csv
 import json
 import re
 
+import pandas as pd
 import pytest
 
 from adnmesh.cli import main
@@ -44,6 +45,8 @@ def test_full_run_writes_every_output_and_an_index_linking_them(tmp_path, two_wt
     assert files - {"index.md"} <= linked
     rows = list(csv.DictReader((out / "robustness.csv").open()))
     assert [r["subset"] for r in rows] == ["SGen1", "SGen2", "SGen1,SGen2"]
+    space = pd.read_csv(out / "solution-space-SGen2.csv")     # tidy: pandas' defaults
+    assert len(space) == 64 and (space.columns[space.dtypes == object] == ["class"]).all()
     doc = json.loads((out / "uncertainty.json").read_text())
     assert set(doc["controllers"]) == {"adaptive", "static"}
     assert [m["model"] for m in doc["controllers"]["static"]["models"]] == ["pt1", "rhpz"]

@@ -92,9 +92,12 @@ def test_csv_has_one_row_per_subset_and_a_column_per_figure():
     result = analyze_robustness(example("wt-chp"), _weighted_table("wt-chp"))
     header, rows = result.csv_rows()
     assert len(rows) == 3 and all(len(r) == len(header) for r in rows)
-    assert {"adaptive_rise_time_s", "static_delay_margin_s", "weights"} <= set(header)
+    assert {"adaptive_rise_time_s", "static_delay_margin_s", "w_SGen1", "in_SGen5"} <= set(header)
     row = rows[result.names.index("SGen1,SGen5")]
-    assert row[header.index("weights")] == "SGen1:1;SGen5:0.5"
+    assert [row[header.index(c)] for c in ("in_SGen1", "in_SGen5", "w_SGen1", "w_SGen5")] == \
+        [1, 1, "1", "0.5"]
+    alone = rows[result.names.index("SGen1")]
+    assert alone[header.index("in_SGen5")] == 0 and alone[header.index("w_SGen5")] == ""
 
 
 def test_entries_without_a_pi_pair_are_left_out_of_the_adaptive_analysis():

@@ -41,7 +41,8 @@ def reference_run(tmp_path_factory):
     """One sim run of the test case, shared by the tests that only read it."""
     tmp_path = tmp_path_factory.mktemp("up")
     config, table = write_case(tmp_path)
-    result, recording, summary = run_up(tmp_path, config, table, "reference")
+    result, recording, summary = run_up(tmp_path, config, table, "reference",
+                                        "--view", str(tmp_path / "live.rrd"))
     return tmp_path, config, table, result, recording, summary
 
 
@@ -149,6 +150,20 @@ def test_inspect_gives_the_summary_figures(reference_run) -> None:
 
 
 # --- 7c: a gain switch with a non-zero integrator causes no jump in P_Y ---------------------------
+
+
+def test_the_live_view_streamed_during_the_run_equals_its_replay(reference_run) -> None:
+    """``up --view FILE.rrd`` (a Rerun stream to a file, headless) during the run: the same
+    series and events as ``adnmesh replay`` of its recording."""
+    from adnmesh.recording.rerun_export import export_rrd
+    from adnmesh.recording.series import extract
+    from test_live import compare_with_replay
+
+    tmp_path, _, _, result, recording, _ = reference_run
+    assert f"live view: streaming to {tmp_path / 'live.rrd'}" in result.stderr
+    assert "live view stopped" not in result.stderr
+    export_rrd(recording, tmp_path / "replay.rrd")
+    compare_with_replay(tmp_path / "live.rrd", tmp_path / "replay.rrd", extract(recording))
 
 
 def test_gain_switch_is_bumpless_in_the_distributed_run(reference_run) -> None:

@@ -6,7 +6,7 @@ import math
 from .robustness import ALL_EQUAL, METRICS, RobustnessResult
 from .uncertainty import B_RANGE, MODEL_LABELS, QUANTITY_LABELS, Limit, UncertaintyResult
 
-__all__ = ["uncertainty_markdown", "uncertainty_rows", "robustness_markdown", "worst_text",
+__all__ = ["csv_number", "uncertainty_markdown", "uncertainty_rows", "robustness_markdown", "worst_text",
            "fmt", "REFERENCE_NOTE"]
 
 REFERENCE_NOTE = (
@@ -27,6 +27,14 @@ def fmt(value, digits: int = 4) -> str:
     if math.isinf(value):
         return "inf" if value > 0 else "-inf"
     return f"{value:.{digits}g}"
+
+
+def csv_number(value, digits: int = 6) -> str:
+    """A number for a CSV cell that pandas reads as a float: ``3.14159``, ``inf``, empty for
+    missing (NaN)."""
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return ""
+    return fmt(value, digits)
 
 
 def _cell(limit: Limit) -> str:

@@ -138,16 +138,23 @@ class RobustnessResult:
         return out
 
     def csv_rows(self) -> tuple[list[str], list[list]]:
-        """Header and one row per subset (gains, weights, every figure of both controllers)."""
+        """Header and one row per subset, tidy (every cell one value; pandas reads it with
+        its defaults): the subset's label, ``in_<der>`` (1 if the DER is in it, else 0) and
+        ``w_<der>`` (its adaptive weight, empty if it is not in it) per DER, the gains
+        (1/W, 1/(W s)), every figure of both controllers (empty: none)."""
         keys = [m.key for m in METRICS] + list(EXTRA_KEYS)
-        header = (["subset", "n_ders", "feasible", "kp_per_w", "ki_per_w_s", "weights"]
+        ders = list(dict.fromkeys(d for s in self.subsets for d in s))
+        header = (["subset", "n_ders", "feasible", "kp_per_w", "ki_per_w_s"]
+                  + [f"in_{d}" for d in ders] + [f"w_{d}" for d in ders]
                   + [f"{c}_{k}" for c in self.controllers for k in keys])
         rows = []
         ab = self.adaptive_batch
         for i, s in enumerate(self.subsets):
-            weights = ";".join(f"{d}:{w:.4g}" for d, w in self.weights[i].items())
-            row = [subset_name(s), len(s), bool(self.feasible[i]), f"{ab.kp[i]:.6g}",
-                   f"{ab.ki[i]:.6g}", weights]
+            weights = self.weights[i]
+            row = [subset_name(s), len(s), bool(self.feasible[i]), _cell(ab.kp[i]),
+                   _cell(ab.ki[i])]
+            row += [int(d in s) for d in ders]
+            row += [_cell(weights[d]) if d in s and d in weights else "" for d in ders]
             for ctrl in self.controllers:
                 row += [_cell(getattr(self, ctrl)[k][i]) for k in keys]
             rows.append(row)

@@ -210,9 +210,9 @@ def _solution_space(config, table, ids, grid: int, out: Path, console: Console, 
     for i, ki in enumerate(space.ki):
         for j, kp in enumerate(space.kp):
             rows.append([f"{kp:.6g}", f"{ki:.6g}", space.reason[i, j] or "feasible",
-                         report.fmt(space.disk_margin[i, j], 6),
-                         report.fmt(space.overshoot_pct[i, j], 6),
-                         report.fmt(space.rise_time_s[i, j], 6)])
+                         report.csv_number(space.disk_margin[i, j]),
+                         report.csv_number(space.overshoot_pct[i, j]),
+                         report.csv_number(space.rise_time_s[i, j])])
     _write_csv(out / f"{stem}.csv", ["kp_per_w", "ki_per_w_s", "class", "disk_margin",
                                       "overshoot_pct", "rise_time_s"], rows)
     best = space.best()

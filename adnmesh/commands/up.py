@@ -9,6 +9,7 @@ summary to stdout.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import hashlib
 import json
 import os
@@ -81,6 +82,15 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                           "TLS, access control) and exit")
     security.add_argument("--startup-timeout", type=float, default=60.0, metavar="S",
                           help="how long to wait for every agent to be ready (default 60 s)")
+    view = parser.add_argument_group("live view")
+    view.add_argument("--view", nargs="?", const="native", metavar="web|FILE.rrd",
+                      help="stream the run's series, events and layout (those of 'adnmesh "
+                      "replay') to Rerun while it goes: alone, the native viewer; 'web', the "
+                      "web viewer (its URL is printed); FILE.rrd, a file (no viewer, headless). "
+                      "Viewers bind 127.0.0.1 and stay open after the run. Put it after CONFIG")
+    view.add_argument("--progress", action="store_true",
+                      help="show the progress bar (sim time, speed factor) and the events as "
+                      "they happen even when stderr is not a terminal")
     parser.add_argument("--stall-timeout", type=float, default=60.0, metavar="S",
                         help="sim clock: stop the run when it made no progress for S wall "
                         "seconds (default 60; 0: never)")
@@ -189,6 +199,10 @@ def _check_arguments(args: argparse.Namespace) -> None:
                          f"{args.startup_timeout:g}")
     if not 0 <= args.stall_timeout <= 86400:
         raise UsageError(f"--stall-timeout must be in [0, 86400] s, got {args.stall_timeout:g}")
+    if args.view is not None:
+        from adnmesh.runtime.liveview import parse_view
+
+        parse_view(args.view)
     if args.routers and not (args.secure or args.certs):
         raise UsageError("--routers is for the secure profile (--secure); in the open profile "
                          "any router may link")
@@ -250,12 +264,37 @@ def run(args: argparse.Namespace) -> int:
         metadata={"run_id": run_id, "table_sha256":
                   hashlib.sha256(table_path.read_bytes()).hexdigest()},
     )
-    result = launch(options)
+    result = _launch_with_view(args, options, launch, err, log)
     for problem in result.problems:
         log(problem)
     log(f"recording: {out} ({sum(result.recorded.values())} messages)")
     _print_summary(args, config, run_id, result)
     return result.exit_code
+
+
+def _launch_with_view(args, options, launch, err: Console, log):
+    """Run ``launch(options)`` with the live view and the progress bar asked for."""
+    from adnmesh.runtime.liveview import open_view, parse_view
+    from adnmesh.runtime.progress import RunProgress
+    from adnmesh.wire.units import ns
+
+    target = parse_view(args.view)
+    bar = RunProgress(err, ns(options.config.scenario.duration_s)) \
+        if args.progress or err.is_terminal else None
+    on_events = bar.events if bar is not None else None
+    view = None
+    if target is not None or bar is not None:     # without a target: the bar's events only
+        view = open_view(target, options.run_id, log, on_events=on_events)
+    options.view = view
+    options.progress = bar.update if bar is not None else None
+    try:
+        with bar if bar is not None else contextlib.nullcontext():
+            return launch(options)
+    finally:
+        if view is not None:
+            view.close()
+            if view.error:
+                log(view.error)
 
 
 def _print_zenoh_config(args: argparse.Namespace, config: Config, certs, routers) -> int:

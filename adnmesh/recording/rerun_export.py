@@ -23,20 +23,24 @@ from pathlib import Path
 import numpy as np
 
 from adnmesh.recording.reader import Recording
-from adnmesh.recording.series import RunData, Series, extract
+from adnmesh.recording.series import Event, RunData, Series, extract
 from adnmesh.recording.stream import ScannedRecording
 
 __all__ = [
     "APPLICATION_ID",
     "DELIVERY_TIMELINE",
     "SIM_TIMELINE",
-    "blueprint",
     "HOLD_PERIOD_NS",
+    "blueprint",
+    "events_path",
     "export_rrd",
     "held",
     "log_run",
+    "log_style",
     "rerun_entity_path",
     "rerun_executable",
+    "send_events",
+    "send_series",
     "viewer_command",
 ]
 
@@ -79,7 +83,7 @@ def blueprint(run: RunData):
     whole = rrb.VisibleTimeRange(SIM_TIMELINE, start=rrb.TimeRangeBoundary.infinite(),
                                  end=rrb.TimeRangeBoundary.infinite())    # the whole run
 
-    events = sorted({rerun_entity_path(f"/{e.topic}/events") for e in run.events})
+    events = sorted({events_path(e) for e in run.events})
     return rrb.Blueprint(
         rrb.Vertical(
             plot("P_IP and P_ref [W]", "p_ref", "p_ip"),
@@ -123,13 +127,21 @@ def held(series: Series, end_ns: int | None, period_ns: int = HOLD_PERIOD_NS) ->
         values=np.concatenate([series.values, series.values[at]])[order])
 
 
-def _log_series(rec, series: Series, t0_ns: int) -> None:
+def log_style(rec, series: Series) -> None:
+    """Log the static style of ``series`` (its name; step interpolation for a step series)."""
+    import rerun as rr
+
+    rec.log(rerun_entity_path(series.entity_path),
+            rr.SeriesLines(names=series.name, colors=series.color,
+                           interpolation_mode="StepAfter" if series.step else "Linear"),
+            static=True)
+
+
+def send_series(rec, series: Series, t0_ns: int) -> None:
+    """Send the samples of ``series`` on both timelines (columnar, in slices)."""
     import rerun as rr
 
     path = rerun_entity_path(series.entity_path)
-    rec.log(path, rr.SeriesLines(names=series.name, colors=series.color,
-                                 interpolation_mode="StepAfter" if series.step else "Linear"),
-            static=True)
     for at in range(0, series.t_ns.size, _SEND_ROWS):   # in slices: Rerun's memory is per row
         rows = slice(at, at + _SEND_ROWS)
         rec.send_columns(
@@ -140,6 +152,27 @@ def _log_series(rec, series: Series, t0_ns: int) -> None:
             columns=rr.Scalars.columns(scalars=series.values[rows]))
 
 
+def events_path(event: Event) -> str:
+    """The Rerun entity of the event log of ``event``'s key."""
+    return rerun_entity_path(f"/{event.topic}/events")
+
+
+def send_events(rec, events: list[Event], t0_ns: int) -> None:
+    """Send ``events`` as ``TextLog`` entries, one entity per key."""
+    import rerun as rr
+
+    by_path: dict[str, list] = {}
+    for event in events:
+        by_path.setdefault(events_path(event), []).append(event)
+    for path, found in by_path.items():
+        rec.send_columns(
+            path,
+            indexes=[rr.TimeColumn(SIM_TIMELINE,
+                                   duration=_durations([e.t_ns for e in found], t0_ns))],
+            columns=rr.TextLog.columns(text=[e.text for e in found],
+                                       level=[_LEVELS.get(e.level, "INFO") for e in found]))
+
+
 _SEND_ROWS = 8192
 
 
@@ -148,24 +181,14 @@ def log_run(rec, run: RunData, *, release: bool = False) -> None:
 
     With ``release``, each series is removed from ``run.series`` once it is sent (memory).
     """
-    import rerun as rr
-
     end_ns = run.end_ns()
     for path in list(run.series):
         series = run.series.pop(path) if release else run.series[path]
-        _log_series(rec, held(series, end_ns), run.t0_ns)
+        log_style(rec, series)
+        send_series(rec, held(series, end_ns), run.t0_ns)
         rec.flush()     # encoded and written: its Arrow copies are let go (memory)
         del series
-    by_path: dict[str, list] = {}
-    for event in run.events:
-        by_path.setdefault(rerun_entity_path(f"/{event.topic}/events"), []).append(event)
-    for path, events in by_path.items():
-        rec.send_columns(
-            path,
-            indexes=[rr.TimeColumn(SIM_TIMELINE,
-                                   duration=_durations([e.t_ns for e in events], run.t0_ns))],
-            columns=rr.TextLog.columns(text=[e.text for e in events],
-                                       level=[_LEVELS.get(e.level, "INFO") for e in events]))
+    send_events(rec, run.events, run.t0_ns)
 
 
 def export_rrd(recording: Recording | ScannedRecording, out_path: str | Path, *,

@@ -39,6 +39,7 @@ __all__ = [
     "Event",
     "EventRule",
     "Field",
+    "LiveCollector",
     "QUIET_KEYS",
     "RunData",
     "RunFile",
@@ -813,6 +814,47 @@ def read_run(path: str | Path, *, also: Callable[[], object] | None = None,
         feed_recording(recording, sink_for)
         scanned = scan(path, lambda info: None)
     return RunFile(scanned, collector.result(_t0(scanned))), other
+
+
+class LiveCollector(_Collector):
+    """The series and events of messages as they come (``adnmesh up --view``), by the rules of
+    :func:`extract`, handed out in pieces: :meth:`drain` returns what came since the last call.
+
+    Not thread-safe: one thread feeds and drains.
+    """
+
+    def __init__(self, series_rules: Mapping[str, Iterable[Field]] = SERIES,
+                 event_rules: Mapping[str, EventRule] = EVENTS) -> None:
+        super().__init__(series_rules, event_rules)
+        self._sinks: dict[str, Sink | None] = {}
+        self._ordinal = 0
+
+    def feed(self, topic: str, schema_name: str, records: list[tuple[bytes, int, int]]) -> None:
+        """Take messages of one topic: ``(payload, log_time_ns, publish_time_ns)`` each, as
+        the recorder writes them. Messages older than the topic's last are dropped."""
+        if topic not in self._sinks:
+            self._sinks[topic] = self.sink_for(ChannelInfo(topic, "json", schema_name))
+        sink = self._sinks[topic]
+        if sink is None or not records:
+            return
+        payloads, log_ns, publish_ns = zip(*records)
+        publish = np.asarray(publish_ns, dtype=np.int64)
+        ordinal = np.arange(self._ordinal, self._ordinal + publish.size, dtype=np.int64)
+        self._ordinal += publish.size
+        batch = MessageBatch(publish, np.asarray(log_ns, dtype=np.int64), ordinal, payloads)
+        if sink.last_t_ns is not None:
+            keep = np.flatnonzero(publish >= sink.last_t_ns)
+            if keep.size < publish.size:
+                batch = batch.select(keep)
+        if len(batch):
+            sink(batch)
+
+    def drain(self, t0_ns: int = 0) -> RunData:
+        """The series samples and events found since the last call (series: only those with
+        new samples; events: in time order)."""
+        run = self.result(t0_ns)
+        self.events, self.availability, self.first = [], [], {}
+        return run
 
 
 _COUNT = Field("available_count", "DERs available", "available_count", unit="1", step=True)

@@ -120,6 +120,10 @@ class UpOptions:
         Agent ids started elsewhere (``adnmesh agent``); ``up`` waits for them.
     routers : tuple of str
         Names of the site routers (``adnmesh router --name``) that may link to this one.
+    view : adnmesh.recording.live.LiveView, optional
+        Gets every recorded message (``--view``); the caller starts and closes it.
+    progress : callable, optional
+        Called with the sim time reached, ns, about every 0.1 s wall while the clock runs.
     stall_timeout_s : float
         Sim clock: stop the run when no grant was issued for this long, wall s (0: never).
         Nothing legitimate stalls the clock for long (a restarted process rejoins in seconds);
@@ -150,6 +154,8 @@ class UpOptions:
     routers: tuple = ()
     stall_timeout_s: float = 60.0
     rt_priority: str = "off"
+    view: object | None = None
+    progress: Callable[[int], None] | None = None
 
 
 @dataclass
@@ -226,7 +232,8 @@ class _Launch:
                                  schemas=recording_schemas(), events_topic=f"{self.keys.root}/log")
         self.clock: SimClockDriver | None = None
         self.tap = RecorderTap(self.recorder, self.topology, self.result.series,
-                               lambda: self.clock.now_ns() if self.clock else 0)
+                               lambda: self.clock.now_ns() if self.clock else 0,
+                               view=options.view)
         self.outbox: LauncherOutbox | None = None
         self.injector = FaultInjector(self)
         self.epoch_ns = 0
@@ -506,6 +513,9 @@ def run_clock(launch: _Launch) -> str:
             time.time_ns() >= end_wall_ns
         reason = "finished" if done else launch.failure()
         if reason is None:
+            if options.progress is not None:
+                options.progress(launch.clock.now_ns() if launch.clock is not None else
+                                 min(result.end_ns, launch.injector.realtime_ns()))
             launch.injector.supervise()
             for agent in sorted(launch.roster.byes):   # gone before up said stop
                 launch.injector.left_early(agent)

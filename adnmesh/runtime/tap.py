@@ -74,11 +74,14 @@ class RecorderTap:
         Fed with what the summary needs.
     now_ns : callable
         The run's current time, ns, for rejected payloads that carry no usable times.
+    view : adnmesh.recording.live.LiveView, optional
+        Also gets every message recorded (``up --view``: queued, sent to Rerun elsewhere).
     """
 
     def __init__(self, recorder, topology: Topology, series: RunSeries,
-                 now_ns: Callable[[], int]) -> None:
+                 now_ns: Callable[[], int], view=None) -> None:
         self.recorder = recorder
+        self.view = view
         self.series = series
         self._now_ns = now_ns
         keys = topology.keys
@@ -175,4 +178,6 @@ class RecorderTap:
                 self.problems.append(f"recording failed: {exc}")
             self.record_errors += len(records)
             return False
+        if self.view is not None:
+            self.view.take(key, type_name, records)
         return True

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import math
 import os
 import time
 from contextlib import contextmanager
@@ -353,17 +354,33 @@ def paper_path(config, der_ids: Sequence[str]) -> list[tuple[float, float, bool]
     return [(kp / total, ki / total, ok) for kp, ki, ok in res.paths[0]]
 
 
+def _number(value) -> object:
+    """A CSV cell of a number: as it is, empty for None or NaN (booleans as they are)."""
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return ""
+    return value
+
+
 def write_csv(table: SchedulingTable, path: Path) -> None:
-    """One row per entry: ders, gains, weights, feasibility and the figures."""
+    """One row per entry, tidy (every cell one value; pandas reads it with its defaults): the
+    subset's label (``+``-joined), ``in_<der>`` (1 if the DER is in the subset, else 0) and
+    ``w_<der>`` (its weight, empty if it is not) per DER of the table, the gains (1/W,
+    1/(W s)), feasibility, the reason (text) and the figures (empty: none)."""
     path = Path(path)
     keys = list(FIGURE_KEYS) + ["settling_time_2pct_s", "design_rise_time_s",
                                 "global_rise_time_s", "tuned_by"]
+    ders = list(table.der_ids)
     tmp = path.with_suffix(path.suffix + ".tmp")
     with open(tmp, "w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(["ders", "kp_per_w", "ki_per_w_s", "weights", "feasible", "reason"] + keys)
+        w.writerow(["subset", "kp_per_w", "ki_per_w_s"] + [f"in_{d}" for d in ders]
+                   + [f"w_{d}" for d in ders] + ["feasible", "reason"] + keys)
         for e in table.to_json()["entries"]:
-            w.writerow([" ".join(e["ders"]), e["kp"], e["ki"],
-                        " ".join(f"{k}={v:g}" for k, v in e["w"].items() if v != 1.0),
-                        e["feasible"], e["reason"] or ""] + [e.get(k) for k in keys])
+            members = set(e["ders"])
+            w.writerow(["+".join(e["ders"]), _number(e["kp"]), _number(e["ki"])]
+                       + [int(d in members) for d in ders]
+                       + [_number(e["w"].get(d)) if d in members else "" for d in ders]
+                       + [e["feasible"], e["reason"] or ""]
+                       + [_number(e.get(k)) if k != "tuned_by" else e.get(k) or ""
+                          for k in keys])
     os.replace(tmp, path)

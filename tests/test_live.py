@@ -1,0 +1,194 @@
+"""Tests of the live view (``adnmesh up --view``): the series and events streamed to Rerun while
+a run goes equal those ``adnmesh replay`` writes afterwards; the viewer binds 127.0.0.1; the
+progress bar's lines."""
+
+from __future__ import annotations
+
+import bisect
+import io
+import os
+import signal
+import threading
+import time
+from collections import deque
+from pathlib import Path
+
+import pyarrow as pa
+import pytest
+from rich.console import Console
+
+from adnmesh.errors import UsageError
+from adnmesh.recording import read_recording
+from adnmesh.recording.live import LiveView
+from adnmesh.recording.rerun_export import (APPLICATION_ID, DELIVERY_TIMELINE, SIM_TIMELINE,
+                                            export_rrd)
+from adnmesh.recording.series import Event, extract
+from adnmesh.runtime.liveview import ViewTarget, open_view, parse_view, viewer_argv
+from adnmesh.runtime.progress import RunProgress, event_line, speed_factor
+from synthetic_runs import write_fake_run
+
+
+def read_rrd(path: Path) -> dict[str, dict[str, list]]:
+    """Entity path -> column -> values of the data recording in ``path``."""
+    from rerun.chunk import RrdReader
+
+    columns: dict[str, dict[str, list]] = {}
+    for chunk in RrdReader(path).stream():
+        batch = chunk.to_record_batch()
+        entity = columns.setdefault(chunk.entity_path, {})
+        for name in batch.schema.names:
+            column = batch.column(name)
+            if pa.types.is_duration(column.type):
+                column = column.cast(pa.int64())
+            entity.setdefault(name, []).extend(column.to_pylist())
+    return columns
+
+
+def samples(entity: dict[str, list]) -> list[tuple[int, int, float]]:
+    """(sim time, delivery time, value) of a series entity, sorted."""
+    return sorted(zip(entity[SIM_TIMELINE], entity[DELIVERY_TIMELINE],
+                      (v[0] for v in entity["Scalars:scalars"])))
+
+
+def texts(entity: dict[str, list]) -> list[tuple[int, str]]:
+    return sorted(zip(entity[SIM_TIMELINE], entity["TextLog:text"]))
+
+
+def compare_with_replay(live_rrd: Path, replay_rrd: Path, run) -> None:
+    """Every series and event log of the replay is in the live file: dense series sample for
+    sample; step series with every real sample, held values equal to the value held."""
+    from adnmesh.recording.rerun_export import rerun_entity_path
+
+    live, replay = read_rrd(live_rrd), read_rrd(replay_rrd)
+    real = {rerun_entity_path(s.entity_path): set(s.t_ns.tolist())
+            for s in run.series.values() if s.step}
+    compared = 0
+    for path, entity in replay.items():
+        if "Scalars:scalars" in entity:
+            got, want = samples(live[path]), samples(entity)
+            if path in real:     # the real samples, and held values equal to the value held
+                assert [v for v in got if v[0] in real[path]] == \
+                    [v for v in want if v[0] in real[path]], path
+                times = [s for s, _, _ in want]
+                for t, _, value in got:
+                    assert value == want[bisect.bisect_right(times, t) - 1][2], path
+            else:
+                assert got == want, path
+            compared += 1
+        elif "TextLog:text" in entity:
+            assert texts(live[path]) == texts(entity), path
+            compared += 1
+    assert compared >= 10
+
+
+@pytest.fixture(scope="module")
+def fake(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("live") / "fake.mcap"
+    write_fake_run(path, duration_s=30.0)
+    return path
+
+
+def test_the_live_view_of_a_run_fed_in_pieces_equals_its_replay(fake, tmp_path) -> None:
+    """The fake run's messages, fed as the recorder writes them (in delivery order, a piece
+    per sim second, sent after each), give the series and events of ``replay``."""
+    import rerun as rr
+
+    recording = read_recording(fake)
+    rec = rr.RecordingStream(APPLICATION_ID, recording_id="fake")
+    rec.save(tmp_path / "live.rrd")
+    events: list[Event] = []
+    view = LiveView(rec, on_events=events.extend)
+    messages = sorted(recording.messages, key=lambda m: m.log_time_ns)
+    second = 1
+    for m in messages:
+        if m.log_time_ns >= second * 1_000_000_000:
+            view.send_pending()
+            second += 1
+        view.take(m.topic, m.schema_name, [(bytes(m.data), m.log_time_ns, m.publish_time_ns)])
+    view.close()
+    assert view.error is None and view.sends > 20
+    run = extract(recording)
+    export_rrd(recording, tmp_path / "replay.rrd")
+    compare_with_replay(tmp_path / "live.rrd", tmp_path / "replay.rrd", run)
+    assert sorted((e.t_ns, e.text) for e in events) == sorted((e.t_ns, e.text) for e in run.events)
+
+
+def test_view_targets() -> None:
+    assert parse_view(None) is None
+    assert parse_view("native") == ViewTarget("native")
+    assert parse_view("web") == ViewTarget("web")
+    assert parse_view("out/run.rrd") == ViewTarget("file", Path("out/run.rrd"))
+    with pytest.raises(UsageError, match="--view"):
+        parse_view("browser")
+    argv = viewer_argv(True, 1234, 5678)
+    assert argv[argv.index("--bind") + 1] == "127.0.0.1"
+    assert argv[argv.index("--port") + 1] == "1234"
+    assert argv[argv.index("--web-viewer-port") + 1] == "5678" and "--serve-web" in argv
+
+
+def _listening(pid: int) -> set[str]:
+    """Local addresses (ip:port) of the TCP sockets ``pid`` listens on (from /proc)."""
+    inodes = set()
+    for fd in os.listdir(f"/proc/{pid}/fd"):
+        target = os.readlink(f"/proc/{pid}/fd/{fd}")
+        if target.startswith("socket:["):
+            inodes.add(target[8:-1])
+    found = set()
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        for line in Path(table).read_text().splitlines()[1:]:
+            parts = line.split()
+            if parts[3] == "0A" and parts[9] in inodes:          # LISTEN
+                address, port = parts[1].split(":")
+                ip = ".".join(str(int(address[i:i + 2], 16)) for i in (6, 4, 2, 0)) \
+                    if len(address) == 8 else address
+                found.add(f"{ip}:{int(port, 16)}")
+    return found
+
+
+def test_the_web_viewer_listens_on_127_0_0_1_only(tmp_path) -> None:
+    lines: list[str] = []
+    view = open_view(ViewTarget("web"), "test", lines.append)
+    try:
+        pid = view.viewer_pid
+        url = next(line for line in lines if "web viewer at http://127.0.0.1:" in line)
+        web_port = int(url.split("http://127.0.0.1:")[1].split("/")[0])
+        found: set[str] = set()
+        deadline = time.monotonic() + 30
+        while len(found) < 2 and time.monotonic() < deadline:   # poll the process's sockets
+            found = _listening(pid)
+            threading.Event().wait(0.05)
+        assert view.error is None
+        assert f"127.0.0.1:{web_port}" in found
+        assert found and all(a.startswith("127.0.0.1:") for a in found), found
+    finally:
+        view.close()
+        os.kill(view.viewer_pid, signal.SIGTERM)
+        os.waitpid(view.viewer_pid, 0)
+
+
+def test_a_native_viewer_without_a_display_is_said_in_one_line(monkeypatch) -> None:
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    lines: list[str] = []
+    assert open_view(ViewTarget("native"), "test", lines.append) is None
+    assert len(lines) == 1 and "no display" in lines[0] and "--view web" in lines[0]
+
+
+def test_progress_prints_the_events_above_the_bar() -> None:
+    out = io.StringIO()
+    console = Console(file=out, force_terminal=False, width=120)
+    switch = Event(12_000_000_000, "gain_switch", "INFO", "gain switch to entry 1", "k")
+    quiet = Event(1, "der_mode", "INFO", "SGen1: mode schedule -> control", "k")
+    overrun = Event(2, "event", "WARN", "cpfc: overrun", "k", {"kind": "overrun"})
+    with RunProgress(console, 60_000_000_000) as bar:
+        bar.update(30_000_000_000)
+        bar.events([switch, overrun])
+    text = out.getvalue()
+    assert "t =    12.000 s  gain switch to entry 1" in text
+    assert "overrun" not in text
+    assert event_line(quiet) is not None and event_line(overrun) is None
+
+
+def test_speed_factor() -> None:
+    assert speed_factor(deque([(0.0, 0)])) is None
+    assert speed_factor(deque([(10.0, 0), (12.0, 30_000_000_000)])) == 15.0
