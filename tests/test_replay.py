@@ -283,3 +283,18 @@ def test_the_series_table_understands_the_runtimes_messages(tmp_path: Path) -> N
         "DERs available", "SGen1 available", "SGen2 available"}
     assert [e.kind for e in run.events] == ["gain_switch", "availability", "fault"]
     assert run.events[0].text.startswith("gain switch to entry 1: K_P 1e-07 -> 3e-07 1/W")
+
+
+def test_the_time_plot_has_the_gains_on_their_own_panel_with_units(fake) -> None:
+    from adnmesh.recording.plot import plot_run
+    from adnmesh.recording.series import read_run
+
+    fig = plot_run(read_run(fake)[0].run, title="fake run")
+    panels = [ax for ax in fig.axes if ax.get_ylabel()]
+    gains = [ax for ax in panels if ax.get_ylabel().startswith("K_P, K_I")]
+    assert len(gains) == 1 and gains[0].get_yscale() == "log"
+    labels = {line.get_label() for line in gains[0].get_lines()}
+    assert {"K_P [1/W]", "K_I [1/(W s)]"} <= labels
+    assert not any(line.get_label().startswith("K_") for ax in panels if ax is not gains[0]
+                   for line in ax.get_lines())
+    assert fig.get_suptitle().startswith(f"fake run: {len(FAKE_DERS)} DERs, sim time 0–")

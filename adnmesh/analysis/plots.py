@@ -11,6 +11,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.colors import BoundaryNorm, ListedColormap, LogNorm
 from matplotlib.figure import Figure
 from matplotlib.patches import Patch
+from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
 from .robustness import METRICS, RobustnessResult
 from .solution_space import REASONS, SolutionSpace
@@ -22,6 +23,18 @@ COLOURS = {"adaptive": "#1f77b4", "static": "#ff7f0e"}
 _LOG_METRICS = {"rise_time_s", "settling_time_s", "gain_margin", "delay_margin_s"}
 
 
+def _plain_log_ticks(ax) -> None:
+    """Log y axis with plain numbers (0.5, 2, 30, not 5×10⁻¹): 1-2-5 ticks, no minor labels."""
+    ax.yaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+    ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+    ax.yaxis.set_minor_formatter(NullFormatter())
+
+
+def _covers(n_subsets: int, covers: str) -> str:
+    """``"<n> subsets"`` plus what they come from (config, table), for a figure's title."""
+    return f"{n_subsets} subsets" + (f" of {covers}" if covers else "")
+
+
 def _save(fig: Figure, path) -> Path:
     path = Path(path)
     FigureCanvasAgg(fig)
@@ -29,8 +42,10 @@ def _save(fig: Figure, path) -> Path:
     return path
 
 
-def plot_robustness(result: RobustnessResult, path, outliers: bool = False) -> Path:
-    """Box plots of every metric, adaptive and static side by side."""
+def plot_robustness(result: RobustnessResult, path, outliers: bool = False,
+                    covers: str = "") -> Path:
+    """Box plots of every metric, adaptive and static side by side; ``covers`` names where the
+    subsets come from (e.g. ``"simbench.yaml, paper table"``) for the title."""
     fig = Figure(figsize=(15, 7.5), layout="constrained")
     axes = fig.subplots(2, 4).ravel()
     for ax, metric in zip(axes, METRICS):
@@ -57,6 +72,9 @@ def plot_robustness(result: RobustnessResult, path, outliers: bool = False) -> P
         ax.set_title(label, fontsize=10)
         if metric.key in _LOG_METRICS and all(d.size and np.all(d > 0) for d in data):
             ax.set_yscale("log")
+            _plain_log_ticks(ax)
+        else:
+            ax.ticklabel_format(axis="y", useOffset=False, style="plain")
         ax.grid(True, axis="y", alpha=0.3)
         if notes:
             ax.text(0.02, 0.98, "\n".join(notes), transform=ax.transAxes, va="top",
@@ -75,12 +93,16 @@ def plot_robustness(result: RobustnessResult, path, outliers: bool = False) -> P
     info.text(0.0, 0.95, "\n".join(lines), va="top", fontsize=9)
     info.legend(handles=[Patch(color=COLOURS[c], alpha=0.75, label=c) for c in ctrls],
                 loc="lower left")
-    fig.suptitle("Robustness and performance over all subsets")
+    ctrl_text = " and ".join(("adaptive (table gains)" if c == "adaptive" else
+                              "static (one pair)") for c in ctrls)
+    fig.suptitle(f"Robustness and performance over {_covers(len(result.subsets), covers)}: "
+                 f"{ctrl_text}")
     return _save(fig, path)
 
 
-def plot_uncertainty(results: list[UncertaintyResult], path) -> Path:
-    """Ranges of b without failure per model and quantity, one panel per controller."""
+def plot_uncertainty(results: list[UncertaintyResult], path, covers: str = "") -> Path:
+    """Ranges of b without failure per model and quantity, one panel per controller
+    (``covers``: where the subsets come from, for the title)."""
     fig = Figure(figsize=(6.5 * len(results), 5.5), layout="constrained")
     axes = np.atleast_1d(fig.subplots(1, len(results), sharex=True, sharey=True))
     lo_edge, hi_edge = B_RANGE
@@ -109,6 +131,7 @@ def plot_uncertainty(results: list[UncertaintyResult], path) -> Path:
         ax.axvline(1.0, color="0.3", ls="--", lw=1)
         ax.set_xscale("log")
         ax.set_xlim(lo_edge / 3, hi_edge * 3)
+        ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
         ax.set_yticks(pos, labels, fontsize=8)
         ax.set_xlabel("b  (T_unc = b · T)")
         n = len(res.names) - len(res.excluded) - len(res.without_gains)
@@ -116,7 +139,8 @@ def plot_uncertainty(results: list[UncertaintyResult], path) -> Path:
                      fontsize=10)
         ax.grid(True, axis="x", which="both", alpha=0.25)
     axes[0].invert_yaxis()              # shared: first model on top in every panel
-    fig.suptitle("Model uncertainty: stability and doubling limits "
+    where = f" of {covers}" if covers else ""
+    fig.suptitle(f"Model uncertainty{where}: stability and doubling limits per controller "
                  "(reference: nominal PT1 of each subset)", fontsize=10)
     return _save(fig, path)
 
@@ -125,8 +149,10 @@ _REASON_COLOURS = {"unstable": "#7f7f7f", "disk margin": "#f4a582", "overshoot":
                    "": "#4dac26"}
 
 
-def plot_solution_space(space: SolutionSpace, path) -> Path:
-    """Feasibility classes and rise time over the (K_P, K_I) plane, search path on top."""
+def plot_solution_space(space: SolutionSpace, path, covers: str = "") -> Path:
+    """Feasibility classes and rise time over the (K_P, K_I) plane, search path on top
+    (``covers``: the config and table, for the title). Markers that can coincide (table entry,
+    path result, grid optimum) differ in shape, colour and fill, the larger drawn first."""
     fig = Figure(figsize=(13, 5.5), layout="constrained")
     ax_f, ax_r = fig.subplots(1, 2, sharex=True, sharey=True)
     codes = np.zeros(space.reason.shape, int)
@@ -158,7 +184,7 @@ def plot_solution_space(space: SolutionSpace, path) -> Path:
         ax.set_yscale("log")
         ax.set_xlabel("K_P [1/W]")
         if space.table_point is not None:
-            ax.plot(*space.table_point, "*", ms=15, color="gold", mec="black",
+            ax.plot(*space.table_point, "*", ms=18, color="gold", mec="black", zorder=5,
                     label="table entry")
         if space.path:
             p = np.array([(k, i) for k, i, _ in space.path])
@@ -166,18 +192,19 @@ def plot_solution_space(space: SolutionSpace, path) -> Path:
             ax.plot(p[:, 0], p[:, 1], "-", color="black", lw=0.8, label="paper search path")
             ax.plot(p[ok, 0], p[ok, 1], "o", ms=2.5, color="white", mec="black", mew=0.5)
             ax.plot(p[~ok, 0], p[~ok, 1], "x", ms=3, color="black", mew=0.6)
-            ax.plot(*p[0], "s", ms=7, color="black", label="path start")
+            ax.plot(*p[0], "s", ms=7, color="black", zorder=5, label="path start")
             if ok.any():
-                ax.plot(*p[ok][-1], "^", ms=8, color="red", mec="black",
+                ax.plot(*p[ok][-1], "^", ms=8, color="red", mec="black", zorder=6,
                         label="path result (last feasible point)")
         if best is not None:
-            ax.plot(best[0], best[1], "D", ms=6, color="white", mec="black",
-                    label=f"grid optimum ({best[2]:.3g} s)")
+            ax.plot(best[0], best[1], "o", ms=13, mfc="none", mec="magenta", mew=2.0,
+                    zorder=7, label=f"grid optimum ({best[2]:.3g} s)")
     ax_f.set_ylabel("K_I [1/(W s)]")
     handles, labels = ax_r.get_legend_handles_labels()
     if handles:
         ax_r.legend(handles, labels, loc="lower left", fontsize=8)
     note = "" if space.path else "  (no search path: adnmesh.tuning.paper_path unavailable)"
-    fig.suptitle(f"Solution space of {{{space.name}}}: {space.p_inst_w / 1e6:.4g} MW, "
-                 f"weights 1{note}", fontsize=11)
+    where = f" ({covers})" if covers else ""
+    fig.suptitle(f"Solution space of the subset {{{space.name}}}{where}: "
+                 f"{space.p_inst_w / 1e6:.4g} MW, weights 1{note}", fontsize=11)
     return _save(fig, path)

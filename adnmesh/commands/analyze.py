@@ -102,6 +102,14 @@ def default_out_dir(config) -> Path:
     return Path("out") / f"analyze-{Path(config.path).stem}-{stamp}"
 
 
+def _covers(config, table) -> str:
+    """What a figure covers, for its title: the config file and its table."""
+    name = Path(config.path).name
+    if table is None:
+        return f"{name}, no table"
+    return f"{name}, {table.method} table of {len(table.entries)} entries"
+
+
 def _progress(console: Console) -> Progress:
     return Progress(SpinnerColumn(), TextColumn("{task.description:<44}"), BarColumn(),
                     MofNCompleteColumn(), TimeElapsedColumn(), console=console)
@@ -121,7 +129,8 @@ def _robustness(config, table, out: Path, outliers: bool, console: Console, err:
         result = analyze_robustness(config, table, progress=lambda k: bar.advance(task, k))
     header, rows = result.csv_rows()
     _write_csv(out / "robustness.csv", header, rows)
-    plots.plot_robustness(result, out / "robustness.png", outliers=outliers)
+    plots.plot_robustness(result, out / "robustness.png", outliers=outliers,
+                          covers=_covers(config, table))
     md = report.robustness_markdown(result)
     (out / "robustness.md").write_text(md)
     t = Table(title=f"Robustness and performance over {len(result.subsets)} subsets "
@@ -180,7 +189,7 @@ def _uncertainty(config, table, rob, models, out: Path, console: Console, err: C
            "settling_band_pct": band, "note": report.REFERENCE_NOTE.format(band=band),
            "controllers": {r.controller: r.to_json() for r in results}}
     (out / "uncertainty.json").write_text(json.dumps(doc, indent=1, allow_nan=False))
-    plots.plot_uncertainty(results, out / "uncertainty.png")
+    plots.plot_uncertainty(results, out / "uncertainty.png", covers=_covers(config, table))
     for res in results:
         header, values, who = report.uncertainty_rows(res)
         t = Table(title=f"Model uncertainty, {res.controller} controller: limits in b "
@@ -205,7 +214,7 @@ def _solution_space(config, table, ids, grid: int, out: Path, console: Console, 
         space = solution_space(config, ids, n=grid, path=path, table_point=point,
                                progress=lambda k: bar.advance(task, k))
     stem = "solution-space-" + "+".join(ids)
-    plots.plot_solution_space(space, out / f"{stem}.png")
+    plots.plot_solution_space(space, out / f"{stem}.png", covers=_covers(config, table))
     rows = []
     for i, ki in enumerate(space.ki):
         for j, kp in enumerate(space.kp):

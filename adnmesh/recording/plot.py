@@ -3,9 +3,10 @@
 Top panel: P_ref (dashed steps) and the measured P_IP in MW over sim time; every time span in
 which the set of available DERs differs from the first one is shaded grey and labelled with the
 number available, faults are shaded
-red (an instant fault is a red line). Bottom panel: the controller output P_Y (left axis) and
-the active gains K_P, K_I (right axis, log scale, steps); gain switches are dotted vertical lines
-in both panels. With a grid model (``measurement/grid`` records) a third panel: the lowest and
+red (an instant fault is a red line). Second panel: the controller output P_Y. Third panel: the
+active gains, K_P in 1/W (left axis) and K_I in 1/(W s) (right axis), both log scale, as steps;
+gain switches are dotted vertical lines in every panel. With a grid model (``measurement/grid``
+records) a fourth panel: the lowest and
 highest bus voltage (p.u., left) and the highest line and transformer loading (%, right) per
 report period, with the band of the config's ``grid_model.limits`` dotted.
 """
@@ -57,10 +58,10 @@ def plot_run(run: RunData, *, title: str | None = None):
     from matplotlib.figure import Figure  # no pyplot: no global state, no display needed
 
     grid = run.one("grid_v_min") is not None
-    fig = Figure(figsize=(10, 8.5 if grid else 6.5), layout="constrained")
-    axes = fig.subplots(3 if grid else 2, 1, sharex=True,
-                        height_ratios=(3, 2, 2) if grid else (3, 2))
-    top, bottom = axes[0], axes[1]
+    fig = Figure(figsize=(10, 10 if grid else 8), layout="constrained")
+    axes = fig.subplots(4 if grid else 3, 1, sharex=True,
+                        height_ratios=(3, 1.6, 1.6, 2) if grid else (3, 1.6, 1.6))
+    top, bottom, gain_ax = axes[0], axes[1], axes[2]
     p_ref, p_ip, p_y = run.one("p_ref"), run.one("p_ip"), run.one("p_y")
     ends = [run.seconds(s.t_ns[-1]) for s in (p_ref, p_ip, p_y) if s is not None and s.t_ns.size]
     t_end = max(ends) if ends else 1.0
@@ -80,32 +81,47 @@ def plot_run(run: RunData, *, title: str | None = None):
     _shade(bottom, run, t_end, labels=False)
     if p_y is not None:
         bottom.plot(run.seconds(p_y.t_ns), p_y.values, color="tab:green", lw=1.2, label="P_Y")
-    bottom.set_ylabel("P_Y [-]")
-    bottom.set_xlabel("sim time [s]")
+    bottom.set_ylabel("controller output P_Y [-]")
     bottom.grid(True, alpha=0.3)
-    gains = bottom.twinx()
-    for role, color, unit in (("kp", "tab:purple", "1/W"), ("ki", "tab:orange", "1/(W s)")):
-        series = run.one(role)
-        if series is not None and series.values.size and np.all(series.values > 0):
-            t = np.append(run.seconds(series.t_ns), t_end)
-            gains.step(t, np.append(series.values, series.values[-1]), where="post",
-                       color=color, lw=1.0, label=f"{series.name} [{unit}]")
-            gains.set_yscale("log")
-    gains.set_ylabel("active gains")
+    _gains_panel(gain_ax, run, t_end)
     for event in (e for e in run.events if e.kind == "gain_switch"):
-        for ax in (top, bottom):
+        for ax in axes:
             ax.axvline(run.seconds(event.t_ns), color="tab:purple", ls=":", lw=1.0)
-    handles = [h for ax in (bottom, gains) for h in ax.get_legend_handles_labels()[0]]
-    labels = [lab for ax in (bottom, gains) for lab in ax.get_legend_handles_labels()[1]]
-    if handles:
-        bottom.legend(handles, labels, loc="lower left", bbox_to_anchor=(0.0, 1.0), ncols=3,
-                      fontsize=8, frameon=False)
+    axes[-1].set_xlabel("sim time [s]")
     if grid:
-        _grid_panel(axes[2], run, t_end)
+        _grid_panel(axes[3], run, t_end)
     top.set_xlim(0 if run.t0_ns == 0 else None, t_end)
     if title:
-        fig.suptitle(title, fontsize=10)
+        n = len(run.der_ids)
+        fig.suptitle(f"{title}: {n} DERs, sim time {run.seconds(run.t0_ns):g}–{t_end:g} s"
+                     if n else title, fontsize=10)
     return fig
+
+
+def _gains_panel(ax, run: RunData, t_end: float) -> None:
+    """The active gains as steps on one log axis: K_P in 1/W, K_I in 1/(W s)."""
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+    _shade(ax, run, t_end, labels=False)
+    ax.grid(True, which="major", alpha=0.3)
+    drawn = False
+    for role, color, unit in (("kp", "tab:purple", "1/W"), ("ki", "tab:orange", "1/(W s)")):
+        series = run.one(role)
+        if series is None or not series.values.size or not np.all(series.values > 0):
+            continue
+        t = np.append(run.seconds(series.t_ns), t_end)
+        name = "K_P" if role == "kp" else "K_I"
+        ax.step(t, np.append(series.values, series.values[-1]), where="post", color=color,
+                lw=1.4, label=f"{name} [{unit}]")
+        drawn = True
+    ax.set_ylabel("K_P, K_I (log scale)")
+    if drawn:
+        ax.set_yscale("log")
+        ax.yaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+        ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:.0e}".replace("e-0", "e-")))
+        ax.yaxis.set_minor_formatter(NullFormatter())
+        ax.legend(loc="lower left", bbox_to_anchor=(0.0, 1.0), ncols=2, fontsize=8,
+                  frameon=False)
 
 
 def _grid_panel(ax, run: RunData, t_end: float) -> None:
@@ -114,7 +130,6 @@ def _grid_panel(ax, run: RunData, t_end: float) -> None:
         series = run.one(role)
         ax.step(run.seconds(series.t_ns), series.values, where="post", lw=1.0, label=label)
     ax.set_ylabel("bus voltage [p.u.]")
-    ax.set_xlabel("sim time [s]")
     ax.grid(True, alpha=0.3)
     loading = ax.twinx()
     for role, style in (("grid_line_loading", "-"), ("grid_trafo_loading", "--")):
