@@ -130,7 +130,10 @@ def _listening(pid: int) -> set[str]:
     """Local addresses (ip:port) of the TCP sockets ``pid`` listens on (from /proc)."""
     inodes = set()
     for fd in os.listdir(f"/proc/{pid}/fd"):
-        target = os.readlink(f"/proc/{pid}/fd/{fd}")
+        try:
+            target = os.readlink(f"/proc/{pid}/fd/{fd}")
+        except FileNotFoundError:     # closed since the listing: not a listening socket
+            continue
         if target.startswith("socket:["):
             inodes.add(target[8:-1])
     found = set()

@@ -27,6 +27,9 @@ from adnmesh.recording.live import VIEW_PERIOD_S, LiveView
 from adnmesh.recording.rerun_export import APPLICATION_ID, rerun_executable
 from adnmesh.runtime.bus import DEFAULT_HOST, free_port
 
+VIEW_NICE = 10
+"""How much lower the view's process runs than the run's own (``os.nice`` increment)."""
+
 __all__ = ["ViewProcess", "ViewTarget", "open_view", "parse_view", "viewer_argv"]
 
 
@@ -155,6 +158,10 @@ class ViewProcess:
 def _serve(conn, sink: tuple, run_id: str, events: bool) -> None:
     """The child process: messages from ``conn`` into a :class:`LiveView`, until None."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)     # up ends it, after the run
+    try:
+        os.nice(VIEW_NICE)   # the view is best effort: the agents and the clock come first
+    except OSError:
+        pass
     rec = None
     if sink[0] != "none":
         import rerun as rr
