@@ -13,7 +13,6 @@ import time
 from collections import deque
 from pathlib import Path
 
-import pyarrow as pa
 import pytest
 from rich.console import Console
 
@@ -25,23 +24,8 @@ from adnmesh.recording.rerun_export import (APPLICATION_ID, DELIVERY_TIMELINE, S
 from adnmesh.recording.series import Event, extract
 from adnmesh.runtime.liveview import ViewTarget, open_view, parse_view, viewer_argv
 from adnmesh.runtime.progress import RunProgress, event_line, speed_factor
+from rrd_columns import rrd_columns
 from synthetic_runs import write_fake_run
-
-
-def read_rrd(path: Path) -> dict[str, dict[str, list]]:
-    """Entity path -> column -> values of the data recording in ``path``."""
-    from rerun.chunk import RrdReader
-
-    columns: dict[str, dict[str, list]] = {}
-    for chunk in RrdReader(path).stream():
-        batch = chunk.to_record_batch()
-        entity = columns.setdefault(chunk.entity_path, {})
-        for name in batch.schema.names:
-            column = batch.column(name)
-            if pa.types.is_duration(column.type):
-                column = column.cast(pa.int64())
-            entity.setdefault(name, []).extend(column.to_pylist())
-    return columns
 
 
 def samples(entity: dict[str, list]) -> list[tuple[int, int, float]]:
@@ -59,7 +43,7 @@ def compare_with_replay(live_rrd: Path, replay_rrd: Path, run) -> None:
     sample; step series with every real sample, held values equal to the value held."""
     from adnmesh.recording.rerun_export import rerun_entity_path
 
-    live, replay = read_rrd(live_rrd), read_rrd(replay_rrd)
+    live, replay = rrd_columns(live_rrd), rrd_columns(replay_rrd)
     real = {rerun_entity_path(s.entity_path): set(s.t_ns.tolist())
             for s in run.series.values() if s.step}
     compared = 0

@@ -5,7 +5,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import pyarrow as pa
 import pytest
 
 from adnmesh.cli import main
@@ -19,6 +18,7 @@ from adnmesh.recording.rerun_export import (
     viewer_command,
 )
 from adnmesh.recording.series import SERIES, extract, match_key
+from rrd_columns import rrd_columns
 from synthetic_runs import FAKE_DERS, write_fake_run
 
 
@@ -38,16 +38,7 @@ def rrd(fake: Path) -> dict[str, dict[str, list]]:
     out = export_rrd(read_recording(fake), fake.with_suffix(".rrd"))
     reader = RrdReader(out)
     assert len(reader.recordings()) == 1 and len(reader.blueprints()) == 1
-    columns: dict[str, dict[str, list]] = {}
-    for chunk in reader.stream():
-        batch = chunk.to_record_batch()
-        entity = columns.setdefault(chunk.entity_path, {})
-        for name in batch.schema.names:
-            column = batch.column(name)
-            if pa.types.is_duration(column.type):
-                column = column.cast(pa.int64())
-            entity.setdefault(name, []).extend(column.to_pylist())
-    return columns
+    return rrd_columns(out, reader)
 
 
 def _mcap_values(recording, topic: str, field: str) -> list[tuple[int, int, float]]:

@@ -24,7 +24,7 @@ from ..table import FIGURE_KEYS, SchedulingTable, TableEntry, load_table, save_t
 from .global_search import tune_global
 from .paper import initial_values, tune_paper
 from .problem import TuningProblem, all_subsets
-from .static import static_controller
+from .static import design_over
 from .weights import find_weights
 
 __all__ = ["tune_table", "tune_subset", "paper_path", "write_csv", "PlantGroup", "METHODS",
@@ -303,12 +303,7 @@ def _static_entry(problem: TuningProblem, ids: list[str],
     set of all: the extremes of the installed power), with its worst-case figures."""
     cases = all_subsets(ids) if subsets is None else (
         list(subsets) + [(d,) for d in ids] + [tuple(ids)])
-    # absolute gains meet each subset through its group powers: one case per distinct vector
-    powers = np.unique(np.array([problem.group_power(s) for s in cases]), axis=0)
-    tot = powers.sum(axis=1)
-    f = powers / tot[:, None]
-    kp0, _ = initial_values(problem, f)
-    res = static_controller(problem, f, tot, kp0)
+    powers, tot, res = design_over(problem, cases)
     if not res.feasible:
         return TableEntry(tuple(ids), float("nan"), float("nan"), {d: 1.0 for d in ids}, False,
                           "no pair is feasible on every subset", {})

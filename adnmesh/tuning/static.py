@@ -28,7 +28,7 @@ import numpy as np
 
 from .problem import T_MAX_S, TuningProblem
 
-__all__ = ["StaticResult", "static_controller", "RATIOS", "AnySizeStatic", "extreme_subsets",
+__all__ = ["StaticResult", "static_controller", "design_over", "RATIOS", "AnySizeStatic", "extreme_subsets",
            "static_any_size"]
 
 #: initial rays K_I / K_P, 1/s
@@ -207,6 +207,18 @@ def extreme_subsets(problem: TuningProblem, ids) -> list[tuple[str, ...]]:
     return list(dict.fromkeys(out))
 
 
+def design_over(problem: TuningProblem, cases) -> tuple[np.ndarray, np.ndarray, StaticResult]:
+    """The static pair over the subsets ``cases``: absolute gains meet each subset through its
+    group powers, so one case per distinct power vector. Returns (powers W, totals W, pair)."""
+    from .paper import initial_values
+
+    powers = np.unique(np.array([problem.group_power(s) for s in cases]), axis=0)
+    tot = powers.sum(axis=1)
+    f = powers / tot[:, None]
+    kp0, _ = initial_values(problem, f)
+    return powers, tot, static_controller(problem, f, tot, kp0)
+
+
 def static_any_size(problem: TuningProblem, ids, sample: int = 1000, seed: int = 7,
                     rounds: int = 3) -> AnySizeStatic:
     """The static pair of a config whose subsets cannot be enumerated.
@@ -215,7 +227,6 @@ def static_any_size(problem: TuningProblem, ids, sample: int = 1000, seed: int =
     random sample of ``sample`` is checked at the pair (w = 1, absolute gains); the failing
     ones join the design, at most ``rounds`` times. Not feasible if a sample subset still fails.
     """
-    from .paper import initial_values
     from .subsets import random_subsets
 
     cases = extreme_subsets(problem, ids)
@@ -223,11 +234,7 @@ def static_any_size(problem: TuningProblem, ids, sample: int = 1000, seed: int =
     checked = np.array([problem.group_power(s) for s in drawn])
     added = 0
     for _ in range(rounds + 1):
-        powers = np.unique(np.array([problem.group_power(s) for s in cases]), axis=0)
-        tot = powers.sum(axis=1)
-        f = powers / tot[:, None]
-        kp0, _ = initial_values(problem, f)
-        res = static_controller(problem, f, tot, kp0)
+        powers, _, res = design_over(problem, cases)
         if not res.feasible:
             break
         n = len(checked)
