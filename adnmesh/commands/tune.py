@@ -94,4 +94,10 @@ def run(args: argparse.Namespace) -> int:
         s = table.static
         print(f"static controller: K_P {s.kp:.4g} 1/W, K_I {s.ki:.4g} 1/(W s), worst rise time "
               f"{s.figures['worst_rise_time_s']:.3g} s ({','.join(s.figures['worst_rise_time_subset'])})")
+        if "verified_random_subsets" in s.figures:
+            n = s.figures["verified_random_subsets"]
+            sample = f"all {n}" if n == 2 ** len(s.ders) - 1 else f"{n} random"
+            print(f"  designed on the selection and the extreme plants, verified on {sample} "
+                  f"subsets "
+                  f"({s.figures['design_subsets_added_from_sample']} of them joined the design)")
     return 0

@@ -24,7 +24,7 @@ from ..table import FIGURE_KEYS, SchedulingTable, TableEntry, load_table, save_t
 from .global_search import tune_global
 from .paper import initial_values, tune_paper
 from .problem import TuningProblem, all_subsets
-from .static import design_over
+from .static import design_over, static_any_size
 from .weights import find_weights
 
 __all__ = ["tune_table", "tune_subset", "paper_path", "write_csv", "PlantGroup", "METHODS",
@@ -34,6 +34,8 @@ METHODS = ("paper", "global")
 #: ``tuned_by`` of a paper-method entry whose path search never found a feasible point
 PAPER_FALLBACK = "global (the paper's path found no feasible point)"
 CHUNK = 48
+#: random subsets the static controller of a selection is verified on
+STATIC_SAMPLE = 1000
 BACK_OFF_STEPS = 50
 #: phases of a chunk whose CPU and wall time :func:`tune_table` reports (``phases=``)
 PHASES = ("initial values", "global search", "paper path", "find W", "back-off",
@@ -299,25 +301,41 @@ def tune_table(config, method: str = "paper", workers: int = 1, out: Path | None
 
 def _static_entry(problem: TuningProblem, ids: list[str],
                   subsets: Sequence[Sequence[str]] | None = None) -> TableEntry:
-    """The static controller over every subset (or over ``subsets``, each single DER and the
-    set of all: the extremes of the installed power), with its worst-case figures."""
-    cases = all_subsets(ids) if subsets is None else (
-        list(subsets) + [(d,) for d in ids] + [tuple(ids)])
-    powers, tot, res = design_over(problem, cases)
+    """The static controller with its worst-case figures.
+
+    Over every subset when the table holds them all; over a selection (``subsets``) the pair
+    is designed on those subsets and the extreme plants (:func:`~.static.extreme_subsets`)
+    and verified on a random sample of subsets, the failing ones joining the design
+    (:func:`~.static.static_any_size`): the subsets a run meets are not all in the table.
+    """
+    verified = {}
+    if subsets is None:
+        cases = all_subsets(ids)
+        powers, tot, res = design_over(problem, cases)
+    else:
+        any_size = static_any_size(problem, ids, sample=STATIC_SAMPLE, extra=subsets)
+        res, cases = any_size.result, any_size.cases
+        powers = np.unique(np.array([problem.group_power(s) for s in cases]), axis=0)
+        tot = powers.sum(axis=1)
+        verified = {"verified_random_subsets": any_size.verified,
+                    "design_subsets_added_from_sample": any_size.added}
     if not res.feasible:
         return TableEntry(tuple(ids), float("nan"), float("nan"), {d: 1.0 for d in ids}, False,
-                          "no pair is feasible on every subset", {})
+                          "no pair is feasible on every subset", verified)
     fig = problem.figures(powers, np.full(len(tot), res.kp), np.full(len(tot), res.ki))
-    worst = next(s for s in cases
-                 if np.allclose(problem.group_power(s), powers[res.worst_plant]))
+    worst_power = powers[int(np.argmax(fig.rise_time_s))] if subsets is not None \
+        else powers[res.worst_plant]
+    worst = next(s for s in cases if np.allclose(problem.group_power(s), worst_power))
     figures = {
-        "worst_rise_time_s": res.worst_rise_time_s,
+        "worst_rise_time_s": res.worst_rise_time_s if subsets is None
+        else float(np.max(fig.rise_time_s)),
         "worst_rise_time_subset": list(worst),
         "min_disk_margin": float(np.min(fig.disk_margin)),
         "max_overshoot_pct": float(np.max(fig.overshoot_pct)),
         "max_settling_time_s": float(np.max(fig.settling_time_s)),
         "min_phase_margin_deg": float(np.min(fig.phase_margin_deg)),
         "min_delay_margin_s": float(np.min(fig.delay_margin_s)),
+        **verified,
     }
     return TableEntry(tuple(ids), res.kp, res.ki, {d: 1.0 for d in ids}, True, None, figures)
 

@@ -191,6 +191,8 @@ class AnySizeStatic:
     designed_on: int
     verified: int
     added: int
+    cases: list[tuple[str, ...]]
+    """The subsets of the final design (extremes, given ones, failures added)."""
 
 
 def extreme_subsets(problem: TuningProblem, ids) -> list[tuple[str, ...]]:
@@ -220,16 +222,17 @@ def design_over(problem: TuningProblem, cases) -> tuple[np.ndarray, np.ndarray, 
 
 
 def static_any_size(problem: TuningProblem, ids, sample: int = 1000, seed: int = 7,
-                    rounds: int = 3) -> AnySizeStatic:
+                    rounds: int = 3, extra=()) -> AnySizeStatic:
     """The static pair of a config whose subsets cannot be enumerated.
 
-    Designed (:func:`static_controller`) on :func:`extreme_subsets`, then every subset of a
-    random sample of ``sample`` is checked at the pair (w = 1, absolute gains); the failing
-    ones join the design, at most ``rounds`` times. Not feasible if a sample subset still fails.
+    Designed (:func:`static_controller`) on :func:`extreme_subsets` and the subsets ``extra``
+    (e.g. those a table holds), then every subset of a random sample of ``sample`` is checked
+    at the pair (w = 1, absolute gains); the failing ones join the design, at most ``rounds``
+    times. Not feasible if a sample subset still fails.
     """
     from .subsets import random_subsets
 
-    cases = extreme_subsets(problem, ids)
+    cases = list(dict.fromkeys(extreme_subsets(problem, ids) + [tuple(s) for s in extra]))
     drawn = random_subsets(ids, sample, seed)
     checked = np.array([problem.group_power(s) for s in drawn])
     added = 0
@@ -240,10 +243,10 @@ def static_any_size(problem: TuningProblem, ids, sample: int = 1000, seed: int =
         n = len(checked)
         ok = problem.check(checked, np.full(n, res.kp), np.full(n, res.ki)).feasible
         if ok.all():
-            return AnySizeStatic(res, len(powers), n, added)
+            return AnySizeStatic(res, len(powers), n, added, cases)
         bad = [drawn[i] for i in np.nonzero(~ok)[0]]
         added += len(bad)
         cases += bad
     res = StaticResult(res.kp, res.ki, res.worst_rise_time_s, res.worst_plant, False)
-    return AnySizeStatic(res, len(cases), len(checked), added)
+    return AnySizeStatic(res, len(cases), len(checked), added, cases)
 
