@@ -95,3 +95,26 @@ def test_a_recording_with_p_ip_and_a_fault_but_no_p_ref_still_has_a_summary() ->
     assert summary.steps == ()
     (fault,) = summary.faults
     assert json.loads(json.dumps(summary.to_json()))["faults"][0]["kind"] == "ict_outage"
+
+
+def test_the_summary_names_every_available_der_of_a_switch_however_many() -> None:
+    # a switch to 30 DERs: every name is in the table (folded over lines at 80 columns), none
+    # is replaced by an ellipsis
+    import io
+
+    from rich.console import Console
+
+    from adnmesh.runtime.summary import RunSummary, SwitchFigures, format_summary
+
+    names = tuple(f"SGen{i}" for i in range(30))
+    summary = RunSummary(steps=(), switches=(SwitchFigures(12.0, names, 46.3, 0.0),),
+                         band_pct=5.0, sim_time_s=20.0, wall_time_s=1.0, speed_factor=20.0)
+    out = io.StringIO()
+    console = Console(file=out, width=80, highlight=False, markup=False)
+    for item in format_summary(summary):
+        console.print(item)
+    text = out.getvalue()
+    cells = "".join(line.split("│")[2].strip() for line in text.splitlines()
+                    if line.count("│") >= 4 and "SGen" in line)
+    assert cells.replace(" ", "") == ",".join(names) + "(30)"
+    assert "..." not in text

@@ -282,10 +282,12 @@ def format_summary(summary: RunSummary):
     out = [step_table(summary.steps, summary.band_pct, "P_ref steps: P_IP")]
     switches = Table(title="gain switches", title_justify="left")
     for column in ("t [s]", "available DERs", "max |P_IP - P_ref| in 10 s [W]", "P_Y jump"):
-        switches.add_column(column, justify="right" if column != "available DERs" else "left")
+        switches.add_column(column, justify="right" if column != "available DERs" else "left",
+                            overflow="fold")
     for s in summary.switches:
-        names = ", ".join(s.available) if len(s.available) <= 4 else \
-            f"{', '.join(s.available[:3])}, ... ({len(s.available)})"
+        # every name, however many (a long list folds over lines; none is cut off)
+        names = ", ".join(s.available) + (f" ({len(s.available)})" if len(s.available) > 4
+                                          else "")
         switches.add_row(f"{s.t_s:.2f}", names, num(s.max_deviation_w, ".4g"),
                          f"{s.p_y_jump:.3g}")
     if not summary.switches:
