@@ -83,3 +83,18 @@ def test_the_spin_comes_from_the_environment_in_microseconds():
     assert spin_ns_from_env({}) == SPIN_NS
     assert spin_ns_from_env({SPIN_ENV: "fast"}) == SPIN_NS
     assert spin_ns_from_env({SPIN_ENV: "-5"}) == 0
+
+
+def test_freeze_heap_takes_what_lives_now_out_of_the_collections() -> None:
+    import gc
+
+    from adnmesh.runtime.rt_tuning import freeze_heap
+
+    try:
+        alive = len(gc.get_objects())
+        frozen = freeze_heap()
+        assert frozen >= 0.9 * alive
+        assert len(gc.get_objects()) < 0.1 * alive        # what a full collection walks
+    finally:
+        gc.unfreeze()
+    assert gc.get_freeze_count() == 0

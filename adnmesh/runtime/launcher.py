@@ -59,7 +59,7 @@ from adnmesh.runtime.injector import FaultInjector
 from adnmesh.runtime.launcher_bus import LauncherOutbox, SimClockDriver
 from adnmesh.runtime.realtime import tolerance_ns
 from adnmesh.runtime.roster import Roster
-from adnmesh.runtime.rt_tuning import PRIORITY_ENV, raise_priority
+from adnmesh.runtime.rt_tuning import PRIORITY_ENV, freeze_heap, raise_priority
 from adnmesh.runtime.sessions import SessionReport, SessionWatch
 from adnmesh.runtime.summary import RunSeries
 from adnmesh.runtime.tap import RecorderTap, recording_schemas
@@ -495,6 +495,7 @@ def run_clock(launch: _Launch) -> str:
     options.log(f"{len(launch.topology.agents)} agents ready in {result.startup_s:.2f} s; "
                 f"running {launch.config.scenario.duration_s:g} s of {options.clock} time")
     launch.injector.start_faults()
+    freeze_heap()         # the grid model, config and recorder live to the end (rt_tuning)
     t_start = time.perf_counter()
     epoch_ns = launch.epoch_ns = time.time_ns() + 200_000_000
     launch._start_body = {"clock": options.clock, "epoch_ns": epoch_ns,

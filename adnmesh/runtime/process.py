@@ -43,6 +43,7 @@ restarted agent is started with ``--resume-at-ns`` and begins at that sim time.
 from __future__ import annotations
 
 import ctypes
+import gc
 import os
 import signal
 import sys
@@ -54,8 +55,8 @@ import zenoh
 
 from adnmesh.runtime.children import SESSION_GRACE_S
 from adnmesh.runtime.realtime import OverrunWatch, ScaledClock
-from adnmesh.runtime.rt_tuning import (PRIORITIES, PRIORITY_ENV, SpinPlan, raise_priority,
-                                       spin_ns_from_env, tighten_timers)
+from adnmesh.runtime.rt_tuning import (PRIORITIES, PRIORITY_ENV, SpinPlan, freeze_heap,
+                                       raise_priority, spin_ns_from_env, tighten_timers)
 from adnmesh.sim.node import Node
 from adnmesh.wire.envelope import MessageError, decode, encode, frames, split_frame
 from adnmesh.wire.keys import Keys, route
@@ -216,6 +217,7 @@ class AgentProcess:
         # is seen cannot be missed
         self._handles.append(session.liveliness().declare_subscriber(
             keys.liveliness("up"), self._on_up_alive, history=True))
+        freeze_heap()     # what startup built lives to the end: no collection walks it again
 
     def run(self) -> None:
         """Wait for the start, then run on its clock until the run stops."""
@@ -270,13 +272,15 @@ class AgentProcess:
                 self.lock.wait(min(_WAIT_S, max(0.0, deadline - time.monotonic())))
 
     def close(self) -> None:
-        """Undeclare subscribers and the liveliness token; restore the signal handlers."""
+        """Undeclare subscribers and the liveliness token; restore the signal handlers and
+        the collector (a process that goes on, e.g. a test's, collects its objects again)."""
         for handle in reversed(self._handles):
             handle.undeclare()
         self._handles = []
         for signum, handler in self._signals.items():
             signal.signal(signum, handler)
         self._signals = {}
+        gc.unfreeze()
 
     # -- Zenoh callbacks -----------------------------------------------------------------------
 
