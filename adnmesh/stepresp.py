@@ -44,6 +44,8 @@ __all__ = ["StepInfo", "simulate_step", "step_info", "step_info_from_samples", "
            "choose_steps"]
 
 _SETTLED_BAND = 0.005
+#: samples per block of precomputed delay taps (bounds their memory to ~100 MB)
+_TAP_BLOCK = 200_000
 #: largest |second difference| of y (per step) at which the step may be doubled
 _COARSEN_CURVATURE = 1e-7
 
@@ -235,14 +237,20 @@ class _Simulator:
                           self.n_in, int(self.n_meas[0]), out)
             self.k += steps
             return out
-        l0, l1, lw = self._taps(self.n_in, self.f_in, self.k, steps, right_end=False)
-        r0, r1, rw = self._taps(self.n_in, self.f_in, self.k + 1, steps, right_end=True)
-        m0, m1, mw = self._taps(self.n_meas, self.f_meas, self.k + 1, steps, right_end=False)
-        advance(steps, self.k, self.ring, self.h, self.kp, self.ki, self.kc, self.phi, self.gl,
-                self.gr, self.x, self.p_y, self.y_hist, self.x_int, self.err,
-                l0, l1, lw, r0, r1, rw, np.ascontiguousarray(m0[:, 0]),
-                np.ascontiguousarray(m1[:, 0]), np.ascontiguousarray(mw[:, 0]), out)
-        self.k += steps
+        # the taps are (steps, G) arrays: in blocks, so that a long run stays within memory
+        # (the kernel carries its state over, so the blocks change no result)
+        for start in range(0, steps, _TAP_BLOCK):
+            n = min(_TAP_BLOCK, steps - start)
+            l0, l1, lw = self._taps(self.n_in, self.f_in, self.k, n, right_end=False)
+            r0, r1, rw = self._taps(self.n_in, self.f_in, self.k + 1, n, right_end=True)
+            m0, m1, mw = self._taps(self.n_meas, self.f_meas, self.k + 1, n, right_end=False)
+            block = np.empty((self.kp.size, n))
+            advance(n, self.k, self.ring, self.h, self.kp, self.ki, self.kc, self.phi, self.gl,
+                    self.gr, self.x, self.p_y, self.y_hist, self.x_int, self.err,
+                    l0, l1, lw, r0, r1, rw, np.ascontiguousarray(m0[:, 0]),
+                    np.ascontiguousarray(m1[:, 0]), np.ascontiguousarray(mw[:, 0]), block)
+            out[:, start:start + n] = block
+            self.k += n
         return out
 
 
