@@ -9,9 +9,9 @@ shorter scenario. Per repeat it measures, in this order:
    subset;
 2. ``adnmesh up`` on the sim clock, without a table (so it tunes on demand itself), at
    ``nice -n 5``: wall time, the summary's sim speed factor (sim s per wall s of the run
-   phase), the startup time, the processes (the ``up`` process and its agents) and the peak
-   RSS of the whole process tree (sum over the processes, sampled every 0.5 s) and of its
-   largest process; and whether every P_ref step's overshoot met the constraint.
+   phase), the startup time, the processes (the ``up`` process and its agents), the peak
+   memory of the whole process tree (sum of the processes' PSS, sampled every 0.5 s) and the
+   peak RSS of its largest process; and whether every P_ref step's overshoot met the constraint.
 
 Ranges over the repeats are printed with the 1-minute load average before and after each run.
 
@@ -73,18 +73,24 @@ def _tree(pid: int) -> set[int]:
     return found
 
 
-def _rss_kb(pid: int) -> int:
+def _memory_kb(pid: int) -> tuple[int, int]:
+    """(RSS, PSS) of ``pid``, kB: PSS shares each shared page among the processes mapping
+    it, so the PSS of a process tree adds up to its real memory (RSS counts the shared
+    libraries once per process)."""
+    rss = pss = 0
     try:
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1])
+        for line in Path(f"/proc/{pid}/smaps_rollup").read_text().splitlines():
+            if line.startswith("Rss:"):
+                rss = int(line.split()[1])
+            elif line.startswith("Pss:"):
+                pss = int(line.split()[1])
     except OSError:
         pass
-    return 0
+    return rss, pss
 
 
 class _Sampler(threading.Thread):
-    """Peak summed and largest RSS, and most processes, of a process tree."""
+    """Peak summed PSS, largest RSS and most processes of a process tree."""
 
     def __init__(self, pid: int):
         super().__init__(daemon=True)
@@ -94,8 +100,9 @@ class _Sampler(threading.Thread):
     def run(self) -> None:
         while not self.stop.is_set():
             pids = _tree(self.pid)
-            rss = [_rss_kb(p) for p in pids]
-            self.peak_sum_kb = max(self.peak_sum_kb, sum(rss))
+            mem = [_memory_kb(p) for p in pids]
+            rss = [r for r, _ in mem]
+            self.peak_sum_kb = max(self.peak_sum_kb, sum(p for _, p in mem))
             self.peak_one_kb = max(self.peak_one_kb, max(rss, default=0))
             self.processes = max(self.processes, sum(1 for r in rss if r > 0))
             self.stop.wait(0.5)
@@ -149,7 +156,7 @@ def run_up(config_path: Path, work: Path, timeout_s: float) -> dict:
     return {"exit": proc.returncode, "wall_s": wall, "speed": data.get("speed_factor"),
             "run_wall_s": data.get("wall_time_s"), "startup_s": extra.get("startup_s"),
             "agents": extra.get("agents"), "processes": sampler.processes,
-            "rss_sum_mb": sampler.peak_sum_kb / 1024, "rss_max_mb": sampler.peak_one_kb / 1024,
+            "pss_sum_mb": sampler.peak_sum_kb / 1024, "rss_max_mb": sampler.peak_one_kb / 1024,
             "steps": data.get("steps", []), "load": (load0, os.getloadavg()[0]),
             "stderr_tail": err.strip().splitlines()[-1:] if proc.returncode else []}
 
@@ -190,7 +197,7 @@ def main(argv=None) -> int:
     limit = document["constraints"]["overshoot_max_pct"]
     band = document["constraints"]["settling_band_pct"] / 100.0
     print(f"{'DERs':>4} {'procs':>5} {'wall s':>13} {'startup s':>11} {'speed x':>9} "
-          f"{'RSS sum MB':>11} {'RSS max MB':>10} {'tune CPU s/subset':>18} {'steps ok':>8} "
+          f"{'PSS sum MB':>11} {'RSS max MB':>10} {'tune CPU s/subset':>18} {'steps ok':>8} "
           f"{'load':>9}")
     for n in counts:
         with tempfile.TemporaryDirectory(prefix=f"bench-scale-{n}-") as tmp:
@@ -211,7 +218,7 @@ def main(argv=None) -> int:
                   f"{_range([r['wall_s'] for r in runs]):>13} "
                   f"{_range([r['startup_s'] for r in runs]):>11} "
                   f"{_range([r['speed'] for r in runs]):>9} "
-                  f"{_range([r['rss_sum_mb'] for r in runs], '.0f'):>11} "
+                  f"{_range([r['pss_sum_mb'] for r in runs], '.0f'):>11} "
                   f"{_range([r['rss_max_mb'] for r in runs], '.0f'):>10} "
                   f"{_range(cpu, '.2f'):>18} {sum(ok)}/{len(ok):>6} {_range(loads):>9}",
                   flush=True)
