@@ -44,6 +44,8 @@ __all__ = ["StepInfo", "simulate_step", "step_info", "step_info_from_samples", "
            "choose_steps"]
 
 _SETTLED_BAND = 0.005
+#: samples per block of precomputed delay taps (bounds their memory to ~100 MB)
+_TAP_BLOCK = 200_000
 #: largest |second difference| of y (per step) at which the step may be doubled
 _COARSEN_CURVATURE = 1e-7
 
@@ -133,8 +135,12 @@ def _delay_taps(delay_s: np.ndarray, h: float):
 class _Simulator:
     """Method-of-steps simulation of M loops sharing actuator dynamics and step h."""
 
-    def __init__(self, plant: Plant, kp, ki, h: float):
+    def __init__(self, plant: Plant, kp, ki, h: float, coarsen_limit_s: float | None = None):
         kp, ki, gains = as_candidates(plant, kp, ki)
+        # 2h must not exceed this (the full plant's shortest forward path delay when the
+        # plant is a reduction of it to its active groups: same steps as the full plant)
+        self.coarsen_limit_s = (float(plant.path_delays_s.min()) if coarsen_limit_s is None
+                                else float(coarsen_limit_s))
         self.kp, self.ki, self.gains = (np.ascontiguousarray(a, dtype=float) for a in (kp, ki, gains))
         self.plant = plant
         self.order = max(a.denominator.size - 1 for a in plant.actuators)
@@ -176,7 +182,7 @@ class _Simulator:
 
     def can_coarsen(self) -> bool:
         """Doubling h keeps the scheme explicit (2h <= every forward path delay)."""
-        return 2.0 * self.h <= float(self.plant.path_delays_s.min()) + 1e-12
+        return 2.0 * self.h <= self.coarsen_limit_s + 1e-12
 
     def coarsen(self) -> None:
         """Double the step, keeping every second sample of the delay buffers (exact)."""
@@ -231,14 +237,20 @@ class _Simulator:
                           self.n_in, int(self.n_meas[0]), out)
             self.k += steps
             return out
-        l0, l1, lw = self._taps(self.n_in, self.f_in, self.k, steps, right_end=False)
-        r0, r1, rw = self._taps(self.n_in, self.f_in, self.k + 1, steps, right_end=True)
-        m0, m1, mw = self._taps(self.n_meas, self.f_meas, self.k + 1, steps, right_end=False)
-        advance(steps, self.k, self.ring, self.h, self.kp, self.ki, self.kc, self.phi, self.gl,
-                self.gr, self.x, self.p_y, self.y_hist, self.x_int, self.err,
-                l0, l1, lw, r0, r1, rw, np.ascontiguousarray(m0[:, 0]),
-                np.ascontiguousarray(m1[:, 0]), np.ascontiguousarray(mw[:, 0]), out)
-        self.k += steps
+        # the taps are (steps, G) arrays: in blocks, so that a long run stays within memory
+        # (the kernel carries its state over, so the blocks change no result)
+        for start in range(0, steps, _TAP_BLOCK):
+            n = min(_TAP_BLOCK, steps - start)
+            l0, l1, lw = self._taps(self.n_in, self.f_in, self.k, n, right_end=False)
+            r0, r1, rw = self._taps(self.n_in, self.f_in, self.k + 1, n, right_end=True)
+            m0, m1, mw = self._taps(self.n_meas, self.f_meas, self.k + 1, n, right_end=False)
+            block = np.empty((self.kp.size, n))
+            advance(n, self.k, self.ring, self.h, self.kp, self.ki, self.kc, self.phi, self.gl,
+                    self.gr, self.x, self.p_y, self.y_hist, self.x_int, self.err,
+                    l0, l1, lw, r0, r1, rw, np.ascontiguousarray(m0[:, 0]),
+                    np.ascontiguousarray(m1[:, 0]), np.ascontiguousarray(mw[:, 0]), block)
+            out[:, start:start + n] = block
+            self.k += n
         return out
 
 
@@ -291,18 +303,21 @@ def _horizon_floor(plant: Plant, gains: np.ndarray, bandwidth: np.ndarray) -> np
     return np.maximum(base, np.where(np.isfinite(bandwidth), 20.0 / bandwidth, 0.0))
 
 
-def _simulate_until_settled(plant, kp, ki, gains, h, t_min, band_pct, t_max, stop_above=None):
+def _simulate_until_settled(plant, kp, ki, gains, h, t_min, band_pct, t_max, stop_above=None,
+                            coarsen_limit_s=None):
     """Simulate one step-size bucket; drop every candidate once it has settled.
 
     A candidate is settled when it has stayed within 0.5 % of the final value for the last
     quarter of the simulated time and at least ``t_min`` has been simulated; candidates still
-    unsettled at ``t_max`` keep ``inf`` settling times. With ``stop_above``, a candidate whose
+    unsettled at ``t_max`` (s, one per candidate) keep ``inf`` settling times. With ``stop_above``, a candidate whose
     response exceeds that value is dropped at once (its overshoot is then a lower bound and its
     settling times are NaN): a search only needs to know that it violates the constraint.
     """
     m = kp.size
     out = {k: np.full(m, np.nan) for k in ("os", "tr", "ts", "ts2", "pk", "tp", "hor")}
-    sim = _Simulator(Plant(plant.actuators, gains, plant.t_com_s, plant.t_meas_s), kp, ki, h)
+    sim = _Simulator(Plant(plant.actuators, gains, plant.t_com_s, plant.t_meas_s), kp, ki, h,
+                     coarsen_limit_s)
+    t_max = np.broadcast_to(np.asarray(t_max, float), (m,))
     acc = StepFigureAccumulator(m, (band_pct / 100.0, 0.02, _SETTLED_BAND))
     alive = np.arange(m)
     chunk = int(np.clip(np.ceil(min(t_min.min(), 10.0) / h), 50, 2e7 // max(m, 1)))
@@ -314,7 +329,7 @@ def _simulate_until_settled(plant, kp, ki, gains, h, t_min, band_pct, t_max, sto
         elapsed = sim.time_s
         settled = (acc.settle[2] <= 0.75 * elapsed) & (elapsed >= t_min[alive])
         over = acc.peak > stop_above if stop_above is not None else np.zeros(alive.size, bool)
-        finished = settled | over | (elapsed >= t_max)
+        finished = settled | over | (elapsed >= t_max[alive])
         if finished.any():
             idx = alive[finished]
             out["os"][idx] = acc.overshoot_pct()[finished]
@@ -343,6 +358,27 @@ def _simulate_until_settled(plant, kp, ki, gains, h, t_min, band_pct, t_max, sto
     return out
 
 
+def _by_active_groups(plant: Plant, gains: np.ndarray, sel: np.ndarray):
+    """Candidates ``sel`` split by the set of groups with a gain, each with the plant reduced
+    to those groups: ``(rows, Plant)`` pairs.
+
+    A group without gain adds exactly 0.0 to the output at every step, so leaving it out
+    changes no bit of the response (same step h, same coarsening rule: the caller passes the
+    full plant's limit), and the cost of a sparse candidate (e.g. a single-DER loop of a
+    plant with 100 groups) is that of its own groups only.
+    """
+    active = gains[sel] > 0
+    if active.all():
+        yield sel, Plant(plant.actuators, gains[sel], plant.t_com_s, plant.t_meas_s)
+        return
+    patterns, inverse = np.unique(active, axis=0, return_inverse=True)
+    for p, pattern in enumerate(patterns):
+        rows = sel[inverse.ravel() == p]
+        cols = np.nonzero(pattern)[0]
+        acts = tuple(plant.actuators[c] for c in cols)
+        yield rows, Plant(acts, gains[np.ix_(rows, cols)], plant.t_com_s, plant.t_meas_s)
+
+
 def step_info(plant: Plant, kp, ki, band_pct: float = 5.0, h: float | None = None,
               bandwidth_rad_s=None, mask=None, t_max_s: float = 20000.0,
               overshoot_stop_pct: float | None = None) -> StepInfo:
@@ -362,8 +398,9 @@ def step_info(plant: Plant, kp, ki, band_pct: float = 5.0, h: float | None = Non
         the shortest horizon.
     mask : array_like of bool, optional
         Candidates to simulate (e.g. the stable ones); the rest get NaN.
-    t_max_s : float
-        Longest horizon, s; a response not settled by then reports infinite settling times.
+    t_max_s : float or array_like, shape (M,)
+        Longest horizon, s (one per candidate or one for all); a response not settled by
+        then reports infinite settling times.
     overshoot_stop_pct : float, optional
         Stop simulating a candidate as soon as its overshoot exceeds this (percent); its
         overshoot is then only a lower bound and its settling times NaN.
@@ -383,13 +420,16 @@ def step_info(plant: Plant, kp, ki, band_pct: float = 5.0, h: float | None = Non
         else:
             steps[idx] = h
         t_min = _horizon_floor(plant, gains, bw)
+        t_max = np.broadcast_to(np.asarray(t_max_s, float), (m,))
+        stop = None if overshoot_stop_pct is None else 1.0 + overshoot_stop_pct / 100.0
+        limit = float(plant.path_delays_s.min())
         for hb in np.unique(steps[idx]):
-            sel = idx[steps[idx] == hb]
-            stop = None if overshoot_stop_pct is None else 1.0 + overshoot_stop_pct / 100.0
-            res = _simulate_until_settled(plant, kp[sel], ki[sel], gains[sel], float(hb),
-                                          t_min[sel], band_pct, t_max_s, stop)
-            for k in fields:
-                fields[k][sel] = res[k]
+            for sel, reduced in _by_active_groups(plant, gains, idx[steps[idx] == hb]):
+                res = _simulate_until_settled(reduced, kp[sel], ki[sel], reduced.gains_w,
+                                              float(hb), t_min[sel], band_pct, t_max[sel],
+                                              stop, coarsen_limit_s=limit)
+                for k in fields:
+                    fields[k][sel] = res[k]
     h_used = float(np.nanmin(steps)) if idx.size else float("nan")
     return StepInfo(fields["os"], fields["tr"], fields["ts"], fields["ts2"], fields["pk"],
                     fields["tp"], h_used, fields["hor"])

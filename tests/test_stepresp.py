@@ -119,3 +119,30 @@ def test_compiled_step_info_accumulator_equals_the_numpy_reference():
         t0 += n * 0.01
     for name in ("t10", "t90", "peak", "peak_t", "last", "settle"):
         assert np.array_equal(getattr(fast, name), getattr(ref, name), equal_nan=True), name
+
+
+def test_sparse_candidates_run_on_their_active_groups_bit_identically():
+    """A candidate whose plant has gain in a few groups only is simulated on those groups
+    (``_by_active_groups``): every figure equals, bit for bit, the simulation of the full
+    plant (the zero-gain groups included), on the exact-delay and the interpolating path."""
+    from adnmesh.plant import Actuator
+    from adnmesh.stepresp import _simulate_until_settled, _horizon_floor, choose_steps
+
+    acts = (Actuator(0.01, 0.25), Actuator(1.0, 11.0), Actuator(0.01, 0.05),
+            Actuator(0.013, 0.4))                 # the last delay is no multiple of 10 ms
+    gains_w = np.array([[2e6, 0, 0, 0], [0, 3e5, 0, 0], [2e6, 3e5, 0, 0], [0, 0, 1e5, 0],
+                        [0, 0, 0, 6.5e3], [2e6, 3e5, 1e5, 4e5]])
+    plant_ = Plant(acts, gains_w, 0.1, 0.1)
+    kp = np.full(gains_w.shape[0], 0.2 / 2.4e6)
+    ki = np.full(gains_w.shape[0], 1.0 / 2.4e6)
+    fast = step_info(plant_, kp, ki, t_max_s=5e4)
+    h = choose_steps(plant_)
+    t_min = _horizon_floor(plant_, gains_w, np.full(kp.size, np.nan))
+    for i in range(kp.size):                      # the full plant, every group simulated
+        ref = _simulate_until_settled(plant_, kp[[i]], ki[[i]], gains_w[[i]], float(h[i]),
+                                      t_min[[i]], 5.0, 5e4)
+        for key, field in (("os", "overshoot_pct"), ("tr", "rise_time_s"),
+                           ("ts", "settling_time_s"), ("ts2", "settling_time_2pct_s"),
+                           ("pk", "peak"), ("tp", "peak_time_s"), ("hor", "horizon_s")):
+            assert getattr(fast, field)[i] == ref[key][0], (i, field)
+    assert np.all(np.isfinite(fast.settling_time_s))

@@ -27,9 +27,9 @@ from __future__ import annotations
 import numpy as np
 
 from ..freqresp import loop_response
-from .problem import TuningProblem
+from .problem import T_MAX_S, TuningProblem
 
-__all__ = ["find_weights", "find_weights_sequential", "W_STEP", "SCREEN_SLACK"]
+__all__ = ["find_weights", "find_weights_sequential", "horizon_s", "W_STEP", "SCREEN_SLACK"]
 
 W_STEP = 0.001
 _BLOCK = 64
@@ -50,6 +50,29 @@ def _jobs(problem: TuningProblem, entries):
     return jobs, gains, kp, ki
 
 
+#: a single-DER loop is simulated for this many of its slow time constants at least
+SLOW_MODES = 10.0
+#: ... but never longer than this, s
+HORIZON_CAP_S = 1e6
+
+
+def horizon_s(gains: np.ndarray, kp, ki) -> np.ndarray:
+    """Longest step-response horizon of single-DER loops, s: ``T_MAX_S``, or ``SLOW_MODES``
+    times the loop's slow time constant ``(1 + K_P K) / (K_I K)`` (``K`` its gain in W, the
+    PI's integral mode with the plant at its DC gain) if that is longer, capped at
+    ``HORIZON_CAP_S``.
+
+    A DER with a tiny share of the subset's power has a loop so weak that it settles only
+    after hours of simulated time; judged on ``T_MAX_S`` alone it counts as "slow", and
+    lowering its weight (Find W) only makes it slower, down to 0. Its constraints (disk
+    margin, overshoot) are what Find W must decide, so its response is simulated until it
+    settles.
+    """
+    k = np.atleast_2d(gains).sum(axis=1)
+    tau = (1.0 + np.asarray(kp) * k) / (np.asarray(ki) * k)
+    return np.clip(SLOW_MODES * tau, T_MAX_S, HORIZON_CAP_S)
+
+
 def _weight(k) -> np.ndarray:
     return np.round(1.0 - np.asarray(k) * W_STEP, 3)
 
@@ -66,7 +89,9 @@ def _scan(problem, gains, kp, ki, violating) -> np.ndarray:
         jobs_v = violating[pending]
         rows = np.repeat(jobs_v, w.size)
         ww = np.tile(w, jobs_v.size)
-        ok = problem.check(gains[rows] * ww[:, None], kp[rows], ki[rows]).feasible
+        g = gains[rows] * ww[:, None]
+        ok = problem.check(g, kp[rows], ki[rows],
+                           t_max_s=horizon_s(g, kp[rows], ki[rows])).feasible
         ok = ok.reshape(jobs_v.size, w.size)
         hit = ok.any(axis=1)
         found[pending[hit]] = w[np.argmax(ok[hit], axis=1)]
@@ -151,7 +176,9 @@ def _screened_scan(problem, gains, kp, ki, violating) -> np.ndarray:
         if sim_j:
             jr = violating[np.array(sim_j)]
             ks = np.array(sim_k)
-            ok = problem.check(gains[jr] * _weight(ks)[:, None], kp[jr], ki[jr]).feasible
+            g = gains[jr] * _weight(ks)[:, None]
+            ok = problem.check(g, kp[jr], ki[jr],
+                               t_max_s=horizon_s(g, kp[jr], ki[jr])).feasible
             for j, k, good in zip(sim_j, sim_k, ok):
                 if good:
                     found[j] = _weight(k)
@@ -176,7 +203,8 @@ def find_weights(problem: TuningProblem, entries: list[tuple[tuple[str, ...], fl
     inverse = inverse.ravel()
     g_u, kp_u, ki_u = gains[first], kp[first], ki[first]
     w_u = np.ones(first.size)
-    violating = np.nonzero(~problem.check(g_u, kp_u, ki_u).feasible)[0]
+    violating = np.nonzero(~problem.check(g_u, kp_u, ki_u,
+                                          t_max_s=horizon_s(g_u, kp_u, ki_u)).feasible)[0]
     if violating.size:
         w_u[violating] = _screened_scan(problem, g_u, kp_u, ki_u, violating)
     for j, (e, d) in enumerate(jobs):
@@ -190,7 +218,8 @@ def find_weights_sequential(problem: TuningProblem, entries):
     jobs, gains, kp, ki = _jobs(problem, entries)
     if not jobs:
         return weights
-    violating = np.nonzero(~problem.check(gains, kp, ki).feasible)[0]
+    violating = np.nonzero(~problem.check(gains, kp, ki,
+                                          t_max_s=horizon_s(gains, kp, ki)).feasible)[0]
     for j, w_found in zip(violating, _scan(problem, gains, kp, ki, violating)):
         e, d = jobs[j]
         weights[e][d] = float(w_found)

@@ -1,0 +1,78 @@
+"""``adnmesh up`` on the 100-DER example, cut to a shorter scenario (slow): one process per
+DER, on-demand tuning (no table), every P_ref step within the design constraints."""
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from adnmesh.config import load_config
+
+from up_runs import REPO, alive, children_of
+
+pytestmark = pytest.mark.slow
+
+#: sim time of the cut scenario, s: the +1 MW step at 10 s, 10 WTs out at 60 s, 30 PVs at 90 s
+DURATION_S = 110.0
+TIMEOUT_S = 3000
+
+
+def _cut_down():
+    spec = importlib.util.spec_from_file_location("bench_scale",
+                                                  REPO / "benchmarks" / "bench_scale.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.cut_down
+
+
+def test_adn100_runs_with_on_demand_tuning_and_every_step_within_the_constraints(tmp_path):
+    document = yaml.safe_load((REPO / "configs" / "examples" / "adn-100.yaml").read_text())
+    config_path = tmp_path / "adn-100-short.yaml"
+    config_path.write_text(yaml.safe_dump(_cut_down()(document, 100, DURATION_S),
+                                          sort_keys=False))
+    config = load_config(config_path)
+    summary = tmp_path / "summary.json"
+    argv = [sys.executable, "-m", "adnmesh", "up", str(config_path), "--out",
+            str(tmp_path / "run.mcap"), "--summary-json", str(summary), "--table",
+            str(tmp_path / "absent.table.json"), "--startup-timeout", "1200"]
+    proc = subprocess.Popen(argv, cwd=tmp_path, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    agents: set[int] = set()
+    try:
+        out, err = proc.communicate(timeout=TIMEOUT_S)
+    finally:
+        if proc.poll() is None:                   # timed out: end it and its agents by PID
+            agents = children_of(proc.pid)
+            proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(timeout=60)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+            for pid in agents:
+                if alive(pid):
+                    os.kill(pid, signal.SIGKILL)
+    assert proc.returncode == 0, err[-2000:]
+    assert "tuning the" in err and "agents ready" in err
+    data = json.loads(summary.read_text())
+    assert data["extra"]["agents"] == len(config.ders) + 3
+    steps = data["steps"]
+    assert [s["t_s"] for s in steps] == [10.0]
+    limit = config.constraints.overshoot_max_pct
+    band = config.constraints.settling_band_pct / 100.0
+    for s in steps:                # compensated: settled in the band, overshoot below the limit
+        fig = s["figures"]
+        assert fig["overshoot_pct"] is not None and fig["overshoot_pct"] < limit, s
+        assert fig["rise_time_s"] is not None and fig["settling_time_s"] is not None, s
+        assert abs(s["steady_error_w"]) < band * abs(s["step_w"]), s
+    table = json.loads(next(tmp_path.glob("*.table.json")).read_text()) \
+        if list(tmp_path.glob("*.table.json")) else None
+    if table is not None:
+        assert all(e["feasible"] for e in table["entries"])
