@@ -41,9 +41,14 @@ def test_adn100_runs_with_on_demand_tuning_and_every_step_within_the_constraints
     summary = tmp_path / "summary.json"
     argv = [sys.executable, "-m", "adnmesh", "up", str(config_path), "--out",
             str(tmp_path / "run.mcap"), "--summary-json", str(summary), "--table",
-            str(tmp_path / "absent.table.json"), "--startup-timeout", "1200"]
+            str(tmp_path / "absent.table.json"), "--startup-timeout", "1200",
+            "--stall-timeout", "0"]
+    # its 104 processes at the lowest priority (inherited by every agent): the suite's other
+    # worker runs timing-bounded runs beside it, and at the ordinary priority this run starved
+    # them (load ~58, a 60 s bound missed); at nice 19 it may pause for long, hence no stall
+    # timeout, and TIMEOUT_S bounds it
     proc = subprocess.Popen(argv, cwd=tmp_path, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+                            stderr=subprocess.PIPE, text=True, preexec_fn=lambda: os.nice(19))
     agents: set[int] = set()
     try:
         out, err = proc.communicate(timeout=TIMEOUT_S)
@@ -72,7 +77,7 @@ def test_adn100_runs_with_on_demand_tuning_and_every_step_within_the_constraints
         assert fig["overshoot_pct"] is not None and fig["overshoot_pct"] < limit, s
         assert fig["rise_time_s"] is not None and fig["settling_time_s"] is not None, s
         assert abs(s["steady_error_w"]) < band * abs(s["step_w"]), s
-    table = json.loads(next(tmp_path.glob("*.table.json")).read_text()) \
-        if list(tmp_path.glob("*.table.json")) else None
-    if table is not None:
-        assert all(e["feasible"] for e in table["entries"])
+    tables = list(tmp_path.glob("*.table.json"))     # the table up tuned, beside --out
+    assert len(tables) == 1, tables
+    entries = json.loads(tables[0].read_text())["entries"]
+    assert entries and all(e["feasible"] for e in entries)
