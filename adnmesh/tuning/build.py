@@ -314,8 +314,7 @@ def _static_entry(problem: TuningProblem, ids: list[str],
         powers, tot, res = design_over(problem, cases)
     else:
         any_size = static_any_size(problem, ids, sample=STATIC_SAMPLE, extra=subsets)
-        res, cases = any_size.result, any_size.cases
-        powers = np.unique(np.array([problem.group_power(s) for s in cases]), axis=0)
+        res, cases, powers = any_size.result, any_size.cases, any_size.powers
         tot = powers.sum(axis=1)
         verified = {"verified_random_subsets": any_size.verified,
                     "design_subsets_added_from_sample": any_size.added}
@@ -323,12 +322,10 @@ def _static_entry(problem: TuningProblem, ids: list[str],
         return TableEntry(tuple(ids), float("nan"), float("nan"), {d: 1.0 for d in ids}, False,
                           "no pair is feasible on every subset", verified)
     fig = problem.figures(powers, np.full(len(tot), res.kp), np.full(len(tot), res.ki))
-    worst_power = powers[int(np.argmax(fig.rise_time_s))] if subsets is not None \
-        else powers[res.worst_plant]
-    worst = next(s for s in cases if np.allclose(problem.group_power(s), worst_power))
+    worst = next(s for s in cases
+                 if np.allclose(problem.group_power(s), powers[res.worst_plant]))
     figures = {
-        "worst_rise_time_s": res.worst_rise_time_s if subsets is None
-        else float(np.max(fig.rise_time_s)),
+        "worst_rise_time_s": res.worst_rise_time_s,
         "worst_rise_time_subset": list(worst),
         "min_disk_margin": float(np.min(fig.disk_margin)),
         "max_overshoot_pct": float(np.max(fig.overshoot_pct)),

@@ -193,6 +193,8 @@ class AnySizeStatic:
     added: int
     cases: list[tuple[str, ...]]
     """The subsets of the final design (extremes, given ones, failures added)."""
+    powers: np.ndarray
+    """Their distinct group-power vectors, W (``result.worst_plant`` indexes them)."""
 
 
 def extreme_subsets(problem: TuningProblem, ids) -> list[tuple[str, ...]]:
@@ -243,10 +245,10 @@ def static_any_size(problem: TuningProblem, ids, sample: int = 1000, seed: int =
         n = len(checked)
         ok = problem.check(checked, np.full(n, res.kp), np.full(n, res.ki)).feasible
         if ok.all():
-            return AnySizeStatic(res, len(powers), n, added, cases)
+            return AnySizeStatic(res, len(powers), n, added, cases, powers)
         bad = [drawn[i] for i in np.nonzero(~ok)[0]]
         added += len(bad)
         cases += bad
     res = StaticResult(res.kp, res.ki, res.worst_rise_time_s, res.worst_plant, False)
-    return AnySizeStatic(res, len(cases), len(checked), added, cases)
+    return AnySizeStatic(res, len(cases), len(checked), added, cases, powers)
 

@@ -73,6 +73,11 @@ def horizon_s(gains: np.ndarray, kp, ki) -> np.ndarray:
     return np.clip(SLOW_MODES * tau, T_MAX_S, HORIZON_CAP_S)
 
 
+def _feasible(problem: TuningProblem, gains, kp, ki) -> np.ndarray:
+    """Both constraints of single-DER loops, each simulated on its own :func:`horizon_s`."""
+    return problem.check(gains, kp, ki, t_max_s=horizon_s(gains, kp, ki)).feasible
+
+
 def _weight(k) -> np.ndarray:
     return np.round(1.0 - np.asarray(k) * W_STEP, 3)
 
@@ -89,9 +94,7 @@ def _scan(problem, gains, kp, ki, violating) -> np.ndarray:
         jobs_v = violating[pending]
         rows = np.repeat(jobs_v, w.size)
         ww = np.tile(w, jobs_v.size)
-        g = gains[rows] * ww[:, None]
-        ok = problem.check(g, kp[rows], ki[rows],
-                           t_max_s=horizon_s(g, kp[rows], ki[rows])).feasible
+        ok = _feasible(problem, gains[rows] * ww[:, None], kp[rows], ki[rows])
         ok = ok.reshape(jobs_v.size, w.size)
         hit = ok.any(axis=1)
         found[pending[hit]] = w[np.argmax(ok[hit], axis=1)]
@@ -176,9 +179,7 @@ def _screened_scan(problem, gains, kp, ki, violating) -> np.ndarray:
         if sim_j:
             jr = violating[np.array(sim_j)]
             ks = np.array(sim_k)
-            g = gains[jr] * _weight(ks)[:, None]
-            ok = problem.check(g, kp[jr], ki[jr],
-                               t_max_s=horizon_s(g, kp[jr], ki[jr])).feasible
+            ok = _feasible(problem, gains[jr] * _weight(ks)[:, None], kp[jr], ki[jr])
             for j, k, good in zip(sim_j, sim_k, ok):
                 if good:
                     found[j] = _weight(k)
@@ -203,8 +204,7 @@ def find_weights(problem: TuningProblem, entries: list[tuple[tuple[str, ...], fl
     inverse = inverse.ravel()
     g_u, kp_u, ki_u = gains[first], kp[first], ki[first]
     w_u = np.ones(first.size)
-    violating = np.nonzero(~problem.check(g_u, kp_u, ki_u,
-                                          t_max_s=horizon_s(g_u, kp_u, ki_u)).feasible)[0]
+    violating = np.nonzero(~_feasible(problem, g_u, kp_u, ki_u))[0]
     if violating.size:
         w_u[violating] = _screened_scan(problem, g_u, kp_u, ki_u, violating)
     for j, (e, d) in enumerate(jobs):
@@ -218,8 +218,7 @@ def find_weights_sequential(problem: TuningProblem, entries):
     jobs, gains, kp, ki = _jobs(problem, entries)
     if not jobs:
         return weights
-    violating = np.nonzero(~problem.check(gains, kp, ki,
-                                          t_max_s=horizon_s(gains, kp, ki)).feasible)[0]
+    violating = np.nonzero(~_feasible(problem, gains, kp, ki))[0]
     for j, w_found in zip(violating, _scan(problem, gains, kp, ki, violating)):
         e, d = jobs[j]
         weights[e][d] = float(w_found)
