@@ -43,6 +43,12 @@ worker was woken for work it seldom found, which cost a fifth of a run's context
 about 8 % of its CPU time on two cores."""
 
 
+CONNECT_TIMEOUT_S = 30.0
+"""How long an agent ``up`` starts keeps trying to reach ``up``'s router, s: the router listens
+before the agents start, but on a saturated machine (100 agents connecting at once) a first
+attempt can fail, and the agent exited on it."""
+
+
 def agent_argv(agent_id: str, config_path: Path, endpoint: str, table_path: Path,
                p_avail_w: float | None = None, certs: Path | None = None) -> list[str]:
     """Command line of the process of ``agent_id`` (a DER may be told its available power, W,
@@ -50,7 +56,7 @@ def agent_argv(agent_id: str, config_path: Path, endpoint: str, table_path: Path
     der_id = der_id_of(agent_id)
     kind = "der" if der_id is not None else agent_id
     argv = [sys.executable, str(AGENTS_DIR / f"{kind}.py"), str(config_path),
-            "--connect", endpoint]
+            "--connect", endpoint, "--connect-timeout", f"{CONNECT_TIMEOUT_S:g}"]
     if der_id is not None:
         argv += ["--der", der_id]
         if p_avail_w is not None:
