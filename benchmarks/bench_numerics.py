@@ -7,6 +7,11 @@ state-space model per candidate, as a python-control user would write it: each D
 the figures on the candidates both evaluated.
 
     .venv/bin/python benchmarks/bench_numerics.py [--pc-samples 5] [--sizes 1,100,10000]
+
+``--crossings``: the margins' crossing finder (:func:`adnmesh.margins.crossing`, regula falsi)
+against scipy's ``optimize.elementwise.find_root`` and a 60-step bisection on the phase and
+gain crossings of 1 and 40 SimBench loops: time (median of repeats), evaluations, largest
+difference of the roots.
 """
 from __future__ import annotations
 
@@ -62,12 +67,84 @@ def python_control(config, kp, ki, t_end=100.0, dt=0.01):
     return float(alpha), float(info["Overshoot"]), float(info["RiseTime"])
 
 
+def _bisection(fun, lo, hi, iterations=60):
+    """The crossing finder the margins used before (every crossing, 60 halvings)."""
+    idx = np.arange(lo.size)
+    flo = fun(lo, idx)
+    for _ in range(iterations):
+        mid = 0.5 * (lo + hi)
+        fm = fun(mid, idx)
+        same = np.sign(fm) == np.sign(flo)
+        lo, flo, hi = np.where(same, mid, lo), np.where(same, fm, flo), np.where(same, hi, mid)
+    return 0.5 * (lo + hi)
+
+
+def crossings(config, repeats: int = 7) -> None:
+    """Crossing finders compared on the phase and gain crossings of SimBench loops."""
+    from scipy.optimize import elementwise
+
+    from adnmesh.freqresp import as_candidates, loop_points
+    from adnmesh.margins import CROSSING_XTOL, crossing
+    from adnmesh.stability import nyquist_stability
+    from adnmesh.tuning import TuningProblem
+
+    problem = TuningProblem(config)
+    rng = np.random.default_rng(0)
+    for m_loops in (1, 40):
+        f = rng.dirichlet(np.ones(len(problem.actuators)), m_loops)
+        plant = problem.plant(f)
+        kp, ki = rng.uniform(0.05, 0.5, m_loops), rng.uniform(0.005, 0.2, m_loops)
+        nyq = nyquist_stability(plant, kp, ki)
+        kp, ki, g = as_candidates(plant, kp, ki)
+        logw = np.log(nyq.omega)
+        for kind, part in (("phase", lambda v: v.imag), ("gain", lambda v: np.abs(v) - 1.0)):
+            val = part(nyq.loop)
+            m, k = np.nonzero(np.sign(val[:, :-1]) != np.sign(val[:, 1:]))
+            calls = [0]
+
+            def fun(x, i, m=m, part=part):
+                calls[0] += 1
+                return part(loop_points(plant, kp[m[i]], ki[m[i]], g[m[i]], np.exp(x)))
+
+            runs = {
+                "adnmesh crossing": lambda: crossing(fun, logw[k], logw[k + 1]),
+                "scipy find_root": lambda: elementwise.find_root(
+                    lambda x, i: fun(x, i.astype(int)), (logw[k], logw[k + 1]),
+                    args=(np.arange(k.size).astype(float),),
+                    tolerances={"xatol": CROSSING_XTOL, "xrtol": 0.0}).x,
+                "bisection (60)": lambda: _bisection(fun, logw[k], logw[k + 1]),
+            }
+            roots, times, evals = {}, {}, {}
+            for name, run in runs.items():
+                dts = []
+                for _ in range(repeats):
+                    calls[0] = 0
+                    t0 = time.perf_counter()
+                    roots[name] = run()
+                    dts.append(time.perf_counter() - t0)
+                times[name], evals[name] = np.array(dts) * 1e3, calls[0]
+            ref = times["scipy find_root"]
+            print(f"{m_loops:>2} loop(s), {k.size:>5} {kind} crossings:")
+            for name in runs:
+                t = times[name]
+                diff = np.abs(roots[name] - roots["scipy find_root"]).max()
+                print(f"  {name:17s} median {np.median(t):7.2f} ms (range {t.min():.2f}-"
+                      f"{t.max():.2f}), {evals[name]:>3} evaluations, / scipy "
+                      f"{np.median(t) / np.median(ref):4.2f}, largest root difference "
+                      f"{diff:.1e}")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", default="1,100,10000")
     ap.add_argument("--pc-samples", type=int, default=5)
+    ap.add_argument("--crossings", action="store_true",
+                    help="only compare the crossing finders (margins) with scipy's")
     args = ap.parse_args(argv)
     config = load_config(ROOT / "configs" / "simbench.yaml")
+    if args.crossings:
+        crossings(config)
+        return 0
     plant = plant_from_ders(config.ders, config.t_com_s, config.t_meas_s)
     total = float(plant.total_gain_w)
     evaluate(plant, *candidates(total, 4))          # warm-up (imports, caches)

@@ -62,3 +62,47 @@ def test_all_crossovers_are_reported():
     # crossings at w tau = pi/2 + 2 pi n: GM_n = w_n / k
     n = np.arange(gms.size)
     np.testing.assert_allclose(gms, (np.pi / 2 + 2 * np.pi * n) / 2.0 / 0.5, rtol=1e-9)
+
+
+def _crossings_of(plant, kp, ki):
+    """Phase and gain crossings of a loop on its certified grid: (fun, lo, hi) per kind."""
+    from adnmesh.freqresp import as_candidates, loop_points
+    nyq = nyquist_stability(plant, kp, ki)
+    kp, ki, g = as_candidates(plant, kp, ki)
+    logw = np.log(nyq.omega)
+    out = []
+    for part in (lambda v: v.imag, lambda v: np.abs(v) - 1.0):
+        val = part(nyq.loop)
+        m, k = np.nonzero(np.sign(val[:, :-1]) != np.sign(val[:, 1:]))
+
+        def fun(x, i, m=m, part=part):
+            return part(loop_points(plant, kp[m[i]], ki[m[i]], g[m[i]], np.exp(x)))
+        out.append((fun, logw[k], logw[k + 1]))
+    return out
+
+
+@pytest.mark.parametrize("name", list(LOOPS))
+def test_crossings_are_scipys_roots(name):
+    # the regula falsi of the margins against scipy's bracketing root finder (Chandrupatla)
+    from scipy.optimize import elementwise
+    from adnmesh.margins import CROSSING_XTOL, crossing
+    plant, kp, ki = gains(name)
+    for fun, lo, hi in _crossings_of(plant, kp, ki):
+        assert lo.size
+        ours = crossing(fun, lo, hi)
+        ref = elementwise.find_root(lambda x, i: fun(x, i.astype(int)), (lo, hi),
+                                    args=(np.arange(lo.size).astype(float),),
+                                    tolerances={"xatol": CROSSING_XTOL, "xrtol": 0.0})
+        assert ref.success.all()
+        assert np.all((ours >= lo) & (ours <= hi))
+        np.testing.assert_allclose(ours, ref.x, rtol=0, atol=4 * CROSSING_XTOL)
+
+
+def test_crossing_on_hard_brackets():
+    # a root at an end, a flat-then-steep function, and many brackets at once
+    from adnmesh.margins import crossing
+    lo = np.array([0.0, 0.0, -1.0, 0.1])
+    hi = np.array([1.0, 2.0, 1.0, 3.0])
+    funs = [lambda x: x, lambda x: x ** 9 - 1.0, lambda x: np.cbrt(x - 0.3), lambda x: np.cos(x)]
+    roots = crossing(lambda x, i: np.array([funs[j](v) for j, v in zip(i, x)]), lo, hi)
+    np.testing.assert_allclose(roots, [0.0, 1.0, 0.3, np.pi / 2], atol=1e-12)
