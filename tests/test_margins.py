@@ -106,3 +106,54 @@ def test_crossing_on_hard_brackets():
     funs = [lambda x: x, lambda x: x ** 9 - 1.0, lambda x: np.cbrt(x - 0.3), lambda x: np.cos(x)]
     roots = crossing(lambda x, i: np.array([funs[j](v) for j, v in zip(i, x)]), lo, hi)
     np.testing.assert_allclose(roots, [0.0, 1.0, 0.3, np.pi / 2], atol=1e-12)
+
+
+def test_disk_margin_peak_is_scipys_maximum():
+    # the parabolic peak search of the disk margin against scipy's bracketed minimiser on the
+    # same bracket of the certified grid, for 200 random SimBench-like loops
+    from scipy.optimize import elementwise
+    from adnmesh.config import load_config
+    from adnmesh.freqresp import as_candidates, loop_points
+    from adnmesh.tuning import TuningProblem
+    from conftest import REPO_ROOT
+    problem = TuningProblem(load_config(REPO_ROOT / "configs" / "simbench.yaml"))
+    rng = np.random.default_rng(3)
+    m = 200
+    f = rng.dirichlet(np.full(len(problem.actuators), 0.5), m)
+    kp = np.exp(rng.uniform(np.log(0.01), 0.0, m))
+    ki = np.exp(rng.uniform(np.log(1e-3), np.log(0.5), m))
+    plant = problem.plant(f)
+    nyq = nyquist_stability(plant, kp, ki)
+    dm = disk_margin(plant, kp, ki, nyq)
+    kp_, ki_, g = as_candidates(plant, kp, ki)
+    q = np.abs(1 - nyq.loop) / np.abs(1 + nyq.loop)
+    k = np.argmax(q, axis=1)
+    ok = nyq.stable & (k > 0) & (k < q.shape[1] - 1)
+    assert ok.sum() > 100
+    idx = np.nonzero(ok)[0]
+    logw = np.log(nyq.omega)
+
+    def minus_q(x, i):
+        i = idx[i.astype(int)]
+        lw = loop_points(plant, kp_[i], ki_[i], g[i], np.exp(x))
+        return -np.abs(1 - lw) / np.abs(1 + lw)
+    ref = elementwise.find_minimum(minus_q, (logw[k[idx] - 1], logw[k[idx]], logw[k[idx] + 1]),
+                                   args=(np.arange(idx.size).astype(float),),
+                                   tolerances={"xatol": 1e-9, "xrtol": 0.0})
+    assert ref.success.all()
+    np.testing.assert_allclose(dm.alpha[idx], 2.0 / -ref.f_x, rtol=1e-11)
+
+
+def test_peak_on_hard_brackets():
+    # a sharp non-quadratic peak, a flat top, a peak at the bracket's edge of its middle
+    from adnmesh.margins import PEAK_XTOL, peak
+    funs = [lambda x: -np.abs(x - 0.3) ** 1.5, lambda x: -np.maximum(np.abs(x) - 0.2, 0.0) ** 2,
+            lambda x: -(x - 0.999) ** 2, lambda x: np.exp(-1e4 * (x - 0.123) ** 2)]
+    x0, x1, x2 = np.zeros(4) - 1.0, np.array([0.0, 0.0, 0.99, 0.1]), np.ones(4)
+    fun = lambda x, i: np.array([funs[j](v) for j, v in zip(i, x)])      # noqa: E731
+    x, f = peak(fun, x0, x1, x2, fun(x0, np.arange(4)), fun(x1, np.arange(4)),
+                fun(x2, np.arange(4)))
+    assert abs(x[0] - 0.3) < 1e-5 and abs(x[2] - 0.999) < 1e-5 and abs(x[3] - 0.123) < 1e-5
+    assert abs(x[1]) <= 0.2 and f[1] == 0.0
+    np.testing.assert_allclose(f, [0.0, 0.0, 0.0, 1.0], atol=1e-8)
+    assert PEAK_XTOL <= 1e-6
