@@ -110,3 +110,36 @@ def test_a_weak_single_der_loop_is_simulated_until_it_settles(adn100) -> None:
     assert chk.overshoot_pct[0] == pytest.approx(ref.overshoot_pct[0], abs=1e-3)
     w = find_weights(exact, [(("D047", "D048", "D049"), kp, ki)])[0]
     assert w["D048"] == 1.0 and np.isfinite(list(w.values())).all()
+
+
+def test_the_table_up_tunes_for_itself_has_a_static_pair(configs_dir: Path, tmp_path) -> None:
+    # up without a table tunes the scenario's subsets and, now, the static controller the
+    # CPFC falls back to for a subset the table lacks; checked on every subset on the exact
+    # loop by the independent evaluation
+    import argparse
+    from adnmesh.commands import up
+    from adnmesh.loop import evaluate
+    from adnmesh.plant import plant_from_ders
+    from adnmesh.table import load_table
+    from adnmesh.tuning.problem import all_subsets
+
+    config = load_config(configs_dir / "examples" / "mixed-4.yaml")
+    said: list[str] = []
+    args = argparse.Namespace(table=str(tmp_path / "absent.json"))
+    path = up._table(args, config, tmp_path, "run", said.append)
+    static = load_table(path, config).static
+    assert static is not None and static.feasible
+    assert any(line.startswith("static controller: K_P") for line in said), said
+    for subset in all_subsets(config.der_ids()):
+        plant = plant_from_ders(config.ders_by_id(subset), config.design_t_com_s,
+                                config.t_meas_s)
+        f = evaluate(plant, static.kp, static.ki, classical=False).row(0)
+        assert f["stable"] and f["disk_margin"] >= config.constraints.disk_margin_min, subset
+        assert f["overshoot_pct"] < config.constraints.overshoot_max_pct, subset
+
+
+def test_no_static_pair_is_designed_beyond_the_exact_class_limit(adn100) -> None:
+    from adnmesh.commands import up
+    said: list[str] = []
+    assert up._static(adn100, [frozenset(adn100.der_ids())], said.append) is None
+    assert said and "70 dynamics classes" in said[0], said

@@ -161,10 +161,40 @@ def _table(args, config: Config, run_dir: Path, run_id: str, log) -> Path:
                             config.der_ids())
     for subset in subsets:
         table.add(tune(config, [d for d in config.der_ids() if d in subset]))
+    table.static = _static(config, subsets, log)
     path = run_dir / f"{run_id}.table.json"
     save_table(table, path)
     log(f"tuned table written to {path}")
     return path
+
+
+def _static(config: Config, subsets, log):
+    """The static controller of the table ``up`` tunes for itself (None where it is not
+    designed): what the CPFC uses at once when it meets a subset the table lacks, while that
+    subset is tuned. Designed on the scenario's subsets and the extreme plants and verified on
+    random subsets (:func:`adnmesh.tuning.build.static_entry`; ~5 s for SimBench). Configs with
+    more dynamics classes than the on-demand tuner's exact limit are left without one: for the
+    100-DER example (70 classes) the design took 129 s and found no pair, because a
+    single small DER alone is too slow to settle within the simulated horizon."""
+    from adnmesh.tuning.build import static_entry
+    from adnmesh.tuning.ondemand import MAX_EXACT_CLASSES
+    from adnmesh.tuning.problem import TuningProblem
+
+    problem = TuningProblem(config)
+    if len(problem.actuators) > MAX_EXACT_CLASSES:
+        log(f"no static controller: {len(problem.actuators)} dynamics classes (more than "
+            f"{MAX_EXACT_CLASSES}); a subset the table lacks waits for its on-demand tuning")
+        return None
+    t0 = time.perf_counter()
+    entry = static_entry(problem, list(config.der_ids()),
+                         [tuple(d for d in config.der_ids() if d in s) for s in subsets])
+    if not entry.feasible:
+        log(f"no static controller: {entry.reason}")
+        return None
+    log(f"static controller: K_P {entry.kp:.4g} 1/W, K_I {entry.ki:.4g} 1/(W s), verified on "
+        f"{entry.figures.get('verified_random_subsets', 0)} random subsets "
+        f"({time.perf_counter() - t0:.1f} s)")
+    return entry
 
 
 def _operating_point(config: Config, log) -> dict[str, float]:

@@ -27,8 +27,8 @@ from .problem import TuningProblem, all_subsets
 from .static import design_over, static_any_size
 from .weights import find_weights
 
-__all__ = ["tune_table", "tune_subset", "paper_path", "write_csv", "PlantGroup", "METHODS",
-           "PHASES"]
+__all__ = ["tune_table", "tune_subset", "static_entry", "paper_path", "write_csv", "PlantGroup",
+           "METHODS", "PHASES"]
 
 METHODS = ("paper", "global")
 #: ``tuned_by`` of a paper-method entry whose path search never found a feasible point
@@ -290,7 +290,7 @@ def tune_table(config, method: str = "paper", workers: int = 1, out: Path | None
         raise
     if table.static is None:
         c0, w0 = time.process_time(), time.perf_counter()
-        table.static = _static_entry(problem, ids, None if subsets is None else wanted)
+        table.static = static_entry(problem, ids, None if subsets is None else wanted)
         if phases is not None:
             phases["static controller"] = [time.process_time() - c0, time.perf_counter() - w0]
     table.complete = subsets is None
@@ -299,7 +299,7 @@ def tune_table(config, method: str = "paper", workers: int = 1, out: Path | None
     return table
 
 
-def _static_entry(problem: TuningProblem, ids: list[str],
+def static_entry(problem: TuningProblem, ids: list[str],
                   subsets: Sequence[Sequence[str]] | None = None) -> TableEntry:
     """The static controller with its worst-case figures.
 
