@@ -220,7 +220,7 @@ def main(argv=None) -> int:
                   f"{_range([r['speed'] for r in runs]):>9} "
                   f"{_range([r['pss_sum_mb'] for r in runs], '.0f'):>11} "
                   f"{_range([r['rss_max_mb'] for r in runs], '.0f'):>10} "
-                  f"{_range(cpu, '.2f'):>18} {sum(ok)}/{len(ok):>6} {_range(loads):>9}",
+                  f"{_range(cpu, '.2f'):>18} {f'{sum(ok)}/{len(ok)}':>8} {_range(loads):>9}",
                   flush=True)
     return 0
 
