@@ -213,6 +213,14 @@ def main(argv=None) -> int:
                         print(f"  up exited {r['exit']}: {' '.join(r['stderr_tail'])}")
             ok = [bool(r["steps"]) and all(_compensated(s, limit, band) for s in r["steps"])
                   for r in runs]
+            for r in runs:
+                for s in r["steps"]:
+                    if not _compensated(s, limit, band):
+                        fig = s.get("figures") or {}
+                        print(f"  step at {s.get('t_s')} s not compensated: overshoot "
+                              f"{fig.get('overshoot_pct')} % (limit {limit} %), settling "
+                              f"{fig.get('settling_time_s')} s, steady error "
+                              f"{s.get('steady_error_w')} W")
             loads = [x for r in runs for x in r["load"]]
             print(f"{n:>4} {_range([r['processes'] for r in runs], 'd'):>5} "
                   f"{_range([r['wall_s'] for r in runs]):>13} "
