@@ -118,3 +118,44 @@ def test_the_summary_names_every_available_der_of_a_switch_however_many() -> Non
                     if line.count("│") >= 4 and "SGen" in line)
     assert cells.replace(" ", "") == ",".join(names) + "(30)"
     assert "..." not in text
+
+
+def test_the_tap_never_asks_the_clock_while_it_holds_its_own_lock(tmp_path, simbench_config):
+    # up deadlocked (CI, 2 of 3 junk runs): the sim clock driver records its grants through
+    # the tap (tap lock) while it holds its own lock, and the tap asked the clock for the time
+    # of a junk payload without times while it held the tap lock. Here the "clock" is held by
+    # this thread while a junk payload is taken: recording up's own message must not block.
+    import threading
+
+    from adnmesh.recording import Recorder
+    from adnmesh.runtime.tap import RecorderTap, recording_schemas
+    from adnmesh.sim.topology import Topology
+    from adnmesh.wire.envelope import encode
+    from adnmesh.wire.messages import MESSAGE_VERSION, ClockGrant
+
+    topology = Topology.from_config(simbench_config)
+    clock, asked = threading.RLock(), threading.Event()
+
+    def now_ns() -> int:
+        asked.set()
+        with clock:
+            return 0
+
+    with Recorder(tmp_path / "tap.mcap", metadata={"run_id": "tap"},
+                  schemas=recording_schemas()) as recorder:
+        tap = RecorderTap(recorder, topology, RunSeries(), now_ns)
+        key = topology.keys.grant("cpfc")
+        grant = ClockGrant(MESSAGE_VERSION, "clock_grant", "up", 0, 0, 0, until_ns=1, expect=0)
+        with clock:
+            junk = threading.Thread(target=tap.take, args=(sorted(topology.subscriptions[
+                "cpfc"])[0], b"\xff junk"), daemon=True)
+            junk.start()
+            assert asked.wait(10)
+            own = threading.Thread(target=tap.record_own, args=(key, grant, encode(grant)),
+                                   daemon=True)
+            own.start()
+            own.join(10)
+            assert not own.is_alive(), "recording up's own message waited for the clock"
+        junk.join(10)
+        assert not junk.is_alive()
+        assert tap.rejected_total() == 1

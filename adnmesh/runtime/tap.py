@@ -100,9 +100,13 @@ class RecorderTap:
     def take(self, key: str, sample: bytes) -> list[Envelope]:
         """Record the envelopes of one sample from an agent; return the genuine messages."""
         accepted, records, rejects = [], [], []
+        # the clock's time before the lock: the clock driver records its grants (the tap's
+        # lock) while it holds its own, so asking it under the tap's lock deadlocked ``up``
+        # (a junk payload without times arriving while grants went out)
+        now_ns = self._now_ns()
         with self._lock:
             for payload in split_frame(sample):
-                message = self._check(key, payload, rejects)
+                message = self._check(key, payload, rejects, now_ns)
                 if message is not None:
                     accepted.append(message)
                     records.append((payload, message.t_deliver_ns, message.t_send_ns))
@@ -132,7 +136,7 @@ class RecorderTap:
 
     # -- internals (with the lock held) ----------------------------------------------------------
 
-    def _check(self, key: str, payload: bytes, rejects: list) -> Envelope | None:
+    def _check(self, key: str, payload: bytes, rejects: list, now_ns: int) -> Envelope | None:
         try:
             if key not in self._known:
                 raise MessageError("unknown_key", "not a key of this run's agents")
@@ -144,7 +148,7 @@ class RecorderTap:
                 raise MessageError("replayed", f"(t_send_ns, seq) {stamp} already seen")
         except MessageError as exc:
             self._count(key, exc.reason)
-            rejects.append(self._rejected_record(key, payload, exc))
+            rejects.append(self._rejected_record(key, payload, exc, now_ns))
             return None
         self._last[key] = stamp
         return message
@@ -155,14 +159,14 @@ class RecorderTap:
         per_key = self.rejected.setdefault(key, {})
         per_key[reason] = per_key.get(reason, 0) + 1
 
-    def _rejected_record(self, key: str, payload: bytes, exc: MessageError):
+    def _rejected_record(self, key: str, payload: bytes, exc: MessageError, now_ns: int):
         record = Rejected(key=key[:512], reason=exc.reason, detail=exc.detail[:1000],
                           size_bytes=len(payload),
                           sha256=hashlib.sha256(payload).hexdigest(),
                           payload_prefix_b64=base64.b64encode(
                               payload[:REJECTED_PREFIX_BYTES]).decode())
         times = envelope_times(payload)
-        t_send, t_deliver = times if times is not None else (self._now_ns(),) * 2
+        t_send, t_deliver = times if times is not None else (now_ns,) * 2
         return encode(record), max(t_send, t_deliver), t_send
 
     def _feed(self, message: Envelope) -> None:
