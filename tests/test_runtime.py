@@ -159,3 +159,16 @@ def test_the_tap_never_asks_the_clock_while_it_holds_its_own_lock(tmp_path, simb
         junk.join(10)
         assert not junk.is_alive()
         assert tap.rejected_total() == 1
+
+
+def test_up_remembers_how_many_reports_an_agent_sent_before_it_was_heard():
+    # behind a site router an agent can see up's token before its reports are routed to up:
+    # the first heard report's seq says how many went nowhere (verify leaves them out of the
+    # published counts; CI recording: seq 0 and 1 missing, 1,004 published, 1,002 recorded)
+    from adnmesh.runtime.roster import Roster
+    roster = Roster(["der/SGen1", "der/SGen2"])
+    roster.note_report("der/SGen1", 0)
+    roster.note_report("der/SGen2", 2)
+    roster.note_report("der/SGen2", 3)           # later reports change nothing
+    assert roster.unheard == {"der/SGen1": 0, "der/SGen2": 2}
+    assert roster.not_ready() == ["der/SGen1", "der/SGen2"]      # no liveliness seen yet

@@ -74,6 +74,9 @@ __all__ = ["EXIT_FAILED", "EXIT_NOT_REALTIME", "EXIT_OK", "UpOptions", "UpResult
 EXIT_OK, EXIT_FAILED, EXIT_NOT_REALTIME, EXIT_SIGINT, EXIT_SIGTERM = 0, 1, 3, 130, 143
 NOT_REALTIME = "not real time"
 """How the reason of a run stopped by ``--strict`` begins."""
+BEFORE_CONTACT_METADATA = "adnmesh.reports_before_contact"
+"""Recording metadata: per report key, the ready reports an agent sent before ``up`` heard its
+first one (they had no route to the recorder yet; not in the published counts)."""
 
 _POLL_S = 0.1   # longest wait between checks of the processes, s
 _STOP_AGAIN_S = 1.0   # realtime: the stop is said again this often to agents without goodbye
@@ -309,7 +312,7 @@ class _Launch:
         onwards."""
         for message in self.tap.take(str(sample.key_expr), sample.payload.to_bytes()):
             if message.type == "clock_report":
-                self.roster.note_report(message.src)
+                self.roster.note_report(message.src, message.seq)
                 if self.clock is not None:
                     self.clock.on_report(message)
                 if message.killed_ns is not msgspec.UNSET:
@@ -585,6 +588,12 @@ def verify(launch: _Launch) -> None:
     not_counted = unverified | {launch.keys.fault_request}   # a person's commands: uncounted
     result.published = {k: v for k, v in launch.roster.published(launch.outbox.counts()).items()
                         if k not in not_counted}
+    # the ready reports an agent sent before up heard its first one had no route to the
+    # recorder yet (re-sent until heard): not counted, and the recording says how many
+    before_contact = {launch.keys.report(a): n for a, n in launch.roster.unheard.items() if n}
+    for key, n in before_contact.items():
+        if key in result.published:
+            result.published[key] -= n
     result.recorded = {k: v for k, v in launch.recorder.counts().items()
                        if k != launch.tap.rejected_key and k not in not_counted}
     if launch.injector.killed:
@@ -614,8 +623,12 @@ def verify(launch: _Launch) -> None:
                                  {k: str(v) for k, v in result.published.items()})
     uncounted = {launch.tap.rejected_key: "payloads the recorder rejected",
                  launch.keys.fault_request: "a person's fault requests",
+
                  **{k: "a process of its agent died" for k in unverified}}
     launch.recorder.add_metadata(UNCOUNTED_METADATA, uncounted)
+    if before_contact:      # per report key: ready reports sent before up heard the agent
+        launch.recorder.add_metadata(BEFORE_CONTACT_METADATA,
+                                     {k: str(n) for k, n in before_contact.items()})
 
 
 def _overloaded_agents(launch: _Launch) -> set[str]:

@@ -31,6 +31,7 @@ class Roster:
         self.changed = threading.Event()
         self.alive: set[str] = set()
         self.reported: set[str] = set()
+        self.unheard: dict[str, int] = {}      # reports an agent sent before up heard its first
         self.byes: dict[str, object] = {}     # agent -> its agent_bye message
         self.gone: list[str] = []             # sessions that ended without a goodbye
         self._changes: list[tuple[str, bool]] = []   # (agent, session up) after a loss
@@ -53,12 +54,15 @@ class Roster:
                     self._changes.append((agent, False))
         self.changed.set()
 
-    def note_report(self, agent: str) -> None:
-        """An agent's clock report arrived (the first one makes it ready)."""
+    def note_report(self, agent: str, seq: int = 0) -> None:
+        """An agent's clock report arrived (the first one makes it ready). ``seq`` of the
+        first one heard: the reports before it were sent before a route to ``up`` existed (an
+        agent behind a site router can see ``up``'s token before its reports are routed)."""
         with self.lock:
             if agent in self.reported:
                 return
             self.reported.add(agent)
+            self.unheard[agent] = seq
         self.changed.set()
 
     def note_bye(self, message) -> None:
