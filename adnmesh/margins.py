@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .freqresp import as_candidates, loop_at, loop_points
+from .freqresp import as_candidates, loop_points
 from .plant import Plant
 from .stability import NyquistData
 
@@ -89,10 +89,6 @@ class ClassicalMargins:
     all_gain_margins: list
     all_phase_margins_deg: list
     all_delay_margins_s: list
-
-
-def _sub(plant: Plant, kp, ki, gains, idx) -> tuple[Plant, np.ndarray, np.ndarray]:
-    return Plant(plant.actuators, gains[idx], plant.t_com_s, plant.t_meas_s), kp[idx], ki[idx]
 
 
 #: peak of |S - 1/2| located to this in ln(omega) (its value, flat there, then to ~1e-12)
@@ -284,23 +280,21 @@ def classical_margins(plant: Plant, kp, ki, nyq: NyquistData) -> ClassicalMargin
     im = loop.imag
     pm_, pk_ = np.nonzero((np.sign(im[:, :-1]) != np.sign(im[:, 1:]))
                           & ((loop.real[:, :-1] < 0) | (loop.real[:, 1:] < 0)))
-    pl, kpp, kip = _sub(plant, kp, ki, gains, pm_)
-    gp = gains[pm_]
+    kpp, kip, gp = kp[pm_], ki[pm_], gains[pm_]
     w_pc = np.exp(crossing(lambda x, i: loop_points(plant, kpp[i], kip[i], gp[i], np.exp(x)).imag,
                           logw[pk_], logw[pk_ + 1])) if pm_.size else np.zeros(0)
-    re_pc = loop_at(pl, kpp, kip, w_pc).real if pm_.size else np.zeros(0)
+    re_pc = loop_points(plant, kpp, kip, gp, w_pc).real if pm_.size else np.zeros(0)
     keep = re_pc < 0
     pm_, w_pc, gm_all = pm_[keep], w_pc[keep], -1.0 / re_pc[keep]
 
     # gain crossovers: |L| - 1 changes sign
     mag = np.abs(loop) - 1.0
     gm_, gk_ = np.nonzero(np.sign(mag[:, :-1]) != np.sign(mag[:, 1:]))
-    pl, kpg, kig = _sub(plant, kp, ki, gains, gm_)
-    gg = gains[gm_]
+    kpg, kig, gg = kp[gm_], ki[gm_], gains[gm_]
     w_gc = np.exp(crossing(lambda x, i: np.abs(loop_points(plant, kpg[i], kig[i], gg[i],
                                                            np.exp(x))) - 1.0,
                           logw[gk_], logw[gk_ + 1])) if gm_.size else np.zeros(0)
-    l_gc = loop_at(pl, kpg, kig, w_gc) if gm_.size else np.zeros(0, complex)
+    l_gc = loop_points(plant, kpg, kig, gg, w_gc) if gm_.size else np.zeros(0, complex)
     pm_all = np.remainder(np.angle(l_gc, deg=True), 360.0) - 180.0
     dm_all = np.remainder(np.radians(pm_all), 2.0 * np.pi) / np.where(w_gc > 0, w_gc, 1.0)
 

@@ -159,9 +159,10 @@ def _table(args, config: Config, run_dir: Path, run_id: str, log) -> Path:
     log(f"no gain table at {path}: tuning the {len(subsets)} subset(s) the scenario needs")
     table = SchedulingTable(config.sha256, config.constraints.model_dump(), "on-demand",
                             config.der_ids())
-    for subset in subsets:
-        table.add(tune(config, [d for d in config.der_ids() if d in subset]))
-    table.static = _static(config, subsets, log)
+    ordered = [tuple(d for d in config.der_ids() if d in subset) for subset in subsets]
+    for subset in ordered:
+        table.add(tune(config, list(subset)))
+    table.static = _static(config, ordered, log)
     path = run_dir / f"{run_id}.table.json"
     save_table(table, path)
     log(f"tuned table written to {path}")
@@ -169,7 +170,7 @@ def _table(args, config: Config, run_dir: Path, run_id: str, log) -> Path:
 
 
 def _static(config: Config, subsets, log):
-    """The static controller of the table ``up`` tunes for itself (None where it is not
+    """The static controller (``subsets``: tuples of DER ids in config order) of the table ``up`` tunes for itself (None where it is not
     designed): what the CPFC uses at once when it meets a subset the table lacks, while that
     subset is tuned. Designed on the scenario's subsets and the extreme plants and verified on
     random subsets (:func:`adnmesh.tuning.build.static_entry`; ~5 s for SimBench). Configs with
@@ -186,8 +187,7 @@ def _static(config: Config, subsets, log):
             f"{MAX_EXACT_CLASSES}); a subset the table lacks waits for its on-demand tuning")
         return None
     t0 = time.perf_counter()
-    entry = static_entry(problem, list(config.der_ids()),
-                         [tuple(d for d in config.der_ids() if d in s) for s in subsets])
+    entry = static_entry(problem, list(config.der_ids()), subsets)
     if not entry.feasible:
         log(f"no static controller: {entry.reason}")
         return None

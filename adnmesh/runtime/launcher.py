@@ -623,7 +623,6 @@ def verify(launch: _Launch) -> None:
                                  {k: str(v) for k, v in result.published.items()})
     uncounted = {launch.tap.rejected_key: "payloads the recorder rejected",
                  launch.keys.fault_request: "a person's fault requests",
-
                  **{k: "a process of its agent died" for k in unverified}}
     launch.recorder.add_metadata(UNCOUNTED_METADATA, uncounted)
     if before_contact:      # per report key: ready reports sent before up heard the agent

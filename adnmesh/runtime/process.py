@@ -213,8 +213,9 @@ class AgentProcess:
                           for key in (keys.grant(self.agent), keys.start, keys.stop,
                                       keys.kill(self.agent))]
         self._handles.append(session.liveliness().declare_token(keys.liveliness(self.agent)))
-        # up declares its token after its recorder's subscriber: a report sent once the token
-        # is seen cannot be missed
+        # up declares its token after its recorder's subscriber, but behind a site router the
+        # token can still arrive before the route: reports before the first one up hears are
+        # re-sent until the start and left out of up's counts (launcher.verify)
         self._handles.append(session.liveliness().declare_subscriber(
             keys.liveliness("up"), self._on_up_alive, history=True))
         freeze_heap()     # what startup built lives to the end: no collection walks it again
