@@ -13,7 +13,7 @@ import numpy as np
 from .freqresp import as_candidates
 from .margins import ClassicalMargins, DiskMargin, classical_margins, disk_margin
 from .plant import Plant
-from .stability import nyquist_stability
+from .stability import NyquistData, certified_grid, nyquist_stability
 from .stepresp import StepInfo, step_info
 
 __all__ = ["LoopFigures", "evaluate", "CHUNK"]
@@ -82,9 +82,32 @@ class LoopFigures:
         return out
 
 
-def _frequency_part(plant: Plant, kp, ki, classical: bool):
-    nyq = nyquist_stability(plant, kp, ki)
-    dm = disk_margin(plant, kp, ki, nyq)
+def _frequency_part(plant: Plant, kp, ki, classical: bool, screen_min: float | None = None):
+    """Nyquist verdict, disk margin and (optionally) classical margins of candidates.
+
+    With ``screen_min``, candidates whose disk margin sampled on the certified grid is below
+    it are neither certified nor refined: the sampled ``2 |S - 1/2|`` is never above its
+    refined peak, so their disk margin is below ``screen_min`` whatever their stability.
+    They are reported not stable with the sampled value (an upper bound) as disk margin.
+    """
+    if screen_min is None:
+        nyq = nyquist_stability(plant, kp, ki)
+        dm = disk_margin(plant, kp, ki, nyq)
+    else:
+        kp, ki, gains = as_candidates(plant, kp, ki)
+        grid = certified_grid(plant, kp, ki)
+        loop = grid[1]
+        upper = 2.0 / (np.abs(1.0 - loop) / np.abs(1.0 + loop)).max(axis=1)
+        keep = upper >= screen_min
+        nyq = nyquist_stability(plant, kp, ki, grid=grid, only=keep)
+        alpha, omega = upper.copy(), np.full(kp.size, np.nan)
+        if keep.any():
+            sub = Plant(plant.actuators, gains[keep], plant.t_com_s, plant.t_meas_s)
+            part = NyquistData(nyq.omega, loop[keep], nyq.stable[keep],
+                               nyq.unstable_poles[keep], nyq.certified[keep])
+            d = disk_margin(sub, kp[keep], ki[keep], part)
+            alpha[keep], omega[keep] = d.alpha, d.omega
+        dm = DiskMargin(alpha, omega)
     cm = classical_margins(plant, kp, ki, nyq) if classical else None
     return nyq, dm, cm
 
@@ -93,7 +116,7 @@ def evaluate(plant: Plant, kp, ki, *, band_pct: float = 5.0, classical: bool = T
              time_domain: bool = True, time_mask=None,
              overshoot_stop_pct: float | None = None,
              disk_margin_min: float | None = None,
-             t_max_s: float = 20000.0) -> LoopFigures:
+             t_max_s: float = 20000.0, screen: bool = False) -> LoopFigures:
     """Evaluate the loop for M candidates.
 
     Parameters
@@ -120,6 +143,11 @@ def evaluate(plant: Plant, kp, ki, *, band_pct: float = 5.0, classical: bool = T
     t_max_s : float
         Longest simulated step response, s; a response not settled by then has infinite
         settling times (and NaN rise time if it has not reached 90 %).
+    screen : bool
+        With ``disk_margin_min``: candidates whose disk margin sampled on the certified grid
+        is already below it are not certified or refined (a constraint check needs no more);
+        they are reported not stable, not certified, with that sampled value (an upper bound
+        of their disk margin) as ``disk_margin``.
     """
     kp, ki, gains = as_candidates(plant, kp, ki)
     m = kp.size
@@ -132,7 +160,8 @@ def evaluate(plant: Plant, kp, ki, *, band_pct: float = 5.0, classical: bool = T
     for start in range(0, m, CHUNK):
         sl = slice(start, min(m, start + CHUNK))
         sub = Plant(plant.actuators, gains[sl], plant.t_com_s, plant.t_meas_s)
-        nyq, dm, cm = _frequency_part(sub, kp[sl], ki[sl], classical)
+        nyq, dm, cm = _frequency_part(sub, kp[sl], ki[sl], classical,
+                                      disk_margin_min if screen else None)
         stable[sl], certified[sl], poles[sl] = nyq.stable, nyq.certified, nyq.unstable_poles
         alpha[sl], w_disk[sl] = dm.alpha, dm.omega
         if cm is not None:

@@ -39,7 +39,7 @@ import numpy as np
 from .freqresp import as_candidates, log_grid, loop_at, loop_response
 from .plant import Plant
 
-__all__ = ["NyquistData", "nyquist_stability"]
+__all__ = ["NyquistData", "nyquist_stability", "certified_grid"]
 
 _PER_DECADE = 100
 _MAX_REFINE_EXP = 16
@@ -179,20 +179,11 @@ def _refine(plant, kp, ki, gains, lo, hi):
     return dtheta, ok
 
 
-def nyquist_stability(plant: Plant, kp, ki, per_decade: int = _PER_DECADE) -> NyquistData:
-    """Decide closed-loop stability of M candidate PI pairs with exact delays.
+def certified_grid(plant: Plant, kp, ki, per_decade: int = _PER_DECADE):
+    """The common frequency grid of :func:`nyquist_stability` and ``L(j omega)`` on it.
 
-    Parameters
-    ----------
-    plant : Plant
-    kp, ki : float or array_like, shape (M,)
-        PI gains, 1/W and 1/(W s), > 0.
-    per_decade : int
-        Grid density, points per decade (more only costs time; correctness is certified).
-
-    Returns
-    -------
-    NyquistData
+    Returns (omega rad/s, shape (N,); loop, complex, shape (M, N)). The grid reaches from
+    below the low-frequency limit of the proof to ``|L| <= 0.01`` for every candidate.
     """
     kp, ki, gains = as_candidates(plant, kp, ki)
     # The proof needs (0, w_lo] with Im F < 0 and [w_hi, inf) with |L| < 1. The grid reaches
@@ -203,20 +194,53 @@ def nyquist_stability(plant: Plant, kp, ki, per_decade: int = _PER_DECADE) -> Ny
     w_hi = _high_frequency_limit(plant, kp, ki, gains, level=0.01)
     omega = log_grid(float(w_lo.min()), max(float(w_hi.max()), 10.0 * float(w_lo.min())), per_decade)
     pl = Plant(plant.actuators, gains, plant.t_com_s, plant.t_meas_s)
-    loop = loop_response(pl, kp, ki, omega)
-    f = 1.0 + loop
-    lip = _lipschitz(plant, kp, ki, gains, omega[:-1], omega[1:])
-    good = np.diff(omega)[None, :] * lip < 0.999 * np.abs(f[:, :-1])
-    dtheta = np.angle(f[:, 1:] / f[:, :-1])
-    certified = np.ones(kp.size, dtype=bool)
-    bad_m, bad_k = np.nonzero(~good)
-    if bad_m.size:
-        d, ok = _refine(pl, kp[bad_m], ki[bad_m], gains[bad_m], omega[bad_k], omega[bad_k + 1])
-        dtheta[bad_m, bad_k] = d
-        certified[bad_m[~ok]] = False
-    winding = (np.angle(f[:, 0]) + np.pi / 2) + dtheta.sum(axis=1) - np.angle(f[:, -1])
-    z = 0.5 - winding / np.pi
-    zi = np.rint(z)
-    certified &= np.abs(z - zi) < 1e-6
-    unstable = np.where(certified, zi, -1).astype(int)
+    return omega, loop_response(pl, kp, ki, omega)
+
+
+def nyquist_stability(plant: Plant, kp, ki, per_decade: int = _PER_DECADE, grid=None,
+                      only=None) -> NyquistData:
+    """Decide closed-loop stability of M candidate PI pairs with exact delays.
+
+    Parameters
+    ----------
+    plant : Plant
+    kp, ki : float or array_like, shape (M,)
+        PI gains, 1/W and 1/(W s), > 0.
+    per_decade : int
+        Grid density, points per decade (more only costs time; correctness is certified).
+    grid : (omega, loop), optional
+        :func:`certified_grid` of the same candidates, if already computed.
+    only : array_like of bool, shape (M,), optional
+        Certify only these candidates; the others are reported not certified (and not
+        stable, ``unstable_poles`` -1) without any work.
+
+    Returns
+    -------
+    NyquistData
+    """
+    kp, ki, gains = as_candidates(plant, kp, ki)
+    omega, loop = certified_grid(plant, kp, ki, per_decade) if grid is None else grid
+    certified = np.zeros(kp.size, dtype=bool)
+    unstable = np.full(kp.size, -1)
+    rows = np.arange(kp.size) if only is None else np.nonzero(np.asarray(only, bool))[0]
+    if rows.size:
+        kp_r, ki_r, gains_r = kp[rows], ki[rows], gains[rows]
+        pl = Plant(plant.actuators, gains_r, plant.t_com_s, plant.t_meas_s)
+        f = 1.0 + loop[rows]
+        lip = _lipschitz(plant, kp_r, ki_r, gains_r, omega[:-1], omega[1:])
+        good = np.diff(omega)[None, :] * lip < 0.999 * np.abs(f[:, :-1])
+        dtheta = np.angle(f[:, 1:] / f[:, :-1])
+        cert = np.ones(rows.size, dtype=bool)
+        bad_m, bad_k = np.nonzero(~good)
+        if bad_m.size:
+            d, ok = _refine(pl, kp_r[bad_m], ki_r[bad_m], gains_r[bad_m], omega[bad_k],
+                            omega[bad_k + 1])
+            dtheta[bad_m, bad_k] = d
+            cert[bad_m[~ok]] = False
+        winding = (np.angle(f[:, 0]) + np.pi / 2) + dtheta.sum(axis=1) - np.angle(f[:, -1])
+        z = 0.5 - winding / np.pi
+        zi = np.rint(z)
+        cert &= np.abs(z - zi) < 1e-6
+        certified[rows] = cert
+        unstable[rows] = np.where(cert, zi, -1).astype(int)
     return NyquistData(omega, loop, certified & (unstable == 0), unstable, certified)

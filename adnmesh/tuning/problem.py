@@ -142,14 +142,16 @@ class TuningProblem:
         f = evaluate(self.plant(gains), kp, ki, band_pct=self.band_pct, classical=False,
                      overshoot_stop_pct=self.overshoot_max_pct,
                      disk_margin_min=self.disk_margin_min, time_mask=simulate,
-                     t_max_s=t_max_s)
+                     t_max_s=t_max_s, screen=True)
         dm_ok = f.stable & (f.disk_margin >= self.disk_margin_min)
         over = dm_ok & ~(f.overshoot_pct < self.overshoot_max_pct)
         os_ok = (dm_ok & ~over & np.isfinite(f.rise_time_s)
                  & np.isfinite(f.settling_time_s))
         undecided = (np.zeros_like(dm_ok) if simulate is None
                      else dm_ok & ~np.asarray(simulate, bool))
-        reason = np.where(~f.stable, "unstable",
+        # screened out (not certified, sampled disk margin below the limit): "disk margin"
+        screened = ~f.certified & (f.disk_margin > 0)
+        reason = np.where(~f.stable & ~screened, "unstable",
                           np.where(~dm_ok, "disk margin",
                                    np.where(os_ok | undecided, "",
                                             np.where(over, "overshoot", "slow"))))

@@ -1,0 +1,90 @@
+"""The constraint check's disk-margin screen and the staged back-off give the unscreened
+answers exactly: they only skip work whose result is already decided."""
+import numpy as np
+import pytest
+
+from adnmesh.loop import evaluate
+from adnmesh.stability import nyquist_stability
+from adnmesh.tuning import TuningProblem
+from adnmesh.tuning import build
+
+from loops import CONFIG, LOOPS, gains
+
+
+def _candidates(name, n=120, seed=3):
+    plant, kp0, ki0 = gains(name)
+    rng = np.random.default_rng(seed)
+    scale = np.exp(rng.uniform(-2.0, 2.5, size=(n, 2)))      # stable, marginal and unstable
+    return plant, kp0 * scale[:, 0], ki0 * scale[:, 1]
+
+
+@pytest.mark.parametrize("name", list(LOOPS))
+def test_partial_certification_equals_the_full_one_on_its_rows(name):
+    plant, kp, ki = _candidates(name)
+    full = nyquist_stability(plant, kp, ki)
+    only = np.arange(kp.size) % 3 == 0
+    part = nyquist_stability(plant, kp, ki, only=only)
+    assert np.array_equal(part.stable[only], full.stable[only])
+    assert np.array_equal(part.unstable_poles[only], full.unstable_poles[only])
+    assert not part.certified[~only].any() and (part.unstable_poles[~only] == -1).all()
+
+
+@pytest.mark.parametrize("name", list(LOOPS))
+def test_screened_check_has_the_unscreened_verdicts(name):
+    plant, kp, ki = _candidates(name)
+    limit = CONFIG.constraints.disk_margin_min
+    kw = dict(classical=False, disk_margin_min=limit, overshoot_stop_pct=1.0)
+    plain = evaluate(plant, kp, ki, **kw)
+    screened = evaluate(plant, kp, ki, screen=True, **kw)
+    met = plain.stable & (plain.disk_margin >= limit)
+    assert 0 < met.sum() < kp.size                       # both kinds among the candidates
+    kept = screened.certified
+    # every candidate meeting the disk margin is kept and gets identical figures
+    assert kept[met].all()
+    for f in ("stable", "disk_margin", "overshoot_pct", "rise_time_s", "settling_time_s"):
+        a, b = getattr(plain, f)[kept], getattr(screened, f)[kept]
+        assert np.array_equal(a, b, equal_nan=True), f
+    # a screened-out one violates for certain: its reported value bounds the exact one
+    out = ~kept
+    assert out.any()
+    assert (screened.disk_margin[out] < limit).all()
+    exact = np.where(plain.stable[out], plain.disk_margin[out], 0.0)
+    assert (screened.disk_margin[out] >= exact).all()
+    assert np.isnan(screened.rise_time_s[out]).all()
+
+
+def test_check_reports_screened_candidates_as_disk_margin_violations():
+    problem = TuningProblem(CONFIG)
+    ids, kpn, kin = LOOPS["all"]
+    f, _ = problem.fractions(ids)
+    scale = np.geomspace(0.5, 40.0, 16)
+    g = np.tile(f, (scale.size, 1))
+    chk = problem.check(g, kpn * scale, kin * scale)
+    plain = evaluate(problem.plant(g), kpn * scale, kin * scale, classical=False)
+    below = plain.stable & (plain.disk_margin < problem.disk_margin_min)
+    assert below.any() and (~plain.stable).any()
+    assert (chk.reason[below] == "disk margin").all()
+    # an unstable loop is either certified unstable or screened out by its disk margin
+    assert set(chk.reason[~plain.stable]) <= {"unstable", "disk margin"}
+    assert not chk.feasible[below | ~plain.stable].any()
+
+
+def test_staged_back_off_finds_each_entrys_first_feasible_step():
+    problem = TuningProblem(CONFIG)
+    ids, kpn, kin = LOOPS["wt_chp"]
+    f, total = problem.fractions(ids)
+    # an edge pair (the last feasible of a ray), then raised by 1 to 7 back-off steps
+    ray = np.geomspace(0.5, 3.0, 200)
+    ok = problem.check(np.tile(f, (ray.size, 1)), kpn * ray, kin * ray).feasible
+    edge = ray[np.nonzero(ok)[0].max()]
+    raise_by = 0.99 ** -np.arange(1, 8)
+    kp, ki = kpn * edge * raise_by, kin * edge * raise_by
+    gains_ = np.tile(f, (kp.size, 1))
+    scale = build._back_off(problem, gains_, kp, ki)
+    # brute force: every step of every entry, the first feasible one
+    factors = 0.99 ** np.arange(1, build.BACK_OFF_STEPS + 1)
+    for i in range(kp.size):
+        chk = problem.check(np.tile(f, (factors.size, 1)), kp[i] * factors, ki[i] * factors)
+        assert chk.feasible.any()
+        assert scale[i] == factors[np.argmax(chk.feasible)]
+    assert (scale < 0.99 ** 2).any()                     # the second stage was needed
