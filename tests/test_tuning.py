@@ -234,3 +234,15 @@ def test_static_controller_is_feasible_everywhere_and_matches_a_brute_force_sear
     grid_best = rise.max(axis=0).min()
     assert np.isfinite(grid_best)
     assert static.figures["worst_rise_time_s"] <= grid_best * 1.01
+
+
+def test_two_workers_give_the_one_process_table_with_its_static_controller(wt_chp):
+    # the static controller is designed in a worker beside the chunks; nothing may differ
+    config, one = wt_chp
+    two = tune_table(config, "paper", workers=2, chunk_size=1)
+    assert two.static is not None and two.static.feasible
+    assert (two.static.kp, two.static.ki) == (one.static.kp, one.static.ki)
+    assert two.static.figures == one.static.figures
+    assert set(two.entries) == set(one.entries)
+    for key, e in one.entries.items():
+        assert (two.entries[key].kp, two.entries[key].ki, two.entries[key].w) == (e.kp, e.ki, e.w)

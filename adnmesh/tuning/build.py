@@ -285,11 +285,18 @@ def tune_table(config, method: str = "paper", workers: int = 1, out: Path | None
         if on_progress:
             on_progress(done, len(wanted))
 
+    static_job = (config, problem.constraints, ids, None if subsets is None else wanted,
+                  workers > 1)
+    static = None
     try:
         if workers > 1 and len(jobs) > 1:
             with ProcessPoolExecutor(max_workers=workers) as pool:
+                # the static controller needs no entry: it runs beside the chunks, not after
+                pending = pool.submit(_static_job, static_job) if table.static is None else None
                 for entries in pool.map(_tune_chunk, jobs):
                     absorb(entries)
+                if pending is not None:
+                    static = pending.result()
         else:
             for job in jobs:
                 absorb(_tune_chunk(job))
@@ -298,14 +305,27 @@ def tune_table(config, method: str = "paper", workers: int = 1, out: Path | None
             save_table(table, out)
         raise
     if table.static is None:
-        c0, w0 = time.process_time(), time.perf_counter()
-        table.static = static_entry(problem, ids, None if subsets is None else wanted)
+        entry, times = static if static is not None else _static_job(static_job)
+        table.static = entry
         if phases is not None:
-            phases["static controller"] = [time.process_time() - c0, time.perf_counter() - w0]
+            phases["static controller"] = times
     table.complete = subsets is None
     if out is not None:
         save_table(table, out)
     return table
+
+
+def _static_job(args) -> tuple[TableEntry, list[float]]:
+    """Worker: the static controller's entry (picklable entry point) and its [CPU s, wall s]."""
+    config, constraints, ids, subsets, single_thread = args
+    if single_thread:
+        import numba
+        numba.set_num_threads(1)
+    c0, w0 = time.process_time(), time.perf_counter()
+    problem = TuningProblem(config, constraints["disk_margin_min"],
+                            constraints["overshoot_max_pct"])
+    entry = static_entry(problem, ids, subsets)
+    return entry, [time.process_time() - c0, time.perf_counter() - w0]
 
 
 def static_entry(problem: TuningProblem, ids: list[str],
