@@ -29,6 +29,9 @@ class Check:
     """Feasibility of candidates (arrays of shape (M,)).
 
     ``rise_time_s`` is NaN where infeasible; ``overshoot_pct`` may be a lower bound there.
+    ``disk_margin`` is an upper bound (below the limit) where the sampled disk margin already
+    decided the candidate (reason ``disk margin``; see :func:`adnmesh.loop.evaluate`'s
+    ``screen``).
     """
 
     feasible: np.ndarray
