@@ -285,14 +285,15 @@ def tune_table(config, method: str = "paper", workers: int = 1, out: Path | None
         if on_progress:
             on_progress(done, len(wanted))
 
-    static_job = (config, problem.constraints, ids, None if subsets is None else wanted,
-                  workers > 1)
+    # a worker runs it with numba single-threaded (flag True), the main process keeps its threads
+    static_job = (config, problem.constraints, ids, None if subsets is None else wanted)
     static = None
     try:
         if workers > 1 and len(jobs) > 1:
             with ProcessPoolExecutor(max_workers=workers) as pool:
                 # the static controller needs no entry: it runs beside the chunks, not after
-                pending = pool.submit(_static_job, static_job) if table.static is None else None
+                pending = (pool.submit(_static_job, (*static_job, True))
+                           if table.static is None else None)
                 for entries in pool.map(_tune_chunk, jobs):
                     absorb(entries)
                 if pending is not None:
@@ -305,7 +306,7 @@ def tune_table(config, method: str = "paper", workers: int = 1, out: Path | None
             save_table(table, out)
         raise
     if table.static is None:
-        entry, times = static if static is not None else _static_job(static_job)
+        entry, times = static if static is not None else _static_job((*static_job, False))
         table.static = entry
         if phases is not None:
             phases["static controller"] = times
