@@ -190,13 +190,18 @@ def _back_off(problem: TuningProblem, gains, kp, ki) -> np.ndarray:
     return scale
 
 
+def _one_numba_thread_if(single_thread: bool) -> None:
+    """In a pool worker: numba kernels on one thread (the workers share the cores)."""
+    if single_thread:
+        import numba
+        numba.set_num_threads(1)
+
+
 def _tune_chunk(args) -> tuple[list[TableEntry], dict]:
     """Worker: tune a chunk of plant groups (picklable entry point); returns the entries and
     the CPU and wall seconds per phase."""
     config, constraints, method, groups, single_thread = args
-    if single_thread:
-        import numba
-        numba.set_num_threads(1)
+    _one_numba_thread_if(single_thread)
     clock = _Clock()
     problem = TuningProblem(config, constraints["disk_margin_min"], constraints["overshoot_max_pct"])
     fractions = np.array([g.fractions for g in groups])
@@ -319,9 +324,7 @@ def tune_table(config, method: str = "paper", workers: int = 1, out: Path | None
 def _static_job(args) -> tuple[TableEntry, list[float]]:
     """Worker: the static controller's entry (picklable entry point) and its [CPU s, wall s]."""
     config, constraints, ids, subsets, single_thread = args
-    if single_thread:
-        import numba
-        numba.set_num_threads(1)
+    _one_numba_thread_if(single_thread)
     c0, w0 = time.process_time(), time.perf_counter()
     problem = TuningProblem(config, constraints["disk_margin_min"],
                             constraints["overshoot_max_pct"])
