@@ -16,7 +16,7 @@ from .plant import Plant
 from .stability import NyquistData, certified_grid, nyquist_stability
 from .stepresp import StepInfo, step_info
 
-__all__ = ["LoopFigures", "evaluate", "CHUNK"]
+__all__ = ["LoopFigures", "evaluate", "disk_margin_bound", "CHUNK"]
 
 #: candidates per frequency-domain chunk (bounds memory to ~100 MB)
 CHUNK = 2048
@@ -82,6 +82,29 @@ class LoopFigures:
         return out
 
 
+def _sampled_alpha(loop: np.ndarray) -> np.ndarray:
+    """``2 / max |1 - L| / |1 + L|`` over samples ``loop`` (M, N): never below the disk margin
+    (the peak of ``2 |S - 1/2|`` is at least its sampled maximum), shape (M,)."""
+    return 2.0 / (np.abs(1.0 - loop) / np.abs(1.0 + loop)).max(axis=1)
+
+
+def disk_margin_bound(plant: Plant, kp, ki) -> np.ndarray:
+    """Upper bound of the disk margin alpha per candidate, shape (M,); cheap.
+
+    The sampled :func:`_sampled_alpha` on :func:`~adnmesh.stability.certified_grid`, without
+    certification or refinement (in chunks of :data:`CHUNK` candidates): a candidate whose
+    bound is below a limit violates that disk-margin constraint, stable or not (an unstable
+    loop's disk margin is 0). The bound is the one :func:`evaluate`'s ``screen`` uses.
+    """
+    kp, ki, gains = as_candidates(plant, kp, ki)
+    out = np.empty(kp.size)
+    for start in range(0, kp.size, CHUNK):
+        sl = slice(start, min(kp.size, start + CHUNK))
+        sub = Plant(plant.actuators, gains[sl], plant.t_com_s, plant.t_meas_s)
+        out[sl] = _sampled_alpha(certified_grid(sub, kp[sl], ki[sl])[1])
+    return out
+
+
 def _frequency_part(plant: Plant, kp, ki, classical: bool, screen_min: float | None = None):
     """Nyquist verdict, disk margin and (optionally) classical margins of candidates.
 
@@ -97,7 +120,7 @@ def _frequency_part(plant: Plant, kp, ki, classical: bool, screen_min: float | N
         kp, ki, gains = as_candidates(plant, kp, ki)
         grid = certified_grid(plant, kp, ki)
         loop = grid[1]
-        upper = 2.0 / (np.abs(1.0 - loop) / np.abs(1.0 + loop)).max(axis=1)
+        upper = _sampled_alpha(loop)
         keep = upper >= screen_min
         nyq = nyquist_stability(plant, kp, ki, grid=grid, only=keep)
         alpha, omega = upper.copy(), np.full(kp.size, np.nan)

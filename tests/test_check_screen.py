@@ -3,7 +3,7 @@ answers exactly: they only skip work whose result is already decided."""
 import numpy as np
 import pytest
 
-from adnmesh.loop import evaluate
+from adnmesh.loop import disk_margin_bound, evaluate
 from adnmesh.stability import nyquist_stability
 from adnmesh.tuning import TuningProblem
 from adnmesh.tuning import build
@@ -88,3 +88,57 @@ def test_staged_back_off_finds_each_entrys_first_feasible_step():
         assert chk.feasible.any()
         assert scale[i] == factors[np.argmax(chk.feasible)]
     assert (scale < 0.99 ** 2).any()                     # the second stage was needed
+
+
+@pytest.mark.parametrize("name", list(LOOPS))
+def test_disk_margin_bound_is_never_below_the_exact_disk_margin(name):
+    plant, kp, ki = _candidates(name)
+    limit = CONFIG.constraints.disk_margin_min
+    bound = disk_margin_bound(plant, kp, ki)
+    plain = evaluate(plant, kp, ki, classical=False, time_domain=False)
+    exact = np.where(plain.stable, plain.disk_margin, 0.0)
+    assert (bound >= exact).all()
+    # it is the screen's value: the check reports it for the candidates it screened out
+    screened = evaluate(plant, kp, ki, classical=False, time_domain=False,
+                        disk_margin_min=limit, screen=True)
+    out = ~screened.certified & (screened.disk_margin > 0)
+    assert out.any()
+    assert np.array_equal(screened.disk_margin[out], bound[out])
+    # and it rules candidates out: some meet the limit, some (stable ones too) do not
+    problem = TuningProblem(CONFIG)
+    may = bound >= problem.disk_margin_min
+    assert may[plain.stable & (plain.disk_margin >= limit)].all()
+    assert (~may & plain.stable).any() and may.any()
+
+
+def test_column_tops_on_the_bound_are_those_on_the_full_check(monkeypatch):
+    """The global grid screened on the cheap bound has the tops (and best points) of the
+    grid screened by full checks, which certify every point."""
+    from adnmesh.tuning import global_search as gs
+    from adnmesh.tuning.paper import initial_values
+
+    problem = TuningProblem(CONFIG)
+    fractions = np.array([problem.fractions(LOOPS[n][0])[0] for n in LOOPS])
+    kp0, ki0 = initial_values(problem, fractions)
+    ukp = np.linspace(np.log(gs.KP_RANGE[0]), np.log(gs.KP_RANGE[1]), 8)
+    uki = np.linspace(np.log(gs.KI_RANGE[0]), np.log(gs.KI_RANGE[1]), 12)
+    lkp, lki = np.broadcast_arrays(np.log(kp0)[:, None, None] + ukp[None, None, :],
+                                   np.log(ki0)[:, None, None] + uki[None, :, None])
+    plants = np.arange(len(fractions))
+
+    def tops():
+        best = gs._Best(len(fractions))
+        top, _ = gs._column_tops(problem, fractions, plants, lkp, lki, best)
+        return top, best
+
+    new_top, new_best = tops()
+
+    def full_check_screen(gains, kp, ki):
+        return problem.check(gains, kp, ki, simulate=np.zeros(np.size(kp), bool)).reason == ""
+
+    monkeypatch.setattr(problem, "may_meet_disk_margin", full_check_screen)
+    old_top, old_best = tops()
+    assert np.array_equal(new_top, old_top)
+    assert (new_top >= 0).any()
+    for f in ("lkp", "lki", "rise"):
+        assert np.array_equal(getattr(new_best, f), getattr(old_best, f), equal_nan=True)

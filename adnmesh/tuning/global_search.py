@@ -92,18 +92,19 @@ def _column_tops(problem, fractions, plant, lkp, lki, best: _Best):
     """Highest feasible row of every column of per-plant grids, simulating top-down.
 
     ``plant`` (A,) indexes ``fractions``; ``lkp``, ``lki`` (A, R, C) are log gains with ``ki``
-    rising along R. The disk margin is screened for the whole grid at once; then, row by row
-    from the top, only the screened points of columns whose edge is still unknown are
-    simulated. Points below a column's highest feasible one are never simulated: they are
+    rising along R. The disk margin is screened for the whole grid at once on its sampled
+    upper bound (:meth:`TuningProblem.may_meet_disk_margin`: certifying the whole grid would
+    be wasted on the points below the tops); then, row by row from the top, only the points
+    that pass of columns whose edge is still unknown are checked (and simulated if they meet
+    the disk margin). Points below a column's highest feasible one are never simulated: they are
     slower (rise time falls as K_I grows along a column), so they cannot be the optimum, and
     they are the most expensive to simulate. Returns (top row per column, -1 where none is
     feasible; evaluations).
     """
     a_n, r_n, c_n = lkp.shape
     rows = np.repeat(plant, r_n * c_n)
-    screen = problem.check(fractions[rows], np.exp(lkp.ravel()), np.exp(lki.ravel()),
-                           simulate=np.zeros(rows.size, bool))
-    candidate = (screen.reason == "").reshape(a_n, r_n, c_n)      # meets the disk margin
+    candidate = problem.may_meet_disk_margin(fractions[rows], np.exp(lkp.ravel()),
+                                             np.exp(lki.ravel())).reshape(a_n, r_n, c_n)
     evaluations = rows.size
     top = np.full((a_n, c_n), -1)
     for r in range(r_n - 1, -1, -1):

@@ -15,7 +15,7 @@ from typing import Sequence
 
 import numpy as np
 
-from ..loop import LoopFigures, evaluate
+from ..loop import LoopFigures, disk_margin_bound, evaluate
 from ..plant import Actuator, Plant
 
 __all__ = ["TuningProblem", "Check", "all_subsets", "T_MAX_S"]
@@ -129,6 +129,12 @@ class TuningProblem:
     def figures(self, gains: np.ndarray, kp, ki, classical: bool = True) -> LoopFigures:
         """All figures of merit (full step info, no shortcuts) — for reporting."""
         return evaluate(self.plant(gains), kp, ki, band_pct=self.band_pct, classical=classical)
+
+    def may_meet_disk_margin(self, gains: np.ndarray, kp, ki) -> np.ndarray:
+        """False where a candidate violates the disk-margin constraint for certain (its
+        sampled disk margin, an upper bound, is below the limit); True where only
+        :meth:`check` can tell. Far cheaper than a check: no certification, no refinement."""
+        return disk_margin_bound(self.plant(gains), kp, ki) >= self.disk_margin_min
 
     def check(self, gains: np.ndarray, kp, ki, simulate=None,
               t_max_s: float = T_MAX_S) -> Check:
