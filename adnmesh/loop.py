@@ -88,20 +88,22 @@ def _sampled_alpha(loop: np.ndarray) -> np.ndarray:
     return 2.0 / (np.abs(1.0 - loop) / np.abs(1.0 + loop)).max(axis=1)
 
 
-def disk_margin_bound(plant: Plant, kp, ki) -> np.ndarray:
+def disk_margin_bound(plant: Plant, kp, ki, per_decade: int = 100) -> np.ndarray:
     """Upper bound of the disk margin alpha per candidate, shape (M,); cheap.
 
     The sampled :func:`_sampled_alpha` on :func:`~adnmesh.stability.certified_grid`, without
     certification or refinement (in chunks of :data:`CHUNK` candidates): a candidate whose
     bound is below a limit violates that disk-margin constraint, stable or not (an unstable
-    loop's disk margin is 0). The bound is the one :func:`evaluate`'s ``screen`` uses.
+    loop's disk margin is 0). Any grid gives a bound; with the default ``per_decade`` (the
+    certified grid's) it is the one :func:`evaluate`'s ``screen`` uses, a coarser one is
+    cheaper and looser.
     """
     kp, ki, gains = as_candidates(plant, kp, ki)
     out = np.empty(kp.size)
     for start in range(0, kp.size, CHUNK):
         sl = slice(start, min(kp.size, start + CHUNK))
         sub = Plant(plant.actuators, gains[sl], plant.t_com_s, plant.t_meas_s)
-        out[sl] = _sampled_alpha(certified_grid(sub, kp[sl], ki[sl])[1])
+        out[sl] = _sampled_alpha(certified_grid(sub, kp[sl], ki[sl], per_decade)[1])
     return out
 
 

@@ -304,7 +304,7 @@ def _horizon_floor(plant: Plant, gains: np.ndarray, bandwidth: np.ndarray) -> np
 
 
 def _simulate_until_settled(plant, kp, ki, gains, h, t_min, band_pct, t_max, stop_above=None,
-                            coarsen_limit_s=None):
+                            coarsen_limit_s=None, until_rise=False):
     """Simulate one step-size bucket; drop every candidate once it has settled.
 
     A candidate is settled when it has stayed within 0.5 % of the final value for the last
@@ -312,6 +312,8 @@ def _simulate_until_settled(plant, kp, ki, gains, h, t_min, band_pct, t_max, sto
     unsettled at ``t_max`` (s, one per candidate) keep ``inf`` settling times. With ``stop_above``, a candidate whose
     response exceeds that value is dropped at once (its overshoot is then a lower bound and its
     settling times are NaN): a search only needs to know that it violates the constraint.
+    With ``until_rise``, a candidate is dropped once it has reached 90 % (its rise time is
+    then known; overshoot and settling are not).
     """
     m = kp.size
     out = {k: np.full(m, np.nan) for k in ("os", "tr", "ts", "ts2", "pk", "tp", "hor")}
@@ -329,6 +331,8 @@ def _simulate_until_settled(plant, kp, ki, gains, h, t_min, band_pct, t_max, sto
         elapsed = sim.time_s
         settled = (acc.settle[2] <= 0.75 * elapsed) & (elapsed >= t_min[alive])
         over = acc.peak > stop_above if stop_above is not None else np.zeros(alive.size, bool)
+        if until_rise:
+            over = over | np.isfinite(acc.t90)
         finished = settled | over | (elapsed >= t_max[alive])
         if finished.any():
             idx = alive[finished]
@@ -381,7 +385,7 @@ def _by_active_groups(plant: Plant, gains: np.ndarray, sel: np.ndarray):
 
 def step_info(plant: Plant, kp, ki, band_pct: float = 5.0, h: float | None = None,
               bandwidth_rad_s=None, mask=None, t_max_s: float = 20000.0,
-              overshoot_stop_pct: float | None = None) -> StepInfo:
+              overshoot_stop_pct: float | None = None, until_rise: bool = False) -> StepInfo:
     """Step info of ``G_CL`` for M candidates (all assumed closed-loop stable).
 
     Parameters
@@ -404,6 +408,10 @@ def step_info(plant: Plant, kp, ki, band_pct: float = 5.0, h: float | None = Non
     overshoot_stop_pct : float, optional
         Stop simulating a candidate as soon as its overshoot exceeds this (percent); its
         overshoot is then only a lower bound and its settling times NaN.
+    until_rise : bool
+        Stop simulating a candidate once it has reached 90 % of the final value: only its
+        rise time is wanted (overshoot a lower bound, settling times NaN); the simulation is
+        the full one cut short.
     """
     kp, ki, gains = as_candidates(plant, kp, ki)
     m = kp.size
@@ -427,7 +435,8 @@ def step_info(plant: Plant, kp, ki, band_pct: float = 5.0, h: float | None = Non
             for sel, reduced in _by_active_groups(plant, gains, idx[steps[idx] == hb]):
                 res = _simulate_until_settled(reduced, kp[sel], ki[sel], reduced.gains_w,
                                               float(hb), t_min[sel], band_pct, t_max[sel],
-                                              stop, coarsen_limit_s=limit)
+                                              stop, coarsen_limit_s=limit,
+                                              until_rise=until_rise)
                 for k in fields:
                     fields[k][sel] = res[k]
     h_used = float(np.nanmin(steps)) if idx.size else float("nan")

@@ -128,17 +128,62 @@ def test_column_tops_on_the_bound_are_those_on_the_full_check(monkeypatch):
 
     def tops():
         best = gs._Best(len(fractions))
-        top, _ = gs._column_tops(problem, fractions, plants, lkp, lki, best)
-        return top, best
+        top, bound, _ = gs._column_tops(problem, fractions, plants, lkp, lki, best)
+        return top, bound, best
 
-    new_top, new_best = tops()
+    new_top, new_bound, new_best = tops()
 
     def full_check_screen(gains, kp, ki):
         return problem.check(gains, kp, ki, simulate=np.zeros(np.size(kp), bool)).reason == ""
 
     monkeypatch.setattr(problem, "may_meet_disk_margin", full_check_screen)
-    old_top, old_best = tops()
+    old_top, old_bound, old_best = tops()
     assert np.array_equal(new_top, old_top)
+    assert np.array_equal(new_bound, old_bound)
     assert (new_top >= 0).any()
     for f in ("lkp", "lki", "rise"):
         assert np.array_equal(getattr(new_best, f), getattr(old_best, f), equal_nan=True)
+
+
+def test_first_rise_is_the_full_simulations_rise_time():
+    problem = TuningProblem(CONFIG)
+    ids, kpn, kin = LOOPS["wt_chp"]
+    f, _ = problem.fractions(ids)
+    # one column (K_P fixed, K_I rising): feasible, then overshoot, then the disk margin
+    kp, ki = np.full(12, 0.3 * kpn), kin * np.geomspace(0.5, 4.0, 12)
+    g = np.tile(f, (kp.size, 1))
+    chk = problem.check(g, kp, ki)
+    first = problem.first_rise_s(g, kp, ki)
+    seen = np.isfinite(chk.simulated_rise_s)
+    assert set(chk.reason[seen]) == {"", "overshoot"}     # infeasible ones simulated too
+    # alone, a candidate is simulated on the same steps as in a full simulation
+    for i in np.nonzero(seen)[0][::3]:
+        alone = problem.first_rise_s(f[None], kp[i:i + 1], ki[i:i + 1])
+        full = problem.check(f[None], kp[i:i + 1], ki[i:i + 1])
+        assert alone[0] == full.simulated_rise_s[0]
+    # in a batch the others may stop earlier and the step coarsen sooner: within the slack
+    from adnmesh.tuning.global_search import RISE_SLACK
+    assert np.allclose(first[seen], chk.simulated_rise_s[seen], rtol=RISE_SLACK, atol=0)
+    # the rise time falls as K_I grows with K_P fixed (what the bound relies on), also where
+    # the disk margin is violated and the check simulates nothing
+    assert np.isfinite(first).all() and (~seen).sum() >= 3
+    assert (np.diff(first) < 0).all()
+
+
+def test_dropping_columns_by_their_rise_bound_changes_no_result(monkeypatch):
+    """The global search drops columns whose rise-time bound is not below the plant's best;
+    without any bound (nothing dropped) it finds the same pairs."""
+    from adnmesh.tuning import global_search as gs
+    from adnmesh.tuning.paper import initial_values
+
+    problem = TuningProblem(CONFIG)
+    fractions = np.array([problem.fractions(LOOPS[n][0])[0] for n in LOOPS])
+    kp0, ki0 = initial_values(problem, fractions)
+    pruned = gs.tune_global(problem, fractions, kp0, ki0)
+    monkeypatch.setattr(gs, "_raise_bound", lambda bound, c, ok: bound)
+    monkeypatch.setattr(problem, "first_rise_s", lambda g, kp, ki: np.full(np.size(kp), np.nan))
+    plain = gs.tune_global(problem, fractions, kp0, ki0)
+    assert pruned.feasible.all()
+    assert pruned.evaluations < 0.9 * plain.evaluations
+    for f in ("kp", "ki", "rise_time_s"):
+        assert np.array_equal(getattr(pruned, f), getattr(plain, f)), f
