@@ -69,6 +69,32 @@ def audit(config, table) -> int:
     return violations
 
 
+def same_entries(new, base) -> None:
+    """How the new table's entries compare with the baseline's: for every subset the global
+    optimum's rise time (new / baseline), and for the paper method whether the path's pair
+    is identical."""
+    ratio, differ, paper, subsets = [], 0, 0, 0
+    for e in base.entries.values():
+        n = new.lookup(e.ders)
+        subsets += 1
+        if n is None or n.feasible != e.feasible:
+            differ += 1
+            continue
+        g_new, g_old = n.figures.get("global_rise_time_s"), e.figures.get("global_rise_time_s")
+        if g_new and g_old:
+            ratio.append(g_new / g_old)
+        if new.method == "paper" and e.figures.get("tuned_by") == "paper":
+            paper += 1
+            d_new, d_old = n.figures["design_rise_time_s"], e.figures["design_rise_time_s"]
+            if n.figures.get("tuned_by") != "paper" or abs(d_new / d_old - 1) > 1e-9:
+                differ += 1
+    r = np.array(ratio)
+    print(f"  entries vs baseline: {subsets} subsets, feasibility or path result differs on "
+          f"{differ}; global rise time new/baseline median {np.median(r):.6f}, "
+          f"range {r.min():.6f} - {r.max():.6f}, {int(np.sum(np.abs(r - 1) > 0.005))} off by "
+          f"more than 0.5 %" + (f"; paper path entries compared: {paper}" if paper else ""))
+
+
 def _run_cli(src: Path, config: str, method: str, workers: int, out: Path) -> tuple[float, float]:
     """(wall s, CPU s of the process and its children) of one ``adnmesh tune`` from ``src``."""
     env = dict(os.environ, PYTHONPATH=str(src))
@@ -102,6 +128,9 @@ def _compare(config_path: str, methods, workers: int, repeats: int, baseline: Pa
             print(f"{method:6s} {name:8s} wall {_span(walls)} s, CPU {_span(cpus)} s "
                   f"({repeats} runs, {workers} workers)")
         if baseline:
+            config = load_config(config_path)
+            same_entries(load_table(tmp / f"new-{method}-0.json", config),
+                         load_table(tmp / f"baseline-{method}-0.json", config))
             ratio = [b[0] / n[0] for b, n in zip(res["baseline"], res["new"])]
             ratio_cpu = [b[1] / n[1] for b, n in zip(res["baseline"], res["new"])]
             print(f"{method:6s} speed-up baseline/new: wall {min(ratio):.2f} - {max(ratio):.2f}x, "
