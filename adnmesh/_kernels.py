@@ -140,9 +140,14 @@ def _time_at(i, frac, t0, h, times):  # pragma: no cover - compiled
 
     Uniform block (``times`` empty): ``t0 + h (i + frac)``. Sampled times: linear between
     ``times[i]`` and ``times[i + 1]``. The two agree (to rounding) on a uniform grid.
+    ``frac == 0`` is the time of sample i itself: it never reads ``times[i + 1]``, which does not
+    exist for the last sample (numba does not check bounds; a read past the end gave a peak at
+    the last sample a time of NaN or garbage).
     """
     if times.size == 0:
         return t0 + h * (i + frac)
+    if frac == 0.0:
+        return times[i]
     return times[i] + (times[i + 1] - times[i]) * frac
 
 

@@ -219,3 +219,17 @@ def test_accumulator_refuses_mismatched_times_and_skips_empty_blocks():
         acc.add(0.0, 0.0, np.ones((2, 3)), times=np.arange(3.0))
     assert np.array_equal(acc.add(0.0, 0.1, np.empty((2, 0))), np.zeros(2))
     assert np.array_equal(acc.last, np.zeros(2)) and np.all(acc.peak == -np.inf)
+
+
+def test_a_peak_at_the_last_sample_has_that_samples_time_whatever_lies_beyond_the_times():
+    # The sample times are a view of a longer buffer whose next element is NaN: the kernel
+    # must not read past the times it was given (it once did, for a peak at the last sample,
+    # and the figure came out NaN in one run and right in the next).
+    buffer = np.array([0.0, 0.5, 1.0, 1.5, 2.0, np.nan, np.inf])
+    times = buffer[:5]
+    y = np.array([0.0, 0.3, 0.6, 0.8, 0.95])        # still rising: the peak is the last sample
+    acc = StepFigureAccumulator(1, (0.05,))
+    acc.add(0.0, 0.0, y[None, 1:], times=times)
+    assert acc.peak[0] == 0.95 and acc.peak_t[0] == 2.0
+    figures = step_figures(times, y)
+    assert figures.peak == 0.95 and figures.peak_time_s == 2.0
