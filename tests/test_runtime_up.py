@@ -346,3 +346,66 @@ def test_rt_priority_needs_the_realtime_clock(capsys) -> None:
 
     assert main(["up", str(CASE), "--rt-priority", "fifo"]) == 2
     assert capsys.readouterr().err == "adnmesh: error: --rt-priority needs --clock realtime\n"
+
+
+_BROKEN_AGENT = """
+import sys
+import zenoh
+from adnmesh.config import load_config
+from adnmesh.control.availability import AvailabilityMonitor
+from adnmesh.runtime.bus import client_config
+from adnmesh.runtime.process import AgentProcess
+from adnmesh.sim.node import Node
+
+class Broken(AvailabilityMonitor):
+    def on_timer(self, t_ns):
+        raise ZeroDivisionError("a bug in the agent's own code")
+
+config = load_config(sys.argv[1])
+with zenoh.open(client_config([sys.argv[2]])) as session:
+    AgentProcess(session, Node.for_config(Broken(config), config), config.grid).serve()
+"""
+
+
+def test_an_agent_whose_code_raises_in_a_window_ends_at_once_with_one_line() -> None:
+    # Zenoh prints and swallows an exception in a callback: the agent would live on without
+    # reporting its window, and up's sim clock would wait for it until the stall timeout.
+    # up is played by the test: its token, the start and one grant over the first timer.
+    import sys
+    import threading
+
+    import zenoh
+
+    from adnmesh.runtime.bus import free_port, router_config
+    from adnmesh.runtime.children import EXIT_INTERNAL_ERROR
+    from adnmesh.wire.keys import Keys
+    from payloads import payload
+
+    config = load_config(CASE)
+    keys = Keys(config.grid)
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    reported = threading.Event()
+    with zenoh.open(router_config([endpoint])) as router:
+        token = router.liveliness().declare_token(keys.liveliness("up"))
+        sub = router.declare_subscriber(keys.report("availability"), lambda s: reported.set())
+        agent = subprocess.Popen([sys.executable, "-c", _BROKEN_AGENT, str(CASE), endpoint],
+                                 stderr=subprocess.PIPE, text=True)
+        try:
+            assert reported.wait(60)                     # ready: its first report
+            router.put(keys.start, payload(keys.start, {"clock": "sim", "epoch_ns": 0,
+                                                        "speed": 1.0, "end_ns": 10**10,
+                                                        "seed": 1}))
+            router.put(keys.grant("availability"),
+                       payload(keys.grant("availability"), {"until_ns": 10**10, "expect": 0}))
+            code = agent.wait(timeout=60)
+            err = agent.stderr.read()
+        finally:
+            if agent.poll() is None:
+                agent.kill()
+                agent.wait()
+            sub.undeclare()
+            token.undeclare()
+    assert code == EXIT_INTERNAL_ERROR
+    assert err.splitlines() == [
+        "adnmesh agent availability: internal error: ZeroDivisionError: a bug in the agent's "
+        "own code (<string>:12); the agent stops"]

@@ -23,8 +23,14 @@ from pathlib import Path
 
 from adnmesh.wire.keys import der_id_of
 
-__all__ = ["AGENTS_DIR", "AGENT_ZENOH_RUNTIME", "PARENT_ENV", "SESSION_GRACE_S",
-           "AgentProcesses", "agent_argv"]
+EXIT_INTERNAL_ERROR = 70
+"""Exit code of an agent whose own code raised (EX_SOFTWARE). The process ends at once with one
+line on stderr: an exception in a Zenoh callback is otherwise printed and swallowed by Zenoh,
+and the agent lives on without ever reporting its window -- the sim clock then waits for it
+until ``up``'s stall timeout ends the whole run; a dead agent is noted and the run goes on."""
+
+__all__ = ["AGENTS_DIR", "AGENT_ZENOH_RUNTIME", "EXIT_INTERNAL_ERROR", "PARENT_ENV",
+           "SESSION_GRACE_S", "AgentProcesses", "agent_argv"]
 
 AGENTS_DIR = Path(__file__).resolve().parents[2] / "agents"
 """Where the agent programs are (``agents/`` of the source tree)."""
@@ -142,6 +148,8 @@ class AgentProcesses:
                     f"not come back within {self.grace_s:g} s (its process, host or link is "
                     "down)")
         how = f"signal {-code}" if code < 0 else f"exit code {code}"
+        if code == EXIT_INTERNAL_ERROR:
+            how += ": an internal error, its line above says where"
         return f"agent {agent_id} (pid {self.procs[agent_id].pid}) died ({how})"
 
     def wait_all(self, timeout_s: float) -> None:

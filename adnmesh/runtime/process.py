@@ -49,11 +49,13 @@ import signal
 import sys
 import threading
 import time
+import traceback
 from collections import deque
+from pathlib import Path
 
 import zenoh
 
-from adnmesh.runtime.children import SESSION_GRACE_S
+from adnmesh.runtime.children import EXIT_INTERNAL_ERROR, SESSION_GRACE_S
 from adnmesh.runtime.realtime import OverrunWatch, ScaledClock
 from adnmesh.runtime.rt_tuning import (PRIORITIES, PRIORITY_ENV, SpinPlan, freeze_heap,
                                        raise_priority, spin_ns_from_env, tighten_timers)
@@ -64,6 +66,7 @@ from adnmesh.wire.messages import MESSAGE_TYPES, MESSAGE_VERSION
 
 __all__ = ["AgentProcess", "add_agent_arguments", "die_with_parent", "load_config_or_exit",
            "open_session"]
+
 
 _WAIT_S = 1.0       # longest sleep between checks of the stop flag, s
 _BYE_WAIT_S = 5.0   # longest wait after the goodbye for `up` to confirm it, s
@@ -197,9 +200,29 @@ class AgentProcess:
         try:
             self.run()
             self.goodbye()
+        except Exception as exc:   # the agent's own code (realtime: on this thread)
+            self._crash(exc)
         finally:
             self.close()
         return 0
+
+    def _guarded(self, callback):
+        """``callback`` for Zenoh: an exception in it ends the process (:meth:`_crash`)."""
+        def run(sample: zenoh.Sample) -> None:
+            try:
+                callback(sample)
+            except Exception as exc:
+                self._crash(exc)
+        return run
+
+    def _crash(self, exc: Exception) -> None:
+        """Say in one line where the agent's code failed and end the process with
+        :data:`EXIT_INTERNAL_ERROR` (see there)."""
+        where = traceback.extract_tb(exc.__traceback__)
+        at = f" ({Path(where[-1].filename).name}:{where[-1].lineno})" if where else ""
+        print(f"adnmesh agent {self.agent}: internal error: {type(exc).__name__}: {exc}{at}; "
+              "the agent stops", file=sys.stderr, flush=True)
+        os._exit(EXIT_INTERNAL_ERROR)
 
     def startup(self) -> None:
         """Subscribe, declare liveliness and send the first report (see the module docstring)."""
@@ -207,9 +230,10 @@ class AgentProcess:
             self._signals = {s: signal.signal(s, self._on_signal)
                              for s in (signal.SIGTERM, signal.SIGINT)}
         keys, session = self.keys, self.session
-        self._handles = [session.declare_subscriber(key, self._on_data)
+        on_data, on_clock = self._guarded(self._on_data), self._guarded(self._on_clock)
+        self._handles = [session.declare_subscriber(key, on_data)
                          for key in self.node.subscriptions]
-        self._handles += [session.declare_subscriber(key, self._on_clock)
+        self._handles += [session.declare_subscriber(key, on_clock)
                           for key in (keys.grant(self.agent), keys.start, keys.stop,
                                       keys.kill(self.agent))]
         self._handles.append(session.liveliness().declare_token(keys.liveliness(self.agent)))
@@ -217,7 +241,7 @@ class AgentProcess:
         # token can still arrive before the route: reports before the first one up hears are
         # re-sent until the start and left out of up's counts (launcher.verify)
         self._handles.append(session.liveliness().declare_subscriber(
-            keys.liveliness("up"), self._on_up_alive, history=True))
+            keys.liveliness("up"), self._guarded(self._on_up_alive), history=True))
         freeze_heap()     # what startup built lives to the end: no collection walks it again
 
     def run(self) -> None:
