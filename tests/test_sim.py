@@ -162,6 +162,9 @@ def test_coordinator_counts_messages_in_flight(config: Config) -> None:
     log = drive(clock, clock.start(), sent, stop=lambda g: g.agent == "measurement")
     meas = log[-1]
     assert meas.agent == "measurement" and meas.expect == 20 and meas.until_ns == ns(0.1)
+    # a run stalled here says what the measurement was granted and waits for
+    assert clock.describe_busy() == [
+        "measurement (granted to 0.1 s once it has 20 messages; 0 at its report before)"]
 
 
 def test_coordinator_settles_into_full_windows(config: Config) -> None:

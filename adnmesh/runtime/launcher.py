@@ -396,7 +396,7 @@ class _Launch:
         timeout = self.options.stall_timeout_s
         if self.clock is not None and timeout and self.clock.stalled_s() > timeout:
             with self.clock.lock:
-                busy = self.clock.coordinator.busy()
+                busy = self.clock.coordinator.describe_busy()
             return (f"clock: no progress for {timeout:g} s (waiting for the report of "
                     f"{', '.join(busy) or 'nobody'})")
         return None

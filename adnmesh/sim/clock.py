@@ -147,6 +147,7 @@ class Coordinator:
         self._expected = [0] * n          # messages sent to it, as reported by the senders
         self._received = [0] * n          # messages it says it has received
         self._granted = [0] * n           # until_ns of its last grant
+        self._grant_expect = [0] * n      # ... and the messages it had to wait for
         self._idle = [False] * n          # reported since its last grant
         self._reported = [False] * n
         self._hello = [False] * n         # its last report is a first one (no grant since):
@@ -238,6 +239,18 @@ class Coordinator:
     def busy(self) -> list[str]:
         """Live agents granted a window whose report has not come yet."""
         return [a for i, a in enumerate(self.agents) if not self._idle[i] and not self._dead[i]]
+
+    def describe_busy(self) -> list[str]:
+        """Each agent of :meth:`busy` with its grant: ``"measurement (granted to 412.3 s once
+        it has 5123 messages; 5120 at its report before)"`` -- a stalled run says whether the
+        agent waits for messages that never came, or got them and did not report."""
+        out = []
+        for agent in self.busy():
+            i = self._index[agent]
+            out.append(f"{agent} (granted to {self._granted[i] / 1e9:.6g} s once it has "
+                       f"{self._grant_expect[i]} messages; {self._received[i]} at its report "
+                       "before)")
+        return out
 
     def is_dead(self, agent: str) -> bool:
         return self._dead[self._index[agent]]
@@ -354,6 +367,7 @@ class Coordinator:
         out = []
         for b, until, _ in chosen:
             granted[b] = until
+            self._grant_expect[b] = self._expected[b]
             self.grants_per_agent[b] += 1
             self._idle[b] = self._hello[b] = False
             self._pending_new[b] = _INF
