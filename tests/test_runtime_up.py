@@ -409,3 +409,55 @@ def test_an_agent_whose_code_raises_in_a_window_ends_at_once_with_one_line() -> 
     assert err.splitlines() == [
         "adnmesh agent availability: internal error: ZeroDivisionError: a bug in the agent's "
         "own code (<string>:12); the agent stops"]
+
+
+_PLAIN_AGENT = """
+import sys
+import zenoh
+from adnmesh.config import load_config
+from adnmesh.control.availability import AvailabilityMonitor
+from adnmesh.runtime.bus import client_config
+from adnmesh.runtime.process import AgentProcess
+from adnmesh.sim.node import Node
+
+config = load_config(sys.argv[1])
+with zenoh.open(client_config([sys.argv[2]])) as session:
+    AgentProcess(session, Node.for_config(AvailabilityMonitor(config), config),
+                 config.grid).serve()
+"""
+
+
+def test_an_agent_that_lost_the_router_says_so_when_up_is_back_in_sight() -> None:
+    # up is played by the test; its router goes away and a new one takes the same endpoint
+    import sys
+    import threading
+
+    import zenoh
+
+    from adnmesh.runtime.bus import free_port, router_config
+    from adnmesh.wire.keys import Keys
+
+    config = load_config(CASE)
+    keys = Keys(config.grid)
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    reported = threading.Event()
+    router = zenoh.open(router_config([endpoint]))
+    token = router.liveliness().declare_token(keys.liveliness("up"))
+    sub = router.declare_subscriber(keys.report("availability"), lambda s: reported.set())
+    agent = subprocess.Popen([sys.executable, "-c", _PLAIN_AGENT, str(CASE), endpoint],
+                             stderr=subprocess.PIPE, text=True)
+    try:
+        assert reported.wait(60)
+        sub.undeclare()
+        token.undeclare()
+        router.close()
+        router = zenoh.open(router_config([endpoint]))     # the client reconnects to it
+        token = router.liveliness().declare_token(keys.liveliness("up"))
+        line = agent.stderr.readline()                     # bounded: the agent's grace
+        assert line.startswith("adnmesh agent availability: adnmesh up back in sight after "), line
+        assert line.endswith(" s (the session lost the router; what crossed the gap is lost)\n")
+    finally:
+        agent.kill()
+        agent.wait()
+        token.undeclare()
+        router.close()

@@ -383,8 +383,14 @@ class AgentProcess:
                 self.reported = True
                 self._report()
             elif self.up_gone and not self.said_bye:
+                away = time.monotonic() - self._up_gone_at
                 self.up_gone, self._up_gone_at = False, None
                 self.reconnects += 1
+                # said at once: messages that crossed the gap are lost, and on the sim clock
+                # a run that then stalls waiting for one should say why
+                print(f"adnmesh agent {self.agent}: adnmesh up back in sight after {away:.1f} s "
+                      "(the session lost the router; what crossed the gap is lost)",
+                      file=sys.stderr, flush=True)
             self.lock.notify()
 
     def _up_lost(self) -> bool:
