@@ -47,6 +47,7 @@ import gc
 import os
 import signal
 import sys
+import sysconfig
 import threading
 import time
 import traceback
@@ -75,6 +76,28 @@ _LET_IN_S = 5e-5            # ... and how long it then lets them have the lock, 
 _KILL_WAIT_S = 2.0  # longest wait for `up` to acknowledge the last report before a kill, s
 _UP_GRACE_S = SESSION_GRACE_S  # how long `up` may stay out of sight (a session reconnecting)
                                # before we stop; up waits as long for an external agent
+
+
+_CRASH_FLUSH_S = 1.0  # longest wait for what an agent that failed had published, s
+_CRASHING = threading.Lock()
+
+
+def _where(exc: Exception) -> str:
+    """`` (file.py:line)`` of the innermost frame of the agent's own code in the traceback of
+    ``exc`` -- adnmesh's, or any outside the standard library and site-packages (the innermost
+    of all if none is) --, or ``""``."""
+    frames = traceback.extract_tb(exc.__traceback__)
+    if not frames:
+        return ""
+    stdlib = sysconfig.get_paths()["stdlib"]
+
+    def own(filename: str) -> bool:
+        parts = set(Path(filename).parts)
+        return bool({"adnmesh", "agents"} & parts) or (
+            "site-packages" not in parts and not filename.startswith(stdlib))
+
+    frame = ([f for f in frames if own(f.filename)] or frames)[-1]
+    return f" ({Path(frame.filename).name}:{frame.lineno})"
 
 
 def add_agent_arguments(parser) -> None:
@@ -216,13 +239,23 @@ class AgentProcess:
         return run
 
     def _crash(self, exc: Exception) -> None:
-        """Say in one line where the agent's code failed and end the process with
-        :data:`EXIT_INTERNAL_ERROR` (see there)."""
-        where = traceback.extract_tb(exc.__traceback__)
-        at = f" ({Path(where[-1].filename).name}:{where[-1].lineno})" if where else ""
-        print(f"adnmesh agent {self.agent}: internal error: {type(exc).__name__}: {exc}{at}; "
-              "the agent stops", file=sys.stderr, flush=True)
-        os._exit(EXIT_INTERNAL_ERROR)
+        """Say in one line where the agent's code failed, give what is already published
+        :data:`_CRASH_FLUSH_S` to leave (the session is closed on another thread: the calling
+        one may be Zenoh's), and end the process with :data:`EXIT_INTERNAL_ERROR` (see there).
+        A second thread that fails meanwhile waits here: one line, one exit."""
+        with _CRASHING:
+            print(f"adnmesh agent {self.agent}: internal error: {type(exc).__name__}: {exc}"
+                  f"{_where(exc)}; the agent stops", file=sys.stderr, flush=True)
+            closer = threading.Thread(target=self._close_quietly, daemon=True)
+            closer.start()
+            closer.join(_CRASH_FLUSH_S)
+            os._exit(EXIT_INTERNAL_ERROR)
+
+    def _close_quietly(self) -> None:
+        try:
+            self.session.close()
+        except Exception:   # closing a session mid-callback: whatever left, left
+            pass
 
     def startup(self) -> None:
         """Subscribe, declare liveliness and send the first report (see the module docstring)."""
@@ -378,7 +411,8 @@ class AgentProcess:
         # goes on, and stops only if up stays away (_UP_GRACE_S)
         with self.lock:
             if sample.kind == zenoh.SampleKind.DELETE:
-                self.up_gone, self._up_gone_at = True, time.monotonic()
+                if not self.up_gone:             # a repeated DELETE: away since the first
+                    self.up_gone, self._up_gone_at = True, time.monotonic()
             elif not self.reported:
                 self.reported = True
                 self._report()
