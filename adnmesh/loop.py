@@ -95,8 +95,8 @@ def disk_margin_bound(plant: Plant, kp, ki, per_decade: int = 100) -> np.ndarray
     certification or refinement (in chunks of :data:`CHUNK` candidates): a candidate whose
     bound is below a limit violates that disk-margin constraint, stable or not (an unstable
     loop's disk margin is 0). Any grid gives a bound; with the default ``per_decade`` (the
-    certified grid's) it is the one :func:`evaluate`'s ``screen`` uses, a coarser one is
-    cheaper and looser.
+    certified grid's) it is the kind :func:`evaluate`'s ``screen`` uses (the same values
+    for the same batch and chunking), a coarser one is cheaper and looser.
     """
     kp, ki, gains = as_candidates(plant, kp, ki)
     out = np.empty(kp.size)

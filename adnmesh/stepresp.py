@@ -54,8 +54,8 @@ _COARSEN_CURVATURE = 1e-7
 class StepInfo:
     """Step-response figures of ``G_CL`` per candidate (arrays of shape (M,)).
 
-    The final value is the DC gain, exactly 1 (integral action). Unstable or unsimulated
-    candidates carry NaN.
+    The final value is the DC gain, exactly 1 (integral action). Candidates not simulated
+    (left out by ``mask``: the callers leave out the unstable ones) carry NaN.
 
     Attributes
     ----------
@@ -386,7 +386,9 @@ def _by_active_groups(plant: Plant, gains: np.ndarray, sel: np.ndarray):
 def step_info(plant: Plant, kp, ki, band_pct: float = 5.0, h: float | None = None,
               bandwidth_rad_s=None, mask=None, t_max_s: float = 20000.0,
               overshoot_stop_pct: float | None = None, until_rise: bool = False) -> StepInfo:
-    """Step info of ``G_CL`` for M candidates (all assumed closed-loop stable).
+    """Step info of ``G_CL`` for M candidates (simulated as they are: an unstable loop's
+    figures describe its diverging response up to the horizon; callers that need stable loops
+    pass them in ``mask``).
 
     Parameters
     ----------

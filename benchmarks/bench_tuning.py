@@ -89,10 +89,11 @@ def same_entries(new, base) -> None:
             if n.figures.get("tuned_by") != "paper" or abs(d_new / d_old - 1) > 1e-9:
                 differ += 1
     r = np.array(ratio)
+    rise = (f"global rise time new/baseline median {np.median(r):.6f}, range {r.min():.6f} - "
+            f"{r.max():.6f}, {int(np.sum(np.abs(r - 1) > 0.005))} off by more than 0.5 %"
+            if r.size else "no subset has a global rise time in both tables")
     print(f"  entries vs baseline: {subsets} subsets, feasibility or path result differs on "
-          f"{differ}; global rise time new/baseline median {np.median(r):.6f}, "
-          f"range {r.min():.6f} - {r.max():.6f}, {int(np.sum(np.abs(r - 1) > 0.005))} off by "
-          f"more than 0.5 %" + (f"; paper path entries compared: {paper}" if paper else ""))
+          f"{differ}; {rise}" + (f"; paper path entries compared: {paper}" if paper else ""))
 
 
 def _run_cli(src: Path, config: str, method: str, workers: int, out: Path) -> tuple[float, float]:

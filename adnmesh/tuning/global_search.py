@@ -156,8 +156,8 @@ def _column_tops(problem, fractions, plant, lkp, lki, best: _Best):
     they are the most expensive to simulate. Nor are the points of a column below an
     infeasible simulated point no faster than the plant's best so far (they are slower still).
     Returns (top row per column, -1 where none is feasible or the column was dropped; the
-    column's rise-time bound, the rise time of its lowest infeasible simulated point or -inf;
-    evaluations).
+    column's rise-time bound, the rise time of its lowest infeasible simulated point times
+    ``1 - RISE_SLACK``, or -inf; evaluations: screened points plus checks).
     """
     a_n, r_n, c_n = lkp.shape
     rows = np.repeat(plant, r_n * c_n)
