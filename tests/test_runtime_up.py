@@ -348,7 +348,7 @@ def test_rt_priority_needs_the_realtime_clock(capsys) -> None:
     assert capsys.readouterr().err == "adnmesh: error: --rt-priority needs --clock realtime\n"
 
 
-_BROKEN_AGENT = """
+_AGENT = """
 import sys
 import zenoh
 from adnmesh.config import load_config
@@ -363,9 +363,10 @@ class Broken(AvailabilityMonitor):
             raise ZeroDivisionError("a bug in the agent's own code")
         return super().on_timer(t_ns)
 
+kind = Broken if sys.argv[3] == "broken" else AvailabilityMonitor
 config = load_config(sys.argv[1])
 with zenoh.open(client_config([sys.argv[2]])) as session:
-    AgentProcess(session, Node.for_config(Broken(config), config), config.grid).serve()
+    AgentProcess(session, Node.for_config(kind(config), config), config.grid).serve()
 """
 
 
@@ -405,7 +406,7 @@ def test_an_agent_whose_code_raises_in_a_window_ends_at_once_with_one_line() -> 
     with zenoh.open(router_config([endpoint])) as router:
         token = router.liveliness().declare_token(keys.liveliness("up"))
         sub = router.declare_subscriber(report_key, on_report)
-        agent = subprocess.Popen([sys.executable, "-c", _BROKEN_AGENT, str(CASE), endpoint],
+        agent = subprocess.Popen([sys.executable, "-c", _AGENT, str(CASE), endpoint, "broken"],
                                  stderr=subprocess.PIPE, text=True)
         try:
             report_granted(0)                                       # ready
@@ -430,22 +431,6 @@ def test_an_agent_whose_code_raises_in_a_window_ends_at_once_with_one_line() -> 
         "own code (<string>:13); the agent stops"]
 
 
-_PLAIN_AGENT = """
-import sys
-import zenoh
-from adnmesh.config import load_config
-from adnmesh.control.availability import AvailabilityMonitor
-from adnmesh.runtime.bus import client_config
-from adnmesh.runtime.process import AgentProcess
-from adnmesh.sim.node import Node
-
-config = load_config(sys.argv[1])
-with zenoh.open(client_config([sys.argv[2]])) as session:
-    AgentProcess(session, Node.for_config(AvailabilityMonitor(config), config),
-                 config.grid).serve()
-"""
-
-
 def test_an_agent_that_lost_the_router_says_so_when_up_is_back_in_sight() -> None:
     # up is played by the test; its router goes away and a new one takes the same endpoint
     import queue
@@ -464,7 +449,7 @@ def test_an_agent_that_lost_the_router_says_so_when_up_is_back_in_sight() -> Non
     router = zenoh.open(router_config([endpoint]))
     token = router.liveliness().declare_token(keys.liveliness("up"))
     sub = router.declare_subscriber(keys.report("availability"), lambda s: reported.set())
-    agent = subprocess.Popen([sys.executable, "-c", _PLAIN_AGENT, str(CASE), endpoint],
+    agent = subprocess.Popen([sys.executable, "-c", _AGENT, str(CASE), endpoint, "plain"],
                              stderr=subprocess.PIPE, text=True)
     try:
         assert reported.wait(60)

@@ -68,7 +68,6 @@ from adnmesh.wire.messages import MESSAGE_TYPES, MESSAGE_VERSION
 __all__ = ["AgentProcess", "add_agent_arguments", "die_with_parent", "load_config_or_exit",
            "open_session"]
 
-
 _WAIT_S = 1.0       # longest sleep between checks of the stop flag, s
 _BYE_WAIT_S = 5.0   # longest wait after the goodbye for `up` to confirm it, s
 _CATCH_UP_NS = 50_000_000   # realtime: sim time processed at most between two looks at the bus
@@ -244,12 +243,16 @@ class AgentProcess:
         one may be Zenoh's), and end the process with :data:`EXIT_INTERNAL_ERROR` (see there).
         A second thread that fails meanwhile waits here: one line, one exit."""
         with _CRASHING:
-            print(f"adnmesh agent {self.agent}: internal error: {type(exc).__name__}: {exc}"
-                  f"{_where(exc)}; the agent stops", file=sys.stderr, flush=True)
+            self._say(f"internal error: {type(exc).__name__}: {exc}{_where(exc)}; the agent "
+                      "stops")
             closer = threading.Thread(target=self._close_quietly, daemon=True)
             closer.start()
             closer.join(_CRASH_FLUSH_S)
             os._exit(EXIT_INTERNAL_ERROR)
+
+    def _say(self, text: str) -> None:
+        """One line on stderr, at once: ``adnmesh agent <id>: <text>``."""
+        print(f"adnmesh agent {self.agent}: {text}", file=sys.stderr, flush=True)
 
     def _close_quietly(self) -> None:
         try:
@@ -422,9 +425,8 @@ class AgentProcess:
                 self.reconnects += 1
                 # said at once: messages that crossed the gap are lost, and on the sim clock
                 # a run that then stalls waiting for one should say why
-                print(f"adnmesh agent {self.agent}: adnmesh up back in sight after {away:.1f} s "
-                      "(the session lost the router; what crossed the gap is lost)",
-                      file=sys.stderr, flush=True)
+                self._say(f"adnmesh up back in sight after {away:.1f} s (the session lost "
+                          "the router; what crossed the gap is lost)")
             self.lock.notify()
 
     def _up_lost(self) -> bool:
