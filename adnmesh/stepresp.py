@@ -41,7 +41,7 @@ from .plant import Plant
 from .stepfigures import StepFigureAccumulator
 
 __all__ = ["StepInfo", "simulate_step", "step_info", "step_info_from_samples", "choose_step",
-           "choose_steps"]
+           "choose_steps", "integral_rate"]
 
 _SETTLED_BAND = 0.005
 #: samples per block of precomputed delay taps (bounds their memory to ~100 MB)
@@ -294,12 +294,32 @@ def step_info_from_samples(h: float, y: np.ndarray, band_pct: float = 5.0) -> St
                     acc.peak, acc.peak_t, float(h), horizon)
 
 
-def _horizon_floor(plant: Plant, gains: np.ndarray, bandwidth: np.ndarray) -> np.ndarray:
+def integral_rate(gains: np.ndarray, kp, ki) -> np.ndarray:
+    """``K_I P / (1 + K_P P)`` with ``P = sum_g K_g`` (the loop's DC gain), 1/s; shape (M,).
+
+    The closed loop's slowest pole when the loop gain is small at the actuators' corner
+    frequencies (the PI zero and the integrator against a plant that is 1 there): a lower
+    bound of the loop's bandwidth wherever the sampled disk-margin peak lies (for a loop
+    with tiny gains that peak sits at the low end of the frequency grid, ~1e-7 rad/s).
+    """
+    total = np.atleast_2d(gains).sum(axis=1)
+    return np.asarray(ki) * total / (1.0 + np.asarray(kp) * total)
+
+
+def _horizon_floor(plant: Plant, gains: np.ndarray, bandwidth: np.ndarray,
+                   rate: np.ndarray | None = None) -> np.ndarray:
     """Shortest horizon per candidate, s: 4 x (slowest active time constant + path delay)
-    and 20 / bandwidth, so slow tails of minor actuators are seen before settling is judged."""
+    and 20 / bandwidth, so slow tails of minor actuators are seen before settling is judged.
+
+    ``rate`` (1/s, :func:`integral_rate`) bounds the bandwidth from below: a disk-margin
+    frequency far below it (the peak of a loop with tiny gains) would ask for a horizon no
+    response needs (20 / 1.2e-7 rad/s = 5 years for a 6.5 kW DER alone at 1e-8 1/W).
+    """
     slow = np.array([a.time_constants_s.max() + d
                      for a, d in zip(plant.actuators, plant.path_delays_s)])
     base = np.max(np.where(gains > 0, slow[None, :], 0.0), axis=1) * 4.0
+    if rate is not None:
+        bandwidth = np.where(np.isfinite(bandwidth), np.maximum(bandwidth, rate), bandwidth)
     return np.maximum(base, np.where(np.isfinite(bandwidth), 20.0 / bandwidth, 0.0))
 
 
@@ -429,7 +449,7 @@ def step_info(plant: Plant, kp, ki, band_pct: float = 5.0, h: float | None = Non
                                             plant.t_meas_s), bw[idx])
         else:
             steps[idx] = h
-        t_min = _horizon_floor(plant, gains, bw)
+        t_min = _horizon_floor(plant, gains, bw, integral_rate(gains, kp, ki))
         t_max = np.broadcast_to(np.asarray(t_max_s, float), (m,))
         stop = None if overshoot_stop_pct is None else 1.0 + overshoot_stop_pct / 100.0
         limit = float(plant.path_delays_s.min())

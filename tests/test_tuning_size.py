@@ -91,8 +91,8 @@ def test_a_weak_single_der_loop_is_simulated_until_it_settles(adn100) -> None:
     import numpy as np
 
     from adnmesh.stepresp import simulate_step, step_info_from_samples
-    from adnmesh.tuning.problem import T_MAX_S
-    from adnmesh.tuning.weights import find_weights, horizon_s
+    from adnmesh.tuning.problem import T_MAX_S, horizon_s
+    from adnmesh.tuning.weights import find_weights
 
     exact = TuningProblem(adn100)
     total = exact.group_power(adn100.der_ids()).sum()
@@ -110,6 +110,30 @@ def test_a_weak_single_der_loop_is_simulated_until_it_settles(adn100) -> None:
     assert chk.overshoot_pct[0] == pytest.approx(ref.overshoot_pct[0], abs=1e-3)
     w = find_weights(exact, [(("D047", "D048", "D049"), kp, ki)])[0]
     assert w["D048"] == 1.0 and np.isfinite(list(w.values())).all()
+
+
+def test_a_loop_far_weaker_than_its_disk_margin_peak_settles_as_a_first_order_lag(adn100) -> None:
+    """D048 (6.5 kW) alone under gains that suit all 24.9 MW: the disk-margin peak sits at
+    the low end of the frequency grid (~1e-7 rad/s), and a settling floor of 20 / that
+    frequency (five years) made the loop "slow" for ever. Its bandwidth is at least the
+    integral rate ``K_I P / (1 + K_P P)``; so weak a loop is a first-order lag of that rate
+    (its delays and lags are seconds against a ~6.6 h time constant), whose rise time is
+    ``ln 9 / rate`` in closed form."""
+    import numpy as np
+
+    from adnmesh.stepresp import integral_rate
+    from adnmesh.tuning.problem import horizon_s
+
+    exact = TuningProblem(adn100)
+    kp, ki = 1.1925e-8, 6.494e-9                       # the example's static pair, 1/W, 1/(W s)
+    g = exact.group_power(["D048"])[None]
+    p = g.sum()
+    rate = integral_rate(g, kp, ki)[0]
+    assert rate == pytest.approx(ki * p / (1 + kp * p))
+    chk = exact.check(g, kp, ki, t_max_s=horizon_s(g, kp, ki))
+    assert chk.feasible[0], chk.reason
+    assert chk.rise_time_s[0] == pytest.approx(np.log(9.0) / rate, rel=2e-3)
+    assert chk.overshoot_pct[0] < 0.1
 
 
 def test_the_table_up_tunes_for_itself_has_a_static_pair(configs_dir: Path, tmp_path) -> None:

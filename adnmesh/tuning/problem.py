@@ -17,9 +17,9 @@ import numpy as np
 
 from ..loop import LoopFigures, disk_margin_bound, evaluate
 from ..plant import Actuator, Plant
-from ..stepresp import step_info
+from ..stepresp import integral_rate, step_info
 
-__all__ = ["TuningProblem", "Check", "all_subsets", "T_MAX_S"]
+__all__ = ["TuningProblem", "Check", "all_subsets", "T_MAX_S", "horizon_s"]
 
 #: longest simulated step response in a constraint check, s
 T_MAX_S = 20000.0
@@ -27,6 +27,27 @@ T_MAX_S = 20000.0
 #: certified grid has 100: 4x the cost, and on SimBench's global grid only 0.3 % fewer
 #: candidates left for a full check)
 SCREEN_PER_DECADE = 25
+#: a weak loop is simulated for this many of its slow time constants at least: twice the
+#: step response's own horizon floor (20 / bandwidth, the bandwidth at least the integral
+#: rate), so that it can settle within the horizon
+SLOW_MODES = 40.0
+#: ... but never longer than this, s
+HORIZON_CAP_S = 1e6
+
+
+def horizon_s(gains: np.ndarray, kp, ki) -> np.ndarray:
+    """Longest step-response horizon of loops, s: ``T_MAX_S``, or ``SLOW_MODES`` times the
+    loop's slow time constant ``(1 + K_P K) / (K_I K)`` (``K`` its gain in W: the PI's
+    integral mode with the plant at its DC gain, :func:`adnmesh.stepresp.integral_rate`)
+    if that is longer, capped at ``HORIZON_CAP_S``; shape (M,).
+
+    A DER with a tiny share of a subset's power (Find W), or a small subset under a static
+    pair that suits the largest ones, has a loop so weak that it settles only after hours of
+    simulated time; judged on ``T_MAX_S`` alone it counts as "slow". Its constraints (disk
+    margin, overshoot) still have to be decided, so its response is simulated until it
+    settles.
+    """
+    return np.clip(SLOW_MODES / integral_rate(gains, kp, ki), T_MAX_S, HORIZON_CAP_S)
 
 
 @dataclass(frozen=True)
@@ -133,9 +154,12 @@ class TuningProblem:
                               for a in self.actuators])
         return np.atleast_2d(fractions) @ per_group
 
-    def figures(self, gains: np.ndarray, kp, ki, classical: bool = True) -> LoopFigures:
-        """All figures of merit (full step info, no shortcuts) — for reporting."""
-        return evaluate(self.plant(gains), kp, ki, band_pct=self.band_pct, classical=classical)
+    def figures(self, gains: np.ndarray, kp, ki, classical: bool = True,
+                t_max_s=T_MAX_S) -> LoopFigures:
+        """All figures of merit (full step info, no shortcuts) — for reporting; step
+        responses simulated for at most ``t_max_s`` (s, one or one per candidate)."""
+        return evaluate(self.plant(gains), kp, ki, band_pct=self.band_pct, classical=classical,
+                        t_max_s=t_max_s)
 
     def may_meet_disk_margin(self, gains: np.ndarray, kp, ki) -> np.ndarray:
         """False where a candidate violates the disk-margin constraint for certain (its

@@ -27,9 +27,9 @@ from __future__ import annotations
 import numpy as np
 
 from ..freqresp import loop_response
-from .problem import T_MAX_S, TuningProblem
+from .problem import TuningProblem, horizon_s
 
-__all__ = ["find_weights", "find_weights_sequential", "horizon_s", "W_STEP", "SCREEN_SLACK"]
+__all__ = ["find_weights", "find_weights_sequential", "W_STEP", "SCREEN_SLACK"]
 
 W_STEP = 0.001
 _BLOCK = 64
@@ -48,29 +48,6 @@ def _jobs(problem: TuningProblem, entries):
     kp = np.array([entries[e][1] for e, _ in jobs], float)
     ki = np.array([entries[e][2] for e, _ in jobs], float)
     return jobs, gains, kp, ki
-
-
-#: a single-DER loop is simulated for this many of its slow time constants at least
-SLOW_MODES = 10.0
-#: ... but never longer than this, s
-HORIZON_CAP_S = 1e6
-
-
-def horizon_s(gains: np.ndarray, kp, ki) -> np.ndarray:
-    """Longest step-response horizon of single-DER loops, s: ``T_MAX_S``, or ``SLOW_MODES``
-    times the loop's slow time constant ``(1 + K_P K) / (K_I K)`` (``K`` its gain in W, the
-    PI's integral mode with the plant at its DC gain) if that is longer, capped at
-    ``HORIZON_CAP_S``.
-
-    A DER with a tiny share of the subset's power has a loop so weak that it settles only
-    after hours of simulated time; judged on ``T_MAX_S`` alone it counts as "slow", and
-    lowering its weight (Find W) only makes it slower, down to 0. Its constraints (disk
-    margin, overshoot) are what Find W must decide, so its response is simulated until it
-    settles.
-    """
-    k = np.atleast_2d(gains).sum(axis=1)
-    tau = (1.0 + np.asarray(kp) * k) / (np.asarray(ki) * k)
-    return np.clip(SLOW_MODES * tau, T_MAX_S, HORIZON_CAP_S)
 
 
 def _feasible(problem: TuningProblem, gains, kp, ki) -> np.ndarray:
