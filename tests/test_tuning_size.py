@@ -167,3 +167,18 @@ def test_no_static_pair_is_designed_beyond_the_exact_class_limit(adn100) -> None
     said: list[str] = []
     assert up._static(adn100, [frozenset(adn100.der_ids())], said.append) is None
     assert said and "70 dynamics classes" in said[0], said
+
+
+def test_a_spread_sample_holds_subsets_of_every_size() -> None:
+    from adnmesh.tuning.problem import all_subsets
+    from adnmesh.tuning.subsets import random_subsets, spread_random_subsets
+
+    ids = [f"D{i:03d}" for i in range(100)]
+    got = spread_random_subsets(ids, 400, seed=3)
+    sizes = [len(s) for s in got]
+    assert len(set(got)) == 400 and spread_random_subsets(ids, 400, seed=3) == got
+    assert min(sizes) == 1 and max(sizes) >= 95 and sum(s <= 10 for s in sizes) >= 20
+    assert all(list(s) == sorted(s) for s in got)              # config order
+    # with each DER in it with probability 1/2 no subset of 100 DERs is small
+    assert min(len(s) for s in random_subsets(ids, 400)) > 20
+    assert spread_random_subsets(ids[:4], 100) == all_subsets(ids[:4])

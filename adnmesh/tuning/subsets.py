@@ -13,8 +13,10 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import UsageError
+from .problem import all_subsets
 
-__all__ = ["MAX_ALL_DERS", "select_subsets", "scenario_subsets", "random_subsets"]
+__all__ = ["MAX_ALL_DERS", "select_subsets", "scenario_subsets", "random_subsets",
+           "spread_random_subsets"]
 
 #: ``--subsets all`` is refused beyond this many DERs (2^16 - 1 = 65,535 subsets)
 MAX_ALL_DERS = 16
@@ -53,6 +55,23 @@ def random_subsets(ids, n: int, seed: int = SEED) -> list[tuple[str, ...]]:
             seen.add(s)
             out.append(s)
     return out
+
+
+def spread_random_subsets(ids, n: int, seed: int = SEED) -> list[tuple[str, ...]]:
+    """``n`` distinct random non-empty subsets of ``ids`` (every subset if there are no more),
+    each of a size drawn uniformly from 1 to all, then its DERs uniformly: a sample that
+    holds small subsets as well (with each DER in it with probability 1/2, a subset of 100
+    DERs has 50 +- 15 of them, and no small subset is ever drawn)."""
+    ids = list(ids)
+    if len(ids) < 63 and n >= 2 ** len(ids) - 1:
+        return all_subsets(ids)
+    rng = np.random.default_rng(seed)
+    seen: dict[tuple[str, ...], None] = {}
+    while len(seen) < n:
+        size = int(rng.integers(1, len(ids) + 1))
+        pick = np.sort(rng.choice(len(ids), size, replace=False))
+        seen.setdefault(tuple(ids[i] for i in pick), None)
+    return list(seen)
 
 
 def _from_file(path: Path, ids) -> list[tuple[str, ...]]:
