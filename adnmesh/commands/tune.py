@@ -97,7 +97,10 @@ def run(args: argparse.Namespace) -> int:
         if "verified_random_subsets" in s.figures:
             n = s.figures["verified_random_subsets"]
             sample = f"all {n}" if n == 2 ** len(s.ders) - 1 else f"{n} random"
-            print(f"  designed on the selection and the extreme plants, verified on {sample} "
-                  f"subsets "
-                  f"({s.figures['design_subsets_added_from_sample']} of them joined the design)")
+            f = s.figures
+            how = (f"lowered {f['lowered_on_exact_plant']} time(s) along its ray to pass on "
+                   f"the exact plant" if f.get("lowered_on_exact_plant")
+                   else f"{f['design_subsets_added_from_sample']} of them joined the design")
+            print(f"  designed on the selection and the extreme plants, verified on them and "
+                  f"{sample} subsets ({f.get('verified_plants', n)} plants; {how})")
     return 0

@@ -174,9 +174,9 @@ def _static(config: Config, subsets, log):
     designed): what the CPFC uses at once when it meets a subset the table lacks, while that
     subset is tuned. Designed on the scenario's subsets and the extreme plants and verified on
     random subsets (:func:`adnmesh.tuning.build.static_entry`; ~5 s for SimBench). Configs with
-    more dynamics classes than the on-demand tuner's exact limit are left without one: for the
-    100-DER example (70 classes) the design took 129 s and found no pair, because a
-    single small DER alone is too slow to settle within the simulated horizon."""
+    more dynamics classes than the on-demand tuner's exact limit are left without one here:
+    for the 100-DER example (70 classes) the design takes ~80 s, which ``adnmesh tune
+    --subsets scenario`` spends once (its table, given with ``--table``, has the pair)."""
     from adnmesh.tuning.build import static_entry
     from adnmesh.tuning.ondemand import MAX_EXACT_CLASSES
     from adnmesh.tuning.problem import TuningProblem
@@ -184,7 +184,8 @@ def _static(config: Config, subsets, log):
     problem = TuningProblem(config)
     if len(problem.actuators) > MAX_EXACT_CLASSES:
         log(f"no static controller: {len(problem.actuators)} dynamics classes (more than "
-            f"{MAX_EXACT_CLASSES}); a subset the table lacks waits for its on-demand tuning")
+            f"{MAX_EXACT_CLASSES}); a subset the table lacks waits for its on-demand tuning "
+            f"('adnmesh tune {config.path} --subsets scenario' makes a table with one)")
         return None
     t0 = time.perf_counter()
     entry = static_entry(problem, list(config.der_ids()), subsets)

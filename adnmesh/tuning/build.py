@@ -23,7 +23,7 @@ import numpy as np
 from ..table import FIGURE_KEYS, SchedulingTable, TableEntry, load_table, save_table
 from .global_search import tune_global
 from .paper import initial_values, tune_paper
-from .problem import TuningProblem, all_subsets
+from .problem import TuningProblem, all_subsets, horizon_s
 from .static import design_over, static_any_size
 from .weights import find_weights
 
@@ -338,8 +338,9 @@ def static_entry(problem: TuningProblem, ids: list[str],
 
     Over every subset when the table holds them all; over a selection (``subsets``) the pair
     is designed on those subsets and the extreme plants (:func:`~.static.extreme_subsets`)
-    and verified on a random sample of subsets, the failing ones joining the design
-    (:func:`~.static.static_any_size`): the subsets a run meets are not all in the table.
+    and verified on them and a random sample of subsets (:func:`~.static.static_any_size`):
+    the subsets a run meets are not all in the table. The figures are those of every plant
+    checked, each simulated until it settles.
     """
     verified = {}
     if subsets is None:
@@ -350,11 +351,14 @@ def static_entry(problem: TuningProblem, ids: list[str],
         res, cases, powers = any_size.result, any_size.cases, any_size.powers
         tot = powers.sum(axis=1)
         verified = {"verified_random_subsets": any_size.verified,
-                    "design_subsets_added_from_sample": any_size.added}
+                    "verified_plants": len(any_size.powers),
+                    "design_subsets_added_from_sample": any_size.added,
+                    "lowered_on_exact_plant": any_size.lowered}
     if not res.feasible:
         return TableEntry(tuple(ids), float("nan"), float("nan"), {d: 1.0 for d in ids}, False,
                           "no pair is feasible on every subset", verified)
-    fig = problem.figures(powers, np.full(len(tot), res.kp), np.full(len(tot), res.ki))
+    kp, ki = np.full(len(tot), res.kp), np.full(len(tot), res.ki)
+    fig = problem.figures(powers, kp, ki, t_max_s=horizon_s(powers, kp, ki))
     worst = next(s for s in cases
                  if np.allclose(problem.group_power(s), powers[res.worst_plant]))
     figures = {
