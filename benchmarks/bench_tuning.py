@@ -73,13 +73,14 @@ def same_entries(new, base) -> None:
     """How the new table's entries compare with the baseline's: for every subset the global
     optimum's rise time (new / baseline), and for the paper method whether the path's pair
     is identical."""
-    ratio, differ, paper, subsets = [], 0, 0, 0
+    ratio, differ, paper, subsets, identical = [], 0, 0, 0, 0
     for e in base.entries.values():
         n = new.lookup(e.ders)
         subsets += 1
         if n is None or n.feasible != e.feasible:
             differ += 1
             continue
+        identical += (n.kp, n.ki, n.w) == (e.kp, e.ki, e.w)
         g_new, g_old = n.figures.get("global_rise_time_s"), e.figures.get("global_rise_time_s")
         if g_new and g_old:
             ratio.append(g_new / g_old)
@@ -94,6 +95,11 @@ def same_entries(new, base) -> None:
             if r.size else "no subset has a global rise time in both tables")
     print(f"  entries vs baseline: {subsets} subsets, feasibility or path result differs on "
           f"{differ}; {rise}" + (f"; paper path entries compared: {paper}" if paper else ""))
+    same_static = ((new.static is None) == (base.static is None)
+                   and (new.static is None or (new.static.kp, new.static.ki)
+                        == (base.static.kp, base.static.ki)))
+    print(f"  gains K_P, K_I and weights W bit-identical on {identical} of {subsets}; "
+          f"static pair {'identical' if same_static else 'differs'}")
 
 
 def _run_cli(src: Path, config: str, method: str, workers: int, out: Path) -> tuple[float, float]:
