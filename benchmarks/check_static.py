@@ -3,7 +3,7 @@
 Draws subsets the design did not see (:func:`~adnmesh.tuning.subsets.spread_random_subsets`:
 sizes uniform from 1 to all, and as many with each DER in with probability 1/2), checks the
 static pair on each distinct exact plant (disk margin, overshoot, settled; every loop
-simulated for its own :func:`~adnmesh.tuning.problem.horizon_s`) and prints how many fail,
+simulated for its own horizon: :func:`~adnmesh.tuning.static.check_pair`) and prints how many fail,
 the least disk margin and the worst rise time.
 
     .venv/bin/python benchmarks/check_static.py configs/examples/adn-100.yaml T100.json \
@@ -20,7 +20,8 @@ from rich.progress import Progress
 from adnmesh.config import load_config
 from adnmesh.errors import ConfigError, UsageError
 from adnmesh.table import load_table
-from adnmesh.tuning.problem import TuningProblem, horizon_s
+from adnmesh.tuning.problem import TuningProblem
+from adnmesh.tuning.static import check_pair
 from adnmesh.tuning.subsets import random_subsets, spread_random_subsets
 
 BATCH = 250
@@ -55,10 +56,7 @@ def main() -> int:
         task = progress.add_task("checking the static pair", total=len(powers))
         for i in range(0, len(powers), BATCH):
             g = powers[i:i + BATCH]
-            tot = g.sum(axis=1)
-            f = g / tot[:, None]
-            kp, ki = static.kp * tot, static.ki * tot
-            c = problem.check(f, kp, ki, t_max_s=horizon_s(f, kp, ki))
+            c = check_pair(problem, g, static.kp, static.ki)
             failed += int((~c.feasible).sum())
             least = min(least, float(c.disk_margin.min()))
             if c.feasible.any():

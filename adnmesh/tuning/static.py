@@ -33,8 +33,8 @@ import numpy as np
 
 from .problem import T_MAX_S, TuningProblem, horizon_s
 
-__all__ = ["StaticResult", "static_controller", "design_over", "RATIOS", "AnySizeStatic", "extreme_subsets",
-           "static_any_size"]
+__all__ = ["StaticResult", "static_controller", "design_over", "RATIOS", "AnySizeStatic",
+           "extreme_subsets", "check_pair", "static_any_size"]
 
 #: initial rays K_I / K_P, 1/s
 RATIOS = np.geomspace(0.01, 10.0, 13)
@@ -246,7 +246,7 @@ def _distinct(problem: TuningProblem, subsets) -> tuple[list[tuple[str, ...]], n
     return [subsets[i] for i in first], powers[first]
 
 
-def _checked(problem: TuningProblem, powers: np.ndarray, kp: float, ki: float):
+def check_pair(problem: TuningProblem, powers: np.ndarray, kp: float, ki: float):
     """The exact check of the pair (1/W, 1/(W s)) on plants ``powers`` (W), each simulated
     for its own :func:`~.problem.horizon_s`."""
     tot = powers.sum(axis=1)
@@ -263,7 +263,7 @@ def _lowered_on_ray(problem: TuningProblem, powers: np.ndarray, kp: float, rho: 
     tot = powers.sum(axis=1)
     f = powers / tot[:, None]
     for lowered in range(_VERIFY_ROUNDS + 1):
-        chk = _checked(problem, powers, kp, rho * kp)
+        chk = check_pair(problem, powers, kp, rho * kp)
         if chk.feasible.all():
             return kp, chk, lowered
         fail = np.nonzero(~chk.feasible & (chk.reason != "slow"))[0]
@@ -272,7 +272,7 @@ def _lowered_on_ray(problem: TuningProblem, powers: np.ndarray, kp: float, rho: 
         hi = np.log(kp * tot[fail])
         lim = _limits(problem, f, np.full(fail.size, rho), hi + np.log(1e-4), hi, fail, T_MAX_S)
         kp = float(np.min(lim / tot[fail])) * (1.0 - 1e-9)
-    return None
+    return None                                         # not reached: the loop returns
 
 
 def static_any_size(problem: TuningProblem, ids, sample: int = 1000, seed: int = 7,
@@ -298,12 +298,13 @@ def static_any_size(problem: TuningProblem, ids, sample: int = 1000, seed: int =
     drawn = spread_random_subsets(ids, sample, seed)
     added = lowered = 0
     res = StaticResult(float("nan"), float("nan"), float("inf"), -1, False)
-    subsets, powers = _distinct(problem, cases + [s for s in drawn if s not in set(cases)])
+    designed_cases = set(cases)
+    subsets, powers = _distinct(problem, cases + [s for s in drawn if s not in designed_cases])
     for _ in range(rounds + 1):
         designed, _, res = design_over(design, cases)
         if not res.feasible:
             break
-        chk = _checked(problem, powers, res.kp, res.ki)
+        chk = check_pair(problem, powers, res.kp, res.ki)
         if reduced and not chk.feasible.all():
             got = _lowered_on_ray(problem, powers, res.kp, res.ki / res.kp)
             if got is not None:
