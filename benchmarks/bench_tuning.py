@@ -30,13 +30,18 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
+#: the caller's OpenBLAS setting, before importing adnmesh sets it to one thread: each run
+#: gets the environment it would get from the caller's shell
+_CALLER_OPENBLAS = os.environ.get("OPENBLAS_NUM_THREADS")
 
-from adnmesh.config import load_config
-from adnmesh.loop import evaluate
-from adnmesh.plant import plant_from_ders
-from adnmesh.table import load_table, save_table
-from adnmesh.tuning import tune_table
+import adnmesh  # noqa: E402,F401  (before numpy, for this process's in-process runs)
+import numpy as np  # noqa: E402
+
+from adnmesh.config import load_config  # noqa: E402
+from adnmesh.loop import evaluate  # noqa: E402
+from adnmesh.plant import plant_from_ders  # noqa: E402
+from adnmesh.table import load_table, save_table  # noqa: E402
+from adnmesh.tuning import tune_table  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -105,6 +110,9 @@ def same_entries(new, base) -> None:
 def _run_cli(src: Path, config: str, method: str, workers: int, out: Path) -> tuple[float, float]:
     """(wall s, CPU s of the process and its children) of one ``adnmesh tune`` from ``src``."""
     env = dict(os.environ, PYTHONPATH=str(src))
+    env.pop("OPENBLAS_NUM_THREADS", None)
+    if _CALLER_OPENBLAS is not None:
+        env["OPENBLAS_NUM_THREADS"] = _CALLER_OPENBLAS
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     subprocess.run([sys.executable, "-m", "adnmesh", "tune", config, "--method", method,

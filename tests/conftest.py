@@ -7,6 +7,7 @@ import os
 import signal
 from pathlib import Path
 
+import adnmesh  # noqa: F401  (first: it keeps OpenBLAS on one thread, read when numpy loads)
 import numpy as np
 import pytest
 

@@ -153,3 +153,18 @@ def test_schema_takes_a_name_from_its_registry(capsys) -> None:
     assert messages["p_ip"]["properties"]["p_ip_w"]["maximum"] == 1e15
     assert main(["schema"]) == 2
     assert "the following arguments are required: NAME" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("given, expected", [(None, "1"), ("2", "2")])
+def test_importing_adnmesh_keeps_openblas_on_one_thread_unless_told(given, expected) -> None:
+    """The package sets OpenBLAS to one thread before numpy loads (its idle threads busy-wait
+    and take CPU from the other tuning worker); a value the user set is kept."""
+    import os
+
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    if given is not None:
+        env["OPENBLAS_NUM_THREADS"] = given
+    out = subprocess.run([sys.executable, "-c",
+                          "import adnmesh, os; print(os.environ['OPENBLAS_NUM_THREADS'])"],
+                         env=env, capture_output=True, text=True, timeout=60, check=True)
+    assert out.stdout.strip() == expected
