@@ -1,0 +1,57 @@
+"""The compiled step-response kernels agree bit for bit where they overlap."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from adnmesh import _kernels, stepresp
+from adnmesh.plant import Actuator, Plant
+from adnmesh.stepresp import _Simulator
+
+
+def _simulator(m: int, seed: int) -> _Simulator:
+    """M loops of a three-group first-order plant (SimBench's dynamics), varied gains."""
+    rng = np.random.default_rng(seed)
+    acts = (Actuator(0.01, 0.234), Actuator(1.0, 11.18), Actuator(0.01, 0.0455))
+    gains = rng.dirichlet(np.ones(3), m)
+    plant = Plant(acts, gains, 0.1, 0.1)
+    return _Simulator(plant, rng.uniform(0.05, 0.6, m), rng.uniform(0.01, 0.3, m), 0.0025)
+
+
+def _general(kernel):
+    """``kernel`` (a general one) called with the first-order kernels' arguments: the
+    one-state arrays as views of the general shapes, (M, G, 1) and (G, 1, 1)."""
+    def call(steps, k0, ring, h, kp, ki, kc, phi, gl, gr, x, *rest):
+        kernel(steps, k0, ring, h, kp, ki, kc[:, :, None], phi[:, None, None], gl[:, None],
+               gr[:, None], x[:, :, None], *rest)
+    return call
+
+
+@pytest.mark.parametrize("m", [5, _kernels.PARALLEL_FROM + 3])       # serial and parallel
+def test_first_order_kernels_are_the_general_ones_bit_for_bit(m: int, monkeypatch) -> None:
+    """The specialised first-order kernels (which :class:`_Simulator` runs for PT1 plants)
+    give exactly the outputs and states of the general kernels, across block boundaries and
+    step doublings: 2.5 ms and 5 ms (whole-step delays, :func:`advance_exact`), then 20 ms
+    and 40 ms (interpolated delays, :func:`advance`)."""
+    fast, general = _simulator(m, 3), _simulator(m, 3)
+    assert fast.order == 1
+
+    def general_run(steps: int) -> np.ndarray:
+        with monkeypatch.context() as patch:
+            patch.setattr(stepresp, "advance_exact_first_order", _general(_kernels.advance_exact))
+            patch.setattr(stepresp, "advance_first_order", _general(_kernels.advance))
+            return general.run(steps)
+
+    exact = []
+    for steps in (1, 37, 2000, 400, 300):
+        exact.append(fast.exact_delays)
+        assert np.array_equal(fast.run(steps), general_run(steps))
+        if fast.k % 2:
+            assert np.array_equal(fast.run(1), general_run(1))
+        if fast.can_coarsen():
+            fast.coarsen()
+            general.coarsen()
+    assert exact == [True, True, True, False, False]
+    for name in ("x", "p_y", "y_hist", "x_int", "err"):
+        assert np.array_equal(getattr(fast, name), getattr(general, name)), name
+    assert np.abs(fast.run(10)).max() > 0.5                            # a real response
