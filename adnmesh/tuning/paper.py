@@ -42,8 +42,10 @@ ES_LIMIT = 20
 MAX_MOVES = 5000
 STEPS = (0.01, 0.001)
 KI_START_RETRIES = 3
-#: moves of the approach to the feasible set checked at once (see :func:`_approach`)
+#: moves of the approach to the feasible set screened at once (see :func:`_approach`), and
+#: the sub-blocks in which they are checked
 APPROACH_BLOCK = 32
+APPROACH_SPLITS = (0, 1, 4, 12, 32)
 AREA_KP_STEP = 0.10
 AREA_KI_STEP = 0.05
 AREA_KP_FLOOR = 0.01
@@ -97,17 +99,32 @@ def _approach(problem: TuningProblem, fractions, plants, kp, ki, step: float):
     """First feasible move of paths that have not met the feasible set yet, in blocks.
 
     Before its first feasible point a path only lowers ``kp`` by ``1 - step`` per move (``ki``
-    fixed), so the next ``APPROACH_BLOCK`` moves are known in advance and are checked at once.
-    Returns, per plant in ``plants``, the number of infeasible moves before the first feasible
-    one (``APPROACH_BLOCK`` if none in the block), and the block's kp values (P, B).
+    fixed), so the next ``APPROACH_BLOCK`` moves are known in advance. They are screened at
+    once on the sampled disk margin (:meth:`TuningProblem.may_meet_disk_margin`: a move that
+    fails it is infeasible for certain), and the rest checked in order, in sub-blocks of
+    :data:`APPROACH_SPLITS`, only for paths whose first feasible move is not yet known: the
+    moves after it are never used, and each of them, being feasible, would cost a step
+    response simulated until it settles. Returns, per plant in ``plants``, the number of
+    infeasible moves before the first feasible one (``APPROACH_BLOCK`` if none in the block),
+    the block's kp values (P, B) and the number of moves checked.
     """
     factors = (1.0 - step) ** np.arange(APPROACH_BLOCK)
     kps = kp[plants, None] * factors[None, :]
+    kis = np.repeat(ki[plants, None], APPROACH_BLOCK, axis=1)
     rows = np.repeat(plants, APPROACH_BLOCK)
-    ok = problem.check(fractions[rows], kps.ravel(), np.repeat(ki[plants], APPROACH_BLOCK))
-    feas = ok.feasible.reshape(plants.size, APPROACH_BLOCK)
-    first = np.where(feas.any(axis=1), np.argmax(feas, axis=1), APPROACH_BLOCK)
-    return first, kps
+    may = problem.may_meet_disk_margin(fractions[rows], kps.ravel(),
+                                       kis.ravel()).reshape(plants.size, APPROACH_BLOCK)
+    first = np.full(plants.size, APPROACH_BLOCK)
+    checked = 0
+    for lo, hi in zip(APPROACH_SPLITS[:-1], APPROACH_SPLITS[1:]):
+        p_idx, j = np.nonzero(may[:, lo:hi] & (first[:, None] == APPROACH_BLOCK))
+        if p_idx.size == 0:
+            continue
+        j = j + lo
+        ok = problem.check(fractions[plants[p_idx]], kps[p_idx, j], kis[p_idx, j]).feasible
+        checked += p_idx.size
+        np.minimum.at(first, p_idx[ok], j[ok])
+    return first, kps, checked
 
 
 def path_search(problem: TuningProblem, fractions, kp, ki, step: float, record: bool = False):
@@ -133,8 +150,8 @@ def path_search(problem: TuningProblem, fractions, kp, ki, step: float, record: 
             break
         new = idx[~seen[idx]]
         if new.size:
-            first, kps = _approach(problem, fractions, new, kp, ki, step)
-            evaluations += kps.size
+            first, kps, checked = _approach(problem, fractions, new, kp, ki, step)
+            evaluations += checked
             if record:
                 for i, j, row in zip(new, first, kps):
                     paths[i].extend((float(k), float(ki[i]), False) for k in row[:j])
