@@ -43,6 +43,54 @@ def _lag_step(phi, gl, gr, kc, x, tmp, u_l, u_r):  # pragma: no cover - compiled
     return y
 
 
+@numba.njit(cache=True, inline="always")
+def _first_order_step(phi, gl, gr, k, x, u_l, u_r):  # pragma: no cover - compiled
+    """:func:`_lag_step` for one state, the same operations: returns (new x, output)."""
+    acc = gl * u_l + gr * u_r
+    acc += phi * x
+    y = 0.0
+    y += k * acc
+    return acc, y
+
+
+@numba.njit(cache=True, inline="always")
+def _tap_inputs(p_y, m, i, g, l0, l1, lw, r0, r1, rw):  # pragma: no cover - compiled
+    """Group g's delayed input at the left and right end of step i, from the taps."""
+    u_l = p_y[m, l0[i, g]] * (1.0 - lw[i, g]) + p_y[m, l1[i, g]] * lw[i, g]
+    u_r = p_y[m, r0[i, g]] * (1.0 - rw[i, g]) + p_y[m, r1[i, g]] * rw[i, g]
+    return u_l, u_r
+
+
+@numba.njit(cache=True, inline="always")
+def _exact_inputs(p_y, m, col, j, d, ring):  # pragma: no cover - compiled
+    """The input delayed by exactly d steps at the left and right end of step j (column
+    ``col``); 0 before t = 0, and the left limit 0 at t = 0 itself for the right end."""
+    c_l = col - d
+    if c_l < 0:
+        c_l += ring
+    c_r = c_l + 1 if c_l + 1 < ring else 0
+    u_l = p_y[m, c_l] if j - d >= 0 else 0.0
+    u_r = p_y[m, c_r] if j + 1 - d > 0 else 0.0
+    return u_l, u_r
+
+
+@numba.njit(cache=True, inline="always")
+def _pi(kp, ki, half_h, y_meas, xi, e_prev):  # pragma: no cover - compiled
+    """The PI on the measured output: trapezoidal integral; returns (P_Y, integral, error)."""
+    e = 1.0 - y_meas
+    xi += half_h * (e_prev + e)
+    return kp * e + ki * xi, xi, e
+
+
+@numba.njit(cache=True, inline="always")
+def _exact_measured(y_hist, m, nxt, j, n_meas, ring):  # pragma: no cover - compiled
+    """The output delayed by exactly ``n_meas`` steps at sample j + 1 (column ``nxt``)."""
+    c_m = nxt - n_meas
+    if c_m < 0:
+        c_m += ring
+    return y_hist[m, c_m] if j + 1 - n_meas >= 0 else 0.0
+
+
 def _advance(steps, k0, ring, h, kp, ki, kc, phi, gl, gr, x, p_y, y_hist, x_int, err,
             l0, l1, lw, r0, r1, rw, m0, m1, mw, out):  # pragma: no cover - compiled
     """Advance every candidate ``steps`` samples; writes ``out[m, i]`` = y at sample k0+i+1.
@@ -52,7 +100,7 @@ def _advance(steps, k0, ring, h, kp, ki, kc, phi, gl, gr, x, p_y, y_hist, x_int,
     """
     m_count, g_count, n = x.shape
     half_h = 0.5 * h
-    for m in numba.prange(m_count):  # noqa: PLR1702
+    for m in numba.prange(m_count):
         xm = x[m].copy()
         tmp = np.empty(n)
         xi = x_int[m]
@@ -60,16 +108,12 @@ def _advance(steps, k0, ring, h, kp, ki, kc, phi, gl, gr, x, p_y, y_hist, x_int,
         for i in range(steps):
             y = 0.0
             for g in range(g_count):
-                u_l = p_y[m, l0[i, g]] * (1.0 - lw[i, g]) + p_y[m, l1[i, g]] * lw[i, g]
-                u_r = p_y[m, r0[i, g]] * (1.0 - rw[i, g]) + p_y[m, r1[i, g]] * rw[i, g]
+                u_l, u_r = _tap_inputs(p_y, m, i, g, l0, l1, lw, r0, r1, rw)
                 y += _lag_step(phi[g], gl[g], gr[g], kc[m, g], xm[g], tmp, u_l, u_r)
             col = (k0 + i + 1) % ring
             y_hist[m, col] = y
             y_meas = y_hist[m, m0[i]] * (1.0 - mw[i]) + y_hist[m, m1[i]] * mw[i]
-            e = 1.0 - y_meas
-            xi += half_h * (e_prev + e)
-            e_prev = e
-            p_y[m, col] = kp[m] * e + ki[m] * xi
+            p_y[m, col], xi, e_prev = _pi(kp[m], ki[m], half_h, y_meas, xi, e_prev)
             out[m, i] = y
         x[m] = xm
         x_int[m] = xi
@@ -94,7 +138,7 @@ def _advance_first_order(steps, k0, ring, h, kp, ki, kc, phi, gl, gr, x, p_y, y_
     :func:`_advance_exact_first_order`)."""
     m_count, g_count = x.shape
     half_h = 0.5 * h
-    for m in numba.prange(m_count):  # noqa: PLR1702
+    for m in numba.prange(m_count):
         xm = x[m].copy()
         km = kc[m].copy()
         xi = x_int[m]
@@ -102,21 +146,13 @@ def _advance_first_order(steps, k0, ring, h, kp, ki, kc, phi, gl, gr, x, p_y, y_
         for i in range(steps):
             y = 0.0
             for g in range(g_count):
-                u_l = p_y[m, l0[i, g]] * (1.0 - lw[i, g]) + p_y[m, l1[i, g]] * lw[i, g]
-                u_r = p_y[m, r0[i, g]] * (1.0 - rw[i, g]) + p_y[m, r1[i, g]] * rw[i, g]
-                acc = gl[g] * u_l + gr[g] * u_r
-                acc += phi[g] * xm[g]
-                xm[g] = acc
-                y_g = 0.0
-                y_g += km[g] * acc
+                u_l, u_r = _tap_inputs(p_y, m, i, g, l0, l1, lw, r0, r1, rw)
+                xm[g], y_g = _first_order_step(phi[g], gl[g], gr[g], km[g], xm[g], u_l, u_r)
                 y += y_g
             col = (k0 + i + 1) % ring
             y_hist[m, col] = y
             y_meas = y_hist[m, m0[i]] * (1.0 - mw[i]) + y_hist[m, m1[i]] * mw[i]
-            e = 1.0 - y_meas
-            xi += half_h * (e_prev + e)
-            e_prev = e
-            p_y[m, col] = kp[m] * e + ki[m] * xi
+            p_y[m, col], xi, e_prev = _pi(kp[m], ki[m], half_h, y_meas, xi, e_prev)
             out[m, i] = y
         x[m] = xm
         x_int[m] = xi
@@ -143,7 +179,7 @@ def _advance_exact(steps, k0, ring, h, kp, ki, kc, phi, gl, gr, x, p_y, y_hist, 
     """
     m_count, g_count, n = x.shape
     half_h = 0.5 * h
-    for m in numba.prange(m_count):  # noqa: PLR1702
+    for m in numba.prange(m_count):
         xm = x[m].copy()
         tmp = np.empty(n)
         xi = x_int[m]
@@ -154,23 +190,11 @@ def _advance_exact(steps, k0, ring, h, kp, ki, kc, phi, gl, gr, x, p_y, y_hist, 
             nxt = col + 1 if col + 1 < ring else 0
             y = 0.0
             for g in range(g_count):
-                d = n_in[g]
-                c_l = col - d
-                if c_l < 0:
-                    c_l += ring
-                c_r = c_l + 1 if c_l + 1 < ring else 0
-                u_l = p_y[m, c_l] if j - d >= 0 else 0.0
-                u_r = p_y[m, c_r] if j + 1 - d > 0 else 0.0
+                u_l, u_r = _exact_inputs(p_y, m, col, j, n_in[g], ring)
                 y += _lag_step(phi[g], gl[g], gr[g], kc[m, g], xm[g], tmp, u_l, u_r)
             y_hist[m, nxt] = y
-            c_m = nxt - n_meas
-            if c_m < 0:
-                c_m += ring
-            y_meas = y_hist[m, c_m] if j + 1 - n_meas >= 0 else 0.0
-            e = 1.0 - y_meas
-            xi += half_h * (e_prev + e)
-            e_prev = e
-            p_y[m, nxt] = kp[m] * e + ki[m] * xi
+            y_meas = _exact_measured(y_hist, m, nxt, j, n_meas, ring)
+            p_y[m, nxt], xi, e_prev = _pi(kp[m], ki[m], half_h, y_meas, xi, e_prev)
             out[m, i] = y
             col = nxt
         x[m] = xm
@@ -193,10 +217,10 @@ def _advance_exact_first_order(steps, k0, ring, h, kp, ki, kc, phi, gl, gr, x, p
                                x_int, err, n_in, n_meas, out):  # pragma: no cover - compiled
     """:func:`_advance_exact` with every group of first order: the state update
     ``x <- phi x + gl u_l + gr u_r`` and output ``kc x`` of :func:`_lag_step` written out for
-    one state, without the per-step array views (~2x faster)."""
+    one state (:func:`_first_order_step`), without the per-step array views (~2x faster)."""
     m_count, g_count = x.shape
     half_h = 0.5 * h
-    for m in numba.prange(m_count):  # noqa: PLR1702
+    for m in numba.prange(m_count):
         xm = x[m].copy()
         km = kc[m].copy()
         xi = x_int[m]
@@ -207,28 +231,12 @@ def _advance_exact_first_order(steps, k0, ring, h, kp, ki, kc, phi, gl, gr, x, p
             nxt = col + 1 if col + 1 < ring else 0
             y = 0.0
             for g in range(g_count):
-                d = n_in[g]
-                c_l = col - d
-                if c_l < 0:
-                    c_l += ring
-                c_r = c_l + 1 if c_l + 1 < ring else 0
-                u_l = p_y[m, c_l] if j - d >= 0 else 0.0
-                u_r = p_y[m, c_r] if j + 1 - d > 0 else 0.0
-                acc = gl[g] * u_l + gr[g] * u_r
-                acc += phi[g] * xm[g]
-                xm[g] = acc
-                y_g = 0.0
-                y_g += km[g] * acc
+                u_l, u_r = _exact_inputs(p_y, m, col, j, n_in[g], ring)
+                xm[g], y_g = _first_order_step(phi[g], gl[g], gr[g], km[g], xm[g], u_l, u_r)
                 y += y_g
             y_hist[m, nxt] = y
-            c_m = nxt - n_meas
-            if c_m < 0:
-                c_m += ring
-            y_meas = y_hist[m, c_m] if j + 1 - n_meas >= 0 else 0.0
-            e = 1.0 - y_meas
-            xi += half_h * (e_prev + e)
-            e_prev = e
-            p_y[m, nxt] = kp[m] * e + ki[m] * xi
+            y_meas = _exact_measured(y_hist, m, nxt, j, n_meas, ring)
+            p_y[m, nxt], xi, e_prev = _pi(kp[m], ki[m], half_h, y_meas, xi, e_prev)
             out[m, i] = y
             col = nxt
         x[m] = xm
