@@ -35,7 +35,8 @@ from math import gcd
 
 import numpy as np
 
-from ._kernels import advance, advance_exact, advance_exact_first_order, advance_first_order
+from ._kernels import (advance, advance_exact, advance_exact_first_order, advance_first_order,
+                       delay_taps)
 from .freqresp import as_candidates
 from .plant import Plant
 from .stepfigures import StepFigureAccumulator
@@ -214,19 +215,14 @@ class _Simulator:
     def _taps(self, n, f, first: int, steps: int, right_end: bool):
         """Ring columns and weights of a delayed signal for ``steps`` consecutive samples.
 
-        Sample position ``j - (n + f)`` for ``j = first, ..., first + steps - 1``; positions
+        Sample position ``pos = j - n - f`` for ``j = first, ..., first + steps - 1``: columns
+        ``floor(pos) % ring`` and the next, weight ``pos - floor(pos)`` on the next; positions
         before 0 read the zero column, and with ``right_end`` the position 0 itself reads the
-        left limit (0) of the step at t = 0. Returns ``(c0, c1, w1)``, each (steps, len(n)).
+        left limit (0) of the step at t = 0. Returns ``(c0, c1, w1)``, each (steps, len(n))
+        (compiled: :func:`adnmesh._kernels.delay_taps`).
         """
-        pos = np.arange(first, first + steps)[:, None] - n[None, :] - f[None, :]
-        j0 = np.floor(pos + 1e-9).astype(int)
-        w1 = pos - j0
-        zero = pos < -1e-9
-        if right_end:
-            zero |= np.abs(pos) < 1e-9
-        c0 = np.where(zero | (j0 < 0), self.ring, j0 % self.ring)
-        c1 = np.where(zero, self.ring, (j0 + 1) % self.ring)
-        return c0, c1, np.where(zero, 0.0, w1)
+        return delay_taps(first, steps, np.asarray(n, np.int64), np.asarray(f, float),
+                          self.ring, right_end)
 
     def run(self, steps: int) -> np.ndarray:
         """Advance ``steps`` steps and return y at the new samples, shape (M, steps)."""

@@ -55,3 +55,28 @@ def test_first_order_kernels_are_the_general_ones_bit_for_bit(m: int, monkeypatc
     for name in ("x", "p_y", "y_hist", "x_int", "err"):
         assert np.array_equal(getattr(fast, name), getattr(general, name)), name
     assert np.abs(fast.run(10)).max() > 0.5                            # a real response
+
+
+def _taps_numpy(n, f, first: int, steps: int, ring: int, right_end: bool):
+    """The delay taps in numpy (the implementation before the compiled one)."""
+    pos = np.arange(first, first + steps)[:, None] - n[None, :] - f[None, :]
+    j0 = np.floor(pos + 1e-9).astype(int)
+    zero = pos < -1e-9
+    if right_end:
+        zero |= np.abs(pos) < 1e-9
+    c0 = np.where(zero | (j0 < 0), ring, j0 % ring)
+    c1 = np.where(zero, ring, (j0 + 1) % ring)
+    return c0, c1, np.where(zero, 0.0, pos - j0)
+
+
+@pytest.mark.parametrize("right_end", [False, True])
+def test_compiled_delay_taps_are_the_numpy_ones(right_end: bool) -> None:
+    """Columns and weights of delayed samples, from before t = 0 (the zero column) to far
+    into a run, whole and fractional delays (including thirds, not exact in binary)."""
+    n = np.array([0, 5, 27, 110, 3])
+    f = np.array([0.0, 0.75, 0.5, 1 / 3, 0.875])
+    for first, steps in ((0, 40), (1, 300), (999_983, 64)):
+        got = _kernels.delay_taps(first, steps, n, f, 113, right_end)
+        want = _taps_numpy(n, f, first, steps, 113, right_end)
+        for g, w in zip(got, want):
+            assert g.shape == w.shape and np.array_equal(g, w)
