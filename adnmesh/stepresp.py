@@ -133,6 +133,28 @@ def _delay_taps(delay_s: np.ndarray, h: float):
     return n, f
 
 
+@functools.lru_cache(maxsize=1024)
+def _discretised(actuators: tuple, order: int, path_delays_s: tuple, t_meas_s: float, h: float):
+    """The simulation's matrices for step h (s), shared by every simulator of the same plant
+    dynamics and step (never written to): each group's FOH discretisation padded to
+    ``order`` states (Phi (G, n, n), gamma left and right (G, n), C (G, n)), the delays in
+    whole steps and fractions (path (G,), measurement (1,)) and the ring length. A search
+    builds thousands of simulators of the same few plants and steps."""
+    g, n = len(actuators), order
+    phi, gl, gr, c = np.zeros((g, n, n)), np.zeros((g, n)), np.zeros((g, n)), np.zeros((g, n))
+    for i, act in enumerate(actuators):
+        p_i, l_i, r_i, c_i = act.foh_discretisation(h)
+        k = p_i.shape[0]
+        phi[i, :k, :k], gl[i, :k], gr[i, :k], c[i, :k] = p_i, l_i, r_i, c_i
+    n_in, f_in = _delay_taps(np.array(path_delays_s), h)
+    n_meas, f_meas = _delay_taps(np.array([t_meas_s]), h)
+    if np.any(n_in + f_in < 1.0 - 1e-9):
+        raise ValueError("simulation step must not exceed T_com + T_delay")
+    # columns 0..ring-1 hold samples j % ring; column `ring` is the constant 0 of t < 0
+    ring = int(max(n_in.max(), n_meas.max())) + 3
+    return phi, gl, gr, c, n_in, f_in, n_meas, f_meas, ring
+
+
 class _Simulator:
     """Method-of-steps simulation of M loops sharing actuator dynamics and step h."""
 
@@ -162,24 +184,12 @@ class _Simulator:
         return self.k * self.h
 
     def _discretise(self, h: float) -> None:
-        acts = self.plant.actuators
-        g, n = len(acts), self.order
         self.h = h
-        self.phi = np.zeros((g, n, n))
-        self.gl = np.zeros((g, n))
-        self.gr = np.zeros((g, n))
-        self.c = np.zeros((g, n))
-        for i, act in enumerate(acts):
-            phi, gl, gr, c = act.foh_discretisation(h)
-            k = phi.shape[0]
-            self.phi[i, :k, :k], self.gl[i, :k], self.gr[i, :k], self.c[i, :k] = phi, gl, gr, c
-        self.n_in, self.f_in = _delay_taps(self.plant.path_delays_s, h)
-        self.n_meas, self.f_meas = _delay_taps(np.array([self.plant.t_meas_s]), h)
+        (self.phi, self.gl, self.gr, self.c, self.n_in, self.f_in, self.n_meas, self.f_meas,
+         self.ring) = _discretised(self.plant.actuators, self.order,
+                                   tuple(self.plant.path_delays_s.tolist()),
+                                   float(self.plant.t_meas_s), float(h))
         self.exact_delays = not (np.any(self.f_in) or np.any(self.f_meas))
-        if np.any(self.n_in + self.f_in < 1.0 - 1e-9):
-            raise ValueError("simulation step must not exceed T_com + T_delay")
-        # columns 0..ring-1 hold samples j % ring; column `ring` is the constant 0 of t < 0
-        self.ring = int(max(self.n_in.max(), self.n_meas.max())) + 3
 
     def can_coarsen(self) -> bool:
         """Doubling h keeps the scheme explicit (2h <= every forward path delay)."""
