@@ -186,8 +186,8 @@ def path_search(problem: TuningProblem, fractions, kp, ki, step: float, record: 
 
 
 def _rectangles(kp, ki, ki_init, step: float):
-    """Every plant's area-search rectangle (SPEC §3.3): rows (plant index), kp and ki of its
-    points, the plants in order and each plant's points in meshgrid order."""
+    """The points of every plant's area-search rectangle (SPEC §3.3): (plant index, kp, ki),
+    each shape (K,), plant by plant and each plant's points in meshgrid order."""
     cand_p, cand_kp, cand_ki = [], [], []
     n_kp = int(np.ceil(np.log(AREA_KP_FLOOR) / np.log(1 - AREA_KP_STEP))) + 1
     for p in range(kp.size):
@@ -235,10 +235,11 @@ def area_search(problem: TuningProblem, fractions, kp, ki, ki_init, step: float,
     open_ = np.nonzero(count > 0)[0]
     lo, width = 0, 1
     while open_.size:
+        # each open plant's candidates of rank lo, ..., lo + width - 1 (fastest first)
         take = np.minimum(count[open_] - lo, width)
         p_idx = np.repeat(open_, take)
-        pos = start[p_idx] + lo + (np.arange(p_idx.size) - np.repeat(np.cumsum(take) - take, take))
-        j = cand[pos]
+        rank = lo + np.arange(p_idx.size) - np.repeat(np.cumsum(take) - take, take)
+        j = cand[start[p_idx] + rank]
         chk = problem.check(fractions[rows[j]], kps[j], kis[j])
         evaluations += j.size
         # the first feasible point of a plant in rise order is its fastest
