@@ -10,10 +10,11 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from .freqresp import as_candidates
-from .margins import ClassicalMargins, DiskMargin, classical_margins, disk_margin
+from .freqresp import as_candidates, loop_response
+from ._freq_kernels import grid_pass
+from .margins import ClassicalMargins, DiskMargin, classical_margins, disk_margin_at
 from .plant import Plant
-from .stability import NyquistData, certified_grid, nyquist_stability
+from .stability import NyquistData, certified_omega, interval_bounds, winding_verdict
 from .stepresp import StepInfo, step_info
 
 __all__ = ["LoopFigures", "evaluate", "disk_margin_bound", "CHUNK"]
@@ -82,16 +83,11 @@ class LoopFigures:
         return out
 
 
-def _sampled_alpha(loop: np.ndarray) -> np.ndarray:
-    """``2 / max |1 - L| / |1 + L|`` over samples ``loop`` (M, N): never below the disk margin
-    (the peak of ``2 |S - 1/2|`` is at least its sampled maximum), shape (M,)."""
-    return 2.0 / (np.abs(1.0 - loop) / np.abs(1.0 + loop)).max(axis=1)
-
-
 def disk_margin_bound(plant: Plant, kp, ki, per_decade: int = 100) -> np.ndarray:
     """Upper bound of the disk margin alpha per candidate, shape (M,); cheap.
 
-    The sampled :func:`_sampled_alpha` on :func:`~adnmesh.stability.certified_grid`, without
+    ``2 / max |1 - L| / |1 + L|`` sampled on :func:`~adnmesh.stability.certified_grid` (never
+    below the disk margin: the peak of ``2 |S - 1/2|`` is at least its sampled maximum), without
     certification or refinement (in chunks of :data:`CHUNK` candidates): a candidate whose
     bound is below a limit violates that disk-margin constraint, stable or not (an unstable
     loop's disk margin is 0). Any grid gives a bound; with the default ``per_decade`` (the
@@ -103,8 +99,25 @@ def disk_margin_bound(plant: Plant, kp, ki, per_decade: int = 100) -> np.ndarray
     for start in range(0, kp.size, CHUNK):
         sl = slice(start, min(kp.size, start + CHUNK))
         sub = Plant(plant.actuators, gains[sl], plant.t_com_s, plant.t_meas_s)
-        out[sl] = _sampled_alpha(certified_grid(sub, kp[sl], ki[sl], per_decade)[1])
+        out[sl] = 2.0 / _grid_pass(sub, kp[sl], ki[sl], np.inf, per_decade)[1][0]
     return out
+
+
+def _grid_pass(plant: Plant, kp, ki, screen_min: float, per_decade: int = 100):
+    """The certified grid (rad/s) and :func:`adnmesh._freq_kernels.grid_pass` on it (the
+    winding only for candidates whose sampled disk margin reaches ``screen_min``)."""
+    kp, ki, gains = as_candidates(plant, kp, ki)
+    omega = certified_omega(plant, kp, ki, per_decade)
+    resp = np.ascontiguousarray(plant.group_responses(omega))
+    winding_too = screen_min != np.inf
+    if winding_too:
+        rho, drho = interval_bounds(plant, omega)
+    else:
+        rho = drho = np.zeros((len(plant.actuators), 0))
+    out = grid_pass(np.ascontiguousarray(kp, dtype=float), np.ascontiguousarray(ki, dtype=float),
+                    np.ascontiguousarray(gains, dtype=float), resp, omega, float(screen_min),
+                    rho, drho, winding_too)
+    return omega, out
 
 
 def _frequency_part(plant: Plant, kp, ki, classical: bool, screen_min: float | None = None):
@@ -114,27 +127,44 @@ def _frequency_part(plant: Plant, kp, ki, classical: bool, screen_min: float | N
     it are neither certified nor refined: the sampled ``2 |S - 1/2|`` is never above its
     refined peak, so their disk margin is below ``screen_min`` whatever their stability.
     They are reported not stable with the sampled value (an upper bound) as disk margin.
+    The verdicts and disk margins come from one compiled pass over the grid
+    (:func:`_screened_part`); ``L`` on the grid is built only for the classical margins.
     """
-    if screen_min is None:
-        nyq = nyquist_stability(plant, kp, ki)
-        dm = disk_margin(plant, kp, ki, nyq)
-    else:
-        kp, ki, gains = as_candidates(plant, kp, ki)
-        grid = certified_grid(plant, kp, ki)
-        loop = grid[1]
-        upper = _sampled_alpha(loop)
-        keep = upper >= screen_min
-        nyq = nyquist_stability(plant, kp, ki, grid=grid, only=keep)
-        alpha, omega = upper.copy(), np.full(kp.size, np.nan)
-        if keep.any():
-            sub = Plant(plant.actuators, gains[keep], plant.t_com_s, plant.t_meas_s)
-            part = NyquistData(nyq.omega, loop[keep], nyq.stable[keep],
-                               nyq.unstable_poles[keep], nyq.certified[keep])
-            d = disk_margin(sub, kp[keep], ki[keep], part)
-            alpha[keep], omega[keep] = d.alpha, d.omega
-        dm = DiskMargin(alpha, omega)
-    cm = classical_margins(plant, kp, ki, nyq) if classical else None
-    return nyq, dm, cm
+    nyq, dm, _ = _screened_part(plant, kp, ki, -np.inf if screen_min is None else screen_min)
+    if not classical:
+        return nyq, dm, None
+    kp, ki, gains = as_candidates(plant, kp, ki)
+    loop = loop_response(Plant(plant.actuators, gains, plant.t_com_s, plant.t_meas_s), kp, ki,
+                         nyq.omega)
+    nyq = NyquistData(nyq.omega, loop, nyq.stable, nyq.unstable_poles, nyq.certified)
+    return nyq, dm, classical_margins(plant, kp, ki, nyq)
+
+
+def _screened_part(plant: Plant, kp, ki, screen_min: float):
+    """:func:`_frequency_part` without classical margins (``screen_min`` -inf: every
+    candidate certified), from one compiled pass over the certified grid
+    (:func:`_grid_pass`): the verdicts and disk margins of
+    :func:`~adnmesh.stability.nyquist_stability` and :func:`~adnmesh.margins.disk_margin`
+    to rounding (``tests/test_freq_kernels.py``). Its :class:`NyquistData` has no ``loop``
+    (None)."""
+    kp, ki, gains = as_candidates(plant, kp, ki)
+    omega, (q_peak, q_prev, q_next, k_peak, keep, winding, bad) = _grid_pass(
+        plant, kp, ki, screen_min)
+    upper = 2.0 / q_peak
+    m = kp.size
+    stable, certified = np.zeros(m, bool), np.zeros(m, bool)
+    poles = np.full(m, -1)
+    alpha, w_disk = upper.copy(), np.full(m, np.nan)
+    if keep.any():
+        sub = Plant(plant.actuators, gains[keep], plant.t_com_s, plant.t_meas_s)
+        st, po, ce = winding_verdict(sub, kp[keep], ki[keep], gains[keep], omega,
+                                     winding[keep], bad[keep])
+        stable[keep], poles[keep], certified[keep] = st, po, ce
+        d = disk_margin_at(sub, kp[keep], ki[keep], omega, k_peak[keep], q_prev[keep],
+                           q_peak[keep], q_next[keep], st)
+        alpha[keep], w_disk[keep] = d.alpha, d.omega
+    return (NyquistData(omega, None, stable, poles, certified), DiskMargin(alpha, w_disk),
+            None)
 
 
 def evaluate(plant: Plant, kp, ki, *, band_pct: float = 5.0, classical: bool = True,

@@ -17,16 +17,18 @@ falsi for crossings) to ~1e-7 (peak) and ~1e-13 (crossings) relative frequency.
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
 
+from ._freq_kernels import refine_peaks
 from .freqresp import as_candidates, loop_points
 from .plant import Plant
 from .stability import NyquistData
 
-__all__ = ["DiskMargin", "ClassicalMargins", "disk_margin", "classical_margins", "crossing",
-           "peak"]
+__all__ = ["DiskMargin", "ClassicalMargins", "disk_margin", "disk_margin_at",
+           "classical_margins", "crossing", "peak"]
 
 _GOLDEN = (np.sqrt(5.0) - 1.0) / 2.0
 _GOLDEN_STEP = 1.0 - _GOLDEN                 # 0.382: a golden step into an interval
@@ -99,8 +101,9 @@ def disk_margin(plant: Plant, kp, ki, nyq: NyquistData) -> DiskMargin:
     """Balanced disk margin of M candidates.
 
     The peak of ``2 |S - 1/2|`` is taken from the certified grid of ``nyq`` and refined on
-    the exact response by :func:`peak` (the grid's end points, where no bracket exists, by a
-    golden section over their grid interval).
+    the exact response by :func:`peak`'s rule, compiled with the loop evaluated inside
+    (:func:`adnmesh._freq_kernels.refine_peaks`; the grid's end points, where no bracket
+    exists, by a golden section over their grid interval).
 
     Parameters
     ----------
@@ -110,24 +113,56 @@ def disk_margin(plant: Plant, kp, ki, nyq: NyquistData) -> DiskMargin:
     nyq : NyquistData
         Result of :func:`adnmesh.stability.nyquist_stability` for the same candidates.
     """
-    kp, ki, gains = as_candidates(plant, kp, ki)
     loop = nyq.loop
     q = np.abs(1.0 - loop) / np.abs(1.0 + loop)            # = 2 |S - 1/2|
     k = np.argmax(q, axis=1)
-    n = nyq.omega.size
-    logw = np.log(nyq.omega)
     rows = np.arange(q.shape[0])
+    n = nyq.omega.size
+    q_prev = np.where(k > 0, q[rows, np.maximum(k - 1, 0)], np.nan)
+    q_next = np.where(k < n - 1, q[rows, np.minimum(k + 1, n - 1)], np.nan)
+    return disk_margin_at(plant, kp, ki, nyq.omega, k, q_prev, q[rows, k], q_next, nyq.stable)
+
+
+@functools.lru_cache(maxsize=256)
+def _dynamics(actuators: tuple, t_ict_s: float):
+    """Per group the numerator (n0, n1, 0) and denominator (d0, d1, d2) of ``H_g`` and the
+    delays (T_delay, T_com + T_meas) in s, for :func:`adnmesh._freq_kernels.refine_peaks`;
+    shape (G, 3), (G, 3), (G, 2) (never written)."""
+    num, den = np.zeros((len(actuators), 3)), np.zeros((len(actuators), 3))
+    for g, act in enumerate(actuators):
+        num[g, :act.numerator.size] = act.numerator
+        den[g, :act.denominator.size] = act.denominator
+    delays = np.array([[a.t_delay_s, t_ict_s] for a in actuators], dtype=float)
+    return num, den, delays
+
+
+def disk_margin_at(plant: Plant, kp, ki, omega, k, q_prev, q_peak, q_next,
+                   stable) -> DiskMargin:
+    """:func:`disk_margin` from the sampled peak alone: per candidate the index ``k`` of the
+    largest ``q = 2 |S - 1/2|`` on the grid ``omega`` (rad/s, shape (N,)), ``q`` there and at
+    the samples before and after it (NaN past an end), and the stability verdict; arrays of
+    shape (M,) (e.g. from :func:`adnmesh._freq_kernels.grid_pass`)."""
+    kp, ki, gains = as_candidates(plant, kp, ki)
+    k = np.asarray(k)
+    n = omega.size
+    logw = np.log(omega)
 
     def value(x, i):
         lw = loop_points(plant, kp[i], ki[i], gains[i], np.exp(x))
         return np.abs(1.0 - lw) / np.abs(1.0 + lw)
 
-    best, where = q[rows, k].copy(), logw[k].copy()
+    best, where = np.array(q_peak, dtype=float), logw[k].copy()
     inner = np.nonzero((k > 0) & (k < n - 1))[0]
     if inner.size:
         kin = k[inner]
-        x, f = peak(lambda x, j: value(x, inner[j]), logw[kin - 1], logw[kin], logw[kin + 1],
-                    q[inner, kin - 1], q[inner, kin], q[inner, kin + 1])
+        # peak()'s rule, compiled with the loop evaluated inside (refine_peaks)
+        num, den, delays = _dynamics(plant.actuators, float(plant.t_com_s + plant.t_meas_s))
+        x, f = refine_peaks(np.ascontiguousarray(kp[inner], dtype=float),
+                            np.ascontiguousarray(ki[inner], dtype=float),
+                            np.ascontiguousarray(gains[inner], dtype=float), num, den, delays,
+                            logw[kin - 1], logw[kin], logw[kin + 1],
+                            np.ascontiguousarray(q_prev[inner], dtype=float), best[inner],
+                            np.ascontiguousarray(q_next[inner], dtype=float), PEAK_XTOL, 60)
         best[inner], where[inner] = f, x
     edge = np.nonzero((k == 0) | (k == n - 1))[0]
     if edge.size:
@@ -137,8 +172,8 @@ def disk_margin(plant: Plant, kp, ki, nyq: NyquistData) -> DiskMargin:
         better = f > best[edge]
         best[edge] = np.where(better, f, best[edge])
         where[edge] = np.where(better, x, where[edge])
-    alpha = np.where(nyq.stable, 2.0 / best, 0.0)
-    return DiskMargin(alpha, np.where(nyq.stable, np.exp(where), np.nan))
+    alpha = np.where(stable, 2.0 / best, 0.0)
+    return DiskMargin(alpha, np.where(stable, np.exp(where), np.nan))
 
 
 def peak(fun, x0, x1, x2, f0, f1, f2, xtol: float = PEAK_XTOL, iterations: int = 60):

@@ -25,6 +25,14 @@ W is computed exactly, not approximately, from samples, because every piece is c
    difference of the two samples is the true change. Intervals that fail the test are bisected
    (up to ``2**16`` pieces).
 
+In :func:`adnmesh.loop.evaluate` (every constraint check and figure) the samples, the
+Lipschitz test and the winding come from one compiled pass per candidate
+(:func:`adnmesh._freq_kernels.grid_pass`, then :func:`winding_verdict`): the wrapped arg
+changes of the intervals that pass telescope to ``arg F`` at the grid's ends plus ``2 pi`` per
+crossing of the negative real axis, so no angle is taken in the loop.
+:func:`nyquist_stability` is the same argument on numpy arrays, the reference the tests hold
+the pass to (``tests/test_freq_kernels.py``: the same verdicts).
+
 Failure modes: a loop with a closed-loop pole on or extremely close to the imaginary axis
 makes ``|F|`` vanish and the refinement cannot certify it; such candidates are reported with
 ``certified = False`` and treated as unstable. Negative gains or actuators with complex
@@ -32,17 +40,23 @@ denominator roots are outside the argument and rejected.
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
 
+from ._freq_kernels import first_above, last_at_least
 from .freqresp import as_candidates, log_grid, loop_at, loop_response
 from .plant import Plant
 
-__all__ = ["NyquistData", "nyquist_stability", "certified_grid"]
+__all__ = ["NyquistData", "nyquist_stability", "certified_grid", "certified_omega",
+           "interval_bounds", "winding_verdict"]
 
 _PER_DECADE = 100
 _MAX_REFINE_EXP = 16
+#: grids of the low- and high-frequency certificates, rad/s
+_LOW_GRID = np.geomspace(1e-12, 1e3, 15 * 20 + 1)
+_HIGH_GRID = np.geomspace(1e-4, 1e7, 11 * 20 + 1)
 
 
 @dataclass(frozen=True)
@@ -77,8 +91,13 @@ def _poly_abs(coeffs: np.ndarray, omega: np.ndarray) -> np.ndarray:
 
 def _group_bounds(plant: Plant, lo: np.ndarray, hi: np.ndarray):
     """Bounds on ``[lo, hi]`` per group: ``|H| <= rho``, ``|dH/domega| <= drho``; shape (G, N)."""
+    return _group_bounds_of(plant.actuators, lo, hi)
+
+
+def _group_bounds_of(actuators, lo: np.ndarray, hi: np.ndarray):
+    """:func:`_group_bounds` of the groups ``actuators``."""
     rho, drho = [], []
-    for act in plant.actuators:
+    for act in actuators:
         taus = act.time_constants_s
         den_lo = np.prod(np.sqrt(1.0 + np.outer(lo, taus) ** 2), axis=1)
         num_hi = _poly_abs(act.numerator, hi)
@@ -90,34 +109,46 @@ def _group_bounds(plant: Plant, lo: np.ndarray, hi: np.ndarray):
     return np.array(rho), np.array(drho)
 
 
+@functools.lru_cache(maxsize=256)
+def _low_frequency_terms(actuators: tuple, theta: tuple):
+    """``rho`` and ``beta + rho omega theta`` of :func:`_low_frequency_limit` on its grid per
+    group, shape (G, K) each (they depend on the dynamics and delays only; never written)."""
+    rho, beta = [], []
+    for act in actuators:
+        n = np.zeros(max(act.numerator.size, act.denominator.size))
+        d = np.zeros_like(n)
+        n[: act.numerator.size] = act.numerator
+        d[: act.denominator.size] = act.denominator
+        rho.append(_poly_abs(act.numerator, _LOW_GRID))
+        beta.append(_poly_abs(np.concatenate([[0.0], (n - d)[1:]]), _LOW_GRID))
+    rho, beta = np.array(rho), np.array(beta)                          # (G, K)
+    return rho, np.ascontiguousarray(beta + rho * _LOW_GRID * np.array(theta)[:, None])
+
+
 def _low_frequency_limit(plant: Plant, kp, ki, gains) -> np.ndarray:
     """Largest grid frequency (rad/s) below which ``Im(1 + L) < 0`` is guaranteed, shape (M,).
 
     ``h = (1 + j omega K_P/K_I) sum_g f_g H_g exp(-j omega theta_g)`` with ``f_g = K_g / sum K``;
     ``|h - 1| <= omega a sum f rho + sum f (beta + rho omega theta)`` where ``rho = sum|n_i| w^i``
     bounds ``|H|`` (``|den| >= 1``) and ``beta = sum_{i>=1} |n_i - d_i| w^i`` bounds ``|H - 1|``.
-    The bound is nondecreasing, so the last grid point where it is <= 1/2 is safe.
+    The bound is nondecreasing, so the last grid point where it is <= 1/2 is safe (found by
+    a compiled scan that stops at the first point where it is not,
+    :func:`adnmesh._freq_kernels.first_above`).
     """
-    grid = np.geomspace(1e-12, 1e3, 15 * 20 + 1)
-    frac = gains / gains.sum(axis=1, keepdims=True)
-    theta = plant.loop_delays_s
-    rho, beta = [], []
-    for act in plant.actuators:
-        n = np.zeros(max(act.numerator.size, act.denominator.size))
-        d = np.zeros_like(n)
-        n[: act.numerator.size] = act.numerator
-        d[: act.denominator.size] = act.denominator
-        rho.append(_poly_abs(act.numerator, grid))
-        beta.append(_poly_abs(np.concatenate([[0.0], (n - d)[1:]]), grid))
-    rho, beta = np.array(rho), np.array(beta)                          # (G, K)
-    a = (kp / ki)[:, None]
-    bound = grid * a * (frac @ rho) + frac @ (beta + rho * grid * theta[:, None])
-    bad = bound > 0.5
-    # nondecreasing bound: the point before the first failing one is the limit
-    idx = np.where(bad.any(axis=1), np.argmax(bad, axis=1), bad.shape[1]) - 1
+    frac = np.ascontiguousarray(gains / gains.sum(axis=1, keepdims=True))
+    rho, beta_term = _low_frequency_terms(plant.actuators, tuple(plant.loop_delays_s.tolist()))
+    idx = first_above(np.ascontiguousarray(kp / ki, dtype=float), frac, rho, beta_term,
+                      _LOW_GRID, 0.5) - 1
     if np.any(idx < 0):
         raise ValueError("low-frequency certificate failed: gains out of range")
-    return grid[idx]
+    return _LOW_GRID[idx]
+
+
+@functools.lru_cache(maxsize=256)
+def _high_frequency_bounds(actuators: tuple) -> np.ndarray:
+    """``|H_g| <= rho`` on the intervals of :func:`_high_frequency_limit`'s grid, shape
+    (G, K - 1) (the dynamics only; never written)."""
+    return np.ascontiguousarray(_group_bounds_of(actuators, _HIGH_GRID[:-1], _HIGH_GRID[1:])[0])
 
 
 def _high_frequency_limit(plant: Plant, kp, ki, gains, level: float = 1.0) -> np.ndarray:
@@ -126,12 +157,11 @@ def _high_frequency_limit(plant: Plant, kp, ki, gains, level: float = 1.0) -> np
     On ``[w_j, w_j+1]``: ``|L| <= (K_P + K_I/w_j) sum_g K_g num(w_j+1)/|den(j w_j)|``. Past the
     last grid point (1e7 rad/s) the envelope decreases because every actuator is strictly proper.
     """
-    grid = np.geomspace(1e-4, 1e7, 11 * 20 + 1)
-    lo, hi = grid[:-1], grid[1:]
-    rho, _ = _group_bounds(plant, lo, hi)
-    env = (kp[:, None] + ki[:, None] / lo) * (gains @ rho)
-    big = env >= level
-    last = np.where(big.any(axis=1), big.shape[1] - 1 - np.argmax(big[:, ::-1], axis=1), -1)
+    lo, hi = _HIGH_GRID[:-1], _HIGH_GRID[1:]
+    last = last_at_least(np.ascontiguousarray(kp, dtype=float),
+                         np.ascontiguousarray(ki, dtype=float),
+                         np.ascontiguousarray(gains, dtype=float),
+                         _high_frequency_bounds(plant.actuators), lo, level)
     return np.where(last >= 0, hi[np.maximum(last, 0)], lo[0])
 
 
@@ -186,15 +216,51 @@ def certified_grid(plant: Plant, kp, ki, per_decade: int = _PER_DECADE):
     below the low-frequency limit of the proof to ``|L| <= 0.01`` for every candidate.
     """
     kp, ki, gains = as_candidates(plant, kp, ki)
+    omega = certified_omega(plant, kp, ki, per_decade)
+    pl = Plant(plant.actuators, gains, plant.t_com_s, plant.t_meas_s)
+    return omega, loop_response(pl, kp, ki, omega)
+
+
+def certified_omega(plant: Plant, kp, ki, per_decade: int = _PER_DECADE) -> np.ndarray:
+    """The frequencies of :func:`certified_grid` alone, rad/s, shape (N,)."""
+    kp, ki, gains = as_candidates(plant, kp, ki)
     # The proof needs (0, w_lo] with Im F < 0 and [w_hi, inf) with |L| < 1. The grid reaches
     # further, to |L| >= 100 and |L| <= 0.01, so that margins found on it miss nothing that
     # matters: there 2|S - 1/2| = |1 - L|/|1 + L| is within 2 % of its limit 1.
     total = gains.sum(axis=1)
     w_lo = np.minimum(_low_frequency_limit(plant, kp, ki, gains), ki * total * 0.5 / 100.0)
     w_hi = _high_frequency_limit(plant, kp, ki, gains, level=0.01)
-    omega = log_grid(float(w_lo.min()), max(float(w_hi.max()), 10.0 * float(w_lo.min())), per_decade)
-    pl = Plant(plant.actuators, gains, plant.t_com_s, plant.t_meas_s)
-    return omega, loop_response(pl, kp, ki, omega)
+    return log_grid(float(w_lo.min()), max(float(w_hi.max()), 10.0 * float(w_lo.min())),
+                    per_decade)
+
+
+def interval_bounds(plant: Plant, omega: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per group and grid interval, ``|H_g| <= rho`` and ``|dH_g/domega| + theta_g |H_g| <=
+    drho`` (theta_g the group's loop delay): what the Lipschitz bound of ``L`` on each
+    interval of ``omega`` needs besides the gains (:func:`_lipschitz`); shape (G, N - 1)."""
+    rho, drho = _group_bounds(plant, omega[:-1], omega[1:])
+    theta = plant.loop_delays_s[:, None]
+    return np.ascontiguousarray(rho), np.ascontiguousarray(drho + theta * rho)
+
+
+def winding_verdict(plant: Plant, kp, ki, gains, omega, winding, bad):
+    """Stability from :func:`adnmesh._freq_kernels.grid_pass`: the arg change of ``F`` over
+    the intervals that passed the Lipschitz test (``winding``, (M,)) plus that of the failed
+    ones (``bad``, (M, N - 1)), certified by bisection (:func:`_refine`) as in
+    :func:`nyquist_stability`; returns (stable, unstable poles, certified), each (M,)."""
+    winding = np.array(winding, dtype=float)
+    cert = np.ones(winding.size, dtype=bool)
+    bad_m, bad_k = np.nonzero(bad)
+    if bad_m.size:
+        d, ok = _refine(plant, kp[bad_m], ki[bad_m], gains[bad_m], omega[bad_k],
+                        omega[bad_k + 1])
+        np.add.at(winding, bad_m, d)
+        cert[bad_m[~ok]] = False
+    z = 0.5 - winding / np.pi
+    zi = np.rint(z)
+    cert &= np.abs(z - zi) < 1e-6
+    unstable = np.where(cert, zi, -1).astype(int)
+    return cert & (unstable == 0), unstable, cert
 
 
 def nyquist_stability(plant: Plant, kp, ki, per_decade: int = _PER_DECADE, grid=None,
