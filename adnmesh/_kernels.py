@@ -15,7 +15,8 @@ import numba
 import numpy as np
 
 __all__ = ["advance", "advance_first_order", "advance_exact", "advance_exact_first_order",
-           "accumulate", "delay_taps"]
+           "advance_first_order_lanes", "advance_exact_first_order_lanes", "accumulate",
+           "delay_taps"]
 
 #: below this many candidates the serial kernel wins (no thread start-up)
 PARALLEL_FROM = 64
@@ -163,6 +164,46 @@ _taps_first_order_parallel = numba.njit(cache=True, parallel=True)(_advance_firs
 _taps_first_order_serial = numba.njit(cache=True, parallel=False)(_advance_first_order)
 
 
+@numba.njit(cache=True)
+def advance_first_order_lanes(steps, k0, ring, h, kp, ki, kc, phi, gl, gr, x, p_y, y_hist,
+                              x_int, err, n_in, f_in, n_meas, f_meas,
+                              out):  # pragma: no cover - compiled
+    """:func:`_advance_first_order` with the candidates as the inner loop (see
+    :func:`advance_exact_first_order_lanes`: the same layouts, bit for bit the same
+    results). The delay taps (:func:`delay_taps`'s, element by element) are computed here,
+    once per step and group for all candidates: delays ``n_in + f_in`` (G,) and
+    ``n_meas + f_meas`` steps."""
+    g_count, m_count = x.shape
+    half_h = 0.5 * h
+    y = np.empty(m_count)
+    for i in range(steps):
+        for m in range(m_count):
+            y[m] = 0.0
+        for g in range(g_count):
+            a0, a1, wa = _tap(k0 + i, n_in[g], f_in[g], ring, False)
+            b0, b1, wb = _tap(k0 + 1 + i, n_in[g], f_in[g], ring, True)
+            pg, glg, grg = phi[g], gl[g], gr[g]
+            for m in range(m_count):
+                u_l = p_y[a0, m] * (1.0 - wa) + p_y[a1, m] * wa
+                u_r = p_y[b0, m] * (1.0 - wb) + p_y[b1, m] * wb
+                acc = glg * u_l + grg * u_r
+                acc += pg * x[g, m]
+                x[g, m] = acc
+                y_g = 0.0
+                y_g += kc[g, m] * acc
+                y[m] += y_g
+        col = (k0 + i + 1) % ring
+        c0, c1, wm = _tap(k0 + 1 + i, n_meas, f_meas, ring, False)
+        for m in range(m_count):
+            y_hist[col, m] = y[m]
+            e = 1.0 - (y_hist[c0, m] * (1.0 - wm) + y_hist[c1, m] * wm)
+            xi = x_int[m] + half_h * (err[m] + e)
+            x_int[m] = xi
+            p_y[col, m] = kp[m] * e + ki[m] * xi
+            err[m] = e
+            out[i, m] = y[m]
+
+
 def advance_exact(steps, k0, ring, h, kp, *rest):
     """:func:`advance` for whole-step delays ``n_in`` (G,) and ``n_meas`` (ints, in steps)."""
     kernel = _exact_parallel if kp.size >= PARALLEL_FROM else _exact_serial
@@ -249,6 +290,56 @@ _first_order_serial = numba.njit(cache=True, parallel=False)(_advance_exact_firs
 
 
 @numba.njit(cache=True)
+def advance_exact_first_order_lanes(steps, k0, ring, h, kp, ki, kc, phi, gl, gr, x, p_y, y_hist,
+                                    x_int, err, n_in, n_meas, out):  # pragma: no cover
+    """:func:`_advance_exact_first_order` with the candidates as the inner loop (lanes):
+    ``kc``, ``x`` (G, M), ``p_y``, ``y_hist`` (ring + 1, M), ``out`` (steps, M), the rest as
+    there. Every candidate's arithmetic is the same operations in the same order (bit for bit
+    the same results); the ring columns and the t < 0 tests are shared by all candidates, so
+    the inner loops run over contiguous rows, in SIMD lanes."""
+    g_count, m_count = x.shape
+    half_h = 0.5 * h
+    col = k0 % ring
+    y = np.empty(m_count)
+    for i in range(steps):
+        j = k0 + i
+        nxt = col + 1 if col + 1 < ring else 0
+        for m in range(m_count):
+            y[m] = 0.0
+        for g in range(g_count):
+            d = n_in[g]
+            c_l = col - d
+            if c_l < 0:
+                c_l += ring
+            c_r = c_l + 1 if c_l + 1 < ring else 0
+            # before t = 0 the input is 0 (the right end at t = 0: its left limit, 0): read
+            # from the constant-0 column `ring`
+            src_l = c_l if j - d >= 0 else ring
+            src_r = c_r if j + 1 - d > 0 else ring
+            pg, glg, grg = phi[g], gl[g], gr[g]
+            for m in range(m_count):
+                acc = glg * p_y[src_l, m] + grg * p_y[src_r, m]
+                acc += pg * x[g, m]
+                x[g, m] = acc
+                y_g = 0.0
+                y_g += kc[g, m] * acc
+                y[m] += y_g
+        c_m = nxt - n_meas
+        if c_m < 0:
+            c_m += ring
+        src_m = c_m if j + 1 - n_meas >= 0 else ring
+        for m in range(m_count):
+            y_hist[nxt, m] = y[m]
+            e = 1.0 - y_hist[src_m, m]
+            xi = x_int[m] + half_h * (err[m] + e)
+            x_int[m] = xi
+            p_y[nxt, m] = kp[m] * e + ki[m] * xi
+            err[m] = e
+            out[i, m] = y[m]
+        col = nxt
+
+
+@numba.njit(cache=True)
 def delay_taps(first, steps, n, f, ring, right_end):  # pragma: no cover - compiled
     """Ring columns and weights of a signal delayed by ``n[g] + f[g]`` steps, for the samples
     ``j = first, ..., first + steps - 1``: see :meth:`adnmesh.stepresp._Simulator._taps`
@@ -260,15 +351,22 @@ def delay_taps(first, steps, n, f, ring, right_end):  # pragma: no cover - compi
     w = np.empty((steps, g_count))
     for i in range(steps):
         for g in range(g_count):
-            pos = float(first + i - n[g]) - f[g]
-            j0 = int(np.floor(pos + 1e-9))
-            zero = pos < -1e-9
-            if right_end:
-                zero = zero or abs(pos) < 1e-9
-            c0[i, g] = ring if (zero or j0 < 0) else j0 % ring
-            c1[i, g] = ring if zero else (j0 + 1) % ring
-            w[i, g] = 0.0 if zero else pos - j0
+            c0[i, g], c1[i, g], w[i, g] = _tap(first + i, n[g], f[g], ring, right_end)
     return c0, c1, w
+
+
+@numba.njit(cache=True, inline="always")
+def _tap(j, n, f, ring, right_end):  # pragma: no cover - compiled
+    """Ring columns and weight of sample j of a signal delayed by ``n + f`` steps (one
+    element of :func:`delay_taps`)."""
+    pos = float(j - n) - f
+    j0 = int(np.floor(pos + 1e-9))
+    zero = pos < -1e-9
+    if right_end:
+        zero = zero or abs(pos) < 1e-9
+    c0 = ring if (zero or j0 < 0) else j0 % ring
+    c1 = ring if zero else (j0 + 1) % ring
+    return c0, c1, 0.0 if zero else pos - j0
 
 
 @numba.njit(cache=True)

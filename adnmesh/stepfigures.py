@@ -120,7 +120,8 @@ class StepFigureAccumulator:
         if times.size and times.shape != (chunk.shape[1] + 1,):
             raise ValueError(f"{chunk.shape[1]} samples need {chunk.shape[1] + 1} times, got "
                              f"{times.shape}")
-        accumulate(float(t0), float(h), times, np.ascontiguousarray(chunk, dtype=float),
+        # C order, or the transposed (steps, M) block of a lanes simulation as it is
+        accumulate(float(t0), float(h), times, np.asarray(chunk, dtype=float),
                    self.last, self.t10, self.t90, self.peak, self.peak_t,
                    np.asarray(self.bands, float), self.settle, curvature)
         return curvature

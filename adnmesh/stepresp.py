@@ -35,8 +35,9 @@ from math import gcd
 
 import numpy as np
 
-from ._kernels import (advance, advance_exact, advance_exact_first_order, advance_first_order,
-                       delay_taps)
+from ._kernels import (advance, advance_exact, advance_exact_first_order,
+                       advance_exact_first_order_lanes, advance_first_order,
+                       advance_first_order_lanes, delay_taps)
 from .freqresp import as_candidates
 from .plant import Plant
 from .stepfigures import StepFigureAccumulator
@@ -158,7 +159,8 @@ def _discretised(actuators: tuple, order: int, path_delays_s: tuple, t_meas_s: f
 class _Simulator:
     """Method-of-steps simulation of M loops sharing actuator dynamics and step h."""
 
-    def __init__(self, plant: Plant, kp, ki, h: float, coarsen_limit_s: float | None = None):
+    def __init__(self, plant: Plant, kp, ki, h: float, coarsen_limit_s: float | None = None,
+                 lanes: bool | None = None):
         kp, ki, gains = as_candidates(plant, kp, ki)
         # 2h must not exceed this (the full plant's shortest forward path delay when the
         # plant is a reduction of it to its active groups: same steps as the full plant)
@@ -167,16 +169,32 @@ class _Simulator:
         self.kp, self.ki, self.gains = (np.ascontiguousarray(a, dtype=float) for a in (kp, ki, gains))
         self.plant = plant
         self.order = max(a.denominator.size - 1 for a in plant.actuators)
+        # first-order groups (PT1, the reference model): the candidates are the kernels' inner
+        # loop, so the buffers are stored sample by sample, (ring + 1, M), and the states
+        # (G, M); else candidate by candidate, (M, ring + 1) and (M, G, n). ``lanes`` False
+        # keeps the candidate-by-candidate kernels (tests compare the two).
+        self.lanes = self.order == 1 if lanes is None else bool(lanes) and self.order == 1
         m, g = self.kp.size, len(plant.actuators)
         self._discretise(h)
-        self.p_y = np.zeros((m, self.ring + 1))
-        self.y_hist = np.zeros((m, self.ring + 1))
-        self.x = np.zeros((m, g, self.order))
+        self.p_y = np.zeros(self._buffer_shape(m))
+        self.y_hist = np.zeros(self._buffer_shape(m))
+        self.x = np.zeros((g, m) if self.lanes else (m, g, self.order))
         self.x_int = np.zeros(m)
         self.err = np.ones(m)
-        self.p_y[:, 0] = self.kp                 # right limit of P_Y at t = 0
+        if self.lanes:
+            self.p_y[0, :] = self.kp             # right limit of P_Y at t = 0
+        else:
+            self.p_y[:, 0] = self.kp
         self.k = 0
-        self.kc = self.gains[:, :, None] * self.c[None]          # (M, G, n)
+        self.kc = self._output_gains()
+
+    def _buffer_shape(self, m: int) -> tuple[int, int]:
+        return (self.ring + 1, m) if self.lanes else (m, self.ring + 1)
+
+    def _output_gains(self) -> np.ndarray:
+        """``K_g C_g`` per candidate and group: (G, M) in lanes, else (M, G, n)."""
+        kc = self.gains[:, :, None] * self.c[None]                 # (M, G, n)
+        return np.ascontiguousarray(kc[:, :, 0].T) if self.lanes else kc
 
     @property
     def time_s(self) -> float:
@@ -209,18 +227,27 @@ class _Simulator:
             raise ValueError("delay buffer too short to coarsen")
         cols_old = np.where(valid, j_old % old_ring, old_ring)
         cols_new = np.where(j_new >= 0, j_new % self.ring, self.ring)
-        self.p_y = np.zeros((self.kp.size, self.ring + 1))
+        self.p_y = np.zeros(self._buffer_shape(self.kp.size))
         self.y_hist = np.zeros_like(self.p_y)
-        self.p_y[:, cols_new] = old_p[:, cols_old]
-        self.y_hist[:, cols_new] = old_y[:, cols_old]
-        self.p_y[:, self.ring] = 0.0
-        self.y_hist[:, self.ring] = 0.0
-        self.kc = self.gains[:, :, None] * self.c[None]
+        if self.lanes:
+            self.p_y[cols_new, :] = old_p[cols_old, :]
+            self.y_hist[cols_new, :] = old_y[cols_old, :]
+            self.p_y[self.ring, :] = 0.0
+            self.y_hist[self.ring, :] = 0.0
+        else:
+            self.p_y[:, cols_new] = old_p[:, cols_old]
+            self.y_hist[:, cols_new] = old_y[:, cols_old]
+            self.p_y[:, self.ring] = 0.0
+            self.y_hist[:, self.ring] = 0.0
+        self.kc = self._output_gains()
 
     def keep(self, rows: np.ndarray) -> None:
         """Continue with the candidates ``rows`` only."""
-        for name in ("kp", "ki", "gains", "p_y", "y_hist", "x", "x_int", "err", "kc"):
+        for name in ("kp", "ki", "gains", "x_int", "err"):
             setattr(self, name, np.ascontiguousarray(getattr(self, name)[rows]))
+        for name in ("p_y", "y_hist", "x", "kc"):
+            a = getattr(self, name)
+            setattr(self, name, np.ascontiguousarray(a[:, rows] if self.lanes else a[rows]))
 
     def _taps(self, n, f, first: int, steps: int, right_end: bool):
         """Ring columns and weights of a delayed signal for ``steps`` consecutive samples.
@@ -235,7 +262,10 @@ class _Simulator:
                           self.ring, right_end)
 
     def run(self, steps: int) -> np.ndarray:
-        """Advance ``steps`` steps and return y at the new samples, shape (M, steps)."""
+        """Advance ``steps`` steps and return y at the new samples, shape (M, steps) (in
+        lanes a transposed view of a (steps, M) array)."""
+        if self.lanes:
+            return self._run_lanes(steps)
         out = np.empty((self.kp.size, steps))
         # first-order groups (PT1, the reference model): the kernels for one state per group,
         # given the (M, G, 1) and (G, 1, 1) arrays as views of shape (M, G) and (G,)
@@ -265,6 +295,25 @@ class _Simulator:
             out[:, start:start + n] = block
             self.k += n
         return out
+
+
+    def _run_lanes(self, steps: int) -> np.ndarray:
+        """:meth:`run` with the first-order lanes kernels."""
+        out = np.empty((steps, self.kp.size))
+        g = self.x.shape[0]
+        dyn = (self.kc, self.phi.reshape(g), self.gl.reshape(g), self.gr.reshape(g), self.x)
+        if self.exact_delays:
+            advance_exact_first_order_lanes(steps, self.k, self.ring, self.h, self.kp, self.ki,
+                                            *dyn, self.p_y, self.y_hist, self.x_int, self.err,
+                                            self.n_in, int(self.n_meas[0]), out)
+            self.k += steps
+            return out.T
+        advance_first_order_lanes(steps, self.k, self.ring, self.h, self.kp, self.ki, *dyn,
+                                  self.p_y, self.y_hist, self.x_int, self.err,
+                                  np.asarray(self.n_in, np.int64), np.asarray(self.f_in, float),
+                                  int(self.n_meas[0]), float(self.f_meas[0]), out)
+        self.k += steps
+        return out.T
 
 
 def simulate_step(plant: Plant, kp, ki, t_end_s: float, h: float | None = None):

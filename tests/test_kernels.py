@@ -9,13 +9,14 @@ from adnmesh.plant import Actuator, Plant
 from adnmesh.stepresp import _Simulator
 
 
-def _simulator(m: int, seed: int) -> _Simulator:
+def _simulator(m: int, seed: int, lanes: bool | None = None) -> _Simulator:
     """M loops of a three-group first-order plant (SimBench's dynamics), varied gains."""
     rng = np.random.default_rng(seed)
     acts = (Actuator(0.01, 0.234), Actuator(1.0, 11.18), Actuator(0.01, 0.0455))
     gains = rng.dirichlet(np.ones(3), m)
     plant = Plant(acts, gains, 0.1, 0.1)
-    return _Simulator(plant, rng.uniform(0.05, 0.6, m), rng.uniform(0.01, 0.3, m), 0.0025)
+    return _Simulator(plant, rng.uniform(0.05, 0.6, m), rng.uniform(0.01, 0.3, m), 0.0025,
+                      lanes=lanes)
 
 
 def _general(kernel):
@@ -29,12 +30,13 @@ def _general(kernel):
 
 @pytest.mark.parametrize("m", [5, _kernels.PARALLEL_FROM + 3])       # serial and parallel
 def test_first_order_kernels_are_the_general_ones_bit_for_bit(m: int, monkeypatch) -> None:
-    """The specialised first-order kernels (which :class:`_Simulator` runs for PT1 plants)
-    give exactly the outputs and states of the general kernels, across block boundaries and
-    step doublings: 2.5 ms and 5 ms (whole-step delays, :func:`advance_exact`), then 20 ms
-    and 40 ms (interpolated delays, :func:`advance`)."""
-    fast, general = _simulator(m, 3), _simulator(m, 3)
-    assert fast.order == 1
+    """The specialised first-order kernels (which :class:`_Simulator` runs for PT1 plants:
+    with the candidates as the inner loop, "lanes", and candidate by candidate) give exactly
+    the outputs and states of the general kernels, across block boundaries and step
+    doublings: 2.5 ms and 5 ms (whole-step delays, :func:`advance_exact`), then 20 ms and
+    40 ms (interpolated delays, :func:`advance`)."""
+    lanes, fast, general = _simulator(m, 3), _simulator(m, 3, False), _simulator(m, 3, False)
+    assert fast.order == 1 and lanes.lanes and not fast.lanes
 
     def general_run(steps: int) -> np.ndarray:
         with monkeypatch.context() as patch:
@@ -45,15 +47,28 @@ def test_first_order_kernels_are_the_general_ones_bit_for_bit(m: int, monkeypatc
     exact = []
     for steps in (1, 37, 2000, 400, 300):
         exact.append(fast.exact_delays)
-        assert np.array_equal(fast.run(steps), general_run(steps))
+        out = general_run(steps)
+        assert np.array_equal(fast.run(steps), out)
+        assert np.array_equal(lanes.run(steps), out)
         if fast.k % 2:
-            assert np.array_equal(fast.run(1), general_run(1))
+            out = general_run(1)
+            assert np.array_equal(fast.run(1), out) and np.array_equal(lanes.run(1), out)
         if fast.can_coarsen():
-            fast.coarsen()
-            general.coarsen()
+            for sim in (lanes, fast, general):
+                sim.coarsen()
     assert exact == [True, True, True, False, False]
     for name in ("x", "p_y", "y_hist", "x_int", "err"):
         assert np.array_equal(getattr(fast, name), getattr(general, name)), name
+    # the lanes layout: buffers (ring + 1, M), states (G, M)
+    assert np.array_equal(lanes.x.T, fast.x[:, :, 0])
+    for name in ("p_y", "y_hist"):
+        assert np.array_equal(getattr(lanes, name).T, getattr(fast, name)), name
+    for name in ("x_int", "err"):
+        assert np.array_equal(getattr(lanes, name), getattr(fast, name)), name
+    keep = np.arange(m)[::2]
+    lanes.keep(keep)
+    fast.keep(keep)
+    assert np.array_equal(lanes.run(50), fast.run(50))
     assert np.abs(fast.run(10)).max() > 0.5                            # a real response
 
 
