@@ -16,7 +16,7 @@ import numpy as np
 
 __all__ = ["advance", "advance_first_order", "advance_exact", "advance_exact_first_order",
            "advance_first_order_lanes", "advance_exact_first_order_lanes", "accumulate",
-           "delay_taps"]
+           "accumulate_lanes", "delay_taps"]
 
 #: below this many candidates the serial kernel wins (no thread start-up)
 PARALLEL_FROM = 64
@@ -484,3 +484,73 @@ def _accumulate(t0, h, times, chunk, last, t10, t90, peak, peak_t, bands, settle
 
 
 accumulate = numba.njit(cache=True, parallel=False)(_accumulate)
+
+
+@numba.njit(cache=True)
+def accumulate_lanes(t0, h, times, chunk, last, t10, t90, peak, peak_t, bands, settle,
+                     curvature):  # pragma: no cover - compiled
+    """:func:`accumulate` for a block stored sample by sample, ``chunk`` (n, M) (the output of
+    a lanes simulation): the same rule and the same arithmetic, so the same figures bit for
+    bit (``tests/test_stepfigures.py``); the peak, band and curvature scans run with the
+    candidates as the inner loop, over contiguous rows."""
+    n, m_count = chunk.shape
+    # first crossings of 10 % and 90 % (most candidates have them already: a short scan)
+    for store, level in ((t10, 0.1), (t90, 0.9)):
+        for m in range(m_count):
+            if not np.isnan(store[m]) or last[m] >= level:
+                continue
+            for k in range(n):
+                if chunk[k, m] >= level:
+                    y0 = last[m] if k == 0 else chunk[k - 1, m]
+                    store[m] = _time_at(k, (level - y0) / (chunk[k, m] - y0), t0, h, times)
+                    break
+    # the block's largest sample (the first of equal ones; position 0 is `last`)
+    y_top = last.copy()
+    j_top = np.zeros(m_count, np.int64)
+    for k in range(n):
+        for m in range(m_count):
+            if chunk[k, m] > y_top[m]:
+                y_top[m] = chunk[k, m]
+                j_top[m] = k + 1
+    for m in range(m_count):
+        j, yc = j_top[m], y_top[m]
+        if yc > peak[m]:
+            if 0 < j < n:
+                ym = last[m] if j == 1 else chunk[j - 2, m]
+                peak[m], peak_t[m] = _vertex(ym, yc, chunk[j, m], j, t0, h, times)
+            else:
+                peak[m], peak_t[m] = yc, _time_at(j, 0.0, t0, h, times)
+    # per band the last sample outside it, scanning back until every candidate has one
+    for b in range(bands.size):
+        band = bands[b]
+        last_out = np.full(m_count, -1, np.int64)
+        open_count = m_count
+        for k in range(n - 1, -1, -1):
+            for m in range(m_count):
+                if last_out[m] < 0 and abs(chunk[k, m] - 1.0) > band:
+                    last_out[m] = k + 1
+                    open_count -= 1
+            if open_count == 0:
+                break
+        for m in range(m_count):
+            lo = last_out[m]
+            if lo < 0 and abs(last[m] - 1.0) > band:
+                lo = 0
+            if lo < 0:
+                continue
+            if lo == n:
+                settle[b, m] = np.inf
+                continue
+            y0 = last[m] if lo == 0 else chunk[lo - 1, m]
+            y1 = chunk[lo, m]
+            target = 1.0 + band if y0 > 1.0 else 1.0 - band
+            settle[b, m] = _time_at(lo, (target - y0) / (y1 - y0), t0, h, times)
+    for m in range(m_count):
+        curvature[m] = 0.0
+    for k in range(2, n):
+        for m in range(m_count):
+            d = abs(chunk[k, m] - 2.0 * chunk[k - 1, m] + chunk[k - 2, m])
+            if d > curvature[m]:
+                curvature[m] = d
+    for m in range(m_count):
+        last[m] = chunk[n - 1, m]

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._kernels import accumulate
+from ._kernels import accumulate, accumulate_lanes
 
 __all__ = ["ReferenceStep", "StepFigureAccumulator", "StepFigures", "reference_step_figures",
            "step_figures"]
@@ -120,10 +120,13 @@ class StepFigureAccumulator:
         if times.size and times.shape != (chunk.shape[1] + 1,):
             raise ValueError(f"{chunk.shape[1]} samples need {chunk.shape[1] + 1} times, got "
                              f"{times.shape}")
-        # C order, or the transposed (steps, M) block of a lanes simulation as it is
-        accumulate(float(t0), float(h), times, np.asarray(chunk, dtype=float),
-                   self.last, self.t10, self.t90, self.peak, self.peak_t,
-                   np.asarray(self.bands, float), self.settle, curvature)
+        chunk = np.asarray(chunk, dtype=float)
+        # the transposed (steps, M) block of a lanes simulation as it is, else in C order
+        lanes = chunk.T.flags.c_contiguous and not chunk.flags.c_contiguous
+        (accumulate_lanes if lanes else accumulate)(
+            float(t0), float(h), times, chunk.T if lanes else np.ascontiguousarray(chunk),
+            self.last, self.t10, self.t90, self.peak, self.peak_t,
+            np.asarray(self.bands, float), self.settle, curvature)
         return curvature
 
     def overshoot_pct(self) -> np.ndarray:

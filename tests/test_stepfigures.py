@@ -107,8 +107,11 @@ def test_uniform_grid_and_its_sample_times_give_the_same_figures():
 
 # --- the compiled kernel is its numpy reference -------------------------------------------------
 
+@pytest.mark.parametrize("layout", ["rows", "lanes"])
 @pytest.mark.parametrize("grid", ["uniform", "jittered"])
-def test_compiled_kernel_equals_the_numpy_reference(grid):
+def test_compiled_kernel_equals_the_numpy_reference(grid, layout):
+    """Both compiled kernels: blocks candidate by candidate (C order) and sample by sample
+    (the (n, M) block of a lanes simulation, given as its transposed view)."""
     rng = np.random.default_rng(3)
     t = np.arange(0, 4001) * 0.01 if grid == "uniform" else jittered(40, 0.01, seed=3)
     zeta = rng.uniform(0.1, 1.2, 40)
@@ -120,7 +123,9 @@ def test_compiled_kernel_equals_the_numpy_reference(grid):
     for n in (1, 2, 3, 50, 700, 2000, t.size - 2757):
         chunk = y[:, start + 1:start + 1 + n]
         times = None if grid == "uniform" else t[start:start + n + 1]
-        curvature = fast.add(t[start], 0.01, chunk, times=times)
+        block = chunk if layout == "rows" else np.ascontiguousarray(chunk.T).T
+        assert layout == "rows" or n == 1 or not block.flags.c_contiguous
+        curvature = fast.add(t[start], 0.01, block, times=times)
         accumulate_numpy(ref, t[start], 0.01, chunk, times=times)
         if n > 2:
             second = chunk[:, 2:] - 2.0 * chunk[:, 1:-1] + chunk[:, :-2]
