@@ -5,21 +5,27 @@ block of samples, with delays read from precomputed (interpolating) taps; :func:
 is the same arithmetic for the common case of delays that are whole multiples of the step, with
 the buffer columns computed in the loop (no taps, no interpolation). :func:`accumulate` is the
 step-figure rule of :mod:`adnmesh.stepfigures` (rise, settling, peak of sampled responses, on
-the simulation's uniform grid or at given sample times). They are the only hot loops of the
-numerics: everything else is vectorised numpy. Candidates are independent, so the outer loop
-of the simulation runs in parallel threads for large batches.
+the simulation's uniform grid or at given sample times). For first-order groups (PT1, the
+reference model) :func:`advance_exact_first_order_lanes` and :func:`advance_first_order_lanes`
+run the same arithmetic with the candidates as the inner loop (buffers stored sample by
+sample: the columns, taps and t < 0 tests are shared, the candidates fill SIMD lanes), and
+:func:`accumulate_lanes` takes their (steps, M) blocks. They are the hot loops of the step
+responses (the frequency domain's are in :mod:`adnmesh._freq_kernels`); everything else is
+vectorised numpy. Candidates are independent, so the general kernels' outer loop runs in
+parallel threads for large batches.
 """
 from __future__ import annotations
 
 import numba
 import numpy as np
 
-__all__ = ["advance", "advance_first_order", "advance_exact", "advance_exact_first_order",
-           "advance_first_order_lanes", "advance_exact_first_order_lanes", "accumulate",
-           "accumulate_lanes", "delay_taps"]
+__all__ = ["advance", "advance_exact", "advance_first_order_lanes",
+           "advance_exact_first_order_lanes", "accumulate", "accumulate_lanes", "delay_taps"]
 
 #: below this many candidates the serial kernel wins (no thread start-up)
 PARALLEL_FROM = 64
+#: "no tap before": a floor position no sample has (see :func:`_tap_after`)
+_NO_TAP = -(1 << 62)
 
 
 def advance(steps, k0, ring, h, kp, *rest):
@@ -42,16 +48,6 @@ def _lag_step(phi, gl, gr, kc, x, tmp, u_l, u_r):  # pragma: no cover - compiled
         x[a] = tmp[a]
         y += kc[a] * tmp[a]
     return y
-
-
-@numba.njit(cache=True, inline="always")
-def _first_order_step(phi, gl, gr, k, x, u_l, u_r):  # pragma: no cover - compiled
-    """:func:`_lag_step` for one state, the same operations: returns (new x, output)."""
-    acc = gl * u_l + gr * u_r
-    acc += phi * x
-    y = 0.0
-    y += k * acc
-    return acc, y
 
 
 @numba.njit(cache=True, inline="always")
@@ -125,63 +121,32 @@ _advance_parallel = numba.njit(cache=True, parallel=True)(_advance)
 _advance_serial = numba.njit(cache=True, parallel=False)(_advance)
 
 
-def advance_first_order(steps, k0, ring, h, kp, *rest):
-    """:func:`advance` for groups of first order (one state each): ``kc``, ``x`` (M, G),
-    ``phi``, ``gl``, ``gr`` (G,). Bit for bit the same arithmetic in the same order."""
-    kernel = _taps_first_order_parallel if kp.size >= PARALLEL_FROM else _taps_first_order_serial
-    kernel(steps, k0, ring, h, kp, *rest)
-
-
-def _advance_first_order(steps, k0, ring, h, kp, ki, kc, phi, gl, gr, x, p_y, y_hist, x_int,
-                         err, l0, l1, lw, r0, r1, rw, m0, m1, mw,
-                         out):  # pragma: no cover - compiled
-    """:func:`_advance` with every group of first order (see
-    :func:`_advance_exact_first_order`)."""
-    m_count, g_count = x.shape
-    half_h = 0.5 * h
-    for m in numba.prange(m_count):
-        xm = x[m].copy()
-        km = kc[m].copy()
-        xi = x_int[m]
-        e_prev = err[m]
-        for i in range(steps):
-            y = 0.0
-            for g in range(g_count):
-                u_l, u_r = _tap_inputs(p_y, m, i, g, l0, l1, lw, r0, r1, rw)
-                xm[g], y_g = _first_order_step(phi[g], gl[g], gr[g], km[g], xm[g], u_l, u_r)
-                y += y_g
-            col = (k0 + i + 1) % ring
-            y_hist[m, col] = y
-            y_meas = y_hist[m, m0[i]] * (1.0 - mw[i]) + y_hist[m, m1[i]] * mw[i]
-            p_y[m, col], xi, e_prev = _pi(kp[m], ki[m], half_h, y_meas, xi, e_prev)
-            out[m, i] = y
-        x[m] = xm
-        x_int[m] = xi
-        err[m] = e_prev
-
-
-_taps_first_order_parallel = numba.njit(cache=True, parallel=True)(_advance_first_order)
-_taps_first_order_serial = numba.njit(cache=True, parallel=False)(_advance_first_order)
-
-
 @numba.njit(cache=True)
 def advance_first_order_lanes(steps, k0, ring, h, kp, ki, kc, phi, gl, gr, x, p_y, y_hist,
                               x_int, err, n_in, f_in, n_meas, f_meas,
                               out):  # pragma: no cover - compiled
-    """:func:`_advance_first_order` with the candidates as the inner loop (see
-    :func:`advance_exact_first_order_lanes`: the same layouts, bit for bit the same
-    results). The delay taps (:func:`delay_taps`'s, element by element) are computed here,
+    """:func:`advance` for groups of first order (one state each) with the candidates as the
+    inner loop (see :func:`advance_exact_first_order_lanes`: the same layouts, bit for bit the
+    same results). The delay taps (:func:`delay_taps`'s, element by element) are computed here,
     once per step and group for all candidates: delays ``n_in + f_in`` (G,) and
     ``n_meas + f_meas`` steps."""
     g_count, m_count = x.shape
     half_h = 0.5 * h
     y = np.empty(m_count)
+    # each tap's floor position and column at the step before (_NO_TAP: none yet)
+    l_j0 = np.full(g_count, _NO_TAP, np.int64)
+    l_col = np.zeros(g_count, np.int64)
+    r_j0 = np.full(g_count, _NO_TAP, np.int64)
+    r_col = np.zeros(g_count, np.int64)
+    m_j0, m_col = _NO_TAP, 0
     for i in range(steps):
         for m in range(m_count):
             y[m] = 0.0
         for g in range(g_count):
-            a0, a1, wa = _tap(k0 + i, n_in[g], f_in[g], ring, False)
-            b0, b1, wb = _tap(k0 + 1 + i, n_in[g], f_in[g], ring, True)
+            a0, a1, wa, l_j0[g], l_col[g] = _tap_after(k0 + i, n_in[g], f_in[g], ring, False,
+                                                       l_j0[g], l_col[g])
+            b0, b1, wb, r_j0[g], r_col[g] = _tap_after(k0 + 1 + i, n_in[g], f_in[g], ring,
+                                                       True, r_j0[g], r_col[g])
             pg, glg, grg = phi[g], gl[g], gr[g]
             for m in range(m_count):
                 u_l = p_y[a0, m] * (1.0 - wa) + p_y[a1, m] * wa
@@ -193,7 +158,8 @@ def advance_first_order_lanes(steps, k0, ring, h, kp, ki, kc, phi, gl, gr, x, p_
                 y_g += kc[g, m] * acc
                 y[m] += y_g
         col = (k0 + i + 1) % ring
-        c0, c1, wm = _tap(k0 + 1 + i, n_meas, f_meas, ring, False)
+        c0, c1, wm, m_j0, m_col = _tap_after(k0 + 1 + i, n_meas, f_meas, ring, False, m_j0,
+                                             m_col)
         for m in range(m_count):
             y_hist[col, m] = y[m]
             e = 1.0 - (y_hist[c0, m] * (1.0 - wm) + y_hist[c1, m] * wm)
@@ -247,56 +213,17 @@ _exact_parallel = numba.njit(cache=True, parallel=True)(_advance_exact)
 _exact_serial = numba.njit(cache=True, parallel=False)(_advance_exact)
 
 
-def advance_exact_first_order(steps, k0, ring, h, kp, *rest):
-    """:func:`advance_exact` for groups of first order (one state each): ``kc``, ``x`` (M, G),
-    ``phi``, ``gl``, ``gr`` (G,). Bit for bit the same arithmetic in the same order."""
-    kernel = _first_order_parallel if kp.size >= PARALLEL_FROM else _first_order_serial
-    kernel(steps, k0, ring, h, kp, *rest)
-
-
-def _advance_exact_first_order(steps, k0, ring, h, kp, ki, kc, phi, gl, gr, x, p_y, y_hist,
-                               x_int, err, n_in, n_meas, out):  # pragma: no cover - compiled
-    """:func:`_advance_exact` with every group of first order: the state update
-    ``x <- phi x + gl u_l + gr u_r`` and output ``kc x`` of :func:`_lag_step` written out for
-    one state (:func:`_first_order_step`), without the per-step array views (~2x faster)."""
-    m_count, g_count = x.shape
-    half_h = 0.5 * h
-    for m in numba.prange(m_count):
-        xm = x[m].copy()
-        km = kc[m].copy()
-        xi = x_int[m]
-        e_prev = err[m]
-        col = k0 % ring
-        for i in range(steps):
-            j = k0 + i
-            nxt = col + 1 if col + 1 < ring else 0
-            y = 0.0
-            for g in range(g_count):
-                u_l, u_r = _exact_inputs(p_y, m, col, j, n_in[g], ring)
-                xm[g], y_g = _first_order_step(phi[g], gl[g], gr[g], km[g], xm[g], u_l, u_r)
-                y += y_g
-            y_hist[m, nxt] = y
-            y_meas = _exact_measured(y_hist, m, nxt, j, n_meas, ring)
-            p_y[m, nxt], xi, e_prev = _pi(kp[m], ki[m], half_h, y_meas, xi, e_prev)
-            out[m, i] = y
-            col = nxt
-        x[m] = xm
-        x_int[m] = xi
-        err[m] = e_prev
-
-
-_first_order_parallel = numba.njit(cache=True, parallel=True)(_advance_exact_first_order)
-_first_order_serial = numba.njit(cache=True, parallel=False)(_advance_exact_first_order)
-
-
 @numba.njit(cache=True)
 def advance_exact_first_order_lanes(steps, k0, ring, h, kp, ki, kc, phi, gl, gr, x, p_y, y_hist,
                                     x_int, err, n_in, n_meas, out):  # pragma: no cover
-    """:func:`_advance_exact_first_order` with the candidates as the inner loop (lanes):
-    ``kc``, ``x`` (G, M), ``p_y``, ``y_hist`` (ring + 1, M), ``out`` (steps, M), the rest as
-    there. Every candidate's arithmetic is the same operations in the same order (bit for bit
-    the same results); the ring columns and the t < 0 tests are shared by all candidates, so
-    the inner loops run over contiguous rows, in SIMD lanes."""
+    """:func:`advance_exact` for groups of first order (one state each: the state update
+    ``x <- phi x + gl u_l + gr u_r`` and output ``kc x`` of :func:`_lag_step` written out)
+    with the candidates as the inner loop (lanes): ``kc``, ``x`` (G, M), ``phi``, ``gl``,
+    ``gr`` (G,), ``p_y``, ``y_hist`` (ring + 1, M), ``out`` (steps, M), the rest as there.
+    Every candidate's arithmetic is the same operations in the same order (bit for bit the
+    same results); the ring columns and the t < 0 tests are shared by all candidates, so the
+    inner loops run over contiguous rows, in SIMD lanes (1.9-2.3 ns per candidate-step
+    against 8.4-8.6 candidate by candidate, 40 and 120 candidates)."""
     g_count, m_count = x.shape
     half_h = 0.5 * h
     col = k0 % ring
@@ -359,14 +286,27 @@ def delay_taps(first, steps, n, f, ring, right_end):  # pragma: no cover - compi
 def _tap(j, n, f, ring, right_end):  # pragma: no cover - compiled
     """Ring columns and weight of sample j of a signal delayed by ``n + f`` steps (one
     element of :func:`delay_taps`)."""
+    c0, c1, w, _, _ = _tap_after(j, n, f, ring, right_end, _NO_TAP, 0)
+    return c0, c1, w
+
+
+@numba.njit(cache=True, inline="always")
+def _tap_after(j, n, f, ring, right_end, j0_before, col_before):  # pragma: no cover
+    """:func:`_tap`, given the tap of sample j - 1 (its ``floor`` position ``j0_before`` and
+    ``j0_before % ring``): the columns then follow by one step without a division (the
+    same values). Returns (c0, c1, w, j0, j0 % ring)."""
     pos = float(j - n) - f
     j0 = int(np.floor(pos + 1e-9))
     zero = pos < -1e-9
     if right_end:
         zero = zero or abs(pos) < 1e-9
-    c0 = ring if (zero or j0 < 0) else j0 % ring
-    c1 = ring if zero else (j0 + 1) % ring
-    return c0, c1, 0.0 if zero else pos - j0
+    if j0 == j0_before + 1:
+        col = col_before + 1 if col_before + 1 < ring else 0
+    else:
+        col = j0 % ring
+    c1 = col + 1 if col + 1 < ring else 0
+    c0 = ring if (zero or j0 < 0) else col
+    return c0, ring if zero else c1, 0.0 if zero else pos - j0, j0, col
 
 
 @numba.njit(cache=True)

@@ -35,8 +35,7 @@ from math import gcd
 
 import numpy as np
 
-from ._kernels import (advance, advance_exact, advance_exact_first_order,
-                       advance_exact_first_order_lanes, advance_first_order,
+from ._kernels import (advance, advance_exact, advance_exact_first_order_lanes,
                        advance_first_order_lanes, delay_taps)
 from .freqresp import as_candidates
 from .plant import Plant
@@ -171,8 +170,8 @@ class _Simulator:
         self.order = max(a.denominator.size - 1 for a in plant.actuators)
         # first-order groups (PT1, the reference model): the candidates are the kernels' inner
         # loop, so the buffers are stored sample by sample, (ring + 1, M), and the states
-        # (G, M); else candidate by candidate, (M, ring + 1) and (M, G, n). ``lanes`` False
-        # keeps the candidate-by-candidate kernels (tests compare the two).
+        # (G, M); else candidate by candidate, (M, ring + 1) and (M, G, n), with the general
+        # kernels (``lanes`` False: also for first order; tests compare the two).
         self.lanes = self.order == 1 if lanes is None else bool(lanes) and self.order == 1
         m, g = self.kp.size, len(plant.actuators)
         self._discretise(h)
@@ -267,17 +266,10 @@ class _Simulator:
         if self.lanes:
             return self._run_lanes(steps)
         out = np.empty((self.kp.size, steps))
-        # first-order groups (PT1, the reference model): the kernels for one state per group,
-        # given the (M, G, 1) and (G, 1, 1) arrays as views of shape (M, G) and (G,)
-        m, g = self.x.shape[:2]
-        first = self.order == 1
-        dyn = ((self.kc.reshape(m, g), self.phi.reshape(g), self.gl.reshape(g),
-                self.gr.reshape(g), self.x.reshape(m, g)) if first
-               else (self.kc, self.phi, self.gl, self.gr, self.x))
+        dyn = (self.kc, self.phi, self.gl, self.gr, self.x)
         if self.exact_delays:
-            (advance_exact_first_order if first else advance_exact)(
-                steps, self.k, self.ring, self.h, self.kp, self.ki, *dyn, self.p_y, self.y_hist,
-                self.x_int, self.err, self.n_in, int(self.n_meas[0]), out)
+            advance_exact(steps, self.k, self.ring, self.h, self.kp, self.ki, *dyn, self.p_y,
+                          self.y_hist, self.x_int, self.err, self.n_in, int(self.n_meas[0]), out)
             self.k += steps
             return out
         # the taps are (steps, G) arrays: in blocks, so that a long run stays within memory
@@ -288,14 +280,12 @@ class _Simulator:
             r0, r1, rw = self._taps(self.n_in, self.f_in, self.k + 1, n, right_end=True)
             m0, m1, mw = self._taps(self.n_meas, self.f_meas, self.k + 1, n, right_end=False)
             block = np.empty((self.kp.size, n))
-            (advance_first_order if first else advance)(
-                n, self.k, self.ring, self.h, self.kp, self.ki, *dyn, self.p_y, self.y_hist,
-                self.x_int, self.err, l0, l1, lw, r0, r1, rw, np.ascontiguousarray(m0[:, 0]),
-                np.ascontiguousarray(m1[:, 0]), np.ascontiguousarray(mw[:, 0]), block)
+            advance(n, self.k, self.ring, self.h, self.kp, self.ki, *dyn, self.p_y, self.y_hist,
+                    self.x_int, self.err, l0, l1, lw, r0, r1, rw, np.ascontiguousarray(m0[:, 0]),
+                    np.ascontiguousarray(m1[:, 0]), np.ascontiguousarray(mw[:, 0]), block)
             out[:, start:start + n] = block
             self.k += n
         return out
-
 
     def _run_lanes(self, steps: int) -> np.ndarray:
         """:meth:`run` with the first-order lanes kernels."""

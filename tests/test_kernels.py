@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from adnmesh import _kernels, stepresp
+from adnmesh import _kernels
 from adnmesh.plant import Actuator, Plant
 from adnmesh.stepresp import _Simulator
 
@@ -19,57 +19,54 @@ def _simulator(m: int, seed: int, lanes: bool | None = None) -> _Simulator:
                       lanes=lanes)
 
 
-def _general(kernel):
-    """``kernel`` (a general one) called with the first-order kernels' arguments: the
-    one-state arrays as views of the general shapes, (M, G, 1) and (G, 1, 1)."""
-    def call(steps, k0, ring, h, kp, ki, kc, phi, gl, gr, x, *rest):
-        kernel(steps, k0, ring, h, kp, ki, kc[:, :, None], phi[:, None, None], gl[:, None],
-               gr[:, None], x[:, :, None], *rest)
-    return call
-
-
 @pytest.mark.parametrize("m", [5, _kernels.PARALLEL_FROM + 3])       # serial and parallel
-def test_first_order_kernels_are_the_general_ones_bit_for_bit(m: int, monkeypatch) -> None:
-    """The specialised first-order kernels (which :class:`_Simulator` runs for PT1 plants:
-    with the candidates as the inner loop, "lanes", and candidate by candidate) give exactly
-    the outputs and states of the general kernels, across block boundaries and step
-    doublings: 2.5 ms and 5 ms (whole-step delays, :func:`advance_exact`), then 20 ms and
-    40 ms (interpolated delays, :func:`advance`)."""
-    lanes, fast, general = _simulator(m, 3), _simulator(m, 3, False), _simulator(m, 3, False)
-    assert fast.order == 1 and lanes.lanes and not fast.lanes
-
-    def general_run(steps: int) -> np.ndarray:
-        with monkeypatch.context() as patch:
-            patch.setattr(stepresp, "advance_exact_first_order", _general(_kernels.advance_exact))
-            patch.setattr(stepresp, "advance_first_order", _general(_kernels.advance))
-            return general.run(steps)
-
+def test_lanes_kernels_are_the_general_ones_bit_for_bit(m: int) -> None:
+    """The first-order kernels with the candidates as the inner loop ("lanes", which
+    :class:`_Simulator` runs for PT1 plants) give exactly the outputs and states of the
+    general kernels run candidate by candidate, across block boundaries, step doublings
+    and dropped candidates: 2.5 ms and 5 ms (whole-step delays, :func:`advance_exact`), then
+    20 ms and 40 ms (interpolated delays, :func:`advance`); serial and parallel."""
+    lanes, general = _simulator(m, 3), _simulator(m, 3, False)
+    assert general.order == 1 and lanes.lanes and not general.lanes
     exact = []
     for steps in (1, 37, 2000, 400, 300):
-        exact.append(fast.exact_delays)
-        out = general_run(steps)
-        assert np.array_equal(fast.run(steps), out)
-        assert np.array_equal(lanes.run(steps), out)
-        if fast.k % 2:
-            out = general_run(1)
-            assert np.array_equal(fast.run(1), out) and np.array_equal(lanes.run(1), out)
-        if fast.can_coarsen():
-            for sim in (lanes, fast, general):
-                sim.coarsen()
+        exact.append(general.exact_delays)
+        assert np.array_equal(lanes.run(steps), general.run(steps))
+        if general.k % 2:
+            assert np.array_equal(lanes.run(1), general.run(1))
+        if general.can_coarsen():
+            lanes.coarsen()
+            general.coarsen()
     assert exact == [True, True, True, False, False]
-    for name in ("x", "p_y", "y_hist", "x_int", "err"):
-        assert np.array_equal(getattr(fast, name), getattr(general, name)), name
     # the lanes layout: buffers (ring + 1, M), states (G, M)
-    assert np.array_equal(lanes.x.T, fast.x[:, :, 0])
+    assert np.array_equal(lanes.x.T, general.x[:, :, 0])
     for name in ("p_y", "y_hist"):
-        assert np.array_equal(getattr(lanes, name).T, getattr(fast, name)), name
+        assert np.array_equal(getattr(lanes, name).T, getattr(general, name)), name
     for name in ("x_int", "err"):
-        assert np.array_equal(getattr(lanes, name), getattr(fast, name)), name
+        assert np.array_equal(getattr(lanes, name), getattr(general, name)), name
     keep = np.arange(m)[::2]
     lanes.keep(keep)
-    fast.keep(keep)
-    assert np.array_equal(lanes.run(50), fast.run(50))
-    assert np.abs(fast.run(10)).max() > 0.5                            # a real response
+    general.keep(keep)
+    assert np.array_equal(lanes.run(50), general.run(50))
+    assert np.abs(general.run(10)).max() > 0.5                         # a real response
+
+
+@pytest.mark.parametrize("h", [0.04, 0.03])
+def test_lanes_with_interpolated_delays_from_the_first_step(h: float) -> None:
+    """A step that is no divisor of the delays from t = 0 on (0.11 s, 1.1 s forward, 0.1 s
+    measured; 0.03 s gives thirds, not exact in binary): the lanes kernel, which follows
+    each tap from one step to the next, reads the same columns as the taps computed for
+    every sample, also where they start before t = 0."""
+    rng = np.random.default_rng(5)
+    acts = (Actuator(0.01, 0.234), Actuator(1.0, 11.18), Actuator(0.01, 0.0455))
+    gains = rng.dirichlet(np.ones(3), 7)
+    plant = Plant(acts, gains, 0.1, 0.1)
+    kp, ki = rng.uniform(0.05, 0.6, 7), rng.uniform(0.01, 0.3, 7)
+    lanes, rows = (_Simulator(plant, kp, ki, h, lanes=flag) for flag in (True, False))
+    assert not lanes.exact_delays and lanes.lanes and not rows.lanes
+    for steps in (1, 2, 5, 300, 41):
+        assert np.array_equal(lanes.run(steps), rows.run(steps))
+    assert np.array_equal(lanes.p_y.T, rows.p_y) and np.array_equal(lanes.x.T, rows.x[:, :, 0])
 
 
 def _taps_numpy(n, f, first: int, steps: int, ring: int, right_end: bool):
