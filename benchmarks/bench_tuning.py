@@ -3,7 +3,9 @@
 For every method, ``--repeats`` runs of ``adnmesh tune`` in a subprocess (wall time and the
 CPU time of the process and its workers), and, with ``--baseline-rev REV``, the same runs of
 the code at git revision REV (checked out in a temporary ``git worktree``, run with this venv):
-both measured in the same run, so the ratio holds even though the machine's speed varies.
+both measured in the same run, so the ratio holds even though the machine's speed varies
+(each source runs the first method once untimed before: numba's compiling into a fresh
+worktree's cache would count in its first run).
 Then one in-process run per method gives CPU and wall seconds per phase (summed over the
 worker processes' chunks) and an independent audit of every entry (``adnmesh.loop.evaluate``
 on ``plant_from_ders`` with the entry's weights, full step info). Figures are ranges
@@ -130,8 +132,15 @@ def _span(xs) -> str:
 
 def _compare(config_path: str, methods, workers: int, repeats: int, baseline: Path | None,
              tmp: Path) -> None:
-    """Before/after of the whole command, interleaved so both see the same machine."""
+    """Before/after of the whole command, interleaved so both see the same machine.
+
+    Each source first runs the command once untimed: numba compiles the kernels into a source
+    tree's cache on its first run (a fresh baseline worktree, or a changed kernel), seconds
+    in every worker that a timed run would count."""
     sources = [("new", ROOT)] + ([("baseline", baseline)] if baseline else [])
+    for name, src in sources:
+        _run_cli(src, str(Path(config_path).resolve()), methods[0], workers,
+                 tmp / f"warm-up-{name}.json")
     for method in methods:
         res = {name: [] for name, _ in sources}
         for r in range(repeats):
