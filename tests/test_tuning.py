@@ -246,3 +246,32 @@ def test_two_workers_give_the_one_process_table_with_its_static_controller(wt_ch
     assert set(two.entries) == set(one.entries)
     for key, e in one.entries.items():
         assert (two.entries[key].kp, two.entries[key].ki, two.entries[key].w) == (e.kp, e.ki, e.w)
+
+
+def test_phase_unwrapped_to_the_crossing_is_numpys():
+    """The initial design's -90° crossing from phases unwrapped only where needed is the one
+    of the whole numpy unwrap: SimBench's plants (no jump before -90°), PT2 and RHPZ models,
+    and rows made to jump before they cross (a phase that rises past +180° first, one that
+    starts below -90°)."""
+    from adnmesh.tuning.build import group_subsets
+    from adnmesh.tuning.paper import _unwrapped_to_crossing
+    from adnmesh.tuning.problem import all_subsets
+    from loops import CONFIG
+    problem = TuningProblem(CONFIG)
+    f = np.array([g.fractions for g in group_subsets(problem, all_subsets(list(CONFIG.der_ids())))])
+    omega = np.geomspace(1e-4, 1e3, 7001)
+    t = np.linspace(0.0, 1.0, 7001)
+    synthetic = np.angle(np.exp(1j * np.vstack([3.0 - 10.0 * (t - 0.3) ** 2 * 9.0,
+                                                 -2.0 - 8.0 * t, 2.9 + 4.0 * t - 14.0 * t ** 2])))
+    rows = [np.angle(f @ problem.plant(f[0]).with_model(m).group_responses(omega))
+            for m in ("pt1", "pt2", "rhpz")] + [synthetic]
+    for raw in rows:
+        want = np.unwrap(raw, axis=1)
+        got = _unwrapped_to_crossing(raw)
+        k = np.argmax(want <= -np.pi / 2, axis=1)
+        r = np.arange(raw.shape[0])
+        assert np.array_equal(np.argmax(got <= -np.pi / 2, axis=1), k)
+        assert np.array_equal(got[r, k], want[r, k])
+        assert np.array_equal(got[r, np.maximum(k - 1, 0)], want[r, np.maximum(k - 1, 0)])
+    jumped = _unwrapped_to_crossing(rows[-1])
+    assert not np.array_equal(jumped, rows[-1])                 # the jumping rows unwrapped

@@ -73,7 +73,7 @@ def initial_values(problem: TuningProblem, fractions: np.ndarray):
     omega = np.geomspace(1e-4, 1e3, 7001)
     # loop plant: every delay of the loop (T_com, T_delay, T_meas) included
     g = fractions @ problem.plant(fractions[0]).group_responses(omega)   # (P, N)
-    phase = np.unwrap(np.angle(g), axis=1)
+    phase = _unwrapped_to_crossing(np.angle(g))
     below = phase <= -np.pi / 2
     if not below.any(axis=1).all():
         raise ValueError("plant phase never reaches -90 deg below 1e3 rad/s")
@@ -93,6 +93,26 @@ def initial_values(problem: TuningProblem, fractions: np.ndarray):
         kp = np.where(ok, kp * 1.25, kp)
         ki = np.where(ok, ki * 1.25, ki)
     return kp, ki
+
+
+def _unwrapped_to_crossing(raw: np.ndarray) -> np.ndarray:
+    """Rows of phases (rad) as :func:`numpy.unwrap` gives them, at least up to the first
+    sample at or below -90°. Before a row's first jump of pi or more unwrap adds exactly 0,
+    so where the raw phase reaches -90° before any jump (every PT1 plant: the phase falls
+    from 0 and wraps only past -180°) the raw row is the unwrapped one there; the other rows
+    are unwrapped whole. (The whole unwrap of the (887, 7001) SimBench phases took 0.26 s,
+    12 % of the static design.)"""
+    below = raw <= -np.pi / 2
+    first = np.where(below.any(axis=1), np.argmax(below, axis=1), raw.shape[1] - 1)
+    jump = np.abs(np.diff(raw, axis=1)) >= np.pi
+    jumped = np.where(jump.any(axis=1), np.argmax(jump, axis=1), raw.shape[1])
+    # a jump between samples j and j + 1 changes sample j + 1 onwards
+    rows = np.nonzero(jumped + 1 <= first)[0]
+    if rows.size == 0:
+        return raw
+    out = raw.copy()
+    out[rows] = np.unwrap(raw[rows], axis=1)
+    return out
 
 
 def _approach(problem: TuningProblem, fractions, plants, kp, ki, step: float):
