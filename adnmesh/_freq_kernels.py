@@ -73,6 +73,15 @@ def grid_pass(kp, ki, gains, resp, omega, screen_min, rho, drho, winding_too):  
     f_re = np.empty(n)
     f_im = np.empty(n)
     q2 = np.empty(n)
+    # per interval: its width and width / lo, width / lo^2 (the Lipschitz bound's factors;
+    # a rounding here only moves an interval between passing and bisection, both certified)
+    width = np.empty(max(n - 1, 0))
+    width_lo = np.empty(max(n - 1, 0))
+    width_lo2 = np.empty(max(n - 1, 0))
+    for k in range(n - 1):
+        width[k] = omega[k + 1] - omega[k]
+        width_lo[k] = width[k] / omega[k]
+        width_lo2[k] = width_lo[k] / omega[k]
     for m in range(m_n):
         best = -1.0
         kbest = 0
@@ -104,15 +113,15 @@ def grid_pass(kp, ki, gains, resp, omega, screen_min, rho, drho, winding_too):  
         # negative real axis, minus the plain arg differences of the failed intervals
         crossings = 0
         failed = 0.0
+        kp_m, ki_m = kp[m], ki[m]
         for k in range(n - 1):
-            lo = omega[k]
             s1 = 0.0
             s2 = 0.0
             for g in range(g_n):
                 s1 += gains[m, g] * rho[g, k]
                 s2 += gains[m, g] * drho[g, k]
-            lip = ki[m] / lo**2 * s1 + (kp[m] + ki[m] / lo) * s2
-            step = (omega[k + 1] - lo) * lip
+            # (omega[k + 1] - lo) (ki / lo^2 s1 + (kp + ki / lo) s2)
+            step = ki_m * width_lo2[k] * s1 + (kp_m * width[k] + ki_m * width_lo[k]) * s2
             if step * step < 0.998001 * (f_re[k] ** 2 + f_im[k] ** 2):
                 below_a = math.copysign(1.0, f_im[k]) < 0.0
                 below_b = math.copysign(1.0, f_im[k + 1]) < 0.0
@@ -160,22 +169,40 @@ def first_above(a, frac, rho, beta_term, grid, level):  # pragma: no cover - com
     return out
 
 
+@numba.njit(cache=True, inline="always")
+def _envelope(m, k, kp, ki, gains, rho, lo):  # pragma: no cover - compiled
+    """``(kp[m] + ki[m] / lo[k]) gains[m] . rho[:, k]``."""
+    s = 0.0
+    for g in range(gains.shape[1]):
+        s += gains[m, g] * rho[g, k]
+    return (kp[m] + ki[m] / lo[k]) * s
+
+
 @numba.njit(cache=True)
-def last_at_least(kp, ki, gains, rho, lo, level):  # pragma: no cover - compiled
+def last_at_least(kp, ki, gains, rho, lo, level, monotone):  # pragma: no cover - compiled
     """Per candidate, the last interval index where ``(kp + ki / lo) gains . rho >= level``
-    (-1 if none): the envelope of :func:`adnmesh.stability._high_frequency_limit`, scanned
-    from the top (not monotone in general: a numerator's bound grows with the frequency).
-    ``kp``, ``ki`` (M,), ``gains`` (M, G), ``rho`` (G, K), ``lo`` (K,)."""
-    m_n, g_n = gains.shape
+    (-1 if none): the envelope of :func:`adnmesh.stability._high_frequency_limit`. With
+    ``monotone`` (every ``rho`` row nonincreasing, e.g. constant numerators: then each factor
+    is, and so is every rounded product and sum) by bisection, else scanned from the top (a
+    numerator's bound may grow with the frequency). ``kp``, ``ki`` (M,), ``gains`` (M, G),
+    ``rho`` (G, K), ``lo`` (K,)."""
+    m_n = gains.shape[0]
     k_n = lo.size
     out = np.empty(m_n, np.int64)
     for m in range(m_n):
+        if monotone:
+            a, b = -1, k_n - 1        # the index is in [a, b]; env(a) >= level if a >= 0
+            while a < b:
+                mid = (a + b + 1) // 2
+                if _envelope(m, mid, kp, ki, gains, rho, lo) >= level:
+                    a = mid
+                else:
+                    b = mid - 1
+            out[m] = a
+            continue
         idx = -1
         for k in range(k_n - 1, -1, -1):
-            s = 0.0
-            for g in range(g_n):
-                s += gains[m, g] * rho[g, k]
-            if (kp[m] + ki[m] / lo[k]) * s >= level:
+            if _envelope(m, k, kp, ki, gains, rho, lo) >= level:
                 idx = k
                 break
         out[m] = idx

@@ -151,6 +151,12 @@ def _high_frequency_bounds(actuators: tuple) -> np.ndarray:
     return np.ascontiguousarray(_group_bounds_of(actuators, _HIGH_GRID[:-1], _HIGH_GRID[1:])[0])
 
 
+@functools.lru_cache(maxsize=256)
+def _high_frequency_monotone(actuators: tuple) -> bool:
+    """Every row of :func:`_high_frequency_bounds` is nonincreasing (as computed)."""
+    return bool(np.all(np.diff(_high_frequency_bounds(actuators), axis=1) <= 0.0))
+
+
 def _high_frequency_limit(plant: Plant, kp, ki, gains, level: float = 1.0) -> np.ndarray:
     """Frequency (rad/s) above which ``|L| < level`` is guaranteed, shape (M,).
 
@@ -161,7 +167,8 @@ def _high_frequency_limit(plant: Plant, kp, ki, gains, level: float = 1.0) -> np
     last = last_at_least(np.ascontiguousarray(kp, dtype=float),
                          np.ascontiguousarray(ki, dtype=float),
                          np.ascontiguousarray(gains, dtype=float),
-                         _high_frequency_bounds(plant.actuators), lo, level)
+                         _high_frequency_bounds(plant.actuators), lo, level,
+                         _high_frequency_monotone(plant.actuators))
     return np.where(last >= 0, hi[np.maximum(last, 0)], lo[0])
 
 

@@ -187,7 +187,10 @@ def test_limit_scans_on_edge_cases():
     assert first_above(np.array([1.0]), np.ones((1, 1)), rho, np.zeros((1, 3)), grid,
                        0.5)[0] == 0
     lo = np.array([1.0, 2.0])
-    assert last_at_least(np.array([0.0]), np.array([1e-9]), np.ones((1, 1)), np.ones((1, 2)),
-                         lo, 1.0)[0] == -1
-    assert last_at_least(np.array([5.0]), np.array([0.0]), np.ones((1, 1)), np.ones((1, 2)),
-                         lo, 1.0)[0] == 1
+    for monotone in (True, False):                 # bisection and scan
+        assert last_at_least(np.array([0.0]), np.array([1e-9]), np.ones((1, 1)),
+                             np.ones((1, 2)), lo, 1.0, monotone)[0] == -1
+        assert last_at_least(np.array([5.0]), np.array([0.0]), np.ones((1, 1)),
+                             np.ones((1, 2)), lo, 1.0, monotone)[0] == 1
+        assert last_at_least(np.array([1.0]), np.array([2.0]), np.ones((1, 1)),
+                             np.ones((1, 2)), lo, 2.5, monotone)[0] == 0
