@@ -31,9 +31,15 @@ def as_candidates(plant: Plant, kp, ki) -> tuple[np.ndarray, np.ndarray, np.ndar
     kp = np.atleast_1d(np.asarray(kp, dtype=float))
     ki = np.atleast_1d(np.asarray(ki, dtype=float))
     gains = np.atleast_2d(plant.gains_w)
-    m = np.broadcast_shapes(kp.shape, ki.shape, gains.shape[:1])[0]
-    if np.any(~(kp > 0)) or np.any(~(ki > 0)):
+    if not ((kp > 0).all() and (ki > 0).all()):
         raise ValueError("K_P and K_I must be positive")
+    if kp.ndim == 1 and kp.shape == ki.shape and gains.shape[0] == kp.shape[0]:
+        # already one of each per candidate (the hot paths): read-only views as below
+        views = [a.view() for a in (kp, ki, gains)]
+        for v in views:
+            v.flags.writeable = False
+        return views[0], views[1], views[2]
+    m = np.broadcast_shapes(kp.shape, ki.shape, gains.shape[:1])[0]
     return (np.broadcast_to(kp, (m,)), np.broadcast_to(ki, (m,)),
             np.broadcast_to(gains, (m, gains.shape[1])))
 

@@ -98,7 +98,7 @@ def disk_margin_bound(plant: Plant, kp, ki, per_decade: int = 100) -> np.ndarray
     out = np.empty(kp.size)
     for start in range(0, kp.size, CHUNK):
         sl = slice(start, min(kp.size, start + CHUNK))
-        sub = Plant(plant.actuators, gains[sl], plant.t_com_s, plant.t_meas_s)
+        sub = plant.with_gains(gains[sl])
         out[sl] = 2.0 / _grid_pass(sub, kp[sl], ki[sl], np.inf, per_decade)[1][0]
     return out
 
@@ -134,7 +134,7 @@ def _frequency_part(plant: Plant, kp, ki, classical: bool, screen_min: float | N
     if not classical:
         return nyq, dm, None
     kp, ki, gains = as_candidates(plant, kp, ki)
-    loop = loop_response(Plant(plant.actuators, gains, plant.t_com_s, plant.t_meas_s), kp, ki,
+    loop = loop_response(plant.with_gains(gains), kp, ki,
                          nyq.omega)
     nyq = NyquistData(nyq.omega, loop, nyq.stable, nyq.unstable_poles, nyq.certified)
     return nyq, dm, classical_margins(plant, kp, ki, nyq)
@@ -156,7 +156,7 @@ def _screened_part(plant: Plant, kp, ki, screen_min: float):
     poles = np.full(m, -1)
     alpha, w_disk = upper.copy(), np.full(m, np.nan)
     if keep.any():
-        sub = Plant(plant.actuators, gains[keep], plant.t_com_s, plant.t_meas_s)
+        sub = plant.with_gains(gains[keep])
         st, po, ce = winding_verdict(sub, kp[keep], ki[keep], gains[keep], omega,
                                      winding[keep], bad[keep])
         stable[keep], poles[keep], certified[keep] = st, po, ce
@@ -214,7 +214,7 @@ def evaluate(plant: Plant, kp, ki, *, band_pct: float = 5.0, classical: bool = T
     gm, gmw, pm, pmw, dmar = nan(), nan(), nan(), nan(), nan()
     for start in range(0, m, CHUNK):
         sl = slice(start, min(m, start + CHUNK))
-        sub = Plant(plant.actuators, gains[sl], plant.t_com_s, plant.t_meas_s)
+        sub = plant.with_gains(gains[sl])
         nyq, dm, cm = _frequency_part(sub, kp[sl], ki[sl], classical,
                                       disk_margin_min if screen else None)
         stable[sl], certified[sl], poles[sl] = nyq.stable, nyq.certified, nyq.unstable_poles
@@ -229,7 +229,7 @@ def evaluate(plant: Plant, kp, ki, *, band_pct: float = 5.0, classical: bool = T
         mask = stable if time_mask is None else stable & np.asarray(time_mask, bool)
         if disk_margin_min is not None:
             mask = mask & (alpha >= disk_margin_min)
-        info = step_info(Plant(plant.actuators, gains, plant.t_com_s, plant.t_meas_s), kp, ki,
+        info = step_info(plant.with_gains(gains), kp, ki,
                          band_pct=band_pct, bandwidth_rad_s=w_disk, mask=mask,
                          overshoot_stop_pct=overshoot_stop_pct, t_max_s=t_max_s)
     else:

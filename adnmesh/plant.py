@@ -158,6 +158,18 @@ class Plant:
         if not (self.t_com_s >= 0 and self.t_meas_s >= 0):
             raise ValueError("ICT delays must be >= 0")
 
+    def with_gains(self, gains_w: np.ndarray) -> "Plant":
+        """The same groups and delays with the gains ``gains_w`` (W), taken as they are:
+        rows or active columns of this plant's already validated gains (the numerics' hot
+        paths build thousands of such plants; a new plant of other gains is ``Plant(...)``,
+        which checks them)."""
+        plant = object.__new__(Plant)
+        object.__setattr__(plant, "actuators", self.actuators)
+        object.__setattr__(plant, "gains_w", gains_w)
+        object.__setattr__(plant, "t_com_s", self.t_com_s)
+        object.__setattr__(plant, "t_meas_s", self.t_meas_s)
+        return plant
+
     @property
     def total_gain_w(self) -> np.ndarray:
         """``sum_g K_g`` (W), the DC gain of the plant; shape () or (M,)."""

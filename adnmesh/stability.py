@@ -204,7 +204,7 @@ def _refine(plant, kp, ki, gains, lo, hi):
         n = 2**exp
         frac = np.linspace(0.0, 1.0, n + 1)
         pts = lo[pending, None] + (hi[pending] - lo[pending])[:, None] * frac     # (P, n+1)
-        sub = Plant(plant.actuators, gains[pending], plant.t_com_s, plant.t_meas_s)
+        sub = plant.with_gains(gains[pending])
         f = 1.0 + loop_at(sub, kp[pending], ki[pending], pts)
         a, b = pts[:, :-1], pts[:, 1:]
         lip = _lipschitz(plant, kp[pending], ki[pending], gains[pending], a, b)
@@ -224,7 +224,7 @@ def certified_grid(plant: Plant, kp, ki, per_decade: int = _PER_DECADE):
     """
     kp, ki, gains = as_candidates(plant, kp, ki)
     omega = certified_omega(plant, kp, ki, per_decade)
-    pl = Plant(plant.actuators, gains, plant.t_com_s, plant.t_meas_s)
+    pl = plant.with_gains(gains)
     return omega, loop_response(pl, kp, ki, omega)
 
 
@@ -298,7 +298,7 @@ def nyquist_stability(plant: Plant, kp, ki, per_decade: int = _PER_DECADE, grid=
     rows = np.arange(kp.size) if only is None else np.nonzero(np.asarray(only, bool))[0]
     if rows.size:
         kp_r, ki_r, gains_r = kp[rows], ki[rows], gains[rows]
-        pl = Plant(plant.actuators, gains_r, plant.t_com_s, plant.t_meas_s)
+        pl = plant.with_gains(gains_r)
         f = 1.0 + loop[rows]
         lip = _lipschitz(plant, kp_r, ki_r, gains_r, omega[:-1], omega[1:])
         good = np.diff(omega)[None, :] * lip < 0.999 * np.abs(f[:, :-1])

@@ -390,7 +390,7 @@ def _simulate_until_settled(plant, kp, ki, gains, h, t_min, band_pct, t_max, sto
     """
     m = kp.size
     out = {k: np.full(m, np.nan) for k in ("os", "tr", "ts", "ts2", "pk", "tp", "hor")}
-    sim = _Simulator(Plant(plant.actuators, gains, plant.t_com_s, plant.t_meas_s), kp, ki, h,
+    sim = _Simulator(plant.with_gains(gains), kp, ki, h,
                      coarsen_limit_s)
     t_max = np.broadcast_to(np.asarray(t_max, float), (m,))
     acc = StepFigureAccumulator(m, (band_pct / 100.0, 0.02, _SETTLED_BAND))
@@ -450,7 +450,7 @@ def _by_active_groups(plant: Plant, gains: np.ndarray, sel: np.ndarray):
     """
     active = gains[sel] > 0
     if active.all():
-        yield sel, Plant(plant.actuators, gains[sel], plant.t_com_s, plant.t_meas_s)
+        yield sel, plant.with_gains(gains[sel])
         return
     if active.shape[1] <= 62:
         # each row's pattern as one integer (np.unique over rows costs ~50 us a call)
@@ -509,8 +509,7 @@ def step_info(plant: Plant, kp, ki, band_pct: float = 5.0, h: float | None = Non
     idx = np.nonzero(mask)[0]
     if idx.size:
         if h is None:
-            steps[idx] = choose_steps(Plant(plant.actuators, gains[idx], plant.t_com_s,
-                                            plant.t_meas_s), bw[idx])
+            steps[idx] = choose_steps(plant.with_gains(gains[idx]), bw[idx])
         else:
             steps[idx] = h
         t_min = _horizon_floor(plant, gains, bw, integral_rate(gains, kp, ki))
