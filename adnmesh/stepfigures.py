@@ -106,7 +106,9 @@ class StepFigureAccumulator:
         """Continue with the responses ``rows`` only."""
         for name in self.FIELDS:
             setattr(self, name, getattr(self, name)[rows])
-        self.settle = self.settle[:, rows]
+        # C order as allocated (a column selection would be F order: a second compilation
+        # of the kernels, and a slower scan)
+        self.settle = np.ascontiguousarray(self.settle[:, rows])
 
     def add(self, t0: float, h: float, chunk: np.ndarray, times: np.ndarray | None = None):
         """Take in y at ``t0 + h, ..., t0 + n h`` (shape (M, n); ``last`` is at t0),

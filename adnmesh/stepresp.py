@@ -166,7 +166,9 @@ class _Simulator:
         # plant is a reduction of it to its active groups: same steps as the full plant)
         self.coarsen_limit_s = (float(plant.path_delays_s.min()) if coarsen_limit_s is None
                                 else float(coarsen_limit_s))
-        self.kp, self.ki, self.gains = (np.ascontiguousarray(a, dtype=float) for a in (kp, ki, gains))
+        # own writable copies: the candidates may be read-only views, and numba compiles a
+        # kernel once per argument type (read-only and writable arrays are two)
+        self.kp, self.ki, self.gains = (np.array(a, dtype=float) for a in (kp, ki, gains))
         self.plant = plant
         self.order = max(a.denominator.size - 1 for a in plant.actuators)
         # first-order groups (PT1, the reference model): the candidates are the kernels' inner
