@@ -38,6 +38,7 @@ import numpy as np
 
 from ._kernels import (advance, advance_exact, advance_exact_first_order_lanes,
                        advance_first_order_lanes, delay_taps)
+from ._settle_loop import COARSEN_CURVATURE, MAX_BLOCK_VALUES, SETTLED_FRACTION, settle_lanes
 from .freqresp import as_candidates
 from .plant import Plant
 from .stepfigures import StepFigureAccumulator
@@ -48,8 +49,6 @@ __all__ = ["StepInfo", "simulate_step", "step_info", "step_info_from_samples", "
 _SETTLED_BAND = 0.005
 #: samples per block of precomputed delay taps (bounds their memory to ~100 MB)
 _TAP_BLOCK = 200_000
-#: largest |second difference| of y (per step) at which the step may be doubled
-_COARSEN_CURVATURE = 1e-7
 
 
 @dataclass(frozen=True)
@@ -378,6 +377,17 @@ def _horizon_floor(plant: Plant, gains: np.ndarray, bandwidth: np.ndarray,
     return np.maximum(base, np.where(np.isfinite(bandwidth), 20.0 / bandwidth, 0.0))
 
 
+_OUTPUTS = ("os", "tr", "ts", "ts2", "pk", "tp", "hor")
+
+
+def _first_block(t_min: np.ndarray, h: float, m: int) -> int:
+    """Samples of the first block of a bucket (even): ``min(t_min, 10 s) / h``, at least 50,
+    at most :data:`~adnmesh._settle_loop.MAX_BLOCK_VALUES` values in all."""
+    chunk = int(np.clip(np.ceil(min(t_min.min(), 10.0) / h), 50,
+                        MAX_BLOCK_VALUES // max(m, 1)))
+    return chunk + chunk % 2
+
+
 def _simulate_until_settled(plant, kp, ki, gains, h, t_min, band_pct, t_max, stop_above=None,
                             coarsen_limit_s=None, until_rise=False):
     """Simulate one step-size bucket; drop every candidate once it has settled.
@@ -389,24 +399,73 @@ def _simulate_until_settled(plant, kp, ki, gains, h, t_min, band_pct, t_max, sto
     settling times are NaN): a search only needs to know that it violates the constraint.
     With ``until_rise``, a candidate is dropped once it has reached 90 % (its rise time is
     then known; overshoot and settling are not).
+
+    First-order plants run the loop compiled (:func:`adnmesh._settle_loop.settle_lanes`,
+    the same figures bit for bit); others, and ``compiled=False`` in the tests, run
+    :func:`_simulate_until_settled_stepwise`.
     """
+    if max(a.denominator.size - 1 for a in plant.actuators) != 1:
+        return _simulate_until_settled_stepwise(plant, kp, ki, gains, h, t_min, band_pct, t_max,
+                                                stop_above, coarsen_limit_s, until_rise)
     m = kp.size
-    out = {k: np.full(m, np.nan) for k in ("os", "tr", "ts", "ts2", "pk", "tp", "hor")}
-    sim = _Simulator(plant.with_gains(gains), kp, ki, h,
-                     coarsen_limit_s)
+    limit = (float(plant.path_delays_s.min()) if coarsen_limit_s is None
+             else float(coarsen_limit_s))
+    levels = _levels(plant.actuators, tuple(plant.path_delays_s.tolist()),
+                     float(plant.t_meas_s), float(h), limit)
+    res = settle_lanes(np.array(kp, dtype=float), np.array(ki, dtype=float),
+                       np.array(gains, dtype=float), np.array(t_min, dtype=float),
+                       np.array(np.broadcast_to(np.asarray(t_max, float), (m,))),
+                       np.array([band_pct / 100.0, 0.02, _SETTLED_BAND]),
+                       np.inf if stop_above is None else float(stop_above), bool(until_rise),
+                       _first_block(t_min, h, m), *levels)
+    return dict(zip(_OUTPUTS, res))
+
+
+@functools.lru_cache(maxsize=1024)
+def _levels(actuators: tuple, path_delays_s: tuple, t_meas_s: float, h: float, limit: float):
+    """The discretisations of first-order groups at every step the settle loop may double
+    to: ``h, 2h, 4h, ...`` while ``2h <= limit + 1e-12`` (s): the arguments of
+    :func:`adnmesh._settle_loop.settle_lanes` after its ``chunk`` (steps (L,); phi, gamma
+    left and right, C (L, G); forward delays in steps and fractions (L, G); measurement
+    delay (L,) twice; ring lengths (L,); whole-step delays (L,))."""
+    hs = [h]
+    while 2.0 * hs[-1] <= limit + 1e-12:
+        hs.append(2.0 * hs[-1])
+    rows = [_discretised(actuators, 1, path_delays_s, t_meas_s, x) for x in hs]
+    g = len(actuators)
+    phi, gl, gr, c = (np.array([r[i].reshape(g) for r in rows]) for i in range(4))
+    n_in = np.array([r[4] for r in rows], dtype=np.int64)
+    f_in = np.array([r[5] for r in rows], dtype=float)
+    n_meas = np.array([int(r[6][0]) for r in rows], dtype=np.int64)
+    f_meas = np.array([float(r[7][0]) for r in rows])
+    ring = np.array([r[8] for r in rows], dtype=np.int64)
+    exact = (~np.any(f_in != 0, axis=1)) & (f_meas == 0)
+    out = (np.array(hs), phi, gl, gr, c, n_in, f_in, n_meas, f_meas, ring, exact)
+    for a in out:
+        a.setflags(write=False)
+    return out
+
+
+def _simulate_until_settled_stepwise(plant, kp, ki, gains, h, t_min, band_pct, t_max,
+                                     stop_above=None, coarsen_limit_s=None, until_rise=False,
+                                     lanes: bool | None = None):
+    """:func:`_simulate_until_settled` as a Python loop over blocks of the compiled step
+    kernels (any order of dynamics; ``lanes`` as :class:`_Simulator`'s)."""
+    m = kp.size
+    out = {k: np.full(m, np.nan) for k in _OUTPUTS}
+    sim = _Simulator(plant.with_gains(gains), kp, ki, h, coarsen_limit_s, lanes=lanes)
     t_max = np.broadcast_to(np.asarray(t_max, float), (m,))
     acc = StepFigureAccumulator(m, (band_pct / 100.0, 0.02, _SETTLED_BAND))
     alive = np.arange(m)
     t_min_alive, t_max_alive = t_min, t_max
-    chunk = int(np.clip(np.ceil(min(t_min.min(), 10.0) / h), 50, 2e7 // max(m, 1)))
-    chunk += chunk % 2
+    chunk = _first_block(t_min, h, m)
     while alive.size:
         t0 = sim.time_s
         y = sim.run(chunk)
         samples = y.shape[1]
         curvature = acc.add(t0, sim.h, y)
         elapsed = sim.time_s
-        settled = (acc.settle[2] <= 0.75 * elapsed) & (elapsed >= t_min_alive)
+        settled = (acc.settle[2] <= SETTLED_FRACTION * elapsed) & (elapsed >= t_min_alive)
         over = acc.peak > stop_above if stop_above is not None else np.zeros(alive.size, bool)
         if until_rise:
             over = over | np.isfinite(acc.t90)
@@ -430,13 +489,13 @@ def _simulate_until_settled(plant, kp, ki, gains, h, t_min, band_pct, t_max, sto
         if not alive.size:
             break
         # smooth responses (second differences far below the error target) need no fine
-        # step: doubling h multiplies the hold error by ~4, still within _COARSEN_CURVATURE*4
+        # step: doubling h multiplies the hold error by ~4, still within COARSEN_CURVATURE*4
         if (samples > 2 and sim.can_coarsen()
-                and curvature.max() < _COARSEN_CURVATURE):
+                and curvature.max() < COARSEN_CURVATURE):
             sim.coarsen()
         # np.clip's rule on scalars: max with the floor first, then min with the cap
         chunk = int(min(max(math.ceil(0.5 * elapsed / sim.h), chunk // 2),
-                        2e7 // alive.size))
+                        MAX_BLOCK_VALUES // alive.size))
         chunk += (sim.k + chunk) % 2          # end every chunk on an even sample index
     return out
 
