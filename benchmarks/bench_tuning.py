@@ -80,7 +80,7 @@ def same_entries(new, base) -> None:
     """How the new table's entries compare with the baseline's: for every subset the global
     optimum's rise time (new / baseline), and for the paper method whether the path's pair
     is identical."""
-    ratio, differ, paper, subsets, identical = [], 0, 0, 0, 0
+    ratio, differ, paper, subsets, identical, figures = [], 0, 0, 0, 0, 0
     for e in base.entries.values():
         n = new.lookup(e.ders)
         subsets += 1
@@ -93,15 +93,20 @@ def same_entries(new, base) -> None:
             ratio.append(g_new / g_old)
         if new.method == "paper" and e.figures.get("tuned_by") == "paper":
             paper += 1
-            d_new, d_old = n.figures["design_rise_time_s"], e.figures["design_rise_time_s"]
-            if n.figures.get("tuned_by") != "paper" or abs(d_new / d_old - 1) > 1e-9:
+            # the path result is the pair; its figures may differ in the last digits (a
+            # candidate's step sequence depends on the other candidates in its batch)
+            if n.figures.get("tuned_by") != "paper" or (n.kp, n.ki) != (e.kp, e.ki):
                 differ += 1
+            d_new, d_old = n.figures["design_rise_time_s"], e.figures["design_rise_time_s"]
+            figures += abs(d_new / d_old - 1) > 1e-9
     r = np.array(ratio)
     rise = (f"global rise time new/baseline median {np.median(r):.6f}, range {r.min():.6f} - "
             f"{r.max():.6f}, {int(np.sum(np.abs(r - 1) > 0.005))} off by more than 0.5 %"
             if r.size else "no subset has a global rise time in both tables")
     print(f"  entries vs baseline: {subsets} subsets, feasibility or path result differs on "
-          f"{differ}; {rise}" + (f"; paper path entries compared: {paper}" if paper else ""))
+          f"{differ}; {rise}" + (f"; paper path entries compared: {paper}, design rise time "
+                                  f"off by more than 1e-9 (relative) on {figures}"
+                                  if paper else ""))
     same_static = ((new.static is None) == (base.static is None)
                    and (new.static is None or (new.static.kp, new.static.ki)
                         == (base.static.kp, base.static.ki)))

@@ -28,12 +28,17 @@ from .static import design_over, static_any_size
 from .weights import find_weights
 
 __all__ = ["tune_table", "tune_subset", "static_entry", "paper_path", "write_csv", "PlantGroup",
-           "METHODS", "PHASES"]
+           "plant_chunks", "METHODS", "PHASES"]
 
 METHODS = ("paper", "global")
 #: ``tuned_by`` of a paper-method entry whose path search never found a feasible point
 PAPER_FALLBACK = "global (the paper's path found no feasible point)"
-CHUNK = 48
+#: plants per chunk, at most: the paper method's path walk checks its plants in 800-900
+#: lock-step batches per chunk whatever the chunk's size, so 148 plants a chunk (6 chunks
+#: for SimBench's 887) take ~0.8x the CPU of 48 (19 chunks); the global search is
+#: indifferent (its checks are wide batches either way), and a chunk of 148 still saves a
+#: partial table every few seconds
+CHUNK = 148
 #: random subsets the static controller of a selection is verified on
 STATIC_SAMPLE = 1000
 BACK_OFF_STEPS = 50
@@ -80,6 +85,16 @@ def group_subsets(problem: TuningProblem, subsets: Sequence[Sequence[str]]) -> l
         groups.setdefault(key, []).append(tuple(s))
         fracs.setdefault(key, f)
     return [PlantGroup(fracs[k], tuple(v)) for k, v in groups.items()]
+
+
+def plant_chunks(groups: list[PlantGroup], chunk_size: int) -> list[list[PlantGroup]]:
+    """The plants dealt into ``ceil(P / chunk_size)`` chunks in turn (plant i into chunk
+    i mod n): every chunk a cross-section of the subset sizes, so chunks cost about the
+    same, and the lock-step searches' sequential moves (set by a chunk's longest path, not
+    by its size) are shared by ~``chunk_size`` plants. Fixed by the plant list alone, so a
+    resumed run and any number of workers tune the same batches."""
+    n = max(1, -(-len(groups) // max(1, chunk_size)))
+    return [groups[i::n] for i in range(n) if groups[i::n]]
 
 
 def _entries(problem: TuningProblem, groups: list[PlantGroup], kp_n, ki_n, feasible, reasons,
@@ -249,8 +264,9 @@ def tune_table(config, method: str = "paper", workers: int = 1, out: Path | None
     on_progress : callable(done, total), optional
         Called with the number of subsets done.
     chunk_size : int
-        Normalised plants tuned together. Chunks are fixed from the full subset list, so a
-        resumed run tunes exactly the batches an uninterrupted run would (same results).
+        Normalised plants tuned together, at most (:func:`plant_chunks`). Chunks are fixed
+        from the full subset list, so a resumed run tunes exactly the batches an
+        uninterrupted run would (same results).
     phases : dict, optional
         Filled with ``{phase: [cpu s, wall s]}`` summed over chunks (:data:`PHASES`, plus
         ``static controller``); worker processes' CPU included.
@@ -267,7 +283,7 @@ def tune_table(config, method: str = "paper", workers: int = 1, out: Path | None
             table = old
             table.complete = False
     groups = group_subsets(problem, wanted)
-    chunks = [c for c in (groups[i:i + chunk_size] for i in range(0, len(groups), chunk_size))
+    chunks = [c for c in plant_chunks(groups, chunk_size)
               if any(table.lookup(s) is None for g in c for s in g.subsets)]
     done = len(wanted) - sum(len(g.subsets) for c in chunks for g in c)
     if on_progress:
