@@ -166,7 +166,9 @@ def settle_lanes(kp, ki, gains, t_min, t_max, bands, stop_above, until_rise, chu
     alive = np.arange(m0)
     tmin_a, tmax_a = t_min.copy(), t_max.copy()
     uniform = np.empty(0)
-    k = 0
+    # sample index (not the constant 0 to numba's typing: the kernels would be compiled
+    # for a literal first argument too)
+    k = chunk - chunk
     n = m0
     while n > 0:
         t0 = k * h
