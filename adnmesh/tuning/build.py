@@ -10,7 +10,9 @@ from __future__ import annotations
 import csv
 import dataclasses
 import math
+import multiprocessing
 import os
+import threading
 import time
 from contextlib import contextmanager
 from concurrent.futures import ProcessPoolExecutor
@@ -25,6 +27,7 @@ from .global_search import tune_global
 from .paper import initial_values, tune_paper
 from .problem import TuningProblem, all_subsets, horizon_s
 from .static import design_over, static_any_size
+from .warm import SHARES, warm_share
 from .weights import find_weights
 
 __all__ = ["tune_table", "tune_subset", "static_entry", "paper_path", "write_csv", "PlantGroup",
@@ -41,6 +44,8 @@ PAPER_FALLBACK = "global (the paper's path found no feasible point)"
 CHUNK = 148
 #: random subsets the static controller of a selection is verified on
 STATIC_SAMPLE = 1000
+#: how long a starting worker waits for the others' shares of the compiled kernels, s
+WARM_WAIT_S = 60.0
 BACK_OFF_STEPS = 50
 #: back-off steps checked for every entry before the rest
 BACK_OFF_FIRST = 2
@@ -212,6 +217,25 @@ def _one_numba_thread_if(single_thread: bool) -> None:
         numba.set_num_threads(1)
 
 
+def _start_worker(counter, barrier, config, constraints) -> None:
+    """Pool worker start: the compiled kernels' share of this worker (they take
+    :data:`~.warm.SHARES` in turn), then wait until every worker has its share, so that the
+    others are in numba's cache when this one needs them (a first run compiled every kernel
+    in every worker at once, ~6 s; see :mod:`.warm`). A worker that does not arrive within
+    :data:`WARM_WAIT_S` is not waited for: the kernels it should have compiled are then
+    compiled where they are needed, as before."""
+    with counter.get_lock():
+        index = counter.value
+        counter.value += 1
+    problem = TuningProblem(config, constraints["disk_margin_min"],
+                            constraints["overshoot_max_pct"])
+    warm_share(problem, SHARES[index % len(SHARES)])
+    try:
+        barrier.wait(timeout=WARM_WAIT_S)
+    except threading.BrokenBarrierError:
+        pass
+
+
 def _tune_chunk(args) -> tuple[list[TableEntry], dict]:
     """Worker: tune a chunk of plant groups (picklable entry point); returns the entries and
     the CPU and wall seconds per phase."""
@@ -311,7 +335,11 @@ def tune_table(config, method: str = "paper", workers: int = 1, out: Path | None
     static = None
     try:
         if workers > 1 and len(jobs) > 1:
-            with ProcessPoolExecutor(max_workers=workers) as pool:
+            context = multiprocessing.get_context()
+            start = (context.Value("i", 0), context.Barrier(workers), config,
+                     problem.constraints)
+            with ProcessPoolExecutor(max_workers=workers, mp_context=context,
+                                     initializer=_start_worker, initargs=start) as pool:
                 # the static controller needs no entry: it runs beside the chunks, not after
                 pending = (pool.submit(_static_job, (*static_job, True))
                            if table.static is None else None)
