@@ -335,10 +335,12 @@ def tune_table(config, method: str = "paper", workers: int = 1, out: Path | None
     static = None
     try:
         if workers > 1 and len(jobs) > 1:
+            # no more workers than jobs: every worker starts (at once with "fork", one per
+            # job submitted otherwise) and meets the others at the barrier of _start_worker
+            size = min(workers, len(jobs) + (table.static is None))
             context = multiprocessing.get_context()
-            start = (context.Value("i", 0), context.Barrier(workers), config,
-                     problem.constraints)
-            with ProcessPoolExecutor(max_workers=workers, mp_context=context,
+            start = (context.Value("i", 0), context.Barrier(size), config, problem.constraints)
+            with ProcessPoolExecutor(max_workers=size, mp_context=context,
                                      initializer=_start_worker, initargs=start) as pool:
                 # the static controller needs no entry: it runs beside the chunks, not after
                 pending = (pool.submit(_static_job, (*static_job, True))
