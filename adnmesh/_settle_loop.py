@@ -27,7 +27,8 @@ import numpy as np
 from ._kernels import (accumulate_lanes, advance_exact_first_order_lanes,
                        advance_first_order_lanes)
 
-__all__ = ["settle_lanes", "COARSEN_CURVATURE", "SETTLED_FRACTION", "MAX_BLOCK_VALUES"]
+__all__ = ["settle_lanes", "coarsen_buffer", "COARSEN_CURVATURE", "SETTLED_FRACTION",
+           "MAX_BLOCK_VALUES"]
 
 #: largest |second difference| of y (per step) at which the step may be doubled
 COARSEN_CURVATURE = 1e-7
@@ -78,7 +79,7 @@ def _take_rows(a, rows):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True)
-def _coarsened(buf, k_old, old_ring, ring):  # pragma: no cover - compiled
+def coarsen_buffer(buf, k_old, old_ring, ring):  # pragma: no cover - compiled
     """A delay buffer (old_ring + 1, M) at step h as one at 2h (ring + 1, M), sample index
     ``k_old`` (even) becoming ``k_old // 2``: every second sample kept, the zero column 0."""
     k = k_old // 2
@@ -239,8 +240,8 @@ def settle_lanes(kp, ki, gains, t_min, t_max, bands, stop_above, until_rise, chu
             lev += 1
             h = hs[lev]
             rg = ring[lev]
-            p_y = _coarsened(p_y, k, old_ring, rg)
-            y_hist = _coarsened(y_hist, k, old_ring, rg)
+            p_y = coarsen_buffer(p_y, k, old_ring, rg)
+            y_hist = coarsen_buffer(y_hist, k, old_ring, rg)
             k = k // 2
             kc = _output_gains(gains_a, c[lev])
         chunk = min(max(int(math.ceil(0.5 * elapsed / h)), chunk // 2), MAX_BLOCK_VALUES // n)

@@ -38,7 +38,8 @@ import numpy as np
 
 from ._kernels import (advance, advance_exact, advance_exact_first_order_lanes,
                        advance_first_order_lanes, delay_taps)
-from ._settle_loop import COARSEN_CURVATURE, MAX_BLOCK_VALUES, SETTLED_FRACTION, settle_lanes
+from ._settle_loop import (COARSEN_CURVATURE, MAX_BLOCK_VALUES, SETTLED_FRACTION,
+                           coarsen_buffer, settle_lanes)
 from .freqresp import as_candidates
 from .plant import Plant
 from .stepfigures import StepFigureAccumulator
@@ -218,28 +219,17 @@ class _Simulator:
         """Double the step, keeping every second sample of the delay buffers (exact)."""
         if self.k % 2:
             raise ValueError("coarsen at an even sample index")
-        old_ring, old_p, old_y, k = self.ring, self.p_y, self.y_hist, self.k
+        old_ring, k = self.ring, self.k
         self._discretise(2.0 * self.h)
         self.k = k // 2
-        j_new = np.arange(self.k - self.ring + 2, self.k + 1)
-        j_old = 2 * j_new
-        valid = j_old >= 0
-        if np.any(j_old[valid] < k - old_ring + 1):
-            raise ValueError("delay buffer too short to coarsen")
-        cols_old = np.where(valid, j_old % old_ring, old_ring)
-        cols_new = np.where(j_new >= 0, j_new % self.ring, self.ring)
-        self.p_y = np.zeros(self._buffer_shape(self.kp.size))
-        self.y_hist = np.zeros_like(self.p_y)
+        # the buffers' rule (every second sample kept) is the compiled loop's, in its layout
         if self.lanes:
-            self.p_y[cols_new, :] = old_p[cols_old, :]
-            self.y_hist[cols_new, :] = old_y[cols_old, :]
-            self.p_y[self.ring, :] = 0.0
-            self.y_hist[self.ring, :] = 0.0
+            self.p_y = coarsen_buffer(self.p_y, k, old_ring, self.ring)
+            self.y_hist = coarsen_buffer(self.y_hist, k, old_ring, self.ring)
         else:
-            self.p_y[:, cols_new] = old_p[:, cols_old]
-            self.y_hist[:, cols_new] = old_y[:, cols_old]
-            self.p_y[:, self.ring] = 0.0
-            self.y_hist[:, self.ring] = 0.0
+            self.p_y, self.y_hist = (
+                np.ascontiguousarray(coarsen_buffer(np.ascontiguousarray(b.T), k, old_ring,
+                                                self.ring).T) for b in (self.p_y, self.y_hist))
         self.kc = self._output_gains()
 
     def keep(self, rows: np.ndarray) -> None:
@@ -401,8 +391,8 @@ def _simulate_until_settled(plant, kp, ki, gains, h, t_min, band_pct, t_max, sto
     then known; overshoot and settling are not).
 
     First-order plants run the loop compiled (:func:`adnmesh._settle_loop.settle_lanes`,
-    the same figures bit for bit); others, and ``compiled=False`` in the tests, run
-    :func:`_simulate_until_settled_stepwise`.
+    the same figures bit for bit); others run :func:`_simulate_until_settled_stepwise`,
+    which the tests also hold the compiled loop to.
     """
     if max(a.denominator.size - 1 for a in plant.actuators) != 1:
         return _simulate_until_settled_stepwise(plant, kp, ki, gains, h, t_min, band_pct, t_max,

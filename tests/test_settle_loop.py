@@ -107,7 +107,7 @@ def test_single_group_slow_loops_and_the_general_kernels() -> None:
 def test_a_delay_buffer_too_short_to_double_is_an_error_in_both() -> None:
     """The buffer check of a step doubling stays a check: a ring that cannot hold the
     doubled step's samples raises in the compiled loop as in the Python one."""
-    from adnmesh._settle_loop import _coarsened
+    from adnmesh._settle_loop import coarsen_buffer
 
     with pytest.raises(ValueError, match="too short"):
-        _coarsened(np.zeros((4, 2)), 40, 3, 30)
+        coarsen_buffer(np.zeros((4, 2)), 40, 3, 30)
