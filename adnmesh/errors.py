@@ -3,7 +3,7 @@
 Anything else that escapes a command is a bug and keeps its traceback.
 """
 
-__all__ = ["ConfigError", "UsageError"]
+__all__ = ["ConfigError", "GridError", "UsageError"]
 
 
 class ConfigError(Exception):
@@ -19,4 +19,13 @@ class UsageError(Exception):
     """The command line asks for something that cannot be done (bad argument combination).
 
     The message is the complete one-line error shown to the user.
+    """
+
+
+class GridError(ConfigError):
+    """Bad input to the grid model (unknown grid code, study case, sgen name); the message is
+    one complete line for the user.
+
+    A :class:`ConfigError`, so the command line reports it as a one-line error (exit code 2)
+    even where a caller does not add the config file and key path itself.
     """

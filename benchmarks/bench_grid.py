@@ -118,7 +118,7 @@ def main(argv=None) -> int:
 
     from adnmesh.config import load_config
     from adnmesh.grid import GridSolver, available_power_w
-    from adnmesh.grid.build import build_grid_data
+    from adnmesh.grid.from_net import build_grid_data
     from adnmesh.grid.simbench_net import grid_net
 
     ders = load_config(ROOT / "configs" / "simbench.yaml").ders

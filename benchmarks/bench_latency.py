@@ -36,7 +36,7 @@ sys.path.insert(0, str(REPO))
 from adnmesh.config import load_config  # noqa: E402
 from adnmesh.runtime.acl import access_control  # noqa: E402
 from adnmesh.runtime.bus import client_config, free_port, router_config  # noqa: E402
-from adnmesh.runtime.certs import issue  # noqa: E402
+from adnmesh.runtime.certificates import issue  # noqa: E402
 from adnmesh.runtime.identity import identities  # noqa: E402
 from adnmesh.sim.topology import Topology  # noqa: E402
 

@@ -8,7 +8,7 @@ the figures on the candidates both evaluated.
 
     .venv/bin/python benchmarks/bench_numerics.py [--pc-samples 5] [--sizes 1,100,10000]
 
-``--crossings``: the margins' crossing finder (:func:`adnmesh.margins.crossing`, regula falsi)
+``--crossings``: the margins' crossing finder (:func:`adnmesh.loopmodel.margins.crossing`, regula falsi)
 against scipy's ``optimize.elementwise.find_root`` and a 60-step bisection on the phase and
 gain crossings of 1 and 40 SimBench loops: time (median of repeats), evaluations, largest
 difference of the roots.
@@ -25,8 +25,8 @@ import numpy as np
 import scipy.linalg
 
 from adnmesh.config import load_config
-from adnmesh.loop import evaluate
-from adnmesh.plant import RISE_PER_LAG, plant_from_ders
+from adnmesh.loopmodel.evaluation import evaluate
+from adnmesh.loopmodel.plant import RISE_PER_LAG, plant_from_ders
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -83,9 +83,9 @@ def crossings(config, repeats: int = 7) -> None:
     """Crossing finders compared on the phase and gain crossings of SimBench loops."""
     from scipy.optimize import elementwise
 
-    from adnmesh.freqresp import as_candidates, loop_points
-    from adnmesh.margins import CROSSING_XTOL, crossing
-    from adnmesh.stability import nyquist_stability
+    from adnmesh.loopmodel.frequency_response import as_candidates, loop_points
+    from adnmesh.loopmodel.margins import CROSSING_XTOL, crossing
+    from adnmesh.loopmodel.stability import nyquist_stability
     from adnmesh.tuning import TuningProblem
 
     problem = TuningProblem(config)

@@ -51,7 +51,7 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
 from adnmesh.config import load_config  # noqa: E402
-from adnmesh.runtime.rt_tuning import SPIN_ENV, raise_priority  # noqa: E402
+from adnmesh.runtime.os_scheduling import SPIN_ENV, raise_priority  # noqa: E402
 
 
 def cut_config(source: Path, duration_s: float, workdir: Path) -> Path:

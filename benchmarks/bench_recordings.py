@@ -78,7 +78,7 @@ def measure(argv: list[str]) -> dict:
 def rerun_program() -> list[str] | None:
     """The ``rerun`` program that came with rerun-sdk, if installed."""
     try:
-        from adnmesh.recording.rerun_export import rerun_executable
+        from adnmesh.results.rerun_export import rerun_executable
     except ImportError:
         return None
     command = rerun_executable()

@@ -60,10 +60,10 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
 from adnmesh.config import load_config  # noqa: E402
-from adnmesh.loop import evaluate  # noqa: E402
-from adnmesh.plant import plant_from_ders  # noqa: E402
+from adnmesh.loopmodel.evaluation import evaluate  # noqa: E402
+from adnmesh.loopmodel.plant import plant_from_ders  # noqa: E402
 from adnmesh.runtime.launcher import UpOptions, run  # noqa: E402
-from adnmesh.table import SchedulingTable, TableEntry, default_table_path, save_table  # noqa: E402
+from adnmesh.tuning.table import SchedulingTable, TableEntry, default_table_path, save_table  # noqa: E402
 
 # normalised gains (K * sum of P_inst) found by a grid search meeting both constraints
 SIMBENCH_GAINS = {
@@ -119,7 +119,7 @@ def simbench_table(config, workdir: Path) -> Path:
     else a table with just those two entries."""
     from adnmesh.commands.up import scenario_subsets
     from adnmesh.errors import ConfigError
-    from adnmesh.table import load_table
+    from adnmesh.tuning.table import load_table
 
     path = REPO / default_table_path(config)
     try:
@@ -218,7 +218,7 @@ def alternating(measures: dict, repeat: int) -> dict:
 
 def secure_vs_open(config_path: Path, table: Path, workdir: Path, repeat: int) -> dict:
     """The scenario in the open and the secure profile, alternating; the ratios per pair."""
-    from adnmesh.runtime.certs import issue
+    from adnmesh.runtime.certificates import issue
     from adnmesh.runtime.identity import identities
 
     certs = workdir / "certs"

@@ -21,10 +21,10 @@ from pathlib import Path
 import numpy as np
 
 from adnmesh.config import load_config
-from adnmesh.control.cpfc import TUNING_DELAY_S, GainSchedule
+from adnmesh.control.cpfc_controller import TUNING_DELAY_S, GainSchedule
 from adnmesh.sim.local import run_local
-from adnmesh.stepfigures import reference_step_figures
-from adnmesh.table import load_table
+from adnmesh.loopmodel.step_figures import reference_step_figures
+from adnmesh.tuning.table import load_table
 from adnmesh.wire.envelope import decode
 from adnmesh.wire.keys import Keys
 

@@ -7,7 +7,7 @@ both measured in the same run, so the ratio holds even though the machine's spee
 (each source runs the first method once untimed before: numba's compiling into a fresh
 worktree's cache would count in its first run).
 Then one in-process run per method gives CPU and wall seconds per phase (summed over the
-worker processes' chunks) and an independent audit of every entry (``adnmesh.loop.evaluate``
+worker processes' chunks) and an independent audit of every entry (``adnmesh.loopmodel.evaluation.evaluate``
 on ``plant_from_ders`` with the entry's weights, full step info). Figures are ranges
 (min - max) over the repeats.
 
@@ -40,9 +40,9 @@ import adnmesh  # noqa: E402,F401  (before numpy, for this process's in-process 
 import numpy as np  # noqa: E402
 
 from adnmesh.config import load_config  # noqa: E402
-from adnmesh.loop import evaluate  # noqa: E402
-from adnmesh.plant import plant_from_ders  # noqa: E402
-from adnmesh.table import load_table, save_table  # noqa: E402
+from adnmesh.loopmodel.evaluation import evaluate  # noqa: E402
+from adnmesh.loopmodel.plant import plant_from_ders  # noqa: E402
+from adnmesh.tuning.table import load_table, save_table  # noqa: E402
 from adnmesh.tuning import tune_table  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -194,7 +194,7 @@ def on_demand(config, table, n: int) -> None:
     """On-demand tuning of ``n`` random subsets, each on an unseen plant."""
     from adnmesh.tuning import TuningProblem
     from adnmesh.tuning.ondemand import OnDemandTuner
-    from adnmesh.tuning.subsets import random_subsets
+    from adnmesh.tuning.subset_selection import random_subsets
 
     problem = TuningProblem(config)
     subsets = random_subsets(config.der_ids(), n, seed=1)[1:]

@@ -36,7 +36,7 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
 from adnmesh.runtime.bus import client_config, free_port, router_config  # noqa: E402
-from adnmesh.runtime.rt_tuning import raise_priority, tighten_timers  # noqa: E402
+from adnmesh.runtime.os_scheduling import raise_priority, tighten_timers  # noqa: E402
 
 KEY = "bench/burst"
 
@@ -45,7 +45,7 @@ import os, struct, sys, time
 sys.path.insert(0, {repo!r})
 import zenoh
 from adnmesh.runtime.bus import client_config
-from adnmesh.runtime.rt_tuning import raise_priority, tighten_timers
+from adnmesh.runtime.os_scheduling import raise_priority, tighten_timers
 endpoint, index, start_ns, period_ns, count, priority = sys.argv[1:7]
 index, start_ns, period_ns, count = int(index), int(start_ns), int(period_ns), int(count)
 tighten_timers()

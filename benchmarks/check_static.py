@@ -1,9 +1,9 @@
 """Check a table's static controller on fresh random subsets of its config.
 
-Draws subsets the design did not see (:func:`~adnmesh.tuning.subsets.spread_random_subsets`:
+Draws subsets the design did not see (:func:`~adnmesh.tuning.subset_selection.spread_random_subsets`:
 sizes uniform from 1 to all, and as many with each DER in with probability 1/2), checks the
 static pair on each distinct exact plant (disk margin, overshoot, settled; every loop
-simulated for its own horizon: :func:`~adnmesh.tuning.static.check_pair`) and prints how many fail,
+simulated for its own horizon: :func:`~adnmesh.tuning.static_controller.check_pair`) and prints how many fail,
 the least disk margin and the worst rise time.
 
     .venv/bin/python benchmarks/check_static.py configs/examples/adn-100.yaml T100.json \
@@ -19,10 +19,10 @@ from rich.progress import Progress
 
 from adnmesh.config import load_config
 from adnmesh.errors import ConfigError, UsageError
-from adnmesh.table import load_table
+from adnmesh.tuning.table import load_table
 from adnmesh.tuning.problem import TuningProblem
-from adnmesh.tuning.static import check_pair
-from adnmesh.tuning.subsets import random_subsets, spread_random_subsets
+from adnmesh.tuning.static_controller import check_pair
+from adnmesh.tuning.subset_selection import random_subsets, spread_random_subsets
 
 BATCH = 250
 

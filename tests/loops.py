@@ -8,7 +8,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from adnmesh.config import load_config
-from adnmesh.plant import plant_from_ders
+from adnmesh.loopmodel.plant import plant_from_ders
 
 CONFIG = load_config(Path(__file__).resolve().parent.parent / "configs" / "simbench.yaml")
 

@@ -12,7 +12,7 @@ import control as ct
 import numpy as np
 import scipy.linalg
 
-from adnmesh.plant import Plant
+from adnmesh.loopmodel.plant import Plant
 
 
 def pade_ss(delay_s: float, order: int) -> ct.StateSpace:

@@ -1,4 +1,4 @@
-"""The step-figure rule of :func:`adnmesh._kernels.accumulate` in plain numpy (vectorised over
+"""The step-figure rule of :func:`adnmesh.loopmodel.step_kernels.accumulate` in plain numpy (vectorised over
 the responses), the reference the compiled kernel is tested against (test-only code)."""
 import numpy as np
 
@@ -22,7 +22,7 @@ def _vertex(ym, yc, yp, jj, tt, t0, h, inner):
 
 
 def accumulate_numpy(acc, t0: float, h: float, chunk: np.ndarray, times=None) -> None:
-    """Update the state of a :class:`adnmesh.stepfigures.StepFigureAccumulator` ``acc`` with
+    """Update the state of a :class:`adnmesh.loopmodel.step_figures.StepFigureAccumulator` ``acc`` with
     ``chunk`` (M, n) exactly as its compiled :meth:`add` does (uniform grid, or ``times``)."""
     tt = None if times is None else np.asarray(times, float)
 

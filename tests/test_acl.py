@@ -15,7 +15,7 @@ from adnmesh.config import load_config
 from adnmesh.errors import UsageError
 from adnmesh.runtime.acl import access_control, launcher_keys, rights
 from adnmesh.runtime.bus import client_config, free_port, router_config
-from adnmesh.runtime.certs import issue
+from adnmesh.runtime.certificates import issue
 from adnmesh.runtime.identity import identities
 from adnmesh.sim.topology import Topology
 from adnmesh.wire.keys import LAUNCHER, OPERATOR, route

@@ -7,7 +7,7 @@ import pandas as pd
 import pytest
 
 from adnmesh.cli import main
-from adnmesh.table import save_table
+from adnmesh.tuning.table import save_table
 
 from test_analysis_helpers import EXAMPLES, small_table
 

@@ -1,7 +1,7 @@
 """Shared small tables for the analysis tests (built once per session by grid search).
 
 No tests here: the helpers build coarse scheduling tables for the small example configs with
-:func:`adnmesh.analysis.coarse.coarse_table`, so the analyses can be tested without a tuner.
+:func:`coarse_table.coarse_table` (tests/coarse_table.py), so the analyses can be tested without a tuner.
 """
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from adnmesh.analysis.coarse import coarse_table
+from coarse_table import coarse_table
 from adnmesh.config import load_config
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "configs" / "examples"

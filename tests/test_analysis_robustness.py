@@ -6,11 +6,11 @@ import pytest
 
 from adnmesh.analysis import plots
 from adnmesh.analysis.robustness import ALL_EQUAL, METRICS, analyze_robustness, table_batches
-from adnmesh.analysis.subsets import all_subsets, deployed_batch
+from adnmesh.analysis.subset_loops import all_subsets, deployed_batch
 from adnmesh.analysis.uncertainty import analyze_uncertainty
-from adnmesh.loop import evaluate
-from adnmesh.plant import plant_from_ders
-from adnmesh.table import SchedulingTable
+from adnmesh.loopmodel.evaluation import evaluate
+from adnmesh.loopmodel.plant import plant_from_ders
+from adnmesh.tuning.table import SchedulingTable
 
 from test_analysis_helpers import example, small_table
 

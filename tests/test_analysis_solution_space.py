@@ -7,8 +7,8 @@ import pytest
 
 from adnmesh.analysis import plots
 from adnmesh.analysis.solution_space import REASONS, paper_path, solution_space
-from adnmesh.loop import evaluate
-from adnmesh.plant import plant_from_ders
+from adnmesh.loopmodel.evaluation import evaluate
+from adnmesh.loopmodel.plant import plant_from_ders
 
 from test_analysis_helpers import example
 

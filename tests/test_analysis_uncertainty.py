@@ -7,11 +7,11 @@ import pytest
 from scipy.optimize import brentq
 
 from adnmesh.analysis import plots, report
-from adnmesh.analysis.subsets import deployed_batch
+from adnmesh.analysis.subset_loops import deployed_batch
 from adnmesh.analysis.uncertainty import (B_RANGE, Limit, _scan, analyze_uncertainty,
                                           round_sig)
-from adnmesh.loop import evaluate
-from adnmesh.stepresp import simulate_step
+from adnmesh.loopmodel.evaluation import evaluate
+from adnmesh.loopmodel.step_response import simulate_step
 
 from test_analysis_helpers import example
 

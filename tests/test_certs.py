@@ -1,4 +1,4 @@
-"""Certificates of the secure profile (adnmesh/runtime/certs.py, identity.py, ``adnmesh certs``):
+"""Certificates of the secure profile (adnmesh/runtime/certificates.py, identity.py, ``adnmesh certs``):
 what is created, with which permissions, and what a second run keeps or replaces."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from cryptography.x509.oid import NameOID
 from adnmesh.cli import main
 from adnmesh.config import load_config
 from adnmesh.errors import UsageError
-from adnmesh.runtime.certs import issue
+from adnmesh.runtime.certificates import issue
 from adnmesh.runtime.identity import cert_files, check_identity, identities
 
 REPO = Path(__file__).resolve().parent.parent

@@ -3,8 +3,8 @@ answers exactly: they only skip work whose result is already decided."""
 import numpy as np
 import pytest
 
-from adnmesh.loop import disk_margin_bound, evaluate
-from adnmesh.stability import nyquist_stability
+from adnmesh.loopmodel.evaluation import disk_margin_bound, evaluate
+from adnmesh.loopmodel.stability import nyquist_stability
 from adnmesh.tuning import TuningProblem
 from adnmesh.tuning import build
 

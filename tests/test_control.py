@@ -11,17 +11,17 @@ import pytest
 
 from adnmesh.config import DER, Config, load_config
 from adnmesh.control.registry import build_agent
-from adnmesh.control.availability import AvailabilityMonitor
-from adnmesh.control.cpfc import CPFC, GainSchedule, initial_p_ref_w, output_limits
-from adnmesh.control.der import DERController
+from adnmesh.control.availability_monitor import AvailabilityMonitor
+from adnmesh.control.cpfc_controller import CPFC, GainSchedule, initial_p_ref_w, output_limits
+from adnmesh.control.der_controller import DERController
 from adnmesh.dermodels.pt1 import PT1DelayParams, PT1DelayState, infeed_at, set_point
-from adnmesh.control.measurement import Measurement
+from adnmesh.control.measurement_point import Measurement
 from adnmesh.control.pi import SampledPI
 from adnmesh.sim.node import Node
 from adnmesh.sim.topology import Topology
 from adnmesh.wire.keys import Keys
 from payloads import message, payload
-from adnmesh.table import SchedulingTable, TableEntry
+from adnmesh.tuning.table import SchedulingTable, TableEntry
 
 MS = 1_000_000  # ns
 

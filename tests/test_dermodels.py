@@ -14,7 +14,7 @@ from adnmesh import dermodels as dm
 from adnmesh.dermodels import pt1 as dynamics
 from adnmesh.dermodels import chp, pv, wt
 from adnmesh.dermodels.pieces import lag_of_pieces, rate_limited_lag, rate_limited_lag_end
-from adnmesh.dermodels.plots import plot_der_models
+from adnmesh.dermodels.response_plot import plot_der_models
 from adnmesh.dermodels.responses import der_model_report
 from adnmesh.dermodels.risetime import normalised, rise_time
 

@@ -10,8 +10,8 @@ import jsonschema
 import pytest
 
 from adnmesh.recording import Recorder, read_recording
-from adnmesh.recording.eventlog import FOXGLOVE_LOG, FOXGLOVE_LOG_SCHEMA, LOG_LEVELS, log_record
-from adnmesh.recording.series import extract, read_run
+from adnmesh.results.eventlog import FOXGLOVE_LOG, FOXGLOVE_LOG_SCHEMA, LOG_LEVELS, log_record
+from adnmesh.results.series import extract, read_run
 from synthetic_runs import FAKE_SCHEMAS, fake_run
 
 EVENTS = "adn/fake/log"

@@ -1,6 +1,6 @@
 """The compiled frequency-domain pass of a constraint check against the numpy path.
 
-``adnmesh._freq_kernels`` replaces, inside :meth:`TuningProblem.check`, the (M, N) numpy
+``adnmesh.loopmodel.frequency_kernels`` replaces, inside :meth:`TuningProblem.check`, the (M, N) numpy
 arrays of the certified grid by one compiled pass per candidate, and ``margins.peak``'s
 vectorised rule by the same rule compiled with the loop evaluated inside. These tests compute
 the same figures the numpy way (the code before, kept here as the reference) and require the
@@ -13,13 +13,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from adnmesh import stability
-from adnmesh._freq_kernels import first_above, last_at_least, refine_peaks
-from adnmesh.freqresp import as_candidates, loop_points
-from adnmesh.loop import NyquistData, _grid_pass, _screened_part, disk_margin_bound
-from adnmesh.margins import PEAK_XTOL, _dynamics, disk_margin, peak
-from adnmesh.plant import Plant
-from adnmesh.stability import _poly_abs, certified_grid, nyquist_stability
+from adnmesh.loopmodel import stability
+from adnmesh.loopmodel.frequency_kernels import first_above, last_at_least, refine_peaks
+from adnmesh.loopmodel.frequency_response import as_candidates, loop_points
+from adnmesh.loopmodel.evaluation import NyquistData, _grid_pass, _screened_part, disk_margin_bound
+from adnmesh.loopmodel.margins import PEAK_XTOL, _dynamics, disk_margin, peak
+from adnmesh.loopmodel.plant import Plant
+from adnmesh.loopmodel.stability import _poly_abs, certified_grid, nyquist_stability
 
 from loops import CONFIG, plant
 

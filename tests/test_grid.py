@@ -15,7 +15,7 @@ import pandapower as pp
 import pytest
 
 from adnmesh.grid import GridError, GridSolver, available_power_w, load_grid
-from adnmesh.grid.build import build_grid_data
+from adnmesh.grid.from_net import build_grid_data
 from adnmesh.grid.cache import cache_key, cache_path, cached, default_cache_dir, model_path
 from adnmesh.grid.data import from_arrays, to_arrays
 from adnmesh.grid.simbench_net import apply_study_case, grid_net, loads_as_impedances

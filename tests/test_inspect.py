@@ -179,9 +179,9 @@ def test_inspect_finds_the_windows_of_up_s_summary(tmp_path: Path) -> None:
 
     import numpy as np
 
-    from adnmesh.recording.figures import run_figures
-    from adnmesh.recording.series import extract
-    from adnmesh.runtime.summary import MESSAGE_TYPES, RunSeries, summarize
+    from adnmesh.results.figures import run_figures
+    from adnmesh.results.series import extract
+    from adnmesh.results.summary import MESSAGE_TYPES, RunSeries, summarize
     from adnmesh.wire.keys import Keys, route
     from adnmesh.wire.messages import Switch
     from adnmesh.wire.schemas import message_schemas

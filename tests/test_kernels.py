@@ -4,9 +4,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from adnmesh import _kernels
-from adnmesh.plant import Actuator, Plant
-from adnmesh.stepresp import _Simulator
+from adnmesh.loopmodel import step_kernels
+from adnmesh.loopmodel.plant import Actuator, Plant
+from adnmesh.loopmodel.step_response import _Simulator
 
 
 def _simulator(m: int, seed: int, lanes: bool | None = None) -> _Simulator:
@@ -19,7 +19,7 @@ def _simulator(m: int, seed: int, lanes: bool | None = None) -> _Simulator:
                       lanes=lanes)
 
 
-@pytest.mark.parametrize("m", [5, _kernels.PARALLEL_FROM + 3])       # serial and parallel
+@pytest.mark.parametrize("m", [5, step_kernels.PARALLEL_FROM + 3])       # serial and parallel
 def test_lanes_kernels_are_the_general_ones_bit_for_bit(m: int) -> None:
     """The first-order kernels with the candidates as the inner loop ("lanes", which
     :class:`_Simulator` runs for PT1 plants) give exactly the outputs and states of the
@@ -88,7 +88,7 @@ def test_compiled_delay_taps_are_the_numpy_ones(right_end: bool) -> None:
     n = np.array([0, 5, 27, 110, 3])
     f = np.array([0.0, 0.75, 0.5, 1 / 3, 0.875])
     for first, steps in ((0, 40), (1, 300), (999_983, 64)):
-        got = _kernels.delay_taps(first, steps, n, f, 113, right_end)
+        got = step_kernels.delay_taps(first, steps, n, f, 113, right_end)
         want = _taps_numpy(n, f, first, steps, 113, right_end)
         for g, w in zip(got, want):
             assert g.shape == w.shape and np.array_equal(g, w)

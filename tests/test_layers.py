@@ -29,7 +29,7 @@ GROUP = {
 
 
 def unit_of(module: str) -> str:
-    """``adnmesh.wire.keys`` -> ``wire``; ``adnmesh.loop`` -> ``loop``."""
+    """``adnmesh.wire.keys`` -> ``wire``; ``adnmesh.loopmodel.evaluation`` -> ``loop``."""
     parts = module.split(".")
     return parts[1] if len(parts) > 1 else "__init__"
 

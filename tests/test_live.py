@@ -18,10 +18,10 @@ from rich.console import Console
 
 from adnmesh.errors import UsageError
 from adnmesh.recording import read_recording
-from adnmesh.recording.live import LiveView
-from adnmesh.recording.rerun_export import (APPLICATION_ID, DELIVERY_TIMELINE, SIM_TIMELINE,
+from adnmesh.results.live import LiveView
+from adnmesh.results.rerun_export import (APPLICATION_ID, DELIVERY_TIMELINE, SIM_TIMELINE,
                                             export_rrd)
-from adnmesh.recording.series import Event, extract
+from adnmesh.results.series import Event, extract
 from adnmesh.runtime.liveview import ViewTarget, open_view, parse_view, viewer_argv
 from adnmesh.runtime.progress import RunProgress, event_line, speed_factor
 from rrd_columns import rrd_columns
@@ -41,7 +41,7 @@ def texts(entity: dict[str, list]) -> list[tuple[int, str]]:
 def compare_with_replay(live_rrd: Path, replay_rrd: Path, run) -> None:
     """Every series and event log of the replay is in the live file: dense series sample for
     sample; step series with every real sample, held values equal to the value held."""
-    from adnmesh.recording.rerun_export import rerun_entity_path
+    from adnmesh.results.rerun_export import rerun_entity_path
 
     live, replay = rrd_columns(live_rrd), rrd_columns(replay_rrd)
     real = {rerun_entity_path(s.entity_path): set(s.t_ns.tolist())

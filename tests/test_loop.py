@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from adnmesh.loop import evaluate
+from adnmesh.loopmodel.evaluation import evaluate
 
 from loops import gains
 
@@ -55,7 +55,7 @@ def test_vectorised_equals_one_by_one():
 
 def test_per_candidate_plants_in_one_batch():
     """Gains of shape (M, G): several subsets evaluated in lock-step."""
-    from adnmesh.plant import Plant
+    from adnmesh.loopmodel.plant import Plant
     plant, kp, ki = gains("all")
     rows = np.array([plant.gains_w, plant.gains_w * [1, 0, 1], plant.gains_w * [0, 1, 0]])
     batch = Plant(plant.actuators, rows, plant.t_com_s, plant.t_meas_s)

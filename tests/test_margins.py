@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from adnmesh.margins import classical_margins, disk_margin
-from adnmesh.stability import nyquist_stability
+from adnmesh.loopmodel.margins import classical_margins, disk_margin
+from adnmesh.loopmodel.stability import nyquist_stability
 
 from loops import LOOPS, gains
 from pade_reference import reference_figures
@@ -66,7 +66,7 @@ def test_all_crossovers_are_reported():
 
 def _crossings_of(plant, kp, ki):
     """Phase and gain crossings of a loop on its certified grid: (fun, lo, hi) per kind."""
-    from adnmesh.freqresp import as_candidates, loop_points
+    from adnmesh.loopmodel.frequency_response import as_candidates, loop_points
     nyq = nyquist_stability(plant, kp, ki)
     kp, ki, g = as_candidates(plant, kp, ki)
     logw = np.log(nyq.omega)
@@ -85,7 +85,7 @@ def _crossings_of(plant, kp, ki):
 def test_crossings_are_scipys_roots(name):
     # the regula falsi of the margins against scipy's bracketing root finder (Chandrupatla)
     from scipy.optimize import elementwise
-    from adnmesh.margins import CROSSING_XTOL, crossing
+    from adnmesh.loopmodel.margins import CROSSING_XTOL, crossing
     plant, kp, ki = gains(name)
     for fun, lo, hi in _crossings_of(plant, kp, ki):
         assert lo.size
@@ -100,7 +100,7 @@ def test_crossings_are_scipys_roots(name):
 
 def test_crossing_on_hard_brackets():
     # a root at an end, a flat-then-steep function, and many brackets at once
-    from adnmesh.margins import crossing
+    from adnmesh.loopmodel.margins import crossing
     lo = np.array([0.0, 0.0, -1.0, 0.1])
     hi = np.array([1.0, 2.0, 1.0, 3.0])
     funs = [lambda x: x, lambda x: x ** 9 - 1.0, lambda x: np.cbrt(x - 0.3), lambda x: np.cos(x)]
@@ -113,7 +113,7 @@ def test_disk_margin_peak_is_scipys_maximum():
     # same bracket of the certified grid, for 200 random SimBench-like loops
     from scipy.optimize import elementwise
     from adnmesh.config import load_config
-    from adnmesh.freqresp import as_candidates, loop_points
+    from adnmesh.loopmodel.frequency_response import as_candidates, loop_points
     from adnmesh.tuning import TuningProblem
     from conftest import REPO_ROOT
     problem = TuningProblem(load_config(REPO_ROOT / "configs" / "simbench.yaml"))
@@ -146,7 +146,7 @@ def test_disk_margin_peak_is_scipys_maximum():
 
 def test_peak_on_hard_brackets():
     # a sharp non-quadratic peak, a flat top, a peak at the bracket's edge of its middle
-    from adnmesh.margins import PEAK_XTOL, peak
+    from adnmesh.loopmodel.margins import PEAK_XTOL, peak
     funs = [lambda x: -np.abs(x - 0.3) ** 1.5, lambda x: -np.maximum(np.abs(x) - 0.2, 0.0) ** 2,
             lambda x: -(x - 0.999) ** 2, lambda x: np.exp(-1e4 * (x - 0.123) ** 2)]
     x0, x1, x2 = np.zeros(4) - 1.0, np.array([0.0, 0.0, 0.99, 0.1]), np.ones(4)

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from adnmesh.cli import main
-from adnmesh.loop import evaluate
+from adnmesh.loopmodel.evaluation import evaluate
 
 from loops import CONFIG, plant
 

@@ -1,7 +1,7 @@
 """The realtime clock's parts without processes: the delivery-error histogram
 (:mod:`adnmesh.sim.latency`), the scaled clock, the overrun watch and tolerance
 (:mod:`adnmesh.runtime.realtime`), and what the summary says about timing
-(:mod:`adnmesh.runtime.realtime_report`). The runs themselves: tests/test_runtime_up.py."""
+(:mod:`adnmesh.results.realtime_report`). The runs themselves: tests/test_runtime_up.py."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import pytest
 
 from adnmesh.config import load_config
 from adnmesh.runtime.realtime import OVERRUN_EVERY_NS, OverrunWatch, ScaledClock, tolerance_ns
-from adnmesh.runtime.realtime_report import realtime_figures
+from adnmesh.results.realtime_report import realtime_figures
 from adnmesh.sim.latency import BINS, Latency, bin_of, merge, percentile, upper_edge_ns
 from adnmesh.sim.topology import ICT_LINKS, Topology
 from up_runs import CASE

@@ -9,15 +9,15 @@ import pytest
 
 from adnmesh.cli import main
 from adnmesh.recording import read_recording
-from adnmesh.recording.figures import run_figures
-from adnmesh.recording.rerun_export import (
+from adnmesh.results.figures import run_figures
+from adnmesh.results.rerun_export import (
     DELIVERY_TIMELINE,
     SIM_TIMELINE,
     export_rrd,
     rerun_entity_path,
     viewer_command,
 )
-from adnmesh.recording.series import SERIES, extract, match_key
+from adnmesh.results.series import SERIES, extract, match_key
 from rrd_columns import rrd_columns
 from synthetic_runs import FAKE_DERS, write_fake_run
 
@@ -71,7 +71,7 @@ def test_values_read_back_from_the_rrd_equal_the_mcap_values(fake, rrd, topic, f
 
 
 def test_step_series_hold_their_value_through_the_whole_run(fake) -> None:
-    from adnmesh.recording.rerun_export import HOLD_PERIOD_NS, held
+    from adnmesh.results.rerun_export import HOLD_PERIOD_NS, held
 
     run = extract(read_recording(fake))
     p_ref = run.one("p_ref")
@@ -277,8 +277,8 @@ def test_the_series_table_understands_the_runtimes_messages(tmp_path: Path) -> N
 
 
 def test_the_time_plot_has_the_gains_on_their_own_panel_with_units(fake) -> None:
-    from adnmesh.recording.plot import plot_run
-    from adnmesh.recording.series import read_run
+    from adnmesh.results.time_plot import plot_run
+    from adnmesh.results.series import read_run
 
     fig = plot_run(read_run(fake)[0].run, title="fake run")
     panels = [ax for ax in fig.axes if ax.get_ylabel()]

@@ -1,4 +1,4 @@
-"""The realtime wake-up tuning of an agent process (adnmesh.runtime.rt_tuning): the spin-wait
+"""The realtime wake-up tuning of an agent process (adnmesh.runtime.os_scheduling): the spin-wait
 on a fake clock, priorities granted and refused (stand-ins for the OS calls), the spin from the
 environment. Nothing is timed."""
 
@@ -6,7 +6,7 @@ import os
 
 import pytest
 
-from adnmesh.runtime.rt_tuning import (FIFO_PRIORITY, NICE, SPIN_ENV, SPIN_NS, SpinPlan,
+from adnmesh.runtime.os_scheduling import (FIFO_PRIORITY, NICE, SPIN_ENV, SPIN_NS, SpinPlan,
                                        raise_priority, spin_ns_from_env)
 
 
@@ -88,7 +88,7 @@ def test_the_spin_comes_from_the_environment_in_microseconds():
 def test_freeze_heap_takes_what_lives_now_out_of_the_collections() -> None:
     import gc
 
-    from adnmesh.runtime.rt_tuning import freeze_heap
+    from adnmesh.runtime.os_scheduling import freeze_heap
 
     try:
         gc.collect()             # what lives, without the cyclic garbage earlier tests left

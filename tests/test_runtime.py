@@ -10,7 +10,7 @@ import math
 import numpy as np
 import pytest
 
-from adnmesh.runtime.summary import RunSeries, summarize
+from adnmesh.results.summary import RunSeries, summarize
 
 
 # --- summary ------------------------------------------------------------------------------------
@@ -104,7 +104,7 @@ def test_the_summary_names_every_available_der_of_a_switch_however_many() -> Non
 
     from rich.console import Console
 
-    from adnmesh.runtime.summary import RunSummary, SwitchFigures, format_summary
+    from adnmesh.results.summary import RunSummary, SwitchFigures, format_summary
 
     names = tuple(f"SGen{i}" for i in range(30))
     summary = RunSummary(steps=(), switches=(SwitchFigures(12.0, names, 46.3, 0.0),),

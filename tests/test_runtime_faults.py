@@ -19,10 +19,10 @@ from pathlib import Path
 import pytest
 
 from adnmesh.config import load_config
-from adnmesh.control.cpfc import GainSchedule
+from adnmesh.control.cpfc_controller import GainSchedule
 from adnmesh.recording import read_recording
 from adnmesh.sim.local import _LocalRunner
-from adnmesh.table import load_table
+from adnmesh.tuning.table import load_table
 from adnmesh.wire.units import ns
 from up_runs import (
     alive,

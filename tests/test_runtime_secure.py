@@ -22,15 +22,15 @@ from pathlib import Path
 import pytest
 
 from adnmesh.config import load_config
-from adnmesh.control.cpfc import GainSchedule
+from adnmesh.control.cpfc_controller import GainSchedule
 from adnmesh.recording import read_recording
 from adnmesh.cli import main as adnmesh_main
 from adnmesh.runtime.bus import free_port
-from adnmesh.runtime.certs import issue
+from adnmesh.runtime.certificates import issue
 from adnmesh.runtime.identity import identities
 from adnmesh.sim.local import run_local
 from adnmesh.sim.topology import Topology
-from adnmesh.table import load_table
+from adnmesh.tuning.table import load_table
 from adnmesh.wire.units import ns
 from rogue import attack, forged_attacks, junk_on_own_keys, rogue_config
 from up_runs import (

@@ -18,11 +18,11 @@ import numpy as np
 import pytest
 
 from adnmesh.config import load_config
-from adnmesh.control.cpfc import GainSchedule
-from adnmesh.plant import plant_from_ders
+from adnmesh.control.cpfc_controller import GainSchedule
+from adnmesh.loopmodel.plant import plant_from_ders
 from adnmesh.sim.local import run_local
-from adnmesh.stepresp import simulate_step
-from adnmesh.table import load_table
+from adnmesh.loopmodel.step_response import simulate_step
+from adnmesh.tuning.table import load_table
 from up_runs import (
     CASE,
     KP2,
@@ -51,7 +51,7 @@ def reference_run(tmp_path_factory):
 
 def test_distributed_step_response_matches_the_numerics(reference_run) -> None:
     """P_IP recorded by the distributed run vs the closed-loop step response of the reference
-    model (adnmesh.stepresp) for the same subset and gains.
+    model (adnmesh.loopmodel.step_response) for the same subset and gains.
 
     Tolerance: the runtime samples P_IP and runs the PI every h = 10 ms and holds P_Y between
     samples; the analysis is continuous. The hold delays the actuation by h/2 on average, so the
@@ -124,9 +124,9 @@ def assert_inspect_agrees(recording, summary: dict) -> None:
     """``adnmesh inspect``'s step figures of the recording are the summary's, exactly; and so
     are the summary's own figures of every recorded message (SI included)."""
     from adnmesh.commands.inspect import settling_band_pct
-    from adnmesh.recording.figures import run_figures
-    from adnmesh.recording.series import extract
-    from adnmesh.runtime.summary import MESSAGE_TYPES, RunSeries, RunSummary, summarize
+    from adnmesh.results.figures import run_figures
+    from adnmesh.results.series import extract
+    from adnmesh.results.summary import MESSAGE_TYPES, RunSeries, RunSummary, summarize
 
     def as_json(steps) -> list:
         return json.loads(json.dumps(RunSummary(steps, (), 0, 0, None, None).to_json()["steps"]))
@@ -155,8 +155,8 @@ def test_inspect_gives_the_summary_figures(reference_run) -> None:
 def test_the_live_view_streamed_during_the_run_equals_its_replay(reference_run) -> None:
     """``up --view FILE.rrd`` (a Rerun stream to a file, headless) during the run: the same
     series and events as ``adnmesh replay`` of its recording."""
-    from adnmesh.recording.rerun_export import export_rrd
-    from adnmesh.recording.series import extract
+    from adnmesh.results.rerun_export import export_rrd
+    from adnmesh.results.series import extract
     from test_live import compare_with_replay
 
     tmp_path, _, _, result, recording, _ = reference_run
@@ -295,7 +295,7 @@ def test_an_agent_closes_its_session_only_after_up_has_its_goodbye() -> None:
 
     import zenoh
 
-    from adnmesh.control.availability import AvailabilityMonitor
+    from adnmesh.control.availability_monitor import AvailabilityMonitor
     from adnmesh.runtime.bus import free_port, router_config
     from adnmesh.runtime.process import AgentProcess
     from adnmesh.sim.node import Node
@@ -352,7 +352,7 @@ _AGENT = """
 import sys
 import zenoh
 from adnmesh.config import load_config
-from adnmesh.control.availability import AvailabilityMonitor
+from adnmesh.control.availability_monitor import AvailabilityMonitor
 from adnmesh.runtime.bus import client_config
 from adnmesh.runtime.process import AgentProcess
 from adnmesh.sim.node import Node

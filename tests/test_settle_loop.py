@@ -4,9 +4,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from adnmesh import stepresp
-from adnmesh.plant import Actuator, Plant
-from adnmesh.stepresp import (_OUTPUTS, _simulate_until_settled,
+from adnmesh.loopmodel import step_response
+from adnmesh.loopmodel.plant import Actuator, Plant
+from adnmesh.loopmodel.step_response import (_OUTPUTS, _simulate_until_settled,
                               _simulate_until_settled_stepwise)
 
 #: SimBench's three dynamics (WT, CHP, PV): delays 0.01 s / 1 s / 0.01 s, lags in s
@@ -47,7 +47,7 @@ def test_compiled_loop_is_the_stepwise_loop_bit_for_bit(seed: int, m: int, stop)
     """Whole-step delays (the step divides every delay), candidates dropping out at every
     block (settled, overshot, at their horizon), step doublings: every figure identical."""
     plant, kp, ki, gains = _bucket(seed, m)
-    h = stepresp.choose_step(plant.with_gains(gains[:1]))
+    h = step_response.choose_step(plant.with_gains(gains[:1]))
     t_min = np.full(m, 50.0)
     t_max = np.where(np.arange(m) % 5 == 0, 300.0, 20000.0)
     compiled, stepwise = _both(plant, kp, ki, gains, h, t_min, t_max, stop)
@@ -67,7 +67,7 @@ def test_interpolated_delays_and_doubling_into_them(h: float) -> None:
     t_min = np.full(23, 30.0)
     compiled, stepwise = _both(plant, kp, ki, gains, h, t_min, np.full(23, 5000.0), 1.01)
     _assert_identical(compiled, stepwise)
-    levels = stepresp._levels(plant.actuators, tuple(plant.path_delays_s.tolist()),
+    levels = step_response._levels(plant.actuators, tuple(plant.path_delays_s.tolist()),
                               float(plant.t_meas_s), h, float(plant.path_delays_s.min()))
     assert not levels[-1][-1]                 # the coarsest step has interpolated delays
 
@@ -107,7 +107,7 @@ def test_single_group_slow_loops_and_the_general_kernels() -> None:
 def test_a_delay_buffer_too_short_to_double_is_an_error_in_both() -> None:
     """The buffer check of a step doubling stays a check: a ring that cannot hold the
     doubled step's samples raises in the compiled loop as in the Python one."""
-    from adnmesh._settle_loop import coarsen_buffer
+    from adnmesh.loopmodel.settle_kernel import coarsen_buffer
 
     with pytest.raises(ValueError, match="too short"):
         coarsen_buffer(np.zeros((4, 2)), 40, 3, 30)

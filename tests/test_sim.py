@@ -14,16 +14,16 @@ import pytest
 
 from adnmesh.config import Config, LinkSettings, Outage, load_config
 from adnmesh.control.base import Agent, Outgoing
-from adnmesh.control.cpfc import GainSchedule
+from adnmesh.control.cpfc_controller import GainSchedule
 from adnmesh.control.registry import build_agent
-from adnmesh.plant import plant_from_ders
+from adnmesh.loopmodel.plant import plant_from_ders
 from adnmesh.sim.clock import ClockError, Coordinator, Report
 from adnmesh.sim.links import Impairment, Link, LinkParams, stream_seed
 from adnmesh.sim.local import run_local
 from adnmesh.sim.node import Node
 from adnmesh.sim.topology import Topology
-from adnmesh.stepresp import simulate_step
-from adnmesh.table import SchedulingTable, TableEntry
+from adnmesh.loopmodel.step_response import simulate_step
+from adnmesh.tuning.table import SchedulingTable, TableEntry
 from adnmesh.wire.envelope import decode, encode
 from adnmesh.wire.messages import DERState
 from adnmesh.wire.units import ns
@@ -380,7 +380,7 @@ def p_ip_series(messages) -> tuple[np.ndarray, np.ndarray]:
 
 
 def test_gains_of_the_test_table_meet_the_constraints(config: Config) -> None:
-    from adnmesh.loop import evaluate
+    from adnmesh.loopmodel.evaluation import evaluate
     figures = evaluate(plant_from_ders(config.ders, config.t_com_s, config.t_meas_s), KP2, KI2)
     assert bool(figures.stable[0]) and figures.disk_margin[0] >= 1.5
     assert figures.overshoot_pct[0] < 1.0
@@ -399,7 +399,7 @@ def test_local_run_is_deterministic(config: Config, schedule: GainSchedule) -> N
 def test_sampled_loop_converges_to_the_numerics(config: Config, schedule: GainSchedule,
                                                 period_s: float) -> None:
     """The runtime's step response of P_IP differs from the continuous-time closed loop
-    (adnmesh.stepresp) by the zero-order hold of P_Y only: about half a period of extra delay,
+    (adnmesh.loopmodel.step_response) by the zero-order hold of P_Y only: about half a period of extra delay,
     so |error| <= h * max|dy/dt| (measured: 0.2 h max|dy/dt|, first order in h)."""
     cfg = with_runtime(config, pi_period_s=period_s, measurement_period_s=period_s)
     t, p_ip = p_ip_series(run_local(cfg, schedule, end_s=7.9).messages)

@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from adnmesh.plant import Actuator, Plant
-from adnmesh.stability import nyquist_stability
+from adnmesh.loopmodel.plant import Actuator, Plant
+from adnmesh.loopmodel.stability import nyquist_stability
 
 from loops import LOOPS, gains
 from pade_reference import reference_models

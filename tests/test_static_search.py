@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from adnmesh.config import load_config
-from adnmesh.tuning import static
+from adnmesh.tuning import static_controller as static
 from adnmesh.tuning.problem import TuningProblem, all_subsets
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs" / "examples"

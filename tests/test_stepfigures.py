@@ -7,7 +7,7 @@ import control
 import numpy as np
 import pytest
 
-from adnmesh.stepfigures import (
+from adnmesh.loopmodel.step_figures import (
     StepFigureAccumulator,
     reference_step_figures,
     step_figures,

@@ -4,11 +4,11 @@ from math import factorial
 import numpy as np
 import pytest
 
-from adnmesh.plant import RISE_PER_LAG, Plant
-from adnmesh.stability import nyquist_stability
-from adnmesh.margins import disk_margin
-from adnmesh.stepfigures import StepFigureAccumulator
-from adnmesh.stepresp import choose_step, simulate_step, step_info, step_info_from_samples
+from adnmesh.loopmodel.plant import RISE_PER_LAG, Plant
+from adnmesh.loopmodel.stability import nyquist_stability
+from adnmesh.loopmodel.margins import disk_margin
+from adnmesh.loopmodel.step_figures import StepFigureAccumulator
+from adnmesh.loopmodel.step_response import choose_step, simulate_step, step_info, step_info_from_samples
 
 from loops import CONFIG, LOOPS, gains, plant
 from pade_reference import reference_figures
@@ -101,7 +101,7 @@ def test_adaptive_horizon_and_coarsening_keep_accuracy():
 
 
 def test_compiled_step_info_accumulator_equals_the_numpy_reference():
-    from adnmesh.stepresp import _Simulator
+    from adnmesh.loopmodel.step_response import _Simulator
     rng = np.random.default_rng(0)
     m = 60
     lags = plant(list(CONFIG.der_ids()))
@@ -125,8 +125,8 @@ def test_sparse_candidates_run_on_their_active_groups_bit_identically():
     """A candidate whose plant has gain in a few groups only is simulated on those groups
     (``_by_active_groups``): every figure equals, bit for bit, the simulation of the full
     plant (the zero-gain groups included), on the exact-delay and the interpolating path."""
-    from adnmesh.plant import Actuator
-    from adnmesh.stepresp import _simulate_until_settled, _horizon_floor, choose_steps
+    from adnmesh.loopmodel.plant import Actuator
+    from adnmesh.loopmodel.step_response import _simulate_until_settled, _horizon_floor, choose_steps
 
     acts = (Actuator(0.01, 0.25), Actuator(1.0, 11.0), Actuator(0.01, 0.05),
             Actuator(0.013, 0.4))                 # the last delay is no multiple of 10 ms

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from adnmesh.recording import Recorder, RecordingError, read_recording
-from adnmesh.recording.series import extract, read_run
+from adnmesh.results.series import extract, read_run
 from adnmesh.recording.stream import MessageBatch, decode_fields, scan
 from synthetic_runs import FAKE_SCHEMAS, fake_run, write_fake_run
 

@@ -7,9 +7,9 @@ import pytest
 
 from adnmesh.cli import main
 from adnmesh.config import load_config
-from adnmesh.loop import evaluate
-from adnmesh.plant import plant_from_ders
-from adnmesh.table import load_table
+from adnmesh.loopmodel.evaluation import evaluate
+from adnmesh.loopmodel.plant import plant_from_ders
+from adnmesh.tuning.table import load_table
 from adnmesh.tuning import TuningProblem, tune_subset, tune_table
 from adnmesh.tuning.paper import initial_values
 from adnmesh.tuning.weights import W_STEP

@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 
 from adnmesh.config import Config, load_config
-from adnmesh.control.cpfc import CPFC, GainSchedule
-from adnmesh.table import SchedulingTable, TableEntry
+from adnmesh.control.cpfc_controller import CPFC, GainSchedule
+from adnmesh.tuning.table import SchedulingTable, TableEntry
 from adnmesh.wire.keys import Keys
 from payloads import message
 

@@ -43,7 +43,7 @@ def test_the_static_pair_from_the_extremes_is_the_enumerated_one(configs_dir: Pa
     # 15 subsets of mixed-4; designed on its extreme plants and verified on every subset
     import json
 
-    from adnmesh.tuning.static import extreme_subsets, static_any_size
+    from adnmesh.tuning.static_controller import extreme_subsets, static_any_size
 
     config = load_config(configs_dir / "examples" / "mixed-4.yaml")
     problem = TuningProblem(config)
@@ -60,8 +60,8 @@ def test_a_selection_table_has_a_static_pair_verified_beyond_its_subsets(configs
     # tuned for one subset only, the table's static pair still holds on every subset of
     # mixed-4: designed on the extremes and that subset, verified on a sample (here: all 15),
     # and re-evaluated here on the exact loop by the independent evaluation
-    from adnmesh.loop import evaluate
-    from adnmesh.plant import plant_from_ders
+    from adnmesh.loopmodel.evaluation import evaluate
+    from adnmesh.loopmodel.plant import plant_from_ders
     from adnmesh.tuning import tune_table
     from adnmesh.tuning.problem import all_subsets
 
@@ -90,7 +90,7 @@ def test_a_weak_single_der_loop_is_simulated_until_it_settles(adn100) -> None:
     simulation (no coarsening, no early stop), and Find W keeps its weight 1."""
     import numpy as np
 
-    from adnmesh.stepresp import simulate_step, step_info_from_samples
+    from adnmesh.loopmodel.step_response import simulate_step, step_info_from_samples
     from adnmesh.tuning.problem import T_MAX_S, horizon_s
     from adnmesh.tuning.weights import find_weights
 
@@ -121,7 +121,7 @@ def test_a_loop_far_weaker_than_its_disk_margin_peak_settles_as_a_first_order_la
     ``ln 9 / rate`` in closed form."""
     import numpy as np
 
-    from adnmesh.stepresp import integral_rate
+    from adnmesh.loopmodel.step_response import integral_rate
     from adnmesh.tuning.problem import horizon_s
 
     exact = TuningProblem(adn100)
@@ -142,9 +142,9 @@ def test_the_table_up_tunes_for_itself_has_a_static_pair(configs_dir: Path, tmp_
     # loop by the independent evaluation
     import argparse
     from adnmesh.commands import up
-    from adnmesh.loop import evaluate
-    from adnmesh.plant import plant_from_ders
-    from adnmesh.table import load_table
+    from adnmesh.loopmodel.evaluation import evaluate
+    from adnmesh.loopmodel.plant import plant_from_ders
+    from adnmesh.tuning.table import load_table
     from adnmesh.tuning.problem import all_subsets
 
     config = load_config(configs_dir / "examples" / "mixed-4.yaml")
@@ -171,7 +171,7 @@ def test_no_static_pair_is_designed_beyond_the_exact_class_limit(adn100) -> None
 
 def test_a_spread_sample_holds_subsets_of_every_size() -> None:
     from adnmesh.tuning.problem import all_subsets
-    from adnmesh.tuning.subsets import random_subsets, spread_random_subsets
+    from adnmesh.tuning.subset_selection import random_subsets, spread_random_subsets
 
     ids = [f"D{i:03d}" for i in range(100)]
     got = spread_random_subsets(ids, 400, seed=3)
@@ -185,7 +185,7 @@ def test_a_spread_sample_holds_subsets_of_every_size() -> None:
 
 
 def test_the_extremes_hold_each_der_type_alone_when_classes_are_single_ders(adn100) -> None:
-    from adnmesh.tuning.static import extreme_subsets
+    from adnmesh.tuning.static_controller import extreme_subsets
 
     exact = TuningProblem(adn100)
     cases = set(extreme_subsets(exact, adn100.der_ids()))
@@ -205,12 +205,12 @@ def test_the_static_pair_of_100_ders_holds_on_a_fresh_sample_and_on_every_single
     per DER, no grouping), and the worst loop against a plain fixed-step simulation."""
     import numpy as np
 
-    from adnmesh.loop import evaluate
-    from adnmesh.plant import plant_from_ders
-    from adnmesh.stepresp import simulate_step, step_info_from_samples
+    from adnmesh.loopmodel.evaluation import evaluate
+    from adnmesh.loopmodel.plant import plant_from_ders
+    from adnmesh.loopmodel.step_response import simulate_step, step_info_from_samples
     from adnmesh.tuning.problem import T_MAX_S, horizon_s
-    from adnmesh.tuning.static import static_any_size
-    from adnmesh.tuning.subsets import spread_random_subsets
+    from adnmesh.tuning.static_controller import static_any_size
+    from adnmesh.tuning.subset_selection import spread_random_subsets
 
     exact = TuningProblem(adn100)
     ids = list(adn100.der_ids())

@@ -12,7 +12,7 @@ from adnmesh.config import load_config
 from adnmesh.errors import UsageError
 from adnmesh.tuning import TuningProblem, tune_table
 from adnmesh.tuning.paper import initial_values
-from adnmesh.tuning.subsets import MAX_ALL_DERS, random_subsets, scenario_subsets, select_subsets
+from adnmesh.tuning.subset_selection import MAX_ALL_DERS, random_subsets, scenario_subsets, select_subsets
 from adnmesh.tuning.weights import find_weights, find_weights_sequential
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -113,14 +113,14 @@ def test_cli_tunes_only_the_subsets_asked_for(tmp_path):
 
 
 def _reference_table(method="global"):
-    from adnmesh.table import SchedulingTable
+    from adnmesh.tuning.table import SchedulingTable
     ref = json.loads((DATA / f"tuning_reference_mixed4_{method}.json").read_text())
     return SchedulingTable.from_json(ref)
 
 
 def test_on_demand_tuning_of_unseen_plants_is_certified_and_near_the_optimum():
-    from adnmesh.loop import evaluate
-    from adnmesh.plant import plant_from_ders
+    from adnmesh.loopmodel.evaluation import evaluate
+    from adnmesh.loopmodel.plant import plant_from_ders
     from adnmesh.tuning.ondemand import OnDemandTuner
 
     config = load_config(CONFIGS / "mixed-4.yaml")
@@ -149,7 +149,7 @@ def test_on_demand_tuning_of_unseen_plants_is_certified_and_near_the_optimum():
 
 
 def test_the_cpfc_schedule_tunes_a_subset_its_table_lacks_from_the_table():
-    from adnmesh.control.cpfc import GainSchedule
+    from adnmesh.control.cpfc_controller import GainSchedule
 
     config = load_config(CONFIGS / "mixed-4.yaml")
     table = _reference_table()

@@ -20,7 +20,7 @@ import pytest
 import yaml
 
 from adnmesh.config import load_config
-from adnmesh.table import SchedulingTable, TableEntry, save_table
+from adnmesh.tuning.table import SchedulingTable, TableEntry, save_table
 
 REPO = Path(__file__).resolve().parent.parent
 CASE = REPO / "configs" / "examples" / "runtime-step.yaml"

@@ -13,9 +13,9 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
-from .robustness import METRICS, RobustnessResult
-from .solution_space import REASONS, SolutionSpace
-from .uncertainty import B_RANGE, MODEL_LABELS, QUANTITY_LABELS, UncertaintyResult
+from adnmesh.analysis.robustness import METRICS, RobustnessResult
+from adnmesh.analysis.solution_space import REASONS, SolutionSpace
+from adnmesh.analysis.uncertainty import B_RANGE, MODEL_LABELS, QUANTITY_LABELS, UncertaintyResult
 
 __all__ = ["plot_robustness", "plot_uncertainty", "plot_solution_space", "COLOURS"]
 

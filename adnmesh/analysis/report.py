@@ -3,8 +3,8 @@ from __future__ import annotations
 
 import math
 
-from .robustness import ALL_EQUAL, METRICS, RobustnessResult
-from .uncertainty import B_RANGE, MODEL_LABELS, QUANTITY_LABELS, Limit, UncertaintyResult
+from adnmesh.analysis.robustness import ALL_EQUAL, METRICS, RobustnessResult
+from adnmesh.analysis.uncertainty import B_RANGE, MODEL_LABELS, QUANTITY_LABELS, Limit, UncertaintyResult
 
 __all__ = ["csv_number", "uncertainty_markdown", "uncertainty_rows", "robustness_markdown", "worst_text",
            "fmt", "REFERENCE_NOTE"]

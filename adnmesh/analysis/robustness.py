@@ -12,8 +12,8 @@ from typing import Callable
 
 import numpy as np
 
-from ..loop import evaluate
-from .subsets import SubsetBatch, deployed_batch, subset_name
+from adnmesh.loopmodel.evaluation import evaluate
+from adnmesh.analysis.subset_loops import SubsetBatch, deployed_batch, subset_name
 
 __all__ = ["METRICS", "Metric", "RobustnessResult", "MetricSummary", "table_batches",
            "evaluate_batch", "analyze_robustness"]
@@ -26,7 +26,7 @@ class Metric:
     Attributes
     ----------
     key : str
-        Field of :class:`adnmesh.loop.LoopFigures` (and CSV column suffix).
+        Field of :class:`adnmesh.loopmodel.evaluation.LoopFigures` (and CSV column suffix).
     label : str
         Axis label with unit.
     worse : str
@@ -201,7 +201,7 @@ def evaluate_batch(batch: SubsetBatch, band_pct: float, classical: bool = True,
                    model: str = "pt1", lag_scale: float = 1.0) -> dict:
     """Figures of merit (``METRICS`` and ``EXTRA_KEYS``) of every loop of the batch.
 
-    :func:`adnmesh.loop.evaluate` in chunks (``progress(n)`` after each). Subsets without a PI
+    :func:`adnmesh.loopmodel.evaluation.evaluate` in chunks (``progress(n)`` after each). Subsets without a PI
     pair (NaN gains) are not evaluated: NaN figures, ``stable`` False.
     """
     keys = [m.key for m in METRICS] + list(EXTRA_KEYS)
@@ -229,12 +229,12 @@ def analyze_robustness(config, table, progress: Callable[[int], None] | None = N
     Parameters
     ----------
     config : adnmesh.config.Config
-    table : adnmesh.table.SchedulingTable
+    table : adnmesh.tuning.table.SchedulingTable
         Its entries (all subsets, or those present) and its static controller (if any).
     progress : callable, optional
         Called with the number of loops just evaluated (M per controller).
     chunk : int
-        Loops per :func:`adnmesh.loop.evaluate` call.
+        Loops per :func:`adnmesh.loopmodel.evaluation.evaluate` call.
     """
     adaptive, static, feasible, weights = table_batches(config, table)
     band = config.constraints.settling_band_pct

@@ -13,8 +13,8 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from ..loop import evaluate
-from .subsets import deployed_batch, subset_name
+from adnmesh.loopmodel.evaluation import evaluate
+from adnmesh.analysis.subset_loops import deployed_batch, subset_name
 
 __all__ = ["REASONS", "SolutionSpace", "solution_space", "paper_path"]
 

@@ -2,7 +2,7 @@
 
 With the table fixed, every subset's loop (as deployed, weights applied) is analysed with DER
 time constants ``T_unc,d = b T_d`` for the three actuator models of SPEC §4 (``pt1``, ``pt2``,
-``rhpz``; see :mod:`adnmesh.plant`). Starting from ``b = 1``, ``b`` is scanned down and up:
+``rhpz``; see :mod:`adnmesh.loopmodel.plant`). Starting from ``b = 1``, ``b`` is scanned down and up:
 
 - **stability limit**: ``b_min`` is the largest ``b < 1`` at which at least one subset's closed
   loop is unstable, ``b_max`` the smallest ``b > 1`` (certified Nyquist test, exact delays);
@@ -34,10 +34,10 @@ from typing import Callable
 
 import numpy as np
 
-from ..loop import evaluate
-from ..plant import Plant
-from ..stepresp import choose_step, step_info
-from .subsets import SubsetBatch
+from adnmesh.loopmodel.evaluation import evaluate
+from adnmesh.loopmodel.plant import Plant
+from adnmesh.loopmodel.step_response import choose_step, step_info
+from adnmesh.analysis.subset_loops import SubsetBatch
 
 __all__ = ["MODELS", "MODEL_LABELS", "QUANTITIES", "B_RANGE", "Limit", "ModelLimits", "Sample",
            "UncertaintyResult", "analyze_uncertainty", "round_sig"]

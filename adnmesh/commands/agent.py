@@ -1,6 +1,6 @@
 """``adnmesh agent KIND [--id ID] CONFIG --connect ENDPOINT [--certs DIR]``: one agent.
 
-Runs the agent program of KIND (``agents/<kind>.py``, the same program ``adnmesh up`` starts)
+Runs the agent program of KIND (:mod:`adnmesh.agents`, the same program ``adnmesh up`` starts)
 in this process against a router elsewhere: ``adnmesh up CONFIG --external ...`` on the control
 centre's host, or a site router (``adnmesh router``). It keeps trying to reach the router for
 ``--connect-timeout`` seconds, waits for the run's start, runs until the run stops and exits.
@@ -9,7 +9,7 @@ centre's host, or a site router (``adnmesh router``). It keeps trying to reach t
 from __future__ import annotations
 
 import argparse
-import importlib.util
+import importlib
 import sys
 
 from adnmesh.errors import UsageError
@@ -17,7 +17,7 @@ from adnmesh.errors import UsageError
 __all__ = ["KINDS", "add_parser", "run"]
 
 KINDS = ("cpfc", "der", "measurement", "availability")
-"""The agent kinds (one program each in ``agents/``)."""
+"""The agent kinds (one program each in :mod:`adnmesh.agents`)."""
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
@@ -62,16 +62,8 @@ def _argv(args: argparse.Namespace) -> list[str]:
 
 def run(args: argparse.Namespace) -> int:
     """Run the agent program; return its exit code."""
-    from adnmesh.runtime.children import AGENTS_DIR
-
     argv = _argv(args)
-    path = AGENTS_DIR / f"{args.kind}.py"
-    if not path.is_file():
-        raise UsageError(f"agent program {path} not found (run from a source checkout "
-                         "installed with 'pip install -e .')")
-    spec = importlib.util.spec_from_file_location(f"adnmesh_agent_{args.kind}", path)
-    program = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(program)
+    program = importlib.import_module(f"adnmesh.agents.{args.kind}")
     try:
         return program.main(argv)
     except SystemExit as exc:        # the program's own one-line errors (exit code 1 or 2)

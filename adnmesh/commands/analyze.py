@@ -1,6 +1,6 @@
 """``adnmesh analyze CONFIG``: robustness, model-uncertainty and solution-space analyses.
 
-Reads the scheduling table of CONFIG (``--table``, default :func:`adnmesh.table.default_table_path`)
+Reads the scheduling table of CONFIG (``--table``, default :func:`adnmesh.tuning.table.default_table_path`)
 and writes every output of one run into one folder (``--out``, default
 ``out/analyze-<config stem>-<timestamp>/``) with an ``index.md`` that links them all. The
 numerics are in :mod:`adnmesh.analysis` and :mod:`adnmesh.dermodels`; this module only parses,
@@ -26,12 +26,12 @@ from adnmesh import __version__
 from adnmesh.analysis import plots, report
 from adnmesh.analysis.robustness import METRICS, analyze_robustness
 from adnmesh.analysis.solution_space import paper_path, solution_space
-from adnmesh.analysis.subsets import subset_name
+from adnmesh.analysis.subset_loops import subset_name
 from adnmesh.analysis.uncertainty import MODELS, analyze_uncertainty
 from adnmesh.commands import add_config_argument
 from adnmesh.config import load_config
 from adnmesh.errors import ConfigError, UsageError
-from adnmesh.table import default_table_path, load_table
+from adnmesh.tuning.table import default_table_path, load_table
 
 __all__ = ["add_parser", "run", "PARTS", "parse_subset", "default_out_dir"]
 
@@ -250,7 +250,7 @@ def _solution_space(config, table, ids, grid: int, out: Path, console: Console, 
 
 def _der_models(config, out: Path, console: Console) -> str:
     """Step responses of every DER's default detailed model beside the reference PT1."""
-    from adnmesh.dermodels.plots import distinct_reports, plot_der_models
+    from adnmesh.dermodels.response_plot import distinct_reports, plot_der_models
     from adnmesh.dermodels.responses import der_model_report
 
     reports = [der_model_report(der) for der in config.ders]

@@ -1,6 +1,6 @@
 """``adnmesh certs DIR [--config CONFIG]``: the certificates of the secure profile.
 
-Creates in DIR one CA and one key and certificate per identity (:mod:`adnmesh.runtime.certs`):
+Creates in DIR one CA and one key and certificate per identity (:mod:`adnmesh.runtime.certificates`):
 every agent of CONFIG (``cpfc``, ``measurement``, ``availability``, ``der/<id>`` per DER),
 ``up`` (router, recorder, clock) and ``operator`` (``adnmesh fault``); without CONFIG the
 identities that do not depend on it. ``--router NAME`` adds a site router (``router/NAME``),
@@ -45,7 +45,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     """Create what is missing; print what was created and kept."""
-    from adnmesh.runtime.certs import DEFAULT_HOSTS, issue
+    from adnmesh.runtime.certificates import DEFAULT_HOSTS, issue
     from adnmesh.runtime.identity import identities, router_identity
     from adnmesh.wire.keys import LAUNCHER, OPERATOR
 

@@ -24,8 +24,8 @@ from adnmesh.recording import (
     recover,
     validate_recording,
 )
-from adnmesh.recording.figures import RunFigures, run_figures, step_table
-from adnmesh.recording.series import RunData, read_run
+from adnmesh.results.figures import RunFigures, run_figures, step_table
+from adnmesh.results.series import RunData, read_run
 from adnmesh.recording.stream import ScannedRecording
 
 __all__ = ["EXIT_PROBLEMS", "add_parser", "run", "settling_band_pct", "topic_table"]
@@ -94,12 +94,12 @@ def settling_band_pct(recording: Recording) -> float:
 
 
 class _SummaryMessages:
-    """The messages ``adnmesh up``'s summary reads (:class:`~adnmesh.runtime.summary.RunSeries`),
+    """The messages ``adnmesh up``'s summary reads (:class:`~adnmesh.results.summary.RunSeries`),
     taken in the same pass as the series: ``P_IP`` as columns, ``p_y`` only where it carries a
     switch record, the few others whole."""
 
     def __init__(self) -> None:
-        from adnmesh.runtime.summary import MESSAGE_TYPES
+        from adnmesh.results.summary import MESSAGE_TYPES
 
         self.types = MESSAGE_TYPES
         self.p_ip: list[tuple[np.ndarray, ...]] = []
@@ -134,8 +134,8 @@ class _SummaryMessages:
                                payloads[i]))
 
     def series(self):
-        """The :class:`~adnmesh.runtime.summary.RunSeries` of the messages taken."""
-        from adnmesh.runtime.summary import RunSeries
+        """The :class:`~adnmesh.results.summary.RunSeries` of the messages taken."""
+        from adnmesh.results.summary import RunSeries
 
         series = RunSeries()
         if self.p_ip:
@@ -166,14 +166,14 @@ class _Fields:
 
 def _summary(recording: ScannedRecording, messages: _SummaryMessages, band_pct: float):
     """``adnmesh up``'s summary of the recorded run (its per-fault and grid figures)."""
-    from adnmesh.runtime.summary import summarize
+    from adnmesh.results.summary import summarize
 
     ends = [s.last_publish_ns for s in recording.channel_stats.values() if s.count]
     return summarize(messages.series(), end_ns=max(ends, default=0), band_pct=band_pct)
 
 
 def _print_figures(console: Console, run_data: RunData, figures: RunFigures, summary) -> None:
-    from adnmesh.runtime.summary import fault_table, grid_line
+    from adnmesh.results.summary import fault_table, grid_line
 
     if figures.steps:
         console.print(step_table(figures.steps, figures.band_pct))

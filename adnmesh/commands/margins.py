@@ -9,8 +9,8 @@ from rich.console import Console
 from adnmesh.commands import add_config_argument
 from adnmesh.config import load_config
 from adnmesh.errors import UsageError
-from adnmesh.loop import evaluate
-from adnmesh.plant import plant_from_ders
+from adnmesh.loopmodel.evaluation import evaluate
+from adnmesh.loopmodel.plant import plant_from_ders
 
 __all__ = ["add_parser", "run", "loop_report", "parse_der_list"]
 

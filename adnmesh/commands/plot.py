@@ -7,7 +7,7 @@ from pathlib import Path
 
 from adnmesh.commands.replay import note_if_truncated
 from adnmesh.errors import UsageError
-from adnmesh.recording.series import read_run
+from adnmesh.results.series import read_run
 
 __all__ = ["add_parser", "run"]
 
@@ -31,7 +31,7 @@ def run(args: argparse.Namespace) -> int:
     """Draw ``args.recording`` into ``args.out``."""
     from matplotlib.figure import Figure
 
-    from adnmesh.recording.plot import save_plot
+    from adnmesh.results.time_plot import save_plot
 
     out = args.out or Path(args.recording).with_suffix(".png")
     formats = Figure().canvas.get_supported_filetypes()

@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 from adnmesh.errors import UsageError
-from adnmesh.recording.series import read_run
+from adnmesh.results.series import read_run
 
 __all__ = ["add_parser", "run", "note_if_truncated"]
 
@@ -49,7 +49,7 @@ def note_if_truncated(recording) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Convert ``args.recording``; write the .rrd and, if asked, start a viewer on it."""
-    from adnmesh.recording.rerun_export import export_rrd, viewer_command
+    from adnmesh.results.rerun_export import export_rrd, viewer_command
 
     if not 0 < args.web_port < 65536:
         raise UsageError(f"--web-port must be a port number (1-65535), got {args.web_port}")

@@ -12,8 +12,8 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from adnmesh.commands import add_config_argument
 from adnmesh.config import load_config
 from adnmesh.errors import UsageError
-from adnmesh.table import default_table_path
-#: shown in --help; equals adnmesh.tuning.subsets.MAX_ALL_DERS (not imported: the CLI stays light)
+from adnmesh.tuning.table import default_table_path
+#: shown in --help; equals adnmesh.tuning.subset_selection.MAX_ALL_DERS (not imported: the CLI stays light)
 MAX_ALL_DERS = 16
 
 __all__ = ["add_parser", "run"]
@@ -48,7 +48,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     """Tune, showing progress; Ctrl-C keeps the partial table (exit 130)."""
     from adnmesh.tuning import tune_table, write_csv
-    from adnmesh.tuning.subsets import select_subsets
+    from adnmesh.tuning.subset_selection import select_subsets
 
     if args.workers < 1:
         raise UsageError(f"--workers must be >= 1, got {args.workers}")

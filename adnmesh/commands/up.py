@@ -2,7 +2,7 @@
 
 Starts the CPFC, one DER agent per DER, the measurement and the availability monitor as separate
 processes (:mod:`adnmesh.runtime.launcher`), records every message to ``logs/<run-id>.mcap`` and
-prints a summary (:mod:`adnmesh.runtime.summary`). Progress lines and problems go to stderr, the
+prints a summary (:mod:`adnmesh.results.summary`). Progress lines and problems go to stderr, the
 summary to stdout.
 """
 
@@ -22,7 +22,7 @@ from rich.console import Console
 from adnmesh.commands import add_config_argument
 from adnmesh.config import Config, load_config
 from adnmesh.errors import UsageError
-from adnmesh.table import SchedulingTable, default_table_path, load_table, save_table
+from adnmesh.tuning.table import SchedulingTable, default_table_path, load_table, save_table
 
 __all__ = ["add_parser", "run", "scenario_subsets"]
 
@@ -118,7 +118,7 @@ def external_agents(text: str | None, config: Config) -> frozenset[str]:
 def scenario_subsets(config: Config) -> list[frozenset[str]]:
     """The sets of available DERs the scenario goes through, in order (all DERs first): those
     ``adnmesh tune --subsets scenario`` tunes."""
-    from adnmesh.tuning.subsets import scenario_subsets as in_config_order
+    from adnmesh.tuning.subset_selection import scenario_subsets as in_config_order
 
     return [frozenset(s) for s in in_config_order(config)]
 
@@ -264,13 +264,9 @@ def run(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     _check_arguments(args)
     from adnmesh.commands.fault import run_file_path
-    from adnmesh.runtime.children import AGENTS_DIR
     from adnmesh.runtime.launcher import UpOptions
     from adnmesh.runtime.launcher import run as launch
 
-    if not AGENTS_DIR.is_dir():
-        raise UsageError(f"agent programs not found in {AGENTS_DIR} (run from a source checkout "
-                         "installed with 'pip install -e .')")
     err = Console(stderr=True, highlight=False, markup=False, soft_wrap=True)
 
     def log(line: str) -> None:
@@ -352,8 +348,8 @@ def _print_zenoh_config(args: argparse.Namespace, config: Config, certs, routers
 
 def _print_summary(args: argparse.Namespace, config: Config, run_id: str, result) -> None:
     """The summary on stdout (and as JSON with ``--summary-json``)."""
-    from adnmesh.runtime.realtime_report import realtime_figures
-    from adnmesh.runtime.summary import format_summary, summarize
+    from adnmesh.results.realtime_report import realtime_figures
+    from adnmesh.results.summary import format_summary, summarize
 
     byes = result.byes.values()
     extra = {

@@ -7,11 +7,11 @@ which class runs as which agent is decided once.
 from __future__ import annotations
 
 from adnmesh.config import Config
-from adnmesh.control.availability import AvailabilityMonitor
+from adnmesh.control.availability_monitor import AvailabilityMonitor
 from adnmesh.control.base import Agent
-from adnmesh.control.cpfc import CPFC, GainSchedule
-from adnmesh.control.der import DERController
-from adnmesh.control.measurement import Measurement
+from adnmesh.control.cpfc_controller import CPFC, GainSchedule
+from adnmesh.control.der_controller import DERController
+from adnmesh.control.measurement_point import Measurement
 from adnmesh.control.operating_point import available_power_w
 from adnmesh.wire.keys import der_agent_id, der_id_of
 

@@ -3,7 +3,7 @@
 ``held_at(params, state, t_ns)`` is +1 while a limit keeps the output from rising as its
 dynamics would (a rate or ramp limit on the way up), -1 while one keeps it from falling, 0
 otherwise; the absolute limits act on the setpoint and are the DER controller's to report. The
-state is not changed. Used for the CPFC's anti-windup (:mod:`adnmesh.control.der`).
+state is not changed. Used for the CPFC's anti-windup (:mod:`adnmesh.control.der_controller`).
 """
 
 from __future__ import annotations

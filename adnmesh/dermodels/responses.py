@@ -4,7 +4,7 @@
 T_rise; optionally ``t_lag_s``, the reference model's time constant) and returns the default
 detailed model's step responses — up and down, two step sizes, from 50 % of P_inst — with their
 exact 10-90 % rise times and reaction times, and the same for the reference PT1. Pure: the
-figure is :func:`adnmesh.dermodels.plots.plot_der_models`, the files are written by
+figure is :func:`adnmesh.dermodels.response_plot.plot_der_models`, the files are written by
 ``adnmesh analyze CONFIG --der-models``.
 """
 

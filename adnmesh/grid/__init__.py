@@ -10,13 +10,13 @@ and :func:`available_power_w` gives each actuator's available power at the study
 
 Modules: :mod:`~adnmesh.grid.data` (the lightsim2grid model and arrays),
 :mod:`~adnmesh.grid.solver` (the solver), :mod:`~adnmesh.grid.cache` (the cache),
-:mod:`~adnmesh.grid.simbench_net` and :mod:`~adnmesh.grid.build` (the only users of simbench and
+:mod:`~adnmesh.grid.simbench_net` and :mod:`~adnmesh.grid.from_net` (the only users of simbench and
 pandapower, imported on a cache miss only).
 """
 
 from adnmesh.grid.cache import default_cache_dir, load_grid
 from adnmesh.grid.data import GridData
-from adnmesh.grid.errors import GridError
+from adnmesh.errors import GridError
 from adnmesh.grid.solver import GridSample, GridSolver, available_power_w
 
 __all__ = ["GridData", "GridError", "GridSample", "GridSolver", "available_power_w",

@@ -107,13 +107,13 @@ def load_grid(code: str, case: str = "lW", load_model: str = "impedance",
         Cache folder (default :func:`default_cache_dir`).
     """
     def build() -> GridData:
-        from adnmesh.grid.build import build_grid_data
+        from adnmesh.grid.from_net import build_grid_data
         from adnmesh.grid.simbench_net import grid_net
         return build_grid_data(grid_net(code, case, load_model), code, case, load_model)
 
     from adnmesh.grid.simbench_net import LOAD_MODELS
     if load_model not in LOAD_MODELS:
-        from adnmesh.grid.errors import GridError
+        from adnmesh.errors import GridError
         raise GridError(f"grid: load model must be one of {', '.join(LOAD_MODELS)}, "
                         f"got {load_model!r}")
     return cached(cache_key(code, case, load_model), build, cache_dir)

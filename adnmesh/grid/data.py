@@ -4,7 +4,7 @@
 :class:`~adnmesh.grid.solver.GridSolver` copies), the study case's solved bus voltages (the first
 start of Newton-Raphson), every static generator's name and power, and the ratings that turn
 the model's branch currents into pandapower's loading percentages. It is built from a pandapower
-net by :func:`adnmesh.grid.build.build_grid_data`, and stored by :mod:`adnmesh.grid.cache` as
+net by :func:`adnmesh.grid.from_net.build_grid_data`, and stored by :mod:`adnmesh.grid.cache` as
 the model's own binary file (``LSGrid.save_binary``) plus a ``.npz`` of the arrays
 (:func:`to_arrays`, :func:`from_arrays`): no pickle, and neither pandapower nor simbench is
 needed to read it back.
@@ -36,7 +36,7 @@ class GridData:
         loads are constant impedances, ``"power"``: constant power).
     converter : str
         The ``pp_orig_file`` formula of lightsim2grid's pandapower converter that reproduced
-        pandapower's ``runpp`` (see :mod:`adnmesh.grid.build`).
+        pandapower's ``runpp`` (see :mod:`adnmesh.grid.from_net`).
     lsgrid : lightsim2grid.network.LSGrid
         The model at the study case; a solver works on its own copy.
     v_init : ndarray of complex
@@ -75,7 +75,7 @@ class GridData:
     def sgen_index(self, names) -> np.ndarray:
         """Positions of the named static generators; :class:`GridError` for an unknown or
         repeated name."""
-        from adnmesh.grid.errors import GridError
+        from adnmesh.errors import GridError
         position = {n: i for i, n in enumerate(self.sgen_names)}
         names = list(names)
         for name in names:

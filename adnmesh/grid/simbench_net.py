@@ -26,7 +26,7 @@ are constant PQ injections (``sgen``); the six open loop-line switches of 1-MV-r
 
 from __future__ import annotations
 
-from adnmesh.grid.errors import GridError
+from adnmesh.errors import GridError
 
 __all__ = ["LOAD_MODELS", "load_simbench_net", "study_cases", "apply_study_case",
            "loads_as_impedances", "grid_net"]

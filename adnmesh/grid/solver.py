@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from adnmesh.grid.data import GridData
-from adnmesh.grid.errors import GridError
+from adnmesh.errors import GridError
 
 __all__ = ["GridSample", "GridSolver", "available_power_w"]
 

@@ -6,9 +6,9 @@
   truncated one into a complete file.
 - :func:`validate_recording` checks messages against their schemas; :func:`check_counts`
   compares what agents published with what was recorded.
-- :mod:`adnmesh.recording.series` turns messages into named series and events (one table of
-  key patterns), used by :mod:`~adnmesh.recording.rerun_export` (``adnmesh replay``),
-  :mod:`~adnmesh.recording.plot` (``adnmesh plot``) and :mod:`~adnmesh.recording.figures`
+- :mod:`adnmesh.results.series` turns messages into named series and events (one table of
+  key patterns), used by :mod:`~adnmesh.results.rerun_export` (``adnmesh replay``),
+  :mod:`~adnmesh.results.time_plot` (``adnmesh plot``) and :mod:`~adnmesh.results.figures`
   (``adnmesh inspect``).
 """
 

@@ -585,7 +585,7 @@ def decode_fields(batch: MessageBatch, names: tuple[str, ...]) -> FieldColumns:
     ``valid``).
 
     A payload with a ``body`` object is read as the payload with that object's fields merged
-    in (as :func:`adnmesh.recording.series.extract` reads payloads).
+    in (as :func:`adnmesh.results.series.extract` reads payloads).
     """
     row = _row_type(names)
     text = batch.json_array()

@@ -58,7 +58,7 @@ from mcap.records import (
 from mcap.writer import LIBRARY_IDENTIFIER, MCAP0_MAGIC
 
 from adnmesh import __version__
-from adnmesh.recording.eventlog import FOXGLOVE_LOG, FOXGLOVE_LOG_SCHEMA, EventLog
+from adnmesh.results.eventlog import FOXGLOVE_LOG, FOXGLOVE_LOG_SCHEMA, EventLog
 
 __all__ = [
     "FORMAT_VERSION",
@@ -345,7 +345,7 @@ class Recorder:
     events_topic : str, optional
         Also write the run's events (gain switches, availability changes, faults, the agents'
         events such as watchdog fallbacks and overruns, rejected payloads) as ``foxglove.Log``
-        messages on this topic (:mod:`adnmesh.recording.eventlog`), for Foxglove's log panel.
+        messages on this topic (:mod:`adnmesh.results.eventlog`), for Foxglove's log panel.
         They are not in :meth:`counts`.
 
     Examples

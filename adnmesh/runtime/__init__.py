@@ -8,9 +8,9 @@
 - :mod:`~adnmesh.runtime.tap`: the recorder tap (validate, then record; rejects apart);
 - :mod:`~adnmesh.runtime.launcher_bus`: ``up``'s own messages and the sim clock's grants;
 - :mod:`~adnmesh.runtime.launcher`: ``adnmesh up`` as phases: startup, run, shutdown, verify;
-- :mod:`~adnmesh.runtime.summary`: the end-of-run figures, from the recorded series;
+- :mod:`~adnmesh.results.summary`: the end-of-run figures, from the recorded series;
 - the secure profile: :mod:`~adnmesh.runtime.identity` (who is who, where the certificates
-  are), :mod:`~adnmesh.runtime.certs` (making them), :mod:`~adnmesh.runtime.acl` (the access
+  are), :mod:`~adnmesh.runtime.certificates` (making them), :mod:`~adnmesh.runtime.acl` (the access
   control, from the topology), :mod:`~adnmesh.runtime.security` (mutual TLS and access control
   in a Zenoh config), :mod:`~adnmesh.runtime.sessions` (the router's links per identity).
 

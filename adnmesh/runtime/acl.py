@@ -1,6 +1,6 @@
 """Zenoh access control of the secure profile, derived from the topology (bus-free).
 
-Every identity (the CN of its certificate, :mod:`adnmesh.runtime.certs`) gets exactly the rights
+Every identity (the CN of its certificate, :mod:`adnmesh.runtime.certificates`) gets exactly the rights
 the message graph of the config gives it, and nothing else: the router denies by default.
 
 =================  ==========================================  ==================================

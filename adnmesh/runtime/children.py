@@ -1,6 +1,6 @@
 """The agent processes of ``adnmesh up``: how each is started, and tracking them by PID.
 
-Every agent runs as ``sys.executable agents/<kind>.py CONFIG --connect ENDPOINT`` in its own
+Every agent runs as ``sys.executable -m adnmesh.agents.<kind> CONFIG --connect ENDPOINT`` in its own
 session (so Ctrl-C reaches only ``up``), told to die with ``up`` (environment
 :data:`PARENT_ENV`, Linux ``PR_SET_PDEATHSIG``), and is stopped, if it has to be, by PID.
 
@@ -29,11 +29,11 @@ line on stderr: an exception in a Zenoh callback is otherwise printed and swallo
 and the agent lives on without ever reporting its window -- the sim clock then waits for it
 until ``up``'s stall timeout ends the whole run; a dead agent is noted and the run goes on."""
 
-__all__ = ["AGENTS_DIR", "AGENT_ZENOH_RUNTIME", "EXIT_INTERNAL_ERROR", "PARENT_ENV",
+__all__ = ["AGENT_PACKAGE", "AGENT_ZENOH_RUNTIME", "EXIT_INTERNAL_ERROR", "PARENT_ENV",
            "SESSION_GRACE_S", "AgentProcesses", "agent_argv"]
 
-AGENTS_DIR = Path(__file__).resolve().parents[2] / "agents"
-"""Where the agent programs are (``agents/`` of the source tree)."""
+AGENT_PACKAGE = "adnmesh.agents"
+"""Where the agent programs are: ``python -m adnmesh.agents.<kind>``, one module per kind."""
 
 PARENT_ENV = "ADNMESH_PARENT_PID"
 """Environment variable with the PID of ``adnmesh up``; agents die with that process."""
@@ -61,7 +61,7 @@ def agent_argv(agent_id: str, config_path: Path, endpoint: str, table_path: Path
     so that it need not load the grid to learn it; secure profile: with ``--certs``)."""
     der_id = der_id_of(agent_id)
     kind = "der" if der_id is not None else agent_id
-    argv = [sys.executable, str(AGENTS_DIR / f"{kind}.py"), str(config_path),
+    argv = [sys.executable, "-m", f"{AGENT_PACKAGE}.{kind}", str(config_path),
             "--connect", endpoint, "--connect-timeout", f"{CONNECT_TIMEOUT_S:g}"]
     if der_id is not None:
         argv += ["--der", der_id]

@@ -9,7 +9,7 @@ certificate's common name (CN), which Zenoh's access control matches
     DIR/ca.pem  DIR/ca.key                       the CA (its key signs; keep it off the hosts)
     DIR/<identity>.pem  DIR/<identity>.key       e.g. DIR/der/SGen1.pem, DIR/router/site.key
 
-Creating them: :mod:`adnmesh.runtime.certs` (``adnmesh certs``).
+Creating them: :mod:`adnmesh.runtime.certificates` (``adnmesh certs``).
 """
 
 from __future__ import annotations

@@ -59,9 +59,9 @@ from adnmesh.runtime.injector import FaultInjector
 from adnmesh.runtime.launcher_bus import LauncherOutbox, SimClockDriver
 from adnmesh.runtime.realtime import tolerance_ns
 from adnmesh.runtime.roster import Roster
-from adnmesh.runtime.rt_tuning import PRIORITY_ENV, freeze_heap, raise_priority
+from adnmesh.runtime.os_scheduling import PRIORITY_ENV, freeze_heap, raise_priority
 from adnmesh.runtime.sessions import SessionReport, SessionWatch
-from adnmesh.runtime.summary import RunSeries
+from adnmesh.results.summary import RunSeries
 from adnmesh.runtime.tap import RecorderTap, recording_schemas
 from adnmesh.sim.clock import Coordinator
 from adnmesh.sim.topology import Topology
@@ -125,7 +125,7 @@ class UpOptions:
         Agent ids started elsewhere (``adnmesh agent``); ``up`` waits for them.
     routers : tuple of str
         Names of the site routers (``adnmesh router --name``) that may link to this one.
-    view : adnmesh.recording.live.LiveView, optional
+    view : adnmesh.results.live.LiveView, optional
         Gets every recorded message (``--view``); the caller starts and closes it.
     progress : callable, optional
         Called with the sim time reached, ns, about every 0.1 s wall while the clock runs.
@@ -135,7 +135,7 @@ class UpOptions:
         in the open profile a forged message can (see the README's security section).
     rt_priority : str
         Realtime: the scheduling priority of ``up`` and its agents
-        (:data:`adnmesh.runtime.rt_tuning.PRIORITIES`: ``off``, ``nice``, ``fifo``); if the
+        (:data:`adnmesh.runtime.os_scheduling.PRIORITIES`: ``off``, ``nice``, ``fifo``); if the
         OS refuses it the run goes on at the ordinary priority and says so.
     """
 

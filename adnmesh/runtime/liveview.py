@@ -4,10 +4,10 @@
 127.0.0.1 (its gRPC server and, with ``web``, its web viewer's HTTP server), as its own process
 group so that it stays open after the run; ``FILE.rrd`` needs no viewer and no display
 (headless). The work of the view (decoding the messages by ``replay``'s rules, sending them to
-Rerun: :class:`~adnmesh.recording.live.LiveView`) runs in a child process of ``up``
+Rerun: :class:`~adnmesh.results.live.LiveView`) runs in a child process of ``up``
 (:class:`ViewProcess`), so that it never holds the interpreter lock of the process whose
 router and recorder drive the clock: ``up`` only queues what it records and hands it over
-through a pipe every :data:`~adnmesh.recording.live.VIEW_PERIOD_S`.
+through a pipe every :data:`~adnmesh.results.live.VIEW_PERIOD_S`.
 """
 
 from __future__ import annotations
@@ -23,8 +23,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from adnmesh.errors import UsageError
-from adnmesh.recording.live import VIEW_PERIOD_S, LiveView
-from adnmesh.recording.rerun_export import APPLICATION_ID, rerun_executable
+from adnmesh.results.live import VIEW_PERIOD_S, LiveView
+from adnmesh.results.rerun_export import APPLICATION_ID, rerun_executable
 from adnmesh.runtime.bus import DEFAULT_HOST, free_port
 
 VIEW_NICE = 10
@@ -79,7 +79,7 @@ class ViewProcess:
     run_id : str
         The Rerun recording id and name.
     on_events : callable, optional
-        Gets the new events (a list of :class:`~adnmesh.recording.series.Event`), on a thread
+        Gets the new events (a list of :class:`~adnmesh.results.series.Event`), on a thread
         of this process.
     viewer_pid : int, optional
         The viewer process the stream goes to (it outlives the run).

@@ -19,8 +19,8 @@ three named phases:
      every event's delivery error per link (a message that arrives after its delivery time is
      processed at once and counted as late); an error beyond the announced tolerance is
      published at once as an ``overrun`` event. Its wake-ups are tightened
-     (:mod:`adnmesh.runtime.rt_tuning`: timer slack, GIL switch interval, the priority ``up``
-     hands over in :data:`~adnmesh.runtime.rt_tuning.PRIORITY_ENV`, an optional spin before
+     (:mod:`adnmesh.runtime.os_scheduling`: timer slack, GIL switch interval, the priority ``up``
+     hands over in :data:`~adnmesh.runtime.os_scheduling.PRIORITY_ENV`, an optional spin before
      each event);
 
    until ``clock/stop``, the disappearance of ``adnmesh up``, or SIGTERM/SIGINT;
@@ -58,7 +58,7 @@ import zenoh
 
 from adnmesh.runtime.children import EXIT_INTERNAL_ERROR, SESSION_GRACE_S
 from adnmesh.runtime.realtime import OverrunWatch, ScaledClock
-from adnmesh.runtime.rt_tuning import (PRIORITIES, PRIORITY_ENV, SpinPlan, freeze_heap,
+from adnmesh.runtime.os_scheduling import (PRIORITIES, PRIORITY_ENV, SpinPlan, freeze_heap,
                                        raise_priority, spin_ns_from_env, tighten_timers)
 from adnmesh.sim.node import Node
 from adnmesh.wire.envelope import MessageError, decode, encode, frames, split_frame

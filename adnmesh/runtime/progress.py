@@ -3,7 +3,7 @@
 A rich progress bar on stderr in sim seconds, with the speed factor (sim s per wall s, over
 the last few seconds), and above it one line per event of the run (gain switches, faults,
 availability changes, DER modes; the texts ``replay`` and ``inspect`` use, from the live
-view's :class:`~adnmesh.recording.series.LiveCollector`). Only for a terminal, or when asked.
+view's :class:`~adnmesh.results.series.LiveCollector`). Only for a terminal, or when asked.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from collections import deque
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-from adnmesh.recording.series import Event
+from adnmesh.results.series import Event
 
 __all__ = ["SHOWN_EVENTS", "RunProgress", "event_line", "speed_factor"]
 

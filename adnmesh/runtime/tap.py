@@ -23,7 +23,7 @@ from typing import Annotated
 import msgspec
 from msgspec import Meta, Struct
 
-from adnmesh.runtime.summary import MESSAGE_TYPES, RunSeries
+from adnmesh.results.summary import MESSAGE_TYPES, RunSeries
 from adnmesh.sim.node import names_known_ders
 from adnmesh.sim.topology import Topology
 from adnmesh.wire.envelope import MessageError, decode, encode, envelope_times, split_frame
@@ -74,7 +74,7 @@ class RecorderTap:
         Fed with what the summary needs.
     now_ns : callable
         The run's current time, ns, for rejected payloads that carry no usable times.
-    view : adnmesh.recording.live.LiveView, optional
+    view : adnmesh.results.live.LiveView, optional
         Also gets every message recorded (``up --view``: queued, sent to Rerun elsewhere).
     """
 

@@ -1,7 +1,7 @@
 """Tuning of the gain-scheduling table CP (SPEC §3): the paper's method, a global search that
 certifies it, Find W, the static controller, and on-demand tuning of one subset."""
-from .build import METHODS, paper_path, tune_subset, tune_table, write_csv
-from .problem import TuningProblem, all_subsets
+from adnmesh.tuning.build import METHODS, paper_path, tune_subset, tune_table, write_csv
+from adnmesh.tuning.problem import TuningProblem, all_subsets
 
 __all__ = ["METHODS", "TuningProblem", "all_subsets", "paper_path", "tune_subset", "tune_table",
            "write_csv"]

@@ -22,13 +22,13 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from ..table import FIGURE_KEYS, SchedulingTable, TableEntry, load_table, save_table
-from .global_search import tune_global
-from .paper import initial_values, tune_paper
-from .problem import TuningProblem, all_subsets, horizon_s
-from .static import design_over, static_any_size
-from .warm import SHARES, warm_share
-from .weights import find_weights
+from adnmesh.tuning.table import FIGURE_KEYS, SchedulingTable, TableEntry, load_table, save_table
+from adnmesh.tuning.global_search import tune_global
+from adnmesh.tuning.paper import initial_values, tune_paper
+from adnmesh.tuning.problem import TuningProblem, all_subsets, horizon_s
+from adnmesh.tuning.static_controller import design_over, static_any_size
+from adnmesh.tuning.warm import SHARES, warm_share
+from adnmesh.tuning.weights import find_weights
 
 __all__ = ["tune_table", "tune_subset", "static_entry", "paper_path", "write_csv", "PlantGroup",
            "plant_chunks", "METHODS", "PHASES"]

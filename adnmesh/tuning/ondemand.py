@@ -27,12 +27,12 @@ from typing import Sequence
 
 import numpy as np
 
-from ..errors import UsageError
-from ..table import SchedulingTable, TableEntry
-from .build import PlantGroup, _entries, tune_subset
-from .global_search import tune_global
-from .paper import initial_values
-from .problem import TuningProblem
+from adnmesh.errors import UsageError
+from adnmesh.tuning.table import SchedulingTable, TableEntry
+from adnmesh.tuning.build import PlantGroup, _entries, tune_subset
+from adnmesh.tuning.global_search import tune_global
+from adnmesh.tuning.paper import initial_values
+from adnmesh.tuning.problem import TuningProblem
 
 __all__ = ["OnDemandTuner", "RAY_FACTORS", "SIMULATED", "MAX_EXACT_CLASSES", "MAX_DERS"]
 

@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .problem import TuningProblem
+from adnmesh.tuning.problem import TuningProblem
 
 __all__ = ["initial_values", "path_search", "area_search", "PaperResult", "tune_paper", "ES_LIMIT"]
 

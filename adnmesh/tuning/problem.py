@@ -15,9 +15,9 @@ from typing import Sequence
 
 import numpy as np
 
-from ..loop import LoopFigures, disk_margin_bound, evaluate
-from ..plant import Actuator, Plant
-from ..stepresp import integral_rate, step_info
+from adnmesh.loopmodel.evaluation import LoopFigures, disk_margin_bound, evaluate
+from adnmesh.loopmodel.plant import Actuator, Plant
+from adnmesh.loopmodel.step_response import integral_rate, step_info
 
 __all__ = ["TuningProblem", "Check", "all_subsets", "T_MAX_S", "horizon_s"]
 
@@ -38,7 +38,7 @@ HORIZON_CAP_S = 1e6
 def horizon_s(gains: np.ndarray, kp, ki) -> np.ndarray:
     """Longest step-response horizon of loops, s: ``T_MAX_S``, or ``SLOW_MODES`` times the
     loop's slow time constant ``(1 + K_P K) / (K_I K)`` (``K`` its gain in W: the PI's
-    integral mode with the plant at its DC gain, :func:`adnmesh.stepresp.integral_rate`)
+    integral mode with the plant at its DC gain, :func:`adnmesh.loopmodel.step_response.integral_rate`)
     if that is longer, capped at ``HORIZON_CAP_S``; shape (M,).
 
     A DER with a tiny share of a subset's power (Find W), or a small subset under a static
@@ -56,7 +56,7 @@ class Check:
 
     ``rise_time_s`` is NaN where infeasible; ``overshoot_pct`` may be a lower bound there.
     ``disk_margin`` is an upper bound (below the limit) where the sampled disk margin already
-    decided the candidate (reason ``disk margin``; see :func:`adnmesh.loop.evaluate`'s
+    decided the candidate (reason ``disk margin``; see :func:`adnmesh.loopmodel.evaluation.evaluate`'s
     ``screen``). ``simulated_rise_s`` is the rise time of every simulated response, feasible
     or not (NaN where not simulated or not at 90 % when the simulation stopped).
     """

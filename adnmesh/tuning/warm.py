@@ -1,8 +1,8 @@
 """The constraint check's compiled kernels, made ready in shares that pool workers split.
 
 A fresh checkout has no compiled kernels: the first constraint check in a process compiles
-the frequency pass (:mod:`adnmesh._freq_kernels`) and the settle loop
-(:mod:`adnmesh._settle_loop`, with the step kernels it calls), ~6 s of CPU on the 2-core
+the frequency pass (:mod:`adnmesh.loopmodel.frequency_kernels`) and the settle loop
+(:mod:`adnmesh.loopmodel.settle_kernel`, with the step kernels it calls), ~6 s of CPU on the 2-core
 machine, and numba writes each to its cache (``__pycache__``) as it finishes. Tuning workers
 used to do all of it at once, each the whole of it. :func:`warm_share` makes one tiny check
 that needs only one share of the kernels, so that two workers compile one share each, wait
@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .problem import TuningProblem
+from adnmesh.tuning.problem import TuningProblem
 
 __all__ = ["SHARES", "warm_share"]
 

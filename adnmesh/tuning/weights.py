@@ -26,8 +26,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..freqresp import loop_response
-from .problem import TuningProblem, horizon_s
+from adnmesh.loopmodel.frequency_response import loop_response
+from adnmesh.tuning.problem import TuningProblem, horizon_s
 
 __all__ = ["find_weights", "find_weights_sequential", "W_STEP", "SCREEN_SLACK"]
 

@@ -1,0 +1,45 @@
+"""CPFC agent: gain-scheduled PI control of the power at the interconnection point.
+
+    python -m adnmesh.agents.cpfc CONFIG [--table PATH] --connect tcp/127.0.0.1:7447
+
+PI on P_err = P_ref - P_meas; bumpless gain switch when SI changes; sends P_Y (and the weights W
+on a switch) to the DERs. Gains: the table matching CONFIG (default
+tables/<name>.<sha256[:12]>.json), tuning missing subsets on demand.
+Logic: adnmesh.control.cpfc_controller.CPFC.
+"""
+
+import argparse
+import sys
+
+from adnmesh.control.cpfc_controller import GainSchedule
+from adnmesh.control.registry import build_agent
+from adnmesh.errors import ConfigError
+from adnmesh.runtime.process import (AgentProcess, add_agent_arguments, load_config_or_exit,
+                                     open_session)
+from adnmesh.sim.node import Node
+from adnmesh.tuning.table import default_table_path, load_table
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="cpfc", description="adnmesh CPFC agent")
+    parser.add_argument("config", metavar="CONFIG", help="adnmesh config file (YAML)")
+    parser.add_argument("--table", metavar="PATH",
+                        help="gain-scheduling table (default: the one matching CONFIG)")
+    add_agent_arguments(parser)
+    args = parser.parse_args(argv)
+
+    config = load_config_or_exit(args.config)
+    try:
+        table = load_table(args.table or default_table_path(config), config)
+    except ConfigError as exc:
+        print(f"adnmesh agent: error: {exc}", file=sys.stderr)
+        return 2
+    node = Node.for_config(build_agent("cpfc", config, GainSchedule(config, table)), config,
+                          start_ns=args.resume_at_ns)
+    with open_session(args, "cpfc") as session:
+        return AgentProcess(session, node, config.grid,
+                            publishers=args.certs is None).serve()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,507 @@
+"""The CPFC: gain-scheduled PI control of ``P_IP`` (SPEC §1, §5), as a bus-free state machine.
+
+Every ``pi_period_s`` the CPFC samples ``P_ref`` (from the scenario: the initial operating point
+plus the steps so far) and the last ``P_IP`` delivered by the measurement, updates its PI
+(:class:`~adnmesh.control.pi.SampledPI`) and sends ``P_Y`` to the DERs on ``cpfc/p_y``. When the
+set of available DERs changes, it switches at its next sample to the table entry of the new set
+without a bump and sends the entry's weights W with that ``P_Y``; it repeats W every ``weights_period_s`` so that a DER that missed them
+recovers. Every ``P_Y`` carries the number of the entry in use (``entry``, counted from 0 per run):
+a DER applies ``P_Y`` only with the weights of the same entry.
+
+The output is limited to the range where at least one available DER is not saturated (its
+setpoint ``P_Y w_d P_inst,d + P_sched,d`` inside ``[0, P_inst,d]``); the PI's anti-windup holds
+the integrator beyond it.
+
+**Which DERs are available**: those SI names, less those whose own latest acknowledgement (a
+heartbeat, which the CPFC receives too) says they are in their watchdog fallback — so the CPFC
+learns a fallback 0.1 s after it happened, before the availability monitor's SI follows.
+
+**Bumpless switching** keeps the DERs' total commanded power ``P_Y Σ w_d P_inst,d`` continuous
+over the DERs that carry the output: before the switch those of the old entry that are still
+available (a DER that left has already stopped following), after it those of the new entry.
+So ``P_Y' = P_Y · Σ_before / Σ_after`` (``scale`` in the switch record). When DERs only leave and
+the weights stay, the scale is 1 and ``P_Y`` itself is continuous (SPEC §5); when DERs return,
+the others hand them their share instead of all of them adding it at once; after a hold without
+any DER (nothing carried the output), the held output continues unscaled.
+
+**Undoing wind-up.** The CPFC keeps its PI state of the last seconds. When a DER's
+acknowledgement says it fell back at ``t``, or measurements stop, the samples computed from
+measurements that already showed the fault (after ``t + T_meas``; after the last measurement)
+are undone: the PI goes back to its state then, so that an outage leaves no trace in the
+integrator, whatever its length.
+
+Gains come from a :class:`GainSchedule`: the table entry of the subset, else an entry tuned on
+demand (:class:`adnmesh.tuning.ondemand.OnDemandTuner`, warm-started from the table's nearest
+plant, when that module exists), else the table's static
+controller with unit weights; if none exists the CPFC keeps its gains and says so in its stats.
+While an on-demand tuning runs, the CPFC uses the static controller and switches to the tuned
+entry (bumplessly, a second switch of the same set) at the first sample after it is ready.
+
+**Holding** (SPEC §5: no wind-up, no jump). The CPFC holds its output and its integrator —
+``P_Y`` stays as it was and carries ``hold`` — while
+
+- no measurement has arrived for ``measurement_timeout_s`` (``hold: measurement``); when
+  measurements return, the integrator is re-initialised so that the output continues from the
+  held value (:meth:`SampledPI.reenter <adnmesh.control.pi.SampledPI.reenter>`);
+- no DER is available (``hold: actuators``), e.g. every DER in its watchdog fallback after an
+  outage of the CPFC → DER link (the availability monitor counts a DER in fallback as
+  unavailable); the switch back to an available set is bumpless;
+- it has just been restarted (``hold: resuming``; it sends nothing then): it waits for SI and a
+  heartbeat of every available DER (their acknowledgement of the last P_Y they applied), at
+  most ``heartbeat_timeout_s``, and resumes from the latest acknowledged P_Y, so that the DERs
+  return to the setpoints they had before it was lost.
+
+Each start and end of a hold is an event on ``event/cpfc``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+
+from msgspec import UNSET
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from adnmesh.config import Config
+from adnmesh.control.base import Agent, Outgoing
+from adnmesh.control.operating_point import available_power_w, initial_p_ip_w
+from adnmesh.control.pi import SampledPI, SwitchRecord
+from adnmesh.wire.keys import Keys
+from adnmesh.wire.messages import Envelope, Switch
+from adnmesh.wire.units import ns
+from adnmesh.tuning.table import SchedulingTable, TableEntry
+
+__all__ = ["CPFC", "GainSchedule", "TUNING_DELAY_S", "SwitchEvent", "initial_p_ref_w", "output_limits"]
+
+
+def initial_p_ref_w(config: Config) -> float:
+    """``P_ref`` before the first step: the operating point with ``P_Y = 0``, W (P_IP with every
+    DER at its schedule: the power flow's with a grid model, else ``rest_of_grid_w`` plus the
+    schedules)."""
+    return initial_p_ip_w(config)
+
+
+def output_limits(config: Config, weights: dict[str, float],
+                  available: dict[str, float] | None = None) -> tuple[float, float]:
+    """``(y_min, y_max)``: beyond them every weighted DER is saturated (dimensionless).
+
+    A DER d saturates high at ``P_Y = (P_avail - P_sched) / (w_d P_inst)`` and low at
+    ``P_Y = -P_sched / (w_d P_inst)`` (``available``: DER id -> P_avail, W; default P_inst).
+    Without a weighted DER both limits are NaN.
+    """
+    highs, lows = [], []
+    for der in config.ders:
+        w = weights.get(der.id, 0.0)
+        if w > 0:
+            p_max = der.p_inst_w if available is None else available[der.id]
+            highs.append((p_max - der.p_sched_w) / (w * der.p_inst_w))
+            lows.append(-der.p_sched_w / (w * der.p_inst_w))
+    if not highs:
+        return math.nan, math.nan
+    return min(lows), max(highs)
+
+
+#: sim time an on-demand tuning is taken to last on the sim clock (see :class:`GainSchedule`), s
+TUNING_DELAY_S = 1.0
+
+
+class GainSchedule:
+    """Resolves a set of available DERs to its gains and weights.
+
+    A subset the table lacks is tuned on demand. Until its entry is ready the CPFC runs the
+    table's static controller (source ``static_tuning``) and switches (bumplessly) to the
+    tuned entry at the first PI sample after it is ready (:meth:`ready`):
+
+    - on the sim clock (``background`` False) the tuning is computed at once, so runs stay
+      deterministic, but its result is released only ``tuning_delay_s`` of sim time later: the
+      time it would take on a machine, as a fixed figure;
+    - in realtime runs (``background`` True) it runs in a background thread and is ready when
+      it is done.
+
+    Without a static controller the CPFC waits for the tuning (computed at once).
+
+    Parameters
+    ----------
+    config : Config
+    table : SchedulingTable or None
+        The gain-scheduling table (None: only on-demand tuning).
+    tune : callable, optional
+        ``tune(config, der_ids) -> TableEntry``; default: an
+        :class:`adnmesh.tuning.ondemand.OnDemandTuner` warm-started from ``table`` (the global
+        search of :func:`adnmesh.tuning.tune_subset` without a table), if importable.
+    on_demand : bool
+        Tune missing subsets at all (False: table, then static controller).
+    tuning_delay_s : float
+        Sim time an on-demand tuning takes on the sim clock, s (0: ready at the next sample).
+    background : bool
+        Tune in a background thread (realtime runs); ``tuning_delay_s`` is then not used.
+    """
+
+    def __init__(self, config: Config, table: SchedulingTable | None,
+                 tune: Callable[[Config, list[str]], TableEntry] | None = None,
+                 on_demand: bool = True, tuning_delay_s: float = TUNING_DELAY_S,
+                 background: bool = False) -> None:
+        self.config = config
+        self.table = table
+        self._tune = tune
+        self.on_demand = on_demand
+        self.tuning_delay_ns = ns(tuning_delay_s)
+        self.background = background
+        self._tuned: dict[frozenset, TableEntry] = {}
+        self._jobs: dict[frozenset, tuple] = {}     # set -> (ready at ns, entry) or (future,)
+        self._pool = None
+        self.sources: dict[str, int] = {}
+
+    def lookup(self, available: frozenset[str], t_ns: int | None = None
+               ) -> tuple[TableEntry | None, str]:
+        """Return ``(entry, source)``; source is ``table``, ``tuned``, ``static``,
+        ``static_tuning`` (an on-demand tuning started at ``t_ns`` is not ready yet) or
+        ``none``. Without ``t_ns`` a missing subset is tuned at once."""
+        if self.table is not None:
+            entry = self.table.lookup(available)
+            if entry is not None and entry.feasible:
+                return self._count(entry, "table")
+        if available in self._tuned:
+            return self._count(self._tuned[available], "tuned")
+        tune = None
+        if self.on_demand:
+            if self._tune is None:
+                self._tune = _tuner(self.config, self.table)
+            tune = self._tune
+        static = self._static(available)
+        if tune is not None and available:
+            ids = [d for d in self.config.der_ids() if d in available]
+            if t_ns is None or static is None:
+                self._tuned[available] = tune(self.config, ids)
+                return self._count(self._tuned[available], "tuned")
+            if available not in self._jobs:
+                self._jobs[available] = self._start(tune, ids, t_ns)
+            return self._count(static, "static_tuning")
+        if static is not None:
+            return self._count(static, "static")
+        return self._count(None, "none")
+
+    def ready(self, available: frozenset[str], t_ns: int) -> bool:
+        """Whether the on-demand tuning of ``available`` is done by ``t_ns`` (its entry is then
+        what :meth:`lookup` returns)."""
+        job = self._jobs.get(available)
+        if job is None:
+            return available in self._tuned
+        if len(job) == 1:
+            if not job[0].done():
+                return False
+            entry = job[0].result()
+        elif t_ns < job[0]:
+            return False
+        else:
+            entry = job[1]
+        self._tuned[available] = entry
+        del self._jobs[available]
+        return True
+
+    def _start(self, tune, ids: list[str], t_ns: int) -> tuple:
+        if self.background:
+            if self._pool is None:
+                from concurrent.futures import ThreadPoolExecutor
+                self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="tuning")
+            return (self._pool.submit(tune, self.config, ids),)
+        return (t_ns + self.tuning_delay_ns, tune(self.config, ids))
+
+    def _static(self, available: frozenset[str]) -> TableEntry | None:
+        if self.table is None or self.table.static is None or not available:
+            return None
+        static = self.table.static
+        ids = tuple(d for d in self.config.der_ids() if d in available)
+        return TableEntry(ids, static.kp, static.ki, dict.fromkeys(ids, 1.0))
+
+    def _count(self, entry, source):
+        self.sources[source] = self.sources.get(source, 0) + 1
+        return entry, source
+
+
+def _tuner(config: Config, table: SchedulingTable | None):
+    """The on-demand tuner, warm-started from ``table``'s nearest plant (cached), or None."""
+    try:
+        from adnmesh.tuning.ondemand import OnDemandTuner
+    except ImportError:
+        return None
+    return OnDemandTuner(config, table)
+
+
+@dataclass(frozen=True)
+class SwitchEvent:
+    """A gain switch: when, to which set, how, and the output before and after (equal)."""
+
+    t_ns: int
+    available: tuple[str, ...]
+    source: str
+    record: SwitchRecord
+
+
+class CPFC(Agent):
+    """The CPFC state machine (agent id ``cpfc``; see the module docstring).
+
+    Parameters
+    ----------
+    config : Config
+    schedule : GainSchedule
+        Must resolve the set of all DERs (available at t = 0).
+    """
+
+    agent_id = "cpfc"
+
+    def __init__(self, config: Config, schedule: GainSchedule) -> None:
+        self.config = config
+        self.keys = Keys(config.grid)
+        rt = config.runtime
+        self.schedule = schedule
+        self._ids = config.der_ids()
+        self._p_inst = {d.id: d.p_inst_w for d in config.ders}
+        self._available = available_power_w(config)
+        self.period_ns = ns(rt.pi_period_s)
+        self.weights_period_ns = ns(rt.weights_period_s)
+        self.p_ref_w = initial_p_ref_w(config)
+        self.p_meas_w = self.p_ref_w          # the run starts in the operating point
+        self.meas_timeout_ns = ns(rt.measurement_timeout_s)
+        self.ack_timeout_ns = ns(rt.heartbeat_timeout_s)
+        self.last_meas_ns = 0
+        self.actuators_held = 0                  # +1 / -1: every following DER held back
+        self.hold: str | None = None          # measurement, actuators, resuming
+        self._resume_ns: int | None = None
+        self._si_seen = False
+        self.acks: dict[str, tuple[int, str, float]] = {}   # DER -> (t, mode, p_y applied)
+        self.si_available = frozenset(self._ids)            # as SI last said
+        self._t_meas_ns = ns(config.t_meas_s)
+        self._history: deque = deque(maxlen=max(2, int(5 * ns(1.0) // self.period_ns)))
+        self._rollback_to: int | None = None    # undo the samples after this time
+        self._steps = [(ns(s.t_s), s.delta_w) for s in config.scenario.p_ref_steps]
+        self._next_step = 0
+        self.available = frozenset(self._ids)
+        self._pending: frozenset[str] | None = None
+        self._awaiting: frozenset[str] | None = None     # set whose tuning is running
+        entry, source = schedule.lookup(self.available)
+        if entry is None:
+            raise ValueError("no gains for the set of all DERs (table and tuning unavailable)")
+        self.entry = entry
+        self.entry_index = 0
+        self.weights = self._weights(entry, self.available)
+        self.pi = SampledPI(entry.kp, entry.ki, rt.pi_period_s)
+        self.pi.set_limits(*self._limits())
+        self.next_sample_ns = 0
+        self._next_weights_ns = 0
+        self._p_ref_sent: float | None = None
+        self._event_key = self.keys.event(self.agent_id)
+        self.switches: list[SwitchEvent] = []
+        self.counts: dict[str, int] = {"samples": 0, "no_gains": 0, "rejected_si": 0,
+                                       "held_samples": 0, "rollbacks": 0}
+
+    # -- agent interface -----------------------------------------------------------------------
+
+    def next_timer_ns(self) -> int:
+        return self.next_sample_ns
+
+    def stats(self) -> dict[str, float]:
+        return {**{k: float(v) for k, v in self.counts.items()},
+                **{f"gains_{k}": float(v) for k, v in self.schedule.sources.items()}}
+
+    def on_clock(self, mode: str) -> None:
+        """In realtime runs a subset the table lacks is tuned in a background thread (the
+        static controller meanwhile); on the sim clock its tuning takes ``tuning_delay_s``."""
+        self.schedule.background = mode == "realtime"
+
+    def resume(self, t_ns: int) -> None:
+        """A restarted CPFC at ``t_ns``: hold until the DERs' acknowledgements are in."""
+        self.next_sample_ns = self._next_weights_ns = -(-t_ns // self.period_ns) * self.period_ns
+        self.last_meas_ns = self._resume_ns = t_ns
+        self.hold = "resuming"
+
+    def on_message(self, t_ns: int, message: Envelope) -> list[Outgoing]:
+        if message.type == "p_ip":
+            self.p_meas_w = message.p_ip_w
+            self.last_meas_ns = t_ns
+            self.actuators_held = 0 if message.held is UNSET else \
+                (1 if message.held == "up" else -1)
+        elif message.type == "heartbeat":
+            self._ack(t_ns, message)
+        elif message.type == "si":
+            si = message.si
+            if not set(si) <= set(self._ids):
+                self.counts["rejected_si"] += 1
+                return []
+            self._si_seen = True
+            self.si_available = frozenset(d for d in self._ids if si.get(d, False))
+            self._update_available()
+        return []
+
+    def _ack(self, t_ns: int, message) -> None:
+        """A DER's acknowledgement; a new fallback undoes the samples it disturbed."""
+        der = message.src[4:]
+        before = self.acks.get(der)
+        self.acks[der] = (t_ns, message.mode, message.p_y)
+        fell_back = message.mode == "watchdog" and (before is None or before[1] != "watchdog")
+        if fell_back and der in self.weights and self.hold is None:
+            self._undo_after(message.t_send_ns + self._t_meas_ns)
+        self._update_available()
+
+    def _update_available(self) -> None:
+        """The available set: SI less the DERs whose own acknowledgement says fallback."""
+        available = frozenset(d for d in self.si_available
+                              if self.acks.get(d, (0, "control"))[1] != "watchdog")
+        self._pending = None if available == self.available else available
+
+    def _undo_after(self, t_ns: int) -> None:
+        """Ask the next sample to take the PI back to its state at ``t_ns`` (see above)."""
+        if self._rollback_to is None or t_ns < self._rollback_to:
+            self._rollback_to = t_ns
+
+    def on_timer(self, t_ns: int) -> list[Outgoing]:
+        out = self._reference()
+        self.next_sample_ns += self.period_ns
+        if self.hold == "resuming" and not self._try_resume(t_ns, out):
+            return out
+        error_w = self.p_ref_w - self.p_meas_w
+        self._watch_measurement(t_ns, error_w, out)
+        rolled_back = self._rollback_to is not None and self._roll_back()
+        if self.hold is None and not rolled_back:
+            p_y = self.pi.update(error_w, freeze=self.actuators_held * error_w > 0)
+        else:
+            p_y = self.pi.output
+            self.counts["held_samples"] += 1
+        body = {"p_y": p_y, "p_ref_w": self.p_ref_w, "kp": self.pi.kp, "ki": self.pi.ki}
+        if (self._pending is None and self._awaiting is not None
+                and self.schedule.ready(self._awaiting, t_ns)):
+            self._pending, self._awaiting = self._awaiting, None    # the tuned gains are in
+        if self._pending is not None:
+            self._apply_switch(t_ns, body, out)
+        body["entry"] = self.entry_index
+        if t_ns >= self._next_weights_ns:
+            body["w"] = dict(self.weights)
+            self._next_weights_ns = t_ns + self.weights_period_ns
+        if self.hold is not None:
+            body["hold"] = self.hold
+        out.append(Outgoing(self.keys.p_y, body))
+        self.counts["samples"] += 1
+        self._history.append((t_ns, self.pi.snapshot()))
+        return out
+
+    def _roll_back(self) -> bool:
+        """Take the PI back to its state after the last sample at or before the rollback
+        time (the samples after it were computed from disturbed measurements)."""
+        t_back, self._rollback_to = self._rollback_to, None
+        while self._history and self._history[-1][0] > t_back:
+            self._history.pop()
+        if not self._history:
+            return False
+        self.pi.restore(self._history[-1][1])
+        self.counts["rollbacks"] += 1
+        return True
+
+    # -- the steps of a sample -----------------------------------------------------------------
+
+    def _reference(self) -> list[Outgoing]:
+        """Apply the P_ref steps due; the p_ref message when it changed."""
+        t_ns = self.next_sample_ns
+        while self._next_step < len(self._steps) and self._steps[self._next_step][0] <= t_ns:
+            self.p_ref_w += self._steps[self._next_step][1]
+            self._next_step += 1
+        if self.p_ref_w == self._p_ref_sent:
+            return []
+        self._p_ref_sent = self.p_ref_w
+        return [Outgoing(self.keys.p_ref, {"p_ref_w": self.p_ref_w})]
+
+    def _watch_measurement(self, t_ns: int, error_w: float, out: list) -> None:
+        """Hold while measurements are missing; re-enter without a jump when they return."""
+        stale = t_ns - self.last_meas_ns > self.meas_timeout_ns
+        if stale and self.hold is None:
+            self.hold = "measurement"
+            self._undo_after(self.last_meas_ns)
+            out.append(self._event("WARNING", "hold", "no measurement for "
+                                   f"{self.meas_timeout_ns / 1e9:g} s: output and integrator "
+                                   "held"))
+        elif not stale and self.hold == "measurement":
+            self.hold = None if self.weights else "actuators"
+            self.pi.reenter(error_w)
+            out.append(self._event("INFO", "resume", "measurements back: control resumed "
+                                   f"from P_Y {self.pi.output:.6g} without a jump"))
+
+    def _apply_switch(self, t_ns: int, body: dict, out: list) -> None:
+        record = self._switch(t_ns, self._pending)
+        self._pending = None
+        if not self.weights and self.hold is None:
+            self.hold = "actuators"
+            out.append(self._event("WARNING", "hold", "no DER available: output and "
+                                   "integrator held"))
+        if record is None:
+            return
+        if self.hold == "actuators":
+            self.hold = None
+            out.append(self._event("INFO", "resume", "DERs available again: control resumed"))
+        body.update(p_y=record.p_y_after, kp=self.pi.kp, ki=self.pi.ki,
+                    switch=Switch(record.p_y_before, record.p_y_limited, record.kp_before,
+                                  record.ki_before, record.scale))
+        self._next_weights_ns = t_ns
+
+    def _try_resume(self, t_ns: int, out: list) -> bool:
+        """A restarted CPFC: resume once SI and every available DER's acknowledgement are in
+        (or the heartbeat timeout passed); the output continues from the acknowledged P_Y."""
+        since = self._resume_ns
+        available = self._pending if self._pending is not None else self.available
+        fresh = {d: a for d, a in self.acks.items() if a[0] >= since}
+        waiting = not self._si_seen or not set(available) <= set(fresh)
+        if waiting and t_ns - since < self.ack_timeout_ns:
+            return False
+        acked = max(fresh.values())[2] if fresh else 0.0     # the most recent acknowledgement
+        self._pending = None
+        self.available = frozenset()      # the switch below sets gains, weights and limits
+        self.pi.output = acked
+        record = self._switch(t_ns, available)
+        self.hold = None if record is not None else "actuators"
+        self.pi.reenter(self.p_ref_w - self.p_meas_w)
+        self._next_weights_ns = t_ns
+        out.append(self._event("INFO", "resume", f"restarted: resumed from the P_Y {acked:.6g} "
+                               f"the DERs acknowledged ({len(fresh)} heartbeat(s))"))
+        return True
+
+    def _event(self, level: str, kind: str, text: str) -> Outgoing:
+        return Outgoing(self._event_key, {"level": level, "kind": kind, "text": text,
+                                          "subject": self.agent_id})
+
+    # -- internals -----------------------------------------------------------------------------
+
+    def _switch(self, t_ns: int, available: frozenset[str]) -> SwitchRecord | None:
+        self.available = available
+        entry, source = self.schedule.lookup(available, t_ns) if available else (None, "none")
+        self._awaiting = available if source == "static_tuning" else None
+        if entry is None:
+            # no actuators or no gains: keep the gains, hold the output where it is
+            self.counts["no_gains"] += 1
+            self.weights = self._weights(self.entry, available)
+            if not self.weights:
+                self.pi.set_limits(self.pi.output, self.pi.output)
+            return None
+        carried = self._commanded_gain(self.weights, available)
+        self.entry = entry
+        self.entry_index += 1
+        self.weights = self._weights(entry, available)
+        self.pi.set_limits(*self._limits())
+        after = self._commanded_gain(self.weights, available)
+        scale = carried / after if carried > 0 and after > 0 else 1.0
+        record = self.pi.switch(entry.kp, entry.ki, scale)
+        self.switches.append(SwitchEvent(t_ns, tuple(d for d in self._ids if d in available),
+                                         source, record))
+        return record
+
+    def _commanded_gain(self, weights: dict[str, float], available: frozenset[str]) -> float:
+        """``Σ w_d P_inst,d`` over the weighted DERs in ``available``, W per unit P_Y."""
+        return sum(w * self._p_inst[d] for d, w in weights.items() if w > 0 and d in available)
+
+    def _weights(self, entry: TableEntry, available: frozenset[str]) -> dict[str, float]:
+        return {d: float(entry.w.get(d, 1.0)) for d in self._ids
+                if d in available and d in entry.ders}
+
+    def _limits(self) -> tuple[float, float]:
+        low, high = output_limits(self.config, self.weights, self._available)
+        if math.isnan(low):  # no weighted DER: hold the output
+            return self.pi.output, self.pi.output
+        return low, high

@@ -1,0 +1,356 @@
+"""The end-of-run summary, computed by pure functions from the recorded time series.
+
+For every step of ``P_ref`` (the CPFC's ``scenario/p_ref`` records) the response of ``P_IP``
+(the measurement's samples, at their sampling instants) until the next event (step, gain switch,
+a DER's availability change, an injected fault) or the end: rise time (10-90 %), settling time
+in ``band_pct`` % and in 2 % of the step, overshoot, peak, and the steady error ``P_ref - P_IP``
+at the window's last sample, W. The figures and the windows are those of
+:func:`adnmesh.loopmodel.step_figures.reference_step_figures`, the rule ``adnmesh inspect`` applies to the
+recording too (:mod:`adnmesh.results.figures`), so both print the same figures.
+
+The events that end a window (:class:`RunSeries`): a ``p_y`` message with a ``switch`` record,
+a DER heartbeat whose ``available`` flag differs from the DER's previous one (every DER
+counts as available before its first heartbeat), an SI message whose set of available DERs
+differs from the previous SI's (the first SI is the initial state), every ``fault`` message.
+
+For every gain switch (``cpfc/p_y`` messages with a ``switch`` record): the largest
+``|P_IP - P_ref|`` in the ``window_s`` (10 s) after it, the factor the switch scaled ``P_Y``
+by (so that the DERs' commanded power stayed continuous; 1 when no DER returned) and the jump of
+``P_Y`` (output with the new gains minus the scaled old output; 0 when the switch is bumpless).
+A scaled output outside the new DERs' range (where every one of them is saturated) is limited
+to that range first; the jump is counted from the limited value and the limiting reported
+apart (``p_y_limited_by``).
+
+For every injected fault (``fault`` messages) its detection, deviation and recovery
+(:func:`adnmesh.results.fault_figures.fault_figures`, from the run's ``event`` messages); with a grid
+model the extremes of the grid over the run and the report periods with samples outside the
+band (``grid_state`` messages); of a realtime run its timing: delivery errors per link,
+overruns, alarms the machine's lateness caused (:mod:`adnmesh.results.realtime_report`). Plus
+wall time, simulated time and their ratio, the speed factor.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from adnmesh.results.fault_figures import FaultFigures, fault_figures
+from adnmesh.results.realtime_report import ALARM_TIMEOUTS, RealtimeFigures, realtime_lines
+from adnmesh.loopmodel.step_figures import ReferenceStep, reference_step_figures
+
+__all__ = [
+    "MESSAGE_TYPES",
+    "GridFigures",
+    "RunSeries",
+    "RunSummary",
+    "SwitchFigures",
+    "summarize",
+]
+
+MESSAGE_TYPES = frozenset({"p_ip", "p_ref", "p_y", "heartbeat", "si", "fault", "event",
+                           "grid_state"})
+"""The message types :meth:`RunSeries.add` takes (of ``p_y`` only those with a ``switch``)."""
+
+_ALARM_KINDS = frozenset({"overrun", *ALARM_TIMEOUTS})
+
+
+@dataclass
+class RunSeries:
+    """The time series a summary needs (times in ns of sim time).
+
+    Attributes
+    ----------
+    p_ip_t_ns, p_ip_w : list
+        Sampling instants and values of ``P_IP``.
+    p_ref_t_ns, p_ref_w : list
+        Instants at which ``P_ref`` took a new value, and the value (the first is the initial one).
+    switches : list of dict
+        One per gain switch: ``t_ns``, ``p_y_before``, ``p_y_limited`` (limited to the new
+        output range), ``p_y_after``, ``available`` (DER ids).
+    disturbances_ns : list of int
+        Instants of other events that disturb ``P_IP`` (a DER's availability flag or SI
+        changes, an injected fault starts or ends); a step's window ends at the next one.
+    faults : dict
+        Fault number -> the body of its ``fault`` message (sent again to a restarted agent:
+        kept once).
+    events : list of (float, str, str)
+        ``(t_s, sender, kind)`` of every event.
+    alarms : list of (float, str, str, str, str)
+        ``(t_s, sender, kind, subject, text)`` of the overrun and alarm events
+        (:mod:`adnmesh.results.realtime_report`).
+    grid : list of dict
+        The ``grid_state`` bodies, in time order.
+    """
+
+    p_ip_t_ns: list = field(default_factory=list)
+    p_ip_w: list = field(default_factory=list)
+    p_ref_t_ns: list = field(default_factory=list)
+    p_ref_w: list = field(default_factory=list)
+    switches: list = field(default_factory=list)
+    disturbances_ns: list = field(default_factory=list)
+    faults: dict = field(default_factory=dict)
+    events: list = field(default_factory=list)
+    alarms: list = field(default_factory=list)
+    grid: list = field(default_factory=list)
+    _flags: dict = field(default_factory=dict, repr=False)
+    _si: frozenset | None = field(default=None, repr=False)
+
+    def add(self, message_type: str, body: dict) -> None:
+        """Take one decoded message (envelope and body) if the summary needs it."""
+        if message_type == "p_ip":
+            self.p_ip_t_ns.append(body["t_send_ns"])
+            self.p_ip_w.append(body["p_ip_w"])
+        elif message_type == "p_ref":
+            self.p_ref_t_ns.append(body["t_send_ns"])
+            self.p_ref_w.append(body["p_ref_w"])
+        elif message_type == "p_y" and "switch" in body:
+            switch = body["switch"]
+            self.switches.append({"t_ns": body["t_send_ns"],
+                                  "p_y_before": switch["p_y_before"],
+                                  "p_y_limited": switch.get("p_y_limited", switch["p_y_before"]),
+                                  "p_y_after": body["p_y"],
+                                  "scale": switch.get("scale", 1.0),
+                                  "available": sorted(body.get("w", {}))})
+        elif message_type == "heartbeat":
+            if self._flags.get(body["src"], True) != body["available"]:
+                self.disturbances_ns.append(body["t_send_ns"])
+            self._flags[body["src"]] = body["available"]
+        elif message_type == "si":
+            available = frozenset(d for d, flag in body["si"].items() if flag)
+            if self._si is not None and self._si != available:
+                self.disturbances_ns.append(body["t_send_ns"])
+            self._si = available
+        elif message_type == "fault" and body["fault_id"] not in self.faults:
+            self.faults[body["fault_id"]] = body
+            self.disturbances_ns += [t for t in (body["start_ns"], body["end_ns"])
+                                     if t is not None]
+        elif message_type == "event":
+            self.events.append((body["t_send_ns"] * 1e-9, body["src"], body["kind"]))
+            if body["kind"] in _ALARM_KINDS:
+                self.alarms.append((body["t_send_ns"] * 1e-9, body["src"], body["kind"],
+                                    body.get("subject") or body["src"], body["text"]))
+        elif message_type == "grid_state":
+            self.grid.append(body)
+
+
+@dataclass(frozen=True)
+class SwitchFigures:
+    """Effect of one gain switch on ``P_IP`` and ``P_Y``."""
+
+    t_s: float
+    available: tuple[str, ...]
+    max_deviation_w: float | None
+    p_y_jump: float
+    p_y_limited_by: float = 0.0
+    scale: float = 1.0
+
+
+@dataclass(frozen=True)
+class GridFigures:
+    """The grid over a run: its extremes and the report periods outside the band."""
+
+    v_min_pu: float
+    v_max_pu: float
+    line_loading_max_pct: float
+    trafo_loading_max_pct: float
+    samples: int
+    outside_band: int
+    not_converged: int
+    periods_outside_s: tuple[float, ...]
+
+
+@dataclass(frozen=True)
+class RunSummary:
+    """Everything ``adnmesh up`` prints at the end (and writes with ``--summary-json``)."""
+
+    steps: tuple[ReferenceStep, ...]
+    switches: tuple[SwitchFigures, ...]
+    band_pct: float
+    sim_time_s: float
+    wall_time_s: float | None
+    speed_factor: float | None
+    extra: dict = field(default_factory=dict)
+    faults: tuple[FaultFigures, ...] = ()
+    grid: GridFigures | None = None
+    realtime: RealtimeFigures | None = None
+
+    def to_json(self) -> dict:
+        """Plain data for ``json.dump`` (NaN and infinities become null)."""
+        data = asdict(self)
+        if self.realtime is not None:
+            data["realtime"]["real_time"] = self.realtime.real_time
+        return _finite(data)
+
+
+def _finite(value):
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite(v) for v in value]
+    return value
+
+
+def _p_ref_at(series: RunSeries, t_ns: np.ndarray) -> np.ndarray:
+    ref_t = np.asarray(series.p_ref_t_ns, dtype=np.int64)
+    ref_v = np.asarray(series.p_ref_w, dtype=float)
+    if ref_v.size == 0:
+        return np.full(np.shape(t_ns), np.nan)
+    idx = np.searchsorted(ref_t, t_ns, side="right") - 1
+    return np.where(idx >= 0, ref_v[np.maximum(idx, 0)], np.nan)
+
+
+def summarize(series: RunSeries, *, end_ns: int, band_pct: float = 5.0,
+              wall_time_s: float | None = None, window_s: float = 10.0,
+              extra: dict | None = None,
+              realtime: RealtimeFigures | None = None) -> RunSummary:
+    """Compute the summary of a run from its series (see the module docstring).
+
+    Parameters
+    ----------
+    series : RunSeries
+    end_ns : int
+        End of the run, ns (closes the last step's window).
+    band_pct : float
+        Settling band, % of the step.
+    wall_time_s : float, optional
+        Wall time the run took, s (for the speed factor).
+    window_s : float
+        Window after a gain switch, s.
+    extra : dict, optional
+        Further figures to carry along (message counts, clock grants, ...).
+    realtime : RealtimeFigures, optional
+        The timing of a realtime run.
+    """
+    steps = reference_step_figures(
+        series.p_ip_t_ns, series.p_ip_w, series.p_ref_t_ns, series.p_ref_w,
+        [*(s["t_ns"] for s in series.switches), *series.disturbances_ns], end_ns,
+        band_pct=band_pct)
+    t_ip = np.asarray(series.p_ip_t_ns, dtype=np.int64)
+    p_ip = np.asarray(series.p_ip_w, dtype=float)
+    switches = []
+    for s in series.switches:
+        inside = (t_ip >= s["t_ns"]) & (t_ip <= s["t_ns"] + int(window_s * 1e9))
+        deviation = np.abs(p_ip[inside] - _p_ref_at(series, t_ip[inside]))
+        limited, scale = s["p_y_limited"], s.get("scale", 1.0)
+        switches.append(SwitchFigures(s["t_ns"] * 1e-9, tuple(s["available"]),
+                                      float(np.nanmax(deviation)) if deviation.size else None,
+                                      float(s["p_y_after"] - limited),
+                                      float(limited - s["p_y_before"] * scale), float(scale)))
+    sim_s = end_ns * 1e-9
+    speed = sim_s / wall_time_s if wall_time_s else None
+    return RunSummary(steps, tuple(switches), band_pct, sim_s, wall_time_s, speed,
+                      dict(extra or {}), _faults(series, sim_s, band_pct), _grid(series),
+                      realtime)
+
+
+def _faults(series: RunSeries, end_s: float, band_pct: float) -> tuple[FaultFigures, ...]:
+    """Per-fault figures; recovery band: ``band_pct`` % of the largest P_ref step (1 MW
+    without steps); a step of P_ref ends a fault's after window (what follows is the step's)."""
+    steps = np.abs(np.diff(np.asarray(series.p_ref_w, dtype=float)))
+    band_w = band_pct / 100 * (float(steps.max()) if steps.size and steps.max() > 0 else 1e6)
+    scenario = [t * 1e-9 for t in series.p_ref_t_ns[1:]]     # the steps end an after window
+    return tuple(fault_figures(list(series.faults.values()), series.events,
+                               np.asarray(series.p_ip_t_ns) * 1e-9, series.p_ip_w,
+                               np.asarray(series.p_ref_t_ns) * 1e-9, series.p_ref_w,
+                               end_s=end_s, band_w=band_w, events_s=scenario))
+
+
+def _grid(series: RunSeries) -> GridFigures | None:
+    if not series.grid:
+        return None
+    g = series.grid
+    return GridFigures(min(x["v_min_pu"] for x in g), max(x["v_max_pu"] for x in g),
+                       max(x["line_loading_max_pct"] for x in g),
+                       max(x["trafo_loading_max_pct"] for x in g), sum(x["samples"] for x in g),
+                       sum(x["outside_band"] for x in g), sum(x["not_converged"] for x in g),
+                       tuple(x["t_send_ns"] * 1e-9 for x in g if x["outside_band"]))
+
+
+def format_summary(summary: RunSummary):
+    """Rich renderables (tables and lines) of a summary, for the console."""
+    from rich.table import Table
+
+    from adnmesh.results.figures import step_table
+
+    def num(value, fmt):
+        return "-" if value is None else format(value, fmt)
+
+    out = [step_table(summary.steps, summary.band_pct, "P_ref steps: P_IP")]
+    switches = Table(title="gain switches", title_justify="left")
+    for column in ("t [s]", "available DERs", "max |P_IP - P_ref| in 10 s [W]", "P_Y jump"):
+        switches.add_column(column, justify="right" if column != "available DERs" else "left",
+                            overflow="fold")
+    for s in summary.switches:
+        # every name, however many (a long list folds over lines; none is cut off)
+        names = ", ".join(s.available) + (f" ({len(s.available)})" if len(s.available) > 4
+                                          else "")
+        switches.add_row(f"{s.t_s:.2f}", names, num(s.max_deviation_w, ".4g"),
+                         f"{s.p_y_jump:.3g}")
+    if not summary.switches:
+        switches.add_row("", "no switches", "", "")
+    out.append(switches)
+    for s in summary.switches:
+        if s.scale != 1.0:
+            out.append(f"  at {s.t_s:.2f} s P_Y was scaled by {s.scale:.4g} so that the DERs' "
+                       "commanded power stayed continuous")
+        if s.p_y_limited_by:
+            out.append(f"  at {s.t_s:.2f} s P_Y lay outside the new DERs' output range (every "
+                       f"one saturated) and was limited by {s.p_y_limited_by:.3g} first")
+    if summary.faults:
+        out.append(fault_table(summary.faults))
+    if summary.grid is not None:
+        out.append(grid_line(summary.grid))
+    if summary.realtime is not None:
+        out += realtime_lines(summary.realtime)
+    line = f"run: {summary.sim_time_s:g} s simulated"
+    if summary.wall_time_s is not None:
+        line += f" in {summary.wall_time_s:.2f} s wall"
+    if summary.speed_factor is not None:
+        line += f", speed factor {summary.speed_factor:.1f}x real time"
+    out.append(line)
+    if summary.extra:
+        out.append(", ".join(f"{k} {_fmt(v)}" for k, v in summary.extra.items()))
+    return out
+
+
+def fault_table(faults):
+    """The per-fault table (``adnmesh up`` and ``adnmesh inspect``)."""
+    from rich.table import Table
+
+    def kw(value):
+        return "-" if value is None else f"{value / 1e3:.1f}"
+
+    table = Table(title="faults (|dP| = |P_IP - P_ref|, kW)", title_justify="left")
+    for column in ("#", "fault", "window [s]", "detected", "max |dP| during", "after",
+                   "recovery [s]"):
+        table.add_column(column, justify="left" if column in ("fault", "detected")
+                         else "right", overflow="fold")
+    for f in faults:
+        window = f"{f.start_s:g}-" + ("end" if f.end_s is None else f"{f.end_s:g}")
+        seen = "no" if f.detected_by is None else \
+            f"{f.detected_by} +{f.detection_delay_s:.2f} s"
+        table.add_row(str(f.fault_id), f"{f.kind} {f.target}", window, seen,
+                      kw(f.max_deviation_during_w), kw(f.max_deviation_after_w),
+                      "-" if f.recovery_time_s is None else f"{f.recovery_time_s:.2f}")
+    return table
+
+
+def grid_line(grid: GridFigures) -> str:
+    """One line on the grid's extremes and the samples outside the band."""
+    text = (f"grid: bus voltages {grid.v_min_pu:.4f} to {grid.v_max_pu:.4f} p.u., highest "
+            f"loading {grid.line_loading_max_pct:.1f} % (lines), {grid.trafo_loading_max_pct:.1f}"
+            f" % (transformers); {grid.outside_band} of {grid.samples} samples outside the band")
+    if grid.periods_outside_s:
+        shown = ", ".join(f"{t:g}" for t in grid.periods_outside_s[:5])
+        text += f" (periods ending at {shown} s{', ...' if len(grid.periods_outside_s) > 5 else ''})"
+    if grid.not_converged:
+        text += f"; {grid.not_converged} power flows did not converge (last value kept)"
+    return text
+
+
+def _fmt(value) -> str:
+    return f"{value:.4g}" if isinstance(value, float) else str(value)

@@ -1,1 +1,0 @@
-"""The agent programs of adnmesh (``python agents/<kind>.py`` or ``python -m agents.<kind>``)."""
