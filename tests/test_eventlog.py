@@ -10,7 +10,9 @@ import jsonschema
 import pytest
 
 from adnmesh.recording import Recorder, read_recording
-from adnmesh.results.eventlog import FOXGLOVE_LOG, FOXGLOVE_LOG_SCHEMA, LOG_LEVELS, log_record
+from adnmesh.recording.foxglove_log import (FOXGLOVE_LOG, FOXGLOVE_LOG_SCHEMA, LOG_LEVELS,
+                                            log_record)
+from adnmesh.results.eventlog import EventLog
 from adnmesh.results.series import extract, read_run
 from synthetic_runs import FAKE_SCHEMAS, fake_run
 
@@ -21,7 +23,7 @@ EVENTS = "adn/fake/log"
 def logged(tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("log") / "fake.mcap"
     with Recorder(path, metadata={"run_id": "log"}, schemas=FAKE_SCHEMAS,
-                  events_topic=EVENTS) as recorder:
+                  events_topic=EVENTS, events=EventLog().observe) as recorder:
         for m in fake_run():
             recorder.write(m.topic, m.schema_name, m.payload, log_time_ns=m.t_deliver_ns,
                            publish_time_ns=m.t_send_ns)
@@ -69,3 +71,23 @@ def test_log_record_splits_the_time_and_maps_the_level() -> None:
     body = json.loads(log_record(12_345_678_901, "WARN", "text", "name", "a/b"))
     assert body == {"timestamp": {"sec": 12, "nsec": 345_678_901}, "level": 3,
                     "message": "text", "name": "name", "file": "a/b", "line": 0}
+
+
+def test_the_recorder_takes_its_events_from_outside(tmp_path: Path) -> None:
+    """The recorder knows the foxglove.Log format; what an event is comes from its caller."""
+    seen = []
+
+    def events(topic: str, schema_name: str, payload: bytes, t_ns: int) -> list[bytes]:
+        seen.append((topic, schema_name, t_ns))
+        return [log_record(t_ns, "INFO", f"saw {topic}", "test")]
+
+    path = tmp_path / "own.mcap"
+    with Recorder(path, metadata={}, schemas=FAKE_SCHEMAS, events_topic=EVENTS,
+                  events=events) as recorder:
+        recorder.write("adn/fake/measurement/p_ip", "p_ip", b"{}", log_time_ns=7,
+                       publish_time_ns=5)
+    assert seen == [("adn/fake/measurement/p_ip", "p_ip", 5)]
+    (log,) = [m for m in read_recording(path).messages if m.topic == EVENTS]
+    assert log.payload()["message"] == "saw adn/fake/measurement/p_ip"
+    with pytest.raises(ValueError, match="give both or neither"):
+        Recorder(tmp_path / "half.mcap", metadata={}, schemas=FAKE_SCHEMAS, events_topic=EVENTS)

@@ -376,3 +376,16 @@ def test_missing_file_and_directory_raise_one_line_errors(tmp_path: Path) -> Non
         read_recording(tmp_path / "missing.mcap")
     with pytest.raises(RecordingError, match="is a directory"):
         read_recording(tmp_path)
+
+
+def test_the_file_format_imports_nothing_of_what_a_run_means() -> None:
+    """adnmesh.recording is the file format: it imports nothing from adnmesh.results (nor
+    anything above it), not even inside a function."""
+    import ast
+
+    above = ("adnmesh.results", "adnmesh.runtime", "adnmesh.commands")
+    for path in sorted((REPO_ROOT / "adnmesh" / "recording").glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = [node.module or ""] if isinstance(node, ast.ImportFrom) else \
+                [a.name for a in node.names] if isinstance(node, ast.Import) else []
+            assert not [n for n in names if n.startswith(above)], path.name

@@ -6,10 +6,10 @@
   truncated one into a complete file.
 - :func:`validate_recording` checks messages against their schemas; :func:`check_counts`
   compares what agents published with what was recorded.
-- :mod:`adnmesh.results.series` turns messages into named series and events (one table of
-  key patterns), used by :mod:`~adnmesh.results.rerun_export` (``adnmesh replay``),
-  :mod:`~adnmesh.results.time_plot` (``adnmesh plot``) and :mod:`~adnmesh.results.figures`
-  (``adnmesh inspect``).
+- :mod:`~adnmesh.recording.foxglove_log`: the ``foxglove.Log`` format of the events topic.
+
+This package is the file format only; what a run's messages mean (series, events, figures)
+is :mod:`adnmesh.results`, which reads recordings through it.
 """
 
 from adnmesh.recording.reader import (

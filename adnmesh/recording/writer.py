@@ -33,7 +33,7 @@ import struct
 import threading
 import time
 import zlib
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from concurrent.futures import Future, ThreadPoolExecutor
 from datetime import datetime, timezone
 from pathlib import Path
@@ -58,7 +58,7 @@ from mcap.records import (
 from mcap.writer import LIBRARY_IDENTIFIER, MCAP0_MAGIC
 
 from adnmesh import __version__
-from adnmesh.results.eventlog import FOXGLOVE_LOG, FOXGLOVE_LOG_SCHEMA, EventLog
+from adnmesh.recording.foxglove_log import FOXGLOVE_LOG, FOXGLOVE_LOG_SCHEMA
 
 __all__ = [
     "FORMAT_VERSION",
@@ -343,10 +343,16 @@ class Recorder:
     flush_interval_s : float
         Wall-clock seconds between flushes to disk (> 0). Bounds what a killed run loses.
     events_topic : str, optional
-        Also write the run's events (gain switches, availability changes, faults, the agents'
-        events such as watchdog fallbacks and overruns, rejected payloads) as ``foxglove.Log``
-        messages on this topic (:mod:`adnmesh.results.eventlog`), for Foxglove's log panel.
+        Also write the run's events as ``foxglove.Log`` messages on this topic
+        (:mod:`~adnmesh.recording.foxglove_log`), for Foxglove's log panel; with ``events``.
         They are not in :meth:`counts`.
+    events : callable, optional
+        ``(topic, schema_name, payload, t_ns) -> list of bytes``: the ``foxglove.Log`` records
+        (JSON, e.g. by :func:`~adnmesh.recording.foxglove_log.log_record`) of the events in one
+        message sent at ``t_ns``; called for every message written, in order, with the lock
+        held. The recorder knows the format, not what an event is: ``adnmesh up`` passes
+        :meth:`adnmesh.results.eventlog.EventLog.observe` (gain switches, availability
+        changes, faults, the agents' events, rejected payloads).
 
     Examples
     --------
@@ -364,9 +370,12 @@ class Recorder:
         schemas: Mapping[str, Mapping],
         flush_interval_s: float = 1.0,
         events_topic: str | None = None,
+        events: Callable[[str, str, bytes, int], list[bytes]] | None = None,
     ) -> None:
         if not flush_interval_s > 0:
             raise ValueError(f"flush_interval_s must be > 0, got {flush_interval_s!r}")
+        if (events_topic is None) != (events is None):
+            raise ValueError("events_topic and events go together: give both or neither")
         bad = {k: v for k, v in metadata.items() if not (isinstance(k, str) and isinstance(v, str))}
         if bad:
             raise TypeError(f"metadata keys and values must be str, got {bad!r}")
@@ -383,9 +392,8 @@ class Recorder:
                        .isoformat(timespec="microseconds"))
         run.setdefault("start_unix_ns", str(start))
         self._events_topic = events_topic
-        self._events = None
+        self._events = events
         if events_topic is not None:
-            self._events = EventLog()
             self._schemas[FOXGLOVE_LOG] = json.dumps(FOXGLOVE_LOG_SCHEMA,
                                                      sort_keys=True).encode()
             run["events_topic"] = events_topic
@@ -478,8 +486,8 @@ class Recorder:
         """Write the events in ``messages`` on the events topic (``foxglove.Log``; not in
         :meth:`counts`: no agent publishes them)."""
         logs = [(record, publish_time, publish_time) for payload, _, publish_time in messages
-                for record in self._events.observe(topic, schema_name, bytes(payload),
-                                                   int(publish_time))]
+                for record in self._events(topic, schema_name, bytes(payload),
+                                           int(publish_time))]
         if not logs:
             return
         channel = self._channels.get(self._events_topic)

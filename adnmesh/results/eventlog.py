@@ -1,12 +1,14 @@
 """The run's events as ``foxglove.Log`` messages, so Foxglove's log panel shows them.
 
-While it records, the recorder (:class:`~adnmesh.recording.Recorder` with ``events_topic``)
-passes each message to an :class:`EventLog`, which says what happened in the words of
+While it records, the recorder (:class:`~adnmesh.recording.Recorder`, to which ``adnmesh up``
+passes :meth:`EventLog.observe` as its ``events``) gives each message to an :class:`EventLog`,
+which says what happened in the words of
 :mod:`adnmesh.results.series` (the same rules ``replay`` and ``inspect`` use): gain switches,
 availability changes (SI, a DER's heartbeat flag), injected faults, the agents' own events
 (watchdog fallbacks, overruns, alarms), rejected payloads and the run's start. Each becomes a
 message in Foxglove's ``foxglove.Log`` schema, in its JSON form, on the events topic, at the
-event's send time (sim time in sim mode, as every message's time).
+event's send time (sim time in sim mode, as every message's time). The format is
+:mod:`adnmesh.recording.foxglove_log`'s; the rules of what is an event are here.
 
 Only the messages that can hold an event are decoded (a ``p_y`` message only if it carries a
 switch record); the 100 Hz state and measurement messages are not.
@@ -16,59 +18,19 @@ from __future__ import annotations
 
 import json
 
-__all__ = ["FOXGLOVE_LOG", "FOXGLOVE_LOG_SCHEMA", "LOG_LEVELS", "EventLog", "log_record"]
+from adnmesh.recording.foxglove_log import log_record
+from adnmesh.results import series
 
-FOXGLOVE_LOG = "foxglove.Log"
-"""The schema name Foxglove recognises for log messages (JSON encoding)."""
-
-LOG_LEVELS = {"UNKNOWN": 0, "DEBUG": 1, "INFO": 2, "WARN": 3, "WARNING": 3, "ERROR": 4,
-              "FATAL": 5}
-"""adnmesh's event levels -> the ``foxglove.Log`` level enum."""
-
-FOXGLOVE_LOG_SCHEMA = {
-    "$schema": "https://json-schema.org/draft/2020-12/schema",
-    "title": FOXGLOVE_LOG,
-    "description": "A log message",
-    "type": "object",
-    "properties": {
-        "timestamp": {
-            "type": "object", "title": "time",
-            "description": "Timestamp of log message",
-            "properties": {"sec": {"type": "integer", "minimum": 0},
-                           "nsec": {"type": "integer", "minimum": 0, "maximum": 999999999}},
-        },
-        "level": {"title": "foxglove.LogLevel", "description": "Log level",
-                  "oneOf": [{"title": name, "const": value} for name, value in
-                            (("UNKNOWN", 0), ("DEBUG", 1), ("INFO", 2), ("WARNING", 3),
-                             ("ERROR", 4), ("FATAL", 5))]},
-        "message": {"type": "string", "description": "Log message"},
-        "name": {"type": "string", "description": "Process or node name"},
-        "file": {"type": "string", "description": "Filename"},
-        "line": {"type": "integer", "minimum": 0, "maximum": 4294967295,
-                 "description": "Line number in the file"},
-    },
-}
-"""The JSON Schema of ``foxglove.Log`` (fields timestamp {sec, nsec}, level, message, name,
-file, line)."""
+__all__ = ["EventLog"]
 
 _REJECTED = "rejected"   # the recorder tap's type of rejected payloads
 _SKIPPED = {"der_mode"}  # 100 Hz states; a watchdog fallback is also an agent's event
-
-
-def log_record(t_ns: int, level: str, message: str, name: str, file: str = "") -> bytes:
-    """One ``foxglove.Log`` message as JSON: ``t_ns`` (ns) as {sec, nsec}, ``level`` one of
-    :data:`LOG_LEVELS`."""
-    return json.dumps({"timestamp": {"sec": t_ns // 1_000_000_000, "nsec": t_ns % 1_000_000_000},
-                       "level": LOG_LEVELS.get(level, 0), "message": message, "name": name,
-                       "file": file, "line": 0}, separators=(",", ":")).encode()
 
 
 class EventLog:
     """Finds events in recorded messages, one topic's previous message at a time."""
 
     def __init__(self) -> None:
-        from adnmesh.results import series
-
         self._series = series
         self._rules: dict[str, list] = {}
         self._previous: dict[str, dict] = {}

@@ -28,7 +28,7 @@ from pathlib import Path
 import msgspec
 import numpy as np
 
-from adnmesh.results.eventlog import FOXGLOVE_LOG
+from adnmesh.recording.foxglove_log import FOXGLOVE_LOG
 from adnmesh.recording.reader import ChannelInfo, Recording
 from adnmesh.recording.stream import MessageBatch, ScannedRecording, Sink, decode_fields, scan
 

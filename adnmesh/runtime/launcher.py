@@ -61,6 +61,7 @@ from adnmesh.runtime.realtime import tolerance_ns
 from adnmesh.runtime.roster import Roster
 from adnmesh.runtime.os_scheduling import PRIORITY_ENV, freeze_heap, raise_priority
 from adnmesh.runtime.sessions import SessionReport, SessionWatch
+from adnmesh.results.eventlog import EventLog
 from adnmesh.results.summary import RunSeries
 from adnmesh.runtime.tap import RecorderTap, recording_schemas
 from adnmesh.sim.clock import Coordinator
@@ -234,7 +235,8 @@ class _Launch:
         self.sessions = SessionWatch((*self.topology.agents, *self.peers))
         self.interrupted: list[int] = []
         self.recorder = Recorder(options.out, metadata=_metadata(options),
-                                 schemas=recording_schemas(), events_topic=f"{self.keys.root}/log")
+                                 schemas=recording_schemas(), events_topic=f"{self.keys.root}/log",
+                                 events=EventLog().observe)
         self.clock: SimClockDriver | None = None
         self.tap = RecorderTap(self.recorder, self.topology, self.result.series,
                                lambda: self.clock.now_ns() if self.clock else 0,
