@@ -45,7 +45,7 @@ DER_TYPES: tuple[str, ...] = get_args(DERType)
 PT1_RISE_TIME_FACTOR = math.log(9.0)
 """10 %→90 % rise time of a first-order lag in units of its time constant: ln(0.9/0.1) = 2.1972.
 
-SPEC §2 writes ``T_d = T_rise,d / 2.197``; 2.197 is this number rounded.
+The paper writes ``T_d = T_rise,d / 2.197``: this number rounded (docs/method.md#reference-model).
 """
 
 # --- value types: bounds a user would expect (sim time is int64 ns: 1e6 s is far inside) --------
@@ -173,7 +173,7 @@ class GridModel(Section):
     """SimBench study case of the loads, the other generators and the slack voltage (a row of
     the net's loadcases table: hL, n1, hW, hPV, lW, lPV); also the DERs' available power."""
     load_model: Literal["impedance", "power"] = "impedance"
-    """Loads as constant impedances (SPEC §6) or constant power."""
+    """Loads as constant impedances (docs/method.md#reference-case) or constant power."""
     report_period_s: _Period = 1.0
     """The grid's extremes (voltages, loadings, Q_IP) are sent this often, s."""
     limits: GridLimits = GridLimits()
@@ -181,7 +181,7 @@ class GridModel(Section):
 
 
 class Constraints(Section):
-    """Design constraints every lookup-table entry must satisfy (SPEC §2)."""
+    """Design constraints every table entry must satisfy (docs/method.md#design-constraints)."""
 
     disk_margin_min: Annotated[float, Field(gt=0, lt=2)] = 1.5
     """Lowest acceptable balanced disk margin alpha (dimensionless, 0 < alpha < 2)."""
@@ -369,7 +369,8 @@ class Runtime(Section):
     """The CPFC repeats the weights W with P_Y this often (besides on every switch), s."""
     der_models: Literal["reference", "detailed"] = "reference"
     """The DERs' dynamics in a run: the reference model (the PT1 tuning and analyses use) or the
-    detailed models of SPEC §6 (WT Type 4B-like, CHP, PV), limited to the available power."""
+    detailed models (WT Type 4B-like, CHP, PV; docs/method.md#detailed-der-models), limited to the
+    available power."""
     measurement_timeout_s: _Period = 0.25
     """The CPFC holds output and integrator after this long without a measurement, s (more than
     measurement_period_s + measurement_to_cpfc.jitter_s)."""

@@ -24,7 +24,7 @@ def configs_dir() -> Path:
 
 @pytest.fixture(scope="session")
 def simbench_config(configs_dir: Path) -> Config:
-    """The reference case of SPEC §6, loaded from ``configs/simbench.yaml``."""
+    """The reference case (docs/method.md#reference-case), loaded from ``configs/simbench.yaml``."""
     return load_config(configs_dir / "simbench.yaml")
 
 

@@ -23,8 +23,8 @@ from adnmesh.errors import ConfigError
 
 CONFIGS = sorted((Path(__file__).resolve().parent.parent / "configs").rglob("*.yaml"))
 
-# SPEC §6: id -> (type, P_inst [W], T_delay [s], T_rise [s])
-SPEC_TABLE = {
+# docs/method.md#reference-case: id -> (type, P_inst [W], T_delay [s], T_rise [s])
+REFERENCE_TABLE = {
     "SGen1": ("WT", 2.0e6, 0.01, 0.515),
     "SGen2": ("WT", 2.0e6, 0.01, 0.515),
     "SGen3": ("WT", 1.7e6, 0.01, 0.515),
@@ -43,9 +43,9 @@ SPEC_TABLE = {
 
 
 def test_simbench_config_has_the_eleven_ders_of_spec_section_6(simbench_config: Config) -> None:
-    assert simbench_config.der_ids() == tuple(SPEC_TABLE)
+    assert simbench_config.der_ids() == tuple(REFERENCE_TABLE)
     for der in simbench_config.ders:
-        assert (der.type, der.p_inst_w, der.t_delay_s, der.t_rise_s) == SPEC_TABLE[der.id]
+        assert (der.type, der.p_inst_w, der.t_delay_s, der.t_rise_s) == REFERENCE_TABLE[der.id]
         # study case lW: the WTs run at half their installed power, CHP and PV at 0 W
         assert der.p_sched_w == (0.5 * der.p_inst_w if der.type == "WT" else 0.0)
 

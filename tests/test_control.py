@@ -99,7 +99,8 @@ def test_pi_holds_its_integrator_while_saturated() -> None:
 
 @pytest.mark.parametrize("seed", range(20))
 def test_pi_switch_keeps_the_output_continuous(seed: int) -> None:
-    """SPEC §5: P_Y stays continuous across a switch, to floating-point precision."""
+    """P_Y stays continuous across a switch, to floating-point precision
+    (docs/method.md#bumpless-switching)."""
     rng = random.Random(seed)
     pi = SampledPI(kp=rng.uniform(1e-9, 1e-6), ki=rng.uniform(1e-9, 1e-6), period_s=0.01)
     for _ in range(rng.randint(1, 200)):

@@ -115,7 +115,7 @@ def test_wt_exact_against_fixed_step_with_halved_step():
 
 
 # ---------------------------------------------------------------------------------------------
-# defaults: rise time and reaction as the config says (SPEC §6 table)
+# defaults: rise time and reaction as the config says (docs/method.md#reference-case table)
 
 
 @pytest.mark.parametrize("der_type", ["WT", "CHP", "PV"])

@@ -1,7 +1,7 @@
 """The grid model: study case, fast solver against pandapower's runpp, disk cache.
 
 Fast tests use a small hand-made net (HV slack, transformer, MV feeders, an open loop-line
-switch, loads, shunt, generators); the slow ones the SimBench grid of SPEC §6.
+switch, loads, shunt, generators); the slow ones the SimBench grid of docs/method.md#reference-case.
 """
 
 from __future__ import annotations
@@ -371,7 +371,8 @@ def test_simbench_study_case_values(simbench_case_net):
     net = simbench_case_net
     factors = net.loadcases.loc["lW"]
     data = build_grid_data(copy.deepcopy(net), CODE, "lW", "power")
-    # installed power times the case's factor per type (SPEC §6 table, simbench's loadcases)
+    # installed power times the case's factor per type (docs/method.md#reference-case table,
+    # simbench's loadcases)
     by_type = {"WT": ("MV1.101 SGen 1", 2.0e6, "Wind_p"), "CHP": ("MV1.101 MV SGen 5", 0.31e6,
                "RES_p"), "PV": ("MV1.101 MV SGen 9", 0.195e6, "PV_p")}
     for name, p_inst, column in by_type.values():

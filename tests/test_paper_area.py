@@ -1,4 +1,5 @@
-"""The paper's area search (SPEC §3.3) finds the fastest feasible point of its rectangle
+"""The paper's area search (docs/method.md#convexity-indicator-and-area-search) finds the fastest
+feasible point of its rectangle
 without checking every point: the same point as checking them all."""
 from __future__ import annotations
 

@@ -1,7 +1,8 @@
 """The paper's demonstration on the reference case, run as the product runs it: ``adnmesh up
 configs/simbench.yaml`` with its SimBench power flow, the detailed DER models and 14 processes.
 
-It asserts what SPEC §6 expects of the scenario: every step of P_ref fully compensated, no
+It asserts what docs/method.md#demonstration-scenario expects of the scenario: every step of
+P_ref fully compensated, no
 sustained oscillation, seconds-scale settling while the wind turbines are available and much
 slower (CHP-dominated) after they drop out at 170 s, and no deviation of P_IP from P_ref caused
 by the gain switch beyond what the switch can cause (see the test).

@@ -163,7 +163,8 @@ def test_cli_bad_arguments(args, message, capsys):
 
 
 def _literal_path(problem, fractions, kp, ki, step):
-    """SPEC §3.2 move by move, one evaluation per move (the reference for path_search)."""
+    """The path search (docs/method.md#path-search) move by move, one evaluation per move (the
+    reference for path_search)."""
     from adnmesh.tuning.paper import ES_LIMIT
     best, es, seen, path = None, 0, False, []
     while es < ES_LIMIT and kp >= 1e-9 and len(path) < 5000:

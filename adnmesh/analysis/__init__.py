@@ -1,4 +1,4 @@
-"""Analyses of a scheduling table (SPEC §4), behind ``adnmesh analyze``.
+"""Analyses of a scheduling table (docs/method.md#analyses), behind ``adnmesh analyze``.
 
 - :mod:`~adnmesh.analysis.robustness`: figures of merit of every subset, adaptive vs static;
 - :mod:`~adnmesh.analysis.uncertainty`: stability and doubling limits of the time-constant

@@ -1,4 +1,5 @@
-"""Robustness and performance over all subsets, adaptive vs static (SPEC §4, issue 4 part 1).
+"""Robustness and performance over all subsets, adaptive vs static
+(docs/method.md#robustness-and-performance).
 
 Every subset of the table is evaluated as deployed: the adaptive controller with the subset's
 own ``(K_P, K_I)`` and weights ``W`` (DER d contributes ``w_d P_inst,d``), the static controller

@@ -1,6 +1,8 @@
-"""Solution space of one subset: feasibility and rise time over the (K_P, K_I) plane (SPEC §4).
+"""Solution space of one subset: feasibility and rise time over the (K_P, K_I) plane
+(docs/method.md#solution-space).
 
-The plane is that of the tuning problem (SPEC §3, steps 1-2): the subset's reference loop with
+The plane is that of the tuning problem (docs/method.md#the-papers-method, initial values and path
+search): the subset's reference loop with
 all weights 1. Every grid point is classified by the first constraint it fails — ``unstable``,
 ``disk margin`` (alpha below the minimum) or ``overshoot`` (at or above the maximum) — or as
 feasible; rise time and overshoot come from full step responses of every point that meets the

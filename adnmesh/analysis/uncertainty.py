@@ -1,7 +1,9 @@
-"""Model uncertainty: how far the actuator time constants may stray before loops fail (SPEC §4).
+"""Model uncertainty: how far the actuator time constants may stray before loops fail
+(docs/method.md#model-uncertainty).
 
 With the table fixed, every subset's loop (as deployed, weights applied) is analysed with DER
-time constants ``T_unc,d = b T_d`` for the three actuator models of SPEC §4 (``pt1``, ``pt2``,
+time constants ``T_unc,d = b T_d`` for the three actuator models of
+docs/method.md#model-uncertainty (``pt1``, ``pt2``,
 ``rhpz``; see :mod:`adnmesh.loopmodel.plant`). Starting from ``b = 1``, ``b`` is scanned down and up:
 
 - **stability limit**: ``b_min`` is the largest ``b < 1`` at which at least one subset's closed

@@ -44,7 +44,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     parser = subparsers.add_parser(
         "analyze",
         help="robustness, model-uncertainty and solution-space analyses of the table",
-        description="Analyse the scheduling table of CONFIG (SPEC §4): figures of merit of every "
+        description="Analyse the scheduling table of CONFIG (docs/method.md#analyses): figures of "
+        "merit of every "
         "subset, adaptive vs static (box plots, CSV); stability and doubling limits of the "
         "actuator time-constant factor b for the PT1, PT2 and RHPZ models (table, JSON, "
         "figure); optionally the (K_P, K_I) solution space of one subset. All outputs go to "

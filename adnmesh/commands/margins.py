@@ -20,7 +20,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     parser = subparsers.add_parser(
         "margins",
         help="stability, margins and step info of one loop",
-        description="Evaluate the reference loop (SPEC §2, exact delays) of a DER subset with PI "
+        description="Evaluate the reference loop (docs/method.md#reference-model, exact delays) of a "
+        "DER subset with PI "
         "gains KP (1/W) and KI (1/(W s)): certified stability, disk margin, classical margins "
         "at all crossovers, step info of P_ref -> P_DERs.",
     )

@@ -1,4 +1,5 @@
-"""The CPFC: gain-scheduled PI control of ``P_IP`` (SPEC §1, §5), as a bus-free state machine.
+"""The CPFC: gain-scheduled PI control of ``P_IP`` (docs/method.md#control-structure,
+docs/method.md#runtime-behaviour), as a bus-free state machine.
 
 Every ``pi_period_s`` the CPFC samples ``P_ref`` (from the scenario: the initial operating point
 plus the steps so far) and the last ``P_IP`` delivered by the measurement, updates its PI
@@ -20,7 +21,8 @@ learns a fallback 0.1 s after it happened, before the availability monitor's SI 
 over the DERs that carry the output: before the switch those of the old entry that are still
 available (a DER that left has already stopped following), after it those of the new entry.
 So ``P_Y' = P_Y · Σ_before / Σ_after`` (``scale`` in the switch record). When DERs only leave and
-the weights stay, the scale is 1 and ``P_Y`` itself is continuous (SPEC §5); when DERs return,
+the weights stay, the scale is 1 and ``P_Y`` itself is continuous
+(docs/method.md#bumpless-switching); when DERs return,
 the others hand them their share instead of all of them adding it at once; after a hold without
 any DER (nothing carried the output), the held output continues unscaled.
 
@@ -37,7 +39,8 @@ controller with unit weights; if none exists the CPFC keeps its gains and says s
 While an on-demand tuning runs, the CPFC uses the static controller and switches to the tuned
 entry (bumplessly, a second switch of the same set) at the first sample after it is ready.
 
-**Holding** (SPEC §5: no wind-up, no jump). The CPFC holds its output and its integrator —
+**Holding** (no wind-up, no jump; docs/method.md#watchdog-and-holds). The CPFC holds its output and
+its integrator —
 ``P_Y`` stays as it was and carries ``hold`` — while
 
 - no measurement has arrived for ``measurement_timeout_s`` (``hold: measurement``); when

@@ -1,4 +1,5 @@
-"""The local controller of one DER (SPEC §1 Eq. 1, §5), as a bus-free state machine.
+"""The local controller of one DER (docs/method.md#control-structure, Eq. 1), as a bus-free state
+machine.
 
 The controller turns the CPFC's ``P_Y`` into the DER's setpoint
 
@@ -24,8 +25,8 @@ infeed and setpoint on ``der/<id>/state`` (exact at that instant); every ``heart
 and at once when its availability or its mode changes, it sends a heartbeat with its
 availability flag, its mode and the last P_Y it applied with that command's entry: the
 availability monitor counts a DER in ``watchdog`` as unavailable, and a restarted CPFC resumes
-from the acknowledged P_Y (SPEC §5), so that the DERs return to their setpoints before the
-fault. A watchdog fallback is also an event (``event/der/<id>``).
+from the acknowledged P_Y (docs/method.md#watchdog-and-holds), so that the DERs return to their
+setpoints before the fault. A watchdog fallback is also an event (``event/der/<id>``).
 Injected ICT faults are the node's business (:mod:`adnmesh.sim.node`): the DER only notices that
 commands stop.
 """

@@ -1,8 +1,10 @@
 """The dynamics a DER runs with in a time-domain run, from the config.
 
-``runtime.der_models: reference`` gives every DER the reference model of SPEC §2 (a PT1 behind
-its dead time, the model tuning and the analyses use, :mod:`adnmesh.dermodels.pt1`);
-``detailed`` gives it its type's detailed model of SPEC §6 (:mod:`adnmesh.dermodels`: WT Type
+``runtime.der_models: reference`` gives every DER the reference model
+(docs/method.md#reference-model: a PT1 behind its dead time, the model tuning and the
+analyses use, :mod:`adnmesh.dermodels.pt1`);
+``detailed`` gives it its type's detailed model (docs/method.md#detailed-der-models,
+:mod:`adnmesh.dermodels`: WT Type
 4B-like, CHP, PV) with the defaults that reproduce the config's ``t_delay_s`` and ``t_rise_s``,
 the DER's own overrides (its ``model:`` mapping) and its available power as the upper limit.
 """

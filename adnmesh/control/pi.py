@@ -1,4 +1,5 @@
-"""The CPFC's sampled PI controller with bumpless gain switching and anti-windup (SPEC §5).
+"""The CPFC's sampled PI controller with bumpless gain switching and anti-windup
+(docs/method.md#runtime-behaviour).
 
 Parallel form, sampled every ``h`` seconds::
 

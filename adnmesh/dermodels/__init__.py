@@ -1,12 +1,13 @@
-"""Detailed DER models for time-domain runs (SPEC §6), pure: parameters / state / inputs.
+"""Detailed DER models for time-domain runs (docs/method.md#detailed-der-models), pure: parameters /
+state / inputs.
 
 - :mod:`~adnmesh.dermodels.wt`: wind turbine, IEC 61400-27-1 Type 4B-like (ramp-rate limited
   reference, rate-limited first-order lag; steps up slower than steps down);
 - :mod:`~adnmesh.dermodels.chp`: CHP plant, two lags in series with a rate limit (S-shaped,
   slow);
 - :mod:`~adnmesh.dermodels.pv`: PV plant, processing delay and a first-order lag with limits;
-- :mod:`~adnmesh.dermodels.pt1`: the reference model (SPEC §2), a first-order lag behind a
-  dead time, exact between setpoint changes.
+- :mod:`~adnmesh.dermodels.pt1`: the reference model (docs/method.md#reference-model), a first-order
+  lag behind a dead time, exact between setpoint changes.
 
 Every model has a frozen parameter dataclass (plain numbers: W, s, W/s), the shared
 :class:`~adnmesh.dermodels.state.DerState`, and the reference model's two functions

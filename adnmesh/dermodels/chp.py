@@ -1,4 +1,5 @@
-"""CHP plant: slow, second order with a rate limit, ~1 s reaction time (SPEC §6).
+"""CHP plant: slow, second order with a rate limit, ~1 s reaction time
+(docs/method.md#detailed-der-models).
 
     setpoint --(dead time t_delay_s)--> limit to [p_min_w, p_max_w]
              --> T1 dm/dt = u - m,  dm/dt in [-rate_down, rate_up]     (fuel / mechanical power m)

@@ -1,6 +1,7 @@
 """DER dynamics for time-domain runs, split into parameters, state and inputs.
 
-For now the one model is the reference model of SPEC §2, a first-order lag behind a dead time::
+For now the one model is the reference model (docs/method.md#reference-model), a first-order lag
+behind a dead time::
 
     P(s) / P_set(s) = exp(-T_delay s) / (1 + T s),      T = T_rise / ln 9
 
@@ -11,7 +12,8 @@ commands and samples: a setpoint given at ``t`` reaches the lag at ``t + T_delay
 and between two changes of the lag's input ``u`` the infeed follows
 ``P(t) = u + (P(t0) - u) exp(-(t - t0) / T)``.
 
-The detailed WT, CHP and PV models of SPEC §6 (:mod:`adnmesh.dermodels`) have the same three
+The detailed WT, CHP and PV models (docs/method.md#detailed-der-models, :mod:`adnmesh.dermodels`)
+have the same three
 parts (parameters, state, the setpoint as input) and the same two functions
 (:func:`set_point`, :func:`infeed_at`).
 """

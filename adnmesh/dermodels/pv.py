@@ -1,4 +1,5 @@
-"""PV plant: a processing delay, then a first-order lag with absolute and rate limits (SPEC §6).
+"""PV plant: a processing delay, then a first-order lag with absolute and rate limits
+(docs/method.md#detailed-der-models).
 
     setpoint --(dead time t_delay_s: inverter processing)--> limit to [p_min_w, p_max_w]
              --> T dP/dt = u - P,  -rate_down <= dP/dt <= rate_up  --> infeed P

@@ -1,4 +1,5 @@
-"""Wind turbine: IEC 61400-27-1 Type 4B-like active power control (SPEC §6).
+"""Wind turbine: IEC 61400-27-1 Type 4B-like active power control
+(docs/method.md#detailed-der-models).
 
     setpoint --(dead time t_delay_s)--> limit to [p_min_w, p_max_w]
              --> ramp-rate limiter: dr/dt in [-ramp_down, ramp_up]          (reference r)

@@ -102,7 +102,8 @@ def load_grid(code: str, case: str = "lW", load_model: str = "impedance",
     case : str
         Study case of the grid's own ``loadcases`` table (default ``"lW"``).
     load_model : str
-        ``"impedance"`` (constant impedance, SPEC §6) or ``"power"`` (constant power).
+        ``"impedance"`` (constant impedance, docs/method.md#reference-case) or ``"power"``
+        (constant power).
     cache_dir : path, optional
         Cache folder (default :func:`default_cache_dir`).
     """

@@ -8,7 +8,7 @@
   ``PV_p`` (containing "PV") or ``RES_p`` (every other type: biomass, hydro, the aggregated
   low-voltage ``lv_RES``); the external grid's voltage set to ``Slack_vm``.
 - :func:`loads_as_impedances`: every load becomes a shunt of the same power at 1 p.u. — a
-  constant impedance, ``S = S_0 |V|²`` (SPEC §6).
+  constant impedance, ``S = S_0 |V|²`` (docs/method.md#reference-case).
 
 Why shunts and not pandapower's ``const_z_p_percent`` / ``const_z_q_percent``: pandapower
 (3.5.6 here) applies a load's voltage dependence to the bus's net demand, static generators on
@@ -88,7 +88,8 @@ def loads_as_impedances(net) -> None:
 def grid_net(code: str, case: str = "lW", load_model: str = "impedance"):
     """The net of SimBench ``code`` at study ``case``, loads as ``load_model`` (a new net).
 
-    ``load_model``: ``"impedance"`` (constant impedance, as shunts; SPEC §6) or ``"power"``
+    ``load_model``: ``"impedance"`` (constant impedance, as shunts;
+    docs/method.md#reference-case) or ``"power"``
     (constant power, SimBench's own).
     """
     if load_model not in LOAD_MODELS:

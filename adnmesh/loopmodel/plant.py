@@ -1,4 +1,5 @@
-"""Reference-model plant of a DER subset (SPEC §2), grouped by identical dynamics.
+"""Reference-model plant of a DER subset (docs/method.md#reference-model), grouped by identical
+dynamics.
 
 A DER d contributes ``G_d(s) = exp(-T_delay,d s) K_d H(s; T_d)`` with ``K_d = w_d P_inst,d`` (W).
 DERs whose dynamics (model, delay, time constant) coincide add up to one *actuator group*
@@ -11,7 +12,8 @@ The actuator models (unit DC gain, ``T`` in s):
 - ``pt2``:  ``1 / ((T/1.5291)^2 s^2 + (T/0.7645) s + 1)``,
 - ``rhpz``: ``(1 - 0.25 s) / ((T/3.7348)^2 s^2 + (T/0.9337) s + 1)`` (0.25 in s),
 
-the last two from the model-uncertainty study of SPEC §4. Every denominator has real roots,
+the last two from the model-uncertainty study (docs/method.md#model-uncertainty). Every
+denominator has real roots,
 which the certified bounds of :mod:`adnmesh.loopmodel.stability` rely on.
 """
 from __future__ import annotations

@@ -11,7 +11,8 @@ time, overshoot and peak here, with one compiled kernel (:func:`adnmesh.loopmode
 - :func:`reference_step_figures`: the rule applied to a run's recorded P_IP after each step
   of P_ref -> one :class:`ReferenceStep` per step.
 
-The conventions are MATLAB's ``stepinfo`` (SPEC §2) with the final value fixed at 1 (the
+The conventions are MATLAB's ``stepinfo`` (docs/method.md#figures-of-merit) with the final value
+fixed at 1 (the
 reference; a loop with integral action has DC gain 1) and times interpolated between
 samples; see :class:`StepFigures`. python-control's ``step_info`` uses the same definitions
 but reports the first sample past each threshold, so the two agree to one sampling interval

@@ -6,7 +6,8 @@ recording by the rules of :class:`adnmesh.results.summary.RunSeries` (:func:`win
 a step's window ends at the next step, gain switch, availability change (a DER's heartbeat
 flag, or SI) or fault message, else at the run's end (the ``clock/start`` message's
 ``end_ns``; the last P_IP sample if the recording has none). Times are send (sampling) times;
-see :mod:`adnmesh.loopmodel.step_figures` for the definitions (SPEC §2, MATLAB ``stepinfo``).
+see :mod:`adnmesh.loopmodel.step_figures` for the definitions
+(docs/method.md#figures-of-merit, MATLAB ``stepinfo``).
 """
 
 from __future__ import annotations

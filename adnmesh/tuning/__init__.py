@@ -1,5 +1,6 @@
-"""Tuning of the gain-scheduling table CP (SPEC §3): the paper's method, a global search that
-certifies it, Find W, the static controller, and on-demand tuning of one subset."""
+"""Tuning of the gain-scheduling table CP: the paper's method, a global search that certifies
+it, Find W, the static controller, and on-demand tuning of one subset
+(docs/method.md#tuning-the-gain-table)."""
 from adnmesh.tuning.build import METHODS, paper_path, tune_subset, tune_table, write_csv
 from adnmesh.tuning.problem import TuningProblem, all_subsets
 

@@ -1,4 +1,5 @@
-"""The paper's tuning method (SPEC §3), run in lock-step for many normalised plants at once.
+"""The paper's tuning method (docs/method.md#the-papers-method), run in lock-step for many
+normalised plants at once.
 
 All gains here are *normalised* (``kp_n`` dimensionless, ``ki_n`` in 1/s; see
 :mod:`adnmesh.tuning.problem`). Points the paper leaves open, defined here:
@@ -7,7 +8,7 @@ Initial values
     A 60° phase-margin PI design (MATLAB's ``pidtune`` default target): the crossover
     ``omega_c`` is the lowest frequency where the plant's phase (delays included) is -90°, and the
     PI adds 30° of lag there (``ki_n = kp_n omega_c tan 30°``) with ``|C g| = 1`` at ``omega_c``.
-    SPEC requires the initial point to be infeasible (too aggressive); if it is feasible, both
+    The method needs the initial point to be infeasible (too aggressive); if it is feasible, both
     gains are raised by 25 % until it is not (at most 40 times).
 Path search
     Start ``(kp_init, s ki_init)``. Infeasible: ``kp *= 1 - s``; feasible: remember it,
@@ -206,7 +207,8 @@ def path_search(problem: TuningProblem, fractions, kp, ki, step: float, record: 
 
 
 def _rectangles(kp, ki, ki_init, step: float):
-    """The points of every plant's area-search rectangle (SPEC §3.3): (plant index, kp, ki),
+    """The points of every plant's area-search rectangle
+    (docs/method.md#convexity-indicator-and-area-search): (plant index, kp, ki),
     each shape (K,), plant by plant and each plant's points in meshgrid order."""
     cand_p, cand_kp, cand_ki = [], [], []
     n_kp = int(np.ceil(np.log(AREA_KP_FLOOR) / np.log(1 - AREA_KP_STEP))) + 1
@@ -224,7 +226,8 @@ def _rectangles(kp, ki, ki_init, step: float):
 
 
 def area_search(problem: TuningProblem, fractions, kp, ki, ki_init, step: float, beat=None):
-    """Scan the rectangle of SPEC §3.3 for each plant; returns (kp, ki, rise) of the best
+    """Scan the area-search rectangle (docs/method.md#convexity-indicator-and-area-search) for each
+    plant; returns (kp, ki, rise) of the best
     feasible point found that is faster than ``beat`` (s, per plant; default: any), NaN where
     none, and the number of evaluations.
 

@@ -149,7 +149,8 @@ class TuningProblem:
         return Plant(self.actuators, gains, self.config.design_t_com_s, self.config.t_meas_s)
 
     def average_time_s(self, fractions: np.ndarray) -> np.ndarray:
-        """``T_avg = sum_a (T_delay,a + T_rise,a) P_a / sum_a P_a`` (SPEC §3), s; shape (M,)."""
+        """``T_avg = sum_a (T_delay,a + T_rise,a) P_a / sum_a P_a``, s; shape (M,)
+        (docs/method.md#convexity-indicator-and-area-search)."""
         per_group = np.array([a.t_delay_s + a.t_lag_s * self.config.rise_per_lag
                               for a in self.actuators])
         return np.atleast_2d(fractions) @ per_group

@@ -1,4 +1,5 @@
-"""The gain-scheduling table CP: one PI pair and weight vector per DER subset (SPEC §3).
+"""The gain-scheduling table CP: one PI pair and weight vector per DER subset
+(docs/method.md#tuning-the-gain-table).
 
 A table is written by ``adnmesh tune`` as JSON::
 

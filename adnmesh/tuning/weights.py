@@ -1,4 +1,5 @@
-"""Find W (SPEC §3.4): lower a DER's weight while its single-DER loop violates a constraint.
+"""Find W (docs/method.md#find-w): lower a DER's weight while its single-DER loop violates a
+constraint.
 
 With the subset's gains fixed, DER a alone forms the loop ``C(s) e^{-s T_com} w_a P_a G_a(s)
 e^{-s T_meas}``. While that loop violates the disk-margin or overshoot constraint, ``w_a`` is
