@@ -6,7 +6,7 @@ import pytest
 from adnmesh.loopmodel.evaluation import disk_margin_bound, evaluate
 from adnmesh.loopmodel.stability import nyquist_stability
 from adnmesh.tuning import TuningProblem
-from adnmesh.tuning import build
+from adnmesh.tuning import certify
 
 from loops import CONFIG, LOOPS, gains
 
@@ -80,9 +80,9 @@ def test_staged_back_off_finds_each_entrys_first_feasible_step():
     raise_by = 0.99 ** -np.arange(1, 8)
     kp, ki = kpn * edge * raise_by, kin * edge * raise_by
     gains_ = np.tile(f, (kp.size, 1))
-    scale = build._back_off(problem, gains_, kp, ki)
+    scale = certify.back_off(problem, gains_, kp, ki)
     # brute force: every step of every entry, the first feasible one
-    factors = 0.99 ** np.arange(1, build.BACK_OFF_STEPS + 1)
+    factors = 0.99 ** np.arange(1, certify.BACK_OFF_STEPS + 1)
     for i in range(kp.size):
         chk = problem.check(np.tile(f, (factors.size, 1)), kp[i] * factors, ki[i] * factors)
         assert chk.feasible.any()

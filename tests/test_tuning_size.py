@@ -10,6 +10,7 @@ from adnmesh.errors import UsageError
 from adnmesh.tuning import TuningProblem
 from adnmesh.tuning import ondemand
 from adnmesh.tuning.ondemand import OnDemandTuner
+from adnmesh.tuning.problem import MAX_EXACT_CLASSES
 
 
 @pytest.fixture(scope="module")
@@ -20,7 +21,7 @@ def adn100(configs_dir: Path):
 def test_dynamics_spread_per_der_get_one_design_group_per_type(adn100) -> None:
     exact = TuningProblem(adn100)
     design = TuningProblem(adn100, by_type=True)
-    assert len(exact.actuators) > ondemand.MAX_EXACT_CLASSES
+    assert len(exact.actuators) > MAX_EXACT_CLASSES
     assert len(design.actuators) == len({d.type for d in adn100.ders}) == 3
     for act in design.actuators:                    # delays a multiple of 10 ms
         assert abs(act.t_delay_s * 100 - round(act.t_delay_s * 100)) < 1e-9

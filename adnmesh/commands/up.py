@@ -178,7 +178,7 @@ def _static(config: Config, subsets, log):
     for the 100-DER example (70 classes) the design takes ~80 s, which ``adnmesh tune
     --subsets scenario`` spends once (its table, given with ``--table``, has the pair)."""
     from adnmesh.tuning.build import static_entry
-    from adnmesh.tuning.ondemand import MAX_EXACT_CLASSES
+    from adnmesh.tuning.problem import MAX_EXACT_CLASSES
     from adnmesh.tuning.problem import TuningProblem
 
     problem = TuningProblem(config)

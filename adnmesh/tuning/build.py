@@ -8,7 +8,6 @@ atomically, so an interrupted run leaves a valid partial table that ``resume`` c
 from __future__ import annotations
 
 import csv
-import dataclasses
 import math
 import multiprocessing
 import os
@@ -16,21 +15,20 @@ import threading
 import time
 from contextlib import contextmanager
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
 
-from adnmesh.tuning.table import FIGURE_KEYS, SchedulingTable, TableEntry, load_table, save_table
+from adnmesh.tuning.certify import PlantGroup, certified_entries
 from adnmesh.tuning.global_search import tune_global
 from adnmesh.tuning.paper import initial_values, tune_paper
 from adnmesh.tuning.problem import TuningProblem, all_subsets, horizon_s
 from adnmesh.tuning.static_controller import design_over, static_any_size
+from adnmesh.tuning.table import FIGURE_KEYS, SchedulingTable, TableEntry, load_table, save_table
 from adnmesh.tuning.warm import SHARES, warm_share
-from adnmesh.tuning.weights import find_weights
 
-__all__ = ["tune_table", "tune_subset", "static_entry", "paper_path", "write_csv", "PlantGroup",
+__all__ = ["tune_table", "static_entry", "paper_path", "write_csv", "group_subsets",
            "plant_chunks", "METHODS", "PHASES"]
 
 METHODS = ("paper", "global")
@@ -46,9 +44,6 @@ CHUNK = 148
 STATIC_SAMPLE = 1000
 #: how long a starting worker waits for the others' shares of the compiled kernels, s
 WARM_WAIT_S = 60.0
-BACK_OFF_STEPS = 50
-#: back-off steps checked for every entry before the rest
-BACK_OFF_FIRST = 2
 #: phases of a chunk whose CPU and wall time :func:`tune_table` reports (``phases=``)
 PHASES = ("initial values", "global search", "paper path", "find W", "back-off",
           "as-deployed figures")
@@ -70,18 +65,9 @@ class _Clock:
             self.times[name][1] += time.perf_counter() - w0
 
 
-_NO_CLOCK = _Clock()
-
-
-@dataclass(frozen=True)
-class PlantGroup:
-    """One normalised plant and the subsets that share it."""
-
-    fractions: np.ndarray
-    subsets: tuple[tuple[str, ...], ...]
-
-
 def group_subsets(problem: TuningProblem, subsets: Sequence[Sequence[str]]) -> list[PlantGroup]:
+    """The subsets grouped by normalised plant (:meth:`TuningProblem.key`), plants in the order
+    of their first subset."""
     groups: dict[tuple, list] = {}
     fracs: dict[tuple, np.ndarray] = {}
     for s in subsets:
@@ -100,114 +86,6 @@ def plant_chunks(groups: list[PlantGroup], chunk_size: int) -> list[list[PlantGr
     resumed run and any number of workers tune the same batches."""
     n = max(1, -(-len(groups) // max(1, chunk_size)))
     return [groups[i::n] for i in range(n) if groups[i::n]]
-
-
-def _entries(problem: TuningProblem, groups: list[PlantGroup], kp_n, ki_n, feasible, reasons,
-             global_rise, design_rise, tuned_by, clock: _Clock = _NO_CLOCK) -> list[TableEntry]:
-    """Table entries (absolute gains, weights, as-deployed figures) for tuned plant groups.
-
-    ``design_rise`` is the tuning method's rise time on the unweighted plant, ``global_rise``
-    the global optimum's on the same plant: the two are comparable, the as-deployed figures
-    (weights applied) are what the runtime gets. ``tuned_by`` (per group) names the method
-    that found the pair.
-    """
-    rows = []                          # (subset, K_P, K_I, global rise, design rise, tuned by)
-    out: list[TableEntry] = []
-    for g, grp in enumerate(groups):
-        for s in grp.subsets:
-            total = float(problem.group_power(s).sum())
-            if feasible[g]:
-                rows.append((s, kp_n[g] / total, ki_n[g] / total, global_rise[g],
-                             design_rise[g], tuned_by[g]))
-            else:
-                out.append(TableEntry(s, float("nan"), float("nan"), {d: 1.0 for d in s}, False,
-                                      reasons[g], {"global_rise_time_s": None}))
-    if not rows:
-        return out
-    with clock.phase("find W"):
-        weights = find_weights(problem, [(r[0], r[1], r[2]) for r in rows])
-    gains = np.array([problem.group_power(r[0], w) for r, w in zip(rows, weights)])
-    kp = np.array([r[1] for r in rows])
-    ki = np.array([r[2] for r in rows])
-    usable = gains.sum(axis=1) > 0
-    gains[~usable] = 1.0                     # placeholder; such rows are reported infeasible
-    with clock.phase("as-deployed figures"):
-        fig = problem.figures(gains, kp, ki)
-    # the figures are the full check of the unscaled gains: back off only where they fail
-    scale = np.ones(kp.size)
-    bad = np.nonzero(~_meets(problem, fig))[0]
-    if bad.size:
-        with clock.phase("back-off"):
-            scale[bad] = _back_off(problem, gains[bad], kp[bad], ki[bad])
-        kp, ki = kp * np.nan_to_num(scale, nan=1.0), ki * np.nan_to_num(scale, nan=1.0)
-        with clock.phase("as-deployed figures"):
-            again = problem.figures(gains[bad], kp[bad], ki[bad])
-        fig = _replace_rows(fig, bad, again)
-    for i, ((s, _, _, grise, drise, by), w) in enumerate(zip(rows, weights)):
-        row = fig.row(i)
-        figures = {k: row[k] for k in FIGURE_KEYS}
-        figures["settling_time_2pct_s"] = row["settling_time_2pct_s"]
-        figures["global_rise_time_s"] = None if not np.isfinite(grise) else float(grise)
-        figures["design_rise_time_s"] = float(drise)
-        figures["tuned_by"] = by
-        figures["gain_back_off"] = float(scale[i]) if np.isfinite(scale[i]) else None
-        ok = bool(usable[i] and np.isfinite(scale[i]) and row["stable"]
-                  and row["disk_margin"] >= problem.disk_margin_min
-                  and row["overshoot_pct"] is not None
-                  and row["overshoot_pct"] < problem.overshoot_max_pct)
-        reason = None if ok else ("every weight reduced to 0" if not usable[i]
-                                  else "as-deployed loop violates a constraint")
-        out.append(TableEntry(s, float(kp[i]), float(ki[i]), w, ok, reason, figures))
-    return out
-
-
-def _meets(problem: TuningProblem, fig) -> np.ndarray:
-    """Both constraints met by full figures, as :meth:`TuningProblem.check` decides them."""
-    return (fig.stable & (fig.disk_margin >= problem.disk_margin_min)
-            & (fig.overshoot_pct < problem.overshoot_max_pct)
-            & np.isfinite(fig.rise_time_s) & np.isfinite(fig.settling_time_s))
-
-
-def _replace_rows(fig, rows: np.ndarray, new):
-    """``fig`` (LoopFigures) with the candidates ``rows`` taken from ``new``."""
-    out = {}
-    for f in dataclasses.fields(fig):
-        old = getattr(fig, f.name)
-        if isinstance(old, np.ndarray):
-            old = old.copy()
-            old[rows] = getattr(new, f.name)
-        else:                                                  # per-candidate lists
-            old = list(old)
-            for i, r in enumerate(rows):
-                old[r] = getattr(new, f.name)[i]
-        out[f.name] = old
-    return type(fig)(**out)
-
-
-def _back_off(problem: TuningProblem, gains, kp, ki) -> np.ndarray:
-    """Gain scale per entry so that the as-deployed loop (W applied) meets both constraints.
-
-    Find W changes the plant the gains were tuned for; where the weighted loop then misses a
-    constraint (typically alpha a few 1e-4 below the limit), both gains are lowered together
-    in 1 % steps (at most 50). 1.0 where nothing was needed, NaN where 50 steps did not help.
-    """
-    scale = np.ones(kp.size)
-    bad = np.nonzero(~problem.check(gains, kp, ki).feasible)[0]
-    factors = 0.99 ** np.arange(1, BACK_OFF_STEPS + 1)
-    # the first steps for every entry at once (most need one or two), the rest only for
-    # the entries they did not help; the answer is each entry's first feasible step
-    for steps in (slice(0, BACK_OFF_FIRST), slice(BACK_OFF_FIRST, BACK_OFF_STEPS)):
-        if bad.size == 0:
-            break
-        f_k = factors[steps]
-        rows = np.repeat(bad, f_k.size)
-        f = np.tile(f_k, bad.size)
-        ok = problem.check(gains[rows], kp[rows] * f, ki[rows] * f).feasible.reshape(bad.size, -1)
-        hit = ok.any(axis=1)
-        scale[bad[hit]] = f_k[np.argmax(ok[hit], axis=1)]
-        bad = bad[~hit]
-    scale[bad] = np.nan
-    return scale
 
 
 def _one_numba_thread_if(single_thread: bool) -> None:
@@ -263,8 +141,8 @@ def _tune_chunk(args) -> tuple[list[TableEntry], dict]:
         tuned_by = [PAPER_FALLBACK if x else "paper" for x in lost]
     reasons = ["no feasible pair: every candidate violates the disk margin or overshoot limit"
                if not f else None for f in feas]
-    return _entries(problem, groups, kp, ki, feas, reasons, glob.rise_time_s, rise, tuned_by,
-                    clock), clock.times
+    return certified_entries(problem, groups, kp, ki, feas, reasons, glob.rise_time_s, rise,
+                             tuned_by, clock), clock.times
 
 
 def tune_table(config, method: str = "paper", workers: int = 1, out: Path | None = None,
@@ -383,9 +261,10 @@ def static_entry(problem: TuningProblem, ids: list[str],
     """The static controller with its worst-case figures.
 
     Over every subset when the table holds them all; over a selection (``subsets``) the pair
-    is designed on those subsets and the extreme plants (:func:`~.static.extreme_subsets`)
-    and verified on them and a random sample of subsets (:func:`~.static.static_any_size`):
-    the subsets a run meets are not all in the table. The figures are those of every plant
+    is designed on those subsets and the extreme plants
+    (:func:`~.static_controller.extreme_subsets`) and verified on them and a random sample of
+    subsets (:func:`~.static_controller.static_any_size`): the subsets a run meets are not all
+    in the table. The figures are those of every plant
     checked, each simulated until it settles.
     """
     verified = {}
@@ -418,24 +297,6 @@ def static_entry(problem: TuningProblem, ids: list[str],
         **verified,
     }
     return TableEntry(tuple(ids), res.kp, res.ki, {d: 1.0 for d in ids}, True, None, figures)
-
-
-def tune_subset(config, der_ids: Sequence[str], constraints: dict | None = None) -> TableEntry:
-    """Tune one subset on demand (global search: one vectorised batch, ~1 s), with weights.
-
-    Used by the CPFC when it meets a subset its table lacks.
-    """
-    problem = TuningProblem(config, **(constraints or {}))
-    ders = tuple(d for d in config.der_ids() if d in set(der_ids))
-    if len(ders) != len(set(der_ids)):
-        config.ders_by_id(der_ids)          # raises ConfigError naming the unknown id
-    fractions, _ = problem.fractions(ders)
-    kp0, ki0 = initial_values(problem, fractions)
-    glob = tune_global(problem, fractions, kp0, ki0)
-    reasons = [None if glob.feasible[0] else "no feasible pair on the global grid"]
-    group = PlantGroup(fractions, (ders,))
-    return _entries(problem, [group], glob.kp, glob.ki, glob.feasible, reasons,
-                    glob.rise_time_s, glob.rise_time_s, ["global"])[0]
 
 
 def paper_path(config, der_ids: Sequence[str]) -> list[tuple[float, float, bool]]:

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from adnmesh.tuning.paper import STEPS, path_search
 from adnmesh.tuning.problem import Check, TuningProblem
 
 __all__ = ["GlobalResult", "tune_global", "GRID_KP", "GRID_KI"]
@@ -228,7 +229,6 @@ def tune_global(problem: TuningProblem, fractions, kp_init, ki_init,
     # local refinement: walk the edge from the best point with the paper's fine path rule
     alive = np.nonzero(np.isfinite(best.rise))[0]
     if alive.size:
-        from adnmesh.tuning.paper import STEPS, path_search
         kp, ki, rise, ev, _ = path_search(problem, fractions[alive], np.exp(best.lkp[alive]),
                                           np.exp(best.lki[alive]), STEPS[-1])
         evaluations += ev

@@ -6,17 +6,18 @@ from the normalised gains of the table entry whose fractions are nearest (L1 dis
 one batch of candidates along that pair's ray (``RAY_FACTORS`` times it) is screened for the
 disk margin, and the largest candidates that pass are checked on the exact model (step
 response); the feasible one with the lowest rise time is taken. Find W, the back-off and the
-as-deployed figures then follow exactly as for a table entry (:func:`tune_subset`'s path), so
-the entry is certified: both constraints re-checked on the exact loop with W applied.
+as-deployed figures then follow exactly as for a table entry
+(:func:`~adnmesh.tuning.certify.certified_entries`), so the entry is certified: both
+constraints re-checked on the exact loop with W applied.
 
 Without a table, or when no candidate of the ray is feasible, the global search decides
-(:func:`adnmesh.tuning.build.tune_subset`, about a second). Every entry tuned becomes a
-starting point for the next.
+(:func:`tune_subset`, about a second). Every entry tuned becomes a starting point for the next.
 
 **Large configs.** When DERs' dynamics are spread per DER, every DER is its own dynamics class
 and the searches would run on plants with as many groups as DERs. Beyond
-``MAX_EXACT_CLASSES`` classes the searches run on a *design* plant with one group per DER type
-(the installed-power-weighted mean delay and lag of its DERs); Find W, the back-off and the
+:data:`~adnmesh.tuning.problem.MAX_EXACT_CLASSES` classes the searches run on a *design*
+plant with one group per DER type (the installed-power-weighted mean delay and lag of its
+DERs; :meth:`~adnmesh.tuning.problem.TuningProblem.design`); Find W, the back-off and the
 as-deployed check still run on the exact plant, so the entry is certified all the same. A
 subset of more than ``MAX_DERS`` DERs is refused (:class:`~adnmesh.errors.UsageError`, one
 line) instead of tuned for minutes.
@@ -28,16 +29,14 @@ from typing import Sequence
 import numpy as np
 
 from adnmesh.errors import UsageError
-from adnmesh.tuning.table import SchedulingTable, TableEntry
-from adnmesh.tuning.build import PlantGroup, _entries, tune_subset
+from adnmesh.tuning.certify import PlantGroup, certified_entries
 from adnmesh.tuning.global_search import tune_global
 from adnmesh.tuning.paper import initial_values
 from adnmesh.tuning.problem import TuningProblem
+from adnmesh.tuning.table import SchedulingTable, TableEntry
 
-__all__ = ["OnDemandTuner", "RAY_FACTORS", "SIMULATED", "MAX_EXACT_CLASSES", "MAX_DERS"]
+__all__ = ["OnDemandTuner", "tune_subset", "RAY_FACTORS", "SIMULATED", "MAX_DERS"]
 
-#: more distinct dynamics than this: the searches run on the per-type design plant
-MAX_EXACT_CLASSES = 8
 #: largest subset tuned on demand
 MAX_DERS = 300
 
@@ -64,8 +63,7 @@ class OnDemandTuner:
         self.config = config
         self.constraints = constraints
         self.problem = TuningProblem(config, **(constraints or {}))
-        self.design = (self.problem if len(self.problem.actuators) <= MAX_EXACT_CLASSES
-                       else TuningProblem(config, **(constraints or {}), by_type=True))
+        self.design = self.problem.design()
         self.cache: dict[frozenset, TableEntry] = {}
         self._fractions = np.zeros((0, len(self.design.actuators)))
         self._gains = np.zeros((0, 2))
@@ -149,9 +147,9 @@ class OnDemandTuner:
             return self._global(ders, f)
         best, rise = found
         exact, _ = self.problem.fractions(ders)
-        entry = _entries(self.problem, [PlantGroup(exact, (ders,))], kp[[best]], ki[[best]],
-                         np.array([True]), [None], np.array([np.nan]),
-                         np.array([rise]), ["on demand (nearest table plant)"])[0]
+        entry = certified_entries(self.problem, [PlantGroup(exact, (ders,))], kp[[best]],
+                                  ki[[best]], np.array([True]), [None], np.array([np.nan]),
+                                  np.array([rise]), ["on demand (nearest table plant)"])[0]
         if not entry.feasible:
             return self._global(ders, f)
         return entry
@@ -164,6 +162,25 @@ class OnDemandTuner:
         glob = tune_global(self.design, f[None], kp0, ki0)
         exact, _ = self.problem.fractions(ders)
         reasons = [None if glob.feasible[0] else "no feasible pair on the global grid"]
-        return _entries(self.problem, [PlantGroup(exact, (ders,))], glob.kp, glob.ki,
-                        glob.feasible, reasons, glob.rise_time_s, glob.rise_time_s,
-                        ["global (per-type design plant)"])[0]
+        return certified_entries(self.problem, [PlantGroup(exact, (ders,))], glob.kp, glob.ki,
+                                 glob.feasible, reasons, glob.rise_time_s, glob.rise_time_s,
+                                 ["global (per-type design plant)"])[0]
+
+
+def tune_subset(config, der_ids: Sequence[str], constraints: dict | None = None) -> TableEntry:
+    """Tune one subset on demand by the global search (one vectorised batch, ~1 s), with
+    weights: what :class:`OnDemandTuner` falls back on without a table or a feasible ray.
+
+    Used by the CPFC when it meets a subset its table lacks.
+    """
+    problem = TuningProblem(config, **(constraints or {}))
+    ders = tuple(d for d in config.der_ids() if d in set(der_ids))
+    if len(ders) != len(set(der_ids)):
+        config.ders_by_id(der_ids)          # raises ConfigError naming the unknown id
+    fractions, _ = problem.fractions(ders)
+    kp0, ki0 = initial_values(problem, fractions)
+    glob = tune_global(problem, fractions, kp0, ki0)
+    reasons = [None if glob.feasible[0] else "no feasible pair on the global grid"]
+    group = PlantGroup(fractions, (ders,))
+    return certified_entries(problem, [group], glob.kp, glob.ki, glob.feasible, reasons,
+                             glob.rise_time_s, glob.rise_time_s, ["global"])[0]

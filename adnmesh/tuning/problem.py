@@ -19,7 +19,7 @@ from adnmesh.loopmodel.evaluation import LoopFigures, disk_margin_bound, evaluat
 from adnmesh.loopmodel.plant import Actuator, Plant
 from adnmesh.loopmodel.step_response import integral_rate, step_info
 
-__all__ = ["TuningProblem", "Check", "all_subsets", "T_MAX_S", "horizon_s"]
+__all__ = ["TuningProblem", "Check", "all_subsets", "T_MAX_S", "horizon_s", "MAX_EXACT_CLASSES"]
 
 #: longest simulated step response in a constraint check, s
 T_MAX_S = 20000.0
@@ -33,6 +33,9 @@ SCREEN_PER_DECADE = 25
 SLOW_MODES = 40.0
 #: ... but never longer than this, s
 HORIZON_CAP_S = 1e6
+#: more distinct dynamics (actuator groups) than this: the searches run on the per-type
+#: design plant (:meth:`TuningProblem.design`)
+MAX_EXACT_CLASSES = 8
 
 
 def horizon_s(gains: np.ndarray, kp, ki) -> np.ndarray:
@@ -120,6 +123,15 @@ class TuningProblem:
             self.group_of[der.id] = groups.setdefault(act, len(groups))
         self.actuators = tuple(groups)
         self.p_inst = {d.id: float(d.p_inst_w) for d in config.ders}
+
+    def design(self) -> "TuningProblem":
+        """The problem the searches run on: this one, or with more than
+        :data:`MAX_EXACT_CLASSES` dynamics classes the per-type design plant (``by_type``,
+        same constraints); entries are certified on this one either way."""
+        if len(self.actuators) <= MAX_EXACT_CLASSES:
+            return self
+        return TuningProblem(self.config, self.disk_margin_min, self.overshoot_max_pct,
+                             by_type=True)
 
     @property
     def constraints(self) -> dict:

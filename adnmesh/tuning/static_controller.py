@@ -39,7 +39,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from adnmesh.loopmodel.step_response import integral_rate
+from adnmesh.tuning.paper import initial_values
 from adnmesh.tuning.problem import T_MAX_S, TuningProblem, horizon_s
+from adnmesh.tuning.subset_selection import spread_random_subsets
 
 __all__ = ["StaticResult", "static_controller", "design_over", "RATIOS", "AnySizeStatic",
            "extreme_subsets", "check_pair", "static_any_size"]
@@ -278,8 +280,6 @@ def extreme_subsets(problem: TuningProblem, ids) -> list[tuple[str, ...]]:
 def design_over(problem: TuningProblem, cases) -> tuple[np.ndarray, np.ndarray, StaticResult]:
     """The static pair over the subsets ``cases``: absolute gains meet each subset through its
     group powers, so one case per distinct power vector. Returns (powers W, totals W, pair)."""
-    from adnmesh.tuning.paper import initial_values
-
     powers = np.unique(np.array([problem.group_power(s) for s in cases]), axis=0)
     tot = powers.sum(axis=1)
     f = powers / tot[:, None]
@@ -331,19 +331,15 @@ def static_any_size(problem: TuningProblem, ids, sample: int = 1000, seed: int =
 
     Designed (:func:`static_controller`) on :func:`extreme_subsets` and the subsets ``extra``
     (e.g. those a table holds), then checked on them and on every subset of a random sample
-    of ``sample`` (:func:`~.subsets.spread_random_subsets`: sizes from 1 to all) at the pair
-    (w = 1, absolute gains), each loop on the exact plant for as long as it takes to settle.
-    With more than :data:`~.ondemand.MAX_EXACT_CLASSES` dynamics classes the design runs on
+    of ``sample`` (:func:`~.subset_selection.spread_random_subsets`: sizes from 1 to all) at
+    the pair (w = 1, absolute gains), each loop on the exact plant for as long as it takes to
+    settle. With more than :data:`~.problem.MAX_EXACT_CLASSES` dynamics classes the design runs on
     the per-type plant (``by_type``, ~10x faster for 100 DERs of 70 classes) and the pair is
     lowered along its ray until every check on the exact plant passes; otherwise the failing
     subsets join the design, at most ``rounds`` times. Not feasible if a check still fails.
     """
-    from adnmesh.tuning.ondemand import MAX_EXACT_CLASSES
-    from adnmesh.tuning.subset_selection import spread_random_subsets
-
-    reduced = len(problem.actuators) > MAX_EXACT_CLASSES
-    design = (TuningProblem(problem.config, problem.disk_margin_min, problem.overshoot_max_pct,
-                            by_type=True) if reduced else problem)
+    design = problem.design()
+    reduced = design is not problem
     cases = list(dict.fromkeys(extreme_subsets(problem, ids) + [tuple(s) for s in extra]))
     drawn = spread_random_subsets(ids, sample, seed)
     added = lowered = 0
