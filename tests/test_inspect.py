@@ -181,7 +181,7 @@ def test_inspect_finds_the_windows_of_up_s_summary(tmp_path: Path) -> None:
 
     from adnmesh.results.figures import run_figures
     from adnmesh.results.series import extract
-    from adnmesh.results.summary import MESSAGE_TYPES, RunSeries, summarize
+    from adnmesh.results.summary import SUMMARY_TYPES, RunSeries, summarize
     from adnmesh.wire.keys import Keys, route
     from adnmesh.wire.messages import Switch
     from adnmesh.wire.schemas import message_schemas
@@ -215,7 +215,7 @@ def test_inspect_finds_the_windows_of_up_s_summary(tmp_path: Path) -> None:
             kind = route(key).type
             data = payload(key, body, src=src, seq=i, t_send_ns=t_ns, t_deliver_ns=t_ns + 1)
             recorder.write(key, kind, data, log_time_ns=t_ns + 1, publish_time_ns=t_ns)
-            if kind in MESSAGE_TYPES and (kind != "p_y" or "switch" in body):
+            if kind in SUMMARY_TYPES and (kind != "p_y" or "switch" in body):
                 series.add(kind, json.loads(data))
     summary = summarize(series, end_ns=70 * s)
     inspected = run_figures(extract(read_recording(path)))

@@ -126,7 +126,7 @@ def assert_inspect_agrees(recording, summary: dict) -> None:
     from adnmesh.commands.inspect import settling_band_pct
     from adnmesh.results.figures import run_figures
     from adnmesh.results.series import extract
-    from adnmesh.results.summary import MESSAGE_TYPES, RunSeries, RunSummary, summarize
+    from adnmesh.results.summary import SUMMARY_TYPES, RunSeries, RunSummary, summarize
 
     def as_json(steps) -> list:
         return json.loads(json.dumps(RunSummary(steps, (), 0, 0, None, None).to_json()["steps"]))
@@ -138,7 +138,7 @@ def assert_inspect_agrees(recording, summary: dict) -> None:
     series = RunSeries()
     for m in sorted(recording.messages, key=lambda m: m.publish_time_ns):
         body = json.loads(m.data)
-        if m.schema_name in MESSAGE_TYPES and body["type"] in MESSAGE_TYPES and (body["type"] != "p_y" or "switch" in body):
+        if m.schema_name in SUMMARY_TYPES and body["type"] in SUMMARY_TYPES and (body["type"] != "p_y" or "switch" in body):
             series.add(body["type"], body)
     again = summarize(series, end_ns=int(summary["sim_time_s"] * 1e9), band_pct=band)
     assert as_json(again.steps) == summary["steps"]

@@ -99,9 +99,9 @@ class _SummaryMessages:
     switch record, the few others whole."""
 
     def __init__(self) -> None:
-        from adnmesh.results.summary import MESSAGE_TYPES
+        from adnmesh.results.summary import SUMMARY_TYPES
 
-        self.types = MESSAGE_TYPES
+        self.types = SUMMARY_TYPES
         self.p_ip: list[tuple[np.ndarray, ...]] = []
         self.whole: list[tuple[int, int, str, bytes]] = []
 

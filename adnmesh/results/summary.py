@@ -41,7 +41,7 @@ from adnmesh.results.realtime_report import ALARM_TIMEOUTS, RealtimeFigures, rea
 from adnmesh.loopmodel.step_figures import ReferenceStep, reference_step_figures
 
 __all__ = [
-    "MESSAGE_TYPES",
+    "SUMMARY_TYPES",
     "GridFigures",
     "RunSeries",
     "RunSummary",
@@ -49,9 +49,10 @@ __all__ = [
     "summarize",
 ]
 
-MESSAGE_TYPES = frozenset({"p_ip", "p_ref", "p_y", "heartbeat", "si", "fault", "event",
+SUMMARY_TYPES = frozenset({"p_ip", "p_ref", "p_y", "heartbeat", "si", "fault", "event",
                            "grid_state"})
-"""The message types :meth:`RunSeries.add` takes (of ``p_y`` only those with a ``switch``)."""
+"""The message types :meth:`RunSeries.add` takes (of ``p_y`` only those with a ``switch``):
+the few the summary reads, not every message type of the wire."""
 
 _ALARM_KINDS = frozenset({"overrun", *ALARM_TIMEOUTS})
 

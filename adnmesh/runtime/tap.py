@@ -23,7 +23,7 @@ from typing import Annotated
 import msgspec
 from msgspec import Meta, Struct
 
-from adnmesh.results.summary import MESSAGE_TYPES, RunSeries
+from adnmesh.results.summary import SUMMARY_TYPES, RunSeries
 from adnmesh.sim.node import names_known_ders
 from adnmesh.sim.topology import Topology
 from adnmesh.wire.envelope import MessageError, decode, encode, envelope_times, split_frame
@@ -39,7 +39,7 @@ REJECTED_TYPE = "rejected"
 REJECTED_PREFIX_BYTES = 4096
 """How much of a rejected payload is kept in its record."""
 
-_SUMMARY_TYPES = MESSAGE_TYPES - {"p_y"}     # and the p_y messages of a gain switch
+_SUMMARY_TYPES = SUMMARY_TYPES - {"p_y"}     # and the p_y messages of a gain switch
 
 
 class Rejected(Struct, forbid_unknown_fields=True):
