@@ -5,18 +5,27 @@ log grid of *normalised* gains ``kp_n = K_P sum P_inst`` (dimensionless) and
 ``ki_n = K_I sum P_inst`` (1/s), with all weights 1, and a static controller the same way on a
 grid of absolute gains. It is what the analyses need to run without ``adnmesh tune`` (the
 paper's method, :mod:`adnmesh.tuning`); its entries are feasible but not optimal.
+
+:func:`example` and :func:`small_table` give the analysis tests the example configs and their
+coarse tables, each built once per session.
 """
 from __future__ import annotations
 
+from functools import lru_cache
+from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
+from adnmesh.analysis.subset_loops import SubsetBatch, deployed_batch
+from adnmesh.config import load_config
 from adnmesh.loopmodel.evaluation import evaluate
+from adnmesh.tuning.problem import all_subsets
 from adnmesh.tuning.table import FIGURE_KEYS, SchedulingTable, TableEntry
-from adnmesh.analysis.subset_loops import SubsetBatch, all_subsets, deployed_batch
 
-__all__ = ["coarse_table", "feasibility"]
+__all__ = ["coarse_table", "feasibility", "example", "small_table", "EXAMPLES"]
+
+EXAMPLES = Path(__file__).resolve().parent.parent / "configs" / "examples"
 
 KP_N = np.geomspace(0.01, 3.0, 14)
 KI_N = np.geomspace(0.001, 5.0, 14)
@@ -109,3 +118,16 @@ def coarse_table(config, subsets: Sequence[Sequence[str]] | None = None,
                               None if ok else "no feasible grid point", _figures(fs, 0))
     table.complete = len(subsets) == 2 ** len(config.ders) - 1
     return table
+
+
+@lru_cache(maxsize=None)
+def example(name: str):
+    """The config ``configs/examples/<name>.yaml``."""
+    return load_config(EXAMPLES / f"{name}.yaml")
+
+
+@lru_cache(maxsize=None)
+def small_table(name: str):
+    """A coarse table (8 x 8 normalised grid, 8 x 8 static grid) for an example config."""
+    return coarse_table(example(name), kp_n=np.geomspace(0.01, 3.0, 8),
+                        ki_n=np.geomspace(0.001, 5.0, 8), static_grid=8)

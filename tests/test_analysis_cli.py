@@ -9,7 +9,7 @@ import pytest
 from adnmesh.cli import main
 from adnmesh.tuning.table import save_table
 
-from test_analysis_helpers import EXAMPLES, small_table
+from coarse_table import EXAMPLES, small_table
 
 
 @pytest.fixture(scope="module")

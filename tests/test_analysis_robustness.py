@@ -6,13 +6,14 @@ import pytest
 
 from adnmesh.analysis import plots
 from adnmesh.analysis.robustness import ALL_EQUAL, METRICS, analyze_robustness, table_batches
-from adnmesh.analysis.subset_loops import all_subsets, deployed_batch
+from adnmesh.analysis.subset_loops import deployed_batch
 from adnmesh.analysis.uncertainty import analyze_uncertainty
 from adnmesh.loopmodel.evaluation import evaluate
 from adnmesh.loopmodel.plant import plant_from_ders
+from adnmesh.tuning.problem import all_subsets
 from adnmesh.tuning.table import SchedulingTable
 
-from test_analysis_helpers import example, small_table
+from coarse_table import example, small_table
 
 PNG = b"\x89PNG\r\n\x1a\n"
 

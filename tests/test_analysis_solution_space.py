@@ -1,16 +1,14 @@
 """Solution space of one subset: classes, rise times, extent, search path, figure."""
-import sys
-import types
-
 import numpy as np
 import pytest
 
 from adnmesh.analysis import plots
+from adnmesh.analysis import solution_space as solution_space_module
 from adnmesh.analysis.solution_space import REASONS, paper_path, solution_space
 from adnmesh.loopmodel.evaluation import evaluate
 from adnmesh.loopmodel.plant import plant_from_ders
 
-from test_analysis_helpers import example
+from coarse_table import example
 
 
 @pytest.fixture(scope="module")
@@ -66,10 +64,9 @@ def test_plane_widens_to_hold_the_path_and_the_figure_is_written(tmp_path):
     assert out.read_bytes().startswith(b"\x89PNG") and out.stat().st_size > 20_000
 
 
-def test_paper_path_is_optional(monkeypatch):
-    fake = types.ModuleType("adnmesh.tuning")            # a tuner without paper_path
-    monkeypatch.setitem(sys.modules, "adnmesh.tuning", fake)
-    assert paper_path(example("wt-chp"), ["SGen1"]) is None
-    fake.paper_path = lambda config, ids: [(1e-7, 1e-8, 0), (0.9e-7, 1e-8, 1)]
-    assert paper_path(example("wt-chp"), ["SGen1"]) == [(1e-7, 1e-8, False),
-                                                         (0.9e-7, 1e-8, True)]
+def test_paper_path_is_the_tuners_as_plain_numbers(monkeypatch):
+    monkeypatch.setattr(solution_space_module, "tuner_path",
+                        lambda config, ids: [(np.float64(1e-7), 1e-8, 0), (0.9e-7, 1e-8, 1)])
+    path = paper_path(example("wt-chp"), ["SGen1"])
+    assert path == [(1e-7, 1e-8, False), (0.9e-7, 1e-8, True)]
+    assert all(type(kp) is float and type(ok) is bool for kp, _, ok in path)

@@ -13,7 +13,7 @@ from adnmesh.analysis.uncertainty import (B_RANGE, Limit, _scan, analyze_uncerta
 from adnmesh.loopmodel.evaluation import evaluate
 from adnmesh.loopmodel.step_response import simulate_step
 
-from test_analysis_helpers import example
+from coarse_table import example
 
 # SGen5 alone (CHP, 0.31 MW, T = 24.57 s / ln 9, reaction time 1 s) with an aggressive K_P:
 # fine with the slow nominal lag, unstable once the lag is much faster (K K_P = 1.25 > 1)

@@ -12,7 +12,7 @@ from pandas.api.types import is_bool_dtype, is_numeric_dtype
 
 from adnmesh.analysis.robustness import analyze_robustness
 from adnmesh.tuning import write_csv
-from test_analysis_helpers import example, small_table
+from coarse_table import example, small_table
 
 
 def numeric(frame: pd.DataFrame, text: set[str]) -> None:

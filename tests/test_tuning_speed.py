@@ -13,7 +13,9 @@ from adnmesh.errors import UsageError
 from adnmesh.tuning import TuningProblem, tune_table
 from adnmesh.tuning.paper import initial_values
 from adnmesh.tuning.subset_selection import MAX_ALL_DERS, random_subsets, scenario_subsets, select_subsets
-from adnmesh.tuning.weights import find_weights, find_weights_sequential
+from adnmesh.tuning.weights import find_weights
+
+from weights_reference import find_weights_sequential
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIGS = ROOT / "configs" / "examples"

@@ -7,8 +7,7 @@
   (K_P, K_I) plane, with the paper method's search path;
 - :mod:`~adnmesh.analysis.subset_loops`: subsets as one batch of loops (as deployed, weights applied);
 - :mod:`~adnmesh.analysis.report` (markdown) and :mod:`~adnmesh.analysis.plots` (matplotlib,
-  Agg canvas) turn results into text and figures;
-- :mod:`~tests.coarse_table`: a coarse grid-search table for tests and examples.
+  Agg canvas) turn results into text and figures.
 
 The analysis functions are pure: they take a config and a table (or a batch) and return
 dataclasses; files are written by :mod:`adnmesh.commands.analyze`.

@@ -15,8 +15,9 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from adnmesh.loopmodel.evaluation import evaluate
 from adnmesh.analysis.subset_loops import deployed_batch, subset_name
+from adnmesh.loopmodel.evaluation import evaluate
+from adnmesh.tuning.build import paper_path as tuner_path
 
 __all__ = ["REASONS", "SolutionSpace", "solution_space", "paper_path"]
 
@@ -87,16 +88,9 @@ class SolutionSpace:
         return {r or "feasible": int(np.sum(self.reason == r)) for r in REASONS}
 
 
-def paper_path(config, ders: Sequence[str]):
-    """The paper method's search path for ``ders`` from :mod:`adnmesh.tuning`, or None.
-
-    Returns a list of ``(kp, ki, feasible)`` (1/W, 1/(W s)), or None when the tuner does not
-    provide ``adnmesh.tuning.paper_path``.
-    """
-    try:
-        from adnmesh.tuning import paper_path as tuner_path
-    except ImportError:
-        return None
+def paper_path(config, ders: Sequence[str]) -> list[tuple[float, float, bool]]:
+    """The paper method's search path for ``ders``
+    (:func:`adnmesh.tuning.build.paper_path`) as ``(kp, ki, feasible)`` (1/W, 1/(W s))."""
     return [(float(kp), float(ki), bool(ok)) for kp, ki, ok in tuner_path(config, list(ders))]
 
 

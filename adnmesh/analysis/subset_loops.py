@@ -8,19 +8,13 @@ call covers every subset (absent groups have gain 0).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from itertools import combinations
 from typing import Sequence
 
 import numpy as np
 
 from adnmesh.loopmodel.plant import Actuator, Plant
 
-__all__ = ["SubsetBatch", "all_subsets", "subset_name", "deployed_batch", "config_actuators"]
-
-
-def all_subsets(ids: Sequence[str]) -> list[tuple[str, ...]]:
-    """Every non-empty subset of ``ids`` (2^m - 1), by size, then in config order."""
-    return [c for k in range(1, len(ids) + 1) for c in combinations(ids, k)]
+__all__ = ["SubsetBatch", "subset_name", "deployed_batch", "config_actuators"]
 
 
 def subset_name(ders: Sequence[str]) -> str:

@@ -6,8 +6,8 @@ e^{-s T_meas}``. While that loop violates the disk-margin or overshoot constrain
 lowered in steps of 0.001 from 1; the result is the first weight of the sequence 1, 0.999, ...
 that meets both constraints (0.0 if none does).
 
-How that first weight is found without checking the whole sequence
-(:func:`find_weights`; :func:`find_weights_sequential` is the plain scan, kept as reference):
+How that first weight is found without checking the whole sequence (:func:`find_weights`;
+the plain scan, kept as the reference, is ``tests/weights_reference.py``):
 
 1. identical single-DER loops (same group, same loop gains) are checked once, every single-DER
    loop at w = 1 in one batch;
@@ -30,7 +30,7 @@ import numpy as np
 from adnmesh.loopmodel.frequency_response import loop_response
 from adnmesh.tuning.problem import TuningProblem, horizon_s
 
-__all__ = ["find_weights", "find_weights_sequential", "W_STEP", "SCREEN_SLACK"]
+__all__ = ["find_weights", "W_STEP", "SCREEN_SLACK"]
 
 W_STEP = 0.001
 _BLOCK = 64
@@ -58,26 +58,6 @@ def _feasible(problem: TuningProblem, gains, kp, ki) -> np.ndarray:
 
 def _weight(k) -> np.ndarray:
     return np.round(1.0 - np.asarray(k) * W_STEP, 3)
-
-
-def _scan(problem, gains, kp, ki, violating) -> np.ndarray:
-    """The sequential scan (blocks of 64 weights) for jobs ``violating``; weights found."""
-    steps = np.arange(1, _N_STEPS + 1)
-    found = np.zeros(violating.size)
-    pending = np.arange(violating.size)
-    for start in range(0, steps.size, _BLOCK):
-        if pending.size == 0:
-            break
-        w = _weight(steps[start:start + _BLOCK])
-        jobs_v = violating[pending]
-        rows = np.repeat(jobs_v, w.size)
-        ww = np.tile(w, jobs_v.size)
-        ok = _feasible(problem, gains[rows] * ww[:, None], kp[rows], ki[rows])
-        ok = ok.reshape(jobs_v.size, w.size)
-        hit = ok.any(axis=1)
-        found[pending[hit]] = w[np.argmax(ok[hit], axis=1)]
-        pending = pending[~hit]
-    return found
 
 
 def _screen_block(l_c, l_f, k, limit) -> np.ndarray:
@@ -189,15 +169,3 @@ def find_weights(problem: TuningProblem, entries: list[tuple[tuple[str, ...], fl
         weights[e][d] = float(w_u[inverse[j]])
     return weights
 
-
-def find_weights_sequential(problem: TuningProblem, entries):
-    """:func:`find_weights` by the plain scan of 1, 0.999, ... (reference, slow)."""
-    weights = [{d: 1.0 for d in ders} for ders, _, _ in entries]
-    jobs, gains, kp, ki = _jobs(problem, entries)
-    if not jobs:
-        return weights
-    violating = np.nonzero(~_feasible(problem, gains, kp, ki))[0]
-    for j, w_found in zip(violating, _scan(problem, gains, kp, ki, violating)):
-        e, d = jobs[j]
-        weights[e][d] = float(w_found)
-    return weights
