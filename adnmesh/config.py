@@ -30,6 +30,8 @@ from pydantic import ValidationError, model_validator
 from pydantic_core import ErrorDetails, PydanticCustomError
 
 from adnmesh.errors import ConfigError
+from adnmesh.names import (AGENT_PATTERN, FAULT_KINDS, ICT_LINKS, ID_PATTERN, PER_DER_KIND,
+                           SINGLE_AGENT_KINDS, der_id_of)
 
 __all__ = [
     "DER_TYPES", "PT1_RISE_TIME_FACTOR", "AvailabilityChange", "Config", "ConfigFile",
@@ -51,11 +53,11 @@ The paper writes ``T_d = T_rise,d / 2.197``: this number rounded (docs/method.md
 # --- value types: bounds a user would expect (sim time is int64 ns: 1e6 s is far inside) --------
 
 _MAX_W, _MAX_DELAY_S, _MAX_TIME_S, _MAX_DERS, _MAX_EVENTS = 1e10, 3600.0, 1e6, 1000, 100_000
-_IDENTIFIER = r"^[A-Za-z][A-Za-z0-9_-]*$"
-_AGENT = r"^(cpfc|measurement|availability|der/[A-Za-z][A-Za-z0-9_-]*)$"
+_IDENTIFIER = rf"^{ID_PATTERN}$"
+_AGENT = rf"^{AGENT_PATTERN}$"
 _PATTERNS = {
     _IDENTIFIER: "an identifier (letters, digits, '_', '-'; starting with a letter)",
-    _AGENT: "cpfc, measurement, availability or der/<id>",
+    _AGENT: f"{', '.join(SINGLE_AGENT_KINDS)} or {PER_DER_KIND}/<id>",
 }
 """How a pattern reads in an error message: ``must be <words>, got ...``."""
 
@@ -300,9 +302,8 @@ class Links(Section):
     """The availability vector SI to the CPFC (delay 0.1 s unless set)."""
 
 
-FaultKind = Literal["link_outage", "link_loss", "link_delay", "der_offline", "ict_outage", "kill"]
-LinkName = Literal["cpfc_to_der", "measurement_to_cpfc", "der_to_availability",
-                   "availability_to_cpfc"]
+FaultKind = Literal[FAULT_KINDS]
+LinkName = Literal[ICT_LINKS]
 _FAULT_TARGET = {"link_outage": "link", "link_loss": "link", "link_delay": "link",
                  "der_offline": "der", "kill": "agent", "ict_outage": None}
 
@@ -472,8 +473,8 @@ class ConfigFile(Section):
             at = ("runtime", "faults", i)
             if fault.der is not None:
                 _known(fault.der, known, (*at, "der"))
-            if fault.agent is not None and fault.agent.startswith("der/"):
-                _known(fault.agent[4:], known, (*at, "agent"))
+            if fault.agent is not None and der_id_of(fault.agent) is not None:
+                _known(der_id_of(fault.agent), known, (*at, "agent"))
             _not_after(fault.t_s, self.scenario.duration_s, (*at, "t_s"))
         return self
 

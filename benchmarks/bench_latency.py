@@ -69,16 +69,16 @@ def round_trips(topology: Topology, certs: Path | None, two: bool, pings: int) -
         cpfc = zenoh.open(client_config([cpfc_at], certs, "cpfc"))
         der = zenoh.open(client_config([der_at], certs, f"der/{DER}"))
         sessions[:0] = [der, cpfc]
-        der.declare_subscriber(keys.p_y, lambda s: der.put(keys.heartbeat(DER),
+        der.declare_subscriber(keys.of("p_y"), lambda s: der.put(keys.of("heartbeat", DER),
                                                            s.payload.to_bytes()))
-        cpfc.declare_subscriber(keys.heartbeat(DER), lambda s: answered.set())
+        cpfc.declare_subscriber(keys.of("heartbeat", DER), lambda s: answered.set())
         times = []
         for i in range(pings + 100):
             answered.clear()
             t0 = time.perf_counter_ns()
-            cpfc.put(keys.p_y, str(i).encode())
+            cpfc.put(keys.of("p_y"), str(i).encode())
             while not answered.wait(5):           # the routes may still be forming
-                cpfc.put(keys.p_y, str(i).encode())
+                cpfc.put(keys.of("p_y"), str(i).encode())
             if i >= 100:
                 times.append((time.perf_counter_ns() - t0) / 1e3)
         return times

@@ -29,23 +29,24 @@ import jsonschema
 
 from adnmesh.wire.envelope import decode, encode
 from adnmesh.wire.keys import Keys, route
-from adnmesh.wire.messages import MESSAGE_TYPES, MESSAGE_VERSION
+from adnmesh.wire.messages import MESSAGE_VERSION
+from adnmesh.wire.protocol import STRUCTS
 from adnmesh.wire.schemas import message_schemas
 
 REPO = Path(__file__).resolve().parent.parent
 KEYS = Keys("simbench-1-MV-rural")
 CASES = {
-    "der_state": (KEYS.der_state("SGen1"), {"p_w": 1000012.5123, "setpoint_w": 1000000.0,
+    "der_state": (KEYS.of("der_state", "SGen1"), {"p_w": 1000012.5123, "setpoint_w": 1000000.0,
                                             "mode": "control"}),
-    "p_ip": (KEYS.p_ip, {"p_ip_w": 5712345.678}),
-    "p_y": (KEYS.p_y, {"p_y": 0.123456789, "p_ref_w": 6.7e6, "kp": 1.7e-8, "ki": 6.8e-8,
+    "p_ip": (KEYS.of("p_ip"), {"p_ip_w": 5712345.678}),
+    "p_y": (KEYS.of("p_y"), {"p_y": 0.123456789, "p_ref_w": 6.7e6, "kp": 1.7e-8, "ki": 6.8e-8,
                        "entry": 0}),
 }
 
 
 def payload_of(key: str, body: dict) -> bytes:
     found = route(key)
-    cls = MESSAGE_TYPES[found.type]
+    cls = STRUCTS[found.type]
     return encode(cls(MESSAGE_VERSION, found.type, found.sender, 1234, 5_000_000_000,
                       5_100_000_000, **body))
 

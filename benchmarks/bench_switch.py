@@ -37,11 +37,11 @@ def _series(config, run):
     keys = Keys(config.grid)
     ip_t, ip, ref_t, ref, switches = [], [], [], [], []
     for key, payload in run.messages:
-        if key == keys.p_ip:
+        if key == keys.of("p_ip"):
             m = decode(key, payload)
             ip_t.append(m.t_send_ns)
             ip.append(m.p_ip_w)
-        elif key == keys.p_ref:
+        elif key == keys.of("p_ref"):
             m = decode(key, payload)
             ref_t.append(m.t_send_ns)
             ref.append(m.p_ref_w)

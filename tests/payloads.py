@@ -4,14 +4,15 @@ from __future__ import annotations
 
 from adnmesh.wire.envelope import decode, encode
 from adnmesh.wire.keys import route
-from adnmesh.wire.messages import MESSAGE_TYPES, MESSAGE_VERSION
+from adnmesh.wire.messages import MESSAGE_VERSION
+from adnmesh.wire.protocol import STRUCTS
 
 
 def payload(key: str, body: dict, *, src: str | None = None, seq: int = 0, t_send_ns: int = 0,
             t_deliver_ns: int | None = None) -> bytes:
     """The payload of a message on ``key`` (sender: the key's own unless given)."""
     found = route(key)
-    cls = MESSAGE_TYPES[found.type]
+    cls = STRUCTS[found.type]
     t_deliver = t_send_ns if t_deliver_ns is None else t_deliver_ns
     return encode(cls(MESSAGE_VERSION, found.type, src or found.sender, seq, t_send_ns,
                       t_deliver, **body))

@@ -44,17 +44,18 @@ def forged_attacks(grid: str, victim: str = "SGen2", at_ns: int = AT_NS) -> list
     keys = Keys(grid)
     seq = 10 ** 9            # newer than anything the run has sent on any key
     forged = [
-        ("correcting variable P_Y = 1 (every DER to its full rating)", keys.p_y,
+        ("correcting variable P_Y = 1 (every DER to its full rating)", keys.of("p_y"),
          {**BODIES["p_y"], "p_y": 1.0}),
-        (f"state of der/{victim} (10 MW)", keys.der_state(victim),
+        (f"state of der/{victim} (10 MW)", keys.of("der_state", victim),
          {"p_w": 1e7, "setpoint_w": 1e7, "mode": "control"}),
-        ("measurement P_IP = 50 MW", keys.p_ip, {"p_ip_w": 5e7}),
-        ("SI: every DER unavailable", keys.si, {"si": {"SGen1": False, victim: False}}),
-        ("clock stop", keys.stop, {"reason": "rogue"}),
-        ("clock grant to the CPFC", keys.grant("cpfc"), {"until_ns": 10 ** 15, "expect": 0}),
-        ("fault: ICT outage", keys.faults,
+        ("measurement P_IP = 50 MW", keys.of("p_ip"), {"p_ip_w": 5e7}),
+        ("SI: every DER unavailable", keys.of("si"), {"si": {"SGen1": False, victim: False}}),
+        ("clock stop", keys.of("clock_stop"), {"reason": "rogue"}),
+        ("clock grant to the CPFC", keys.of("clock_grant", "cpfc"),
+         {"until_ns": 10 ** 15, "expect": 0}),
+        ("fault: ICT outage", keys.of("fault"),
          {**BODIES["fault"], "start_ns": at_ns, "end_ns": at_ns + 10 ** 10}),
-        ("fault request (operator)", keys.fault_request, {**BODIES["fault_request"],
+        ("fault request (operator)", keys.of("fault_request"), {**BODIES["fault_request"],
                                                           "request_id": "rogue"}),
     ]
     return [Attempt(name, key, payload(key, body, seq=seq, t_send_ns=at_ns))
@@ -65,7 +66,7 @@ def junk_on_own_keys(grid: str, der: str, n: int) -> list[Attempt]:
     """``n`` invalid payloads on each of DER ``der``'s own keys (state, heartbeat)."""
     keys = Keys(grid)
     found = []
-    for key in (keys.der_state(der), keys.heartbeat(der)):
+    for key in (keys.of("der_state", der), keys.of("heartbeat", der)):
         for i in range(n):
             body = b'{"v":1,"type":' + str(i).encode() if i % 2 else b"\xff\xfe junk"
             found.append(Attempt(f"junk on {key}", key, body))

@@ -18,7 +18,8 @@ from adnmesh.runtime.bus import client_config, free_port, router_config
 from adnmesh.runtime.certificates import issue
 from adnmesh.runtime.identity import identities
 from adnmesh.sim.topology import Topology
-from adnmesh.wire.keys import LAUNCHER, OPERATOR, route
+from adnmesh.names import LAUNCHER, OPERATOR
+from adnmesh.wire.keys import route
 
 REPO = Path(__file__).resolve().parent.parent
 CASE = REPO / "configs" / "examples" / "runtime-step.yaml"
@@ -47,9 +48,9 @@ def test_every_identity_may_publish_exactly_the_keys_it_is_the_sender_of(topolog
         assert r.publishes and all(route(k).sender == identity for k in r.publishes), identity
     published = [k for r in table.values() for k in r.publishes]
     assert len(published) == len(set(published))
-    every_key = {k for (_, k) in topology.links} | {topology.keys.fault_request}
-    every_key |= {topology.keys.report(a) for a in topology.agents}
-    every_key |= {topology.keys.bye(a) for a in topology.agents}
+    every_key = {k for (_, k) in topology.links} | {topology.keys.of("fault_request")}
+    every_key |= {topology.keys.of("clock_report", a) for a in topology.agents}
+    every_key |= {topology.keys.of("agent_bye", a) for a in topology.agents}
     assert set(published) == every_key
     assert all(route(k).sender == LAUNCHER for k in launcher_keys(topology))
 
@@ -59,10 +60,11 @@ def test_every_agent_receives_what_its_node_subscribes_and_its_own_clock(topolog
     for agent in topology.agents:
         r = rights(topology)[agent]
         assert set(r.receives) == set(topology.subscriptions[agent]) | {
-            keys.grant(agent), keys.kill(agent), keys.start, keys.stop}
+            keys.of("clock_grant", agent), keys.of("clock_kill", agent), keys.of("clock_start"),
+            keys.of("clock_stop")}
         assert r.token == keys.liveliness(agent) and r.watches == (keys.liveliness(LAUNCHER),)
-    assert rights(topology)["der/SGen1"].receives.count(keys.p_y) == 1
-    assert keys.p_ip not in rights(topology)["der/SGen1"].receives
+    assert rights(topology)["der/SGen1"].receives.count(keys.of("p_y")) == 1
+    assert keys.of("p_ip") not in rights(topology)["der/SGen1"].receives
 
 
 def test_the_zenoh_section_denies_by_default_and_names_every_rule_it_uses(topology) -> None:
@@ -136,7 +138,7 @@ def test_each_identity_can_put_on_its_own_keys_only(topology, certs, router) -> 
         delivered = {k for k, p in router.got if p == f"{identity} {k}".encode()}
         assert delivered == set(rights(topology)[identity].publishes), identity
     assert not any(k in launcher_keys(topology) for k, _ in router.got)
-    assert keys.p_y in {k for k, p in router.got if p == f"cpfc {k}".encode()}
+    assert keys.of("p_y") in {k for k, p in router.got if p == f"cpfc {k}".encode()}
 
 
 def test_each_identity_receives_only_what_it_needs(topology, certs, router) -> None:
@@ -150,7 +152,7 @@ def test_each_identity_receives_only_what_it_needs(topology, certs, router) -> N
 
     def on_sample(sample: zenoh.Sample) -> None:
         got.append(str(sample.key_expr))
-        if str(sample.key_expr) == keys.start:
+        if str(sample.key_expr) == keys.of("clock_start"):
             done.set()
 
     with zenoh.open(client_config([router.endpoint], certs, "der/SGen1")) as session:
@@ -168,9 +170,9 @@ def test_each_identity_receives_only_what_it_needs(topology, certs, router) -> N
         for _ in allowed:
             assert matched.acquire(timeout=10), "the DER's subscriptions did not arrive"
         for key in every_key(topology):
-            if key != keys.start:
+            if key != keys.of("clock_start"):
                 publishers[key].put(b"from up")
-        publishers[keys.start].put(b"from up")
+        publishers[keys.of("clock_start")].put(b"from up")
         assert done.wait(10)
         for handle in [*listeners, *publishers.values(), wide, *subscribers]:
             handle.undeclare()

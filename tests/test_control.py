@@ -130,7 +130,7 @@ def command(der: DERController, t_ns: int, p_y: float, entry: int = 0, w: dict |
     body = {"p_y": p_y, "p_ref_w": 0.0, "kp": 1.0, "ki": 1.0, "entry": entry}
     if w is not None:
         body["w"] = w
-    der.on_message(t_ns, message(Keys(der_grid(der)).p_y, t_ns, body, seq=seq))
+    der.on_message(t_ns, message(Keys(der_grid(der)).of("p_y"), t_ns, body, seq=seq))
 
 
 def der_grid(der: DERController) -> str:
@@ -198,12 +198,12 @@ def test_measurement_sums_the_infeeds_and_the_rest_of_the_grid(config: Config) -
     keys = Keys(config.grid)
     (out,) = meas.on_timer(0)
     assert out.body == {"p_ip_w": -3e6 + 0.5e6}            # rest + schedules at rest
-    meas.on_message(10 * MS, message(keys.der_state("SGen1"), 10 * MS,
+    meas.on_message(10 * MS, message(keys.of("der_state", "SGen1"), 10 * MS,
                                      {"p_w": 1.5e5, "setpoint_w": 2e5, "mode": "control"},
                                      src="der/SGen1"))
     assert meas.next_timer_ns() == 10 * MS
     (out,) = meas.on_timer(10 * MS)
-    assert out.key == keys.p_ip and out.body["p_ip_w"] == -3e6 + 1.5e5 + 0.5e6
+    assert out.key == keys.of("p_ip") and out.body["p_ip_w"] == -3e6 + 1.5e5 + 0.5e6
 
 
 def test_a_restarted_availability_monitor_listens_before_it_speaks(config: Config) -> None:
@@ -218,15 +218,15 @@ def test_a_restarted_availability_monitor_listens_before_it_speaks(config: Confi
     for k in range(3):                       # SGen1 beats every second, SGen2 says it left
         for der_id, available in (("SGen1", True), ("SGen2", False)):
             t = start + 100 * MS + k * 1000 * MS
-            sent += monitor.on_message(t, message(keys.heartbeat(der_id), t, {
+            sent += monitor.on_message(t, message(keys.of("heartbeat", der_id), t, {
                 "available": available, "mode": "schedule" if not available else "control"},
                 src=f"der/{der_id}"))
             while monitor.next_timer_ns() <= t:
                 sent += monitor.on_timer(monitor.next_timer_ns())
-    assert [o for o in sent if o.key == keys.si and o.body["si"]["SGen2"]] == []
+    assert [o for o in sent if o.key == keys.of("si") and o.body["si"]["SGen2"]] == []
     while monitor.next_timer_ns() <= start + timeout:
         sent += monitor.on_timer(monitor.next_timer_ns())
-    first = [o.body["si"] for o in sent if o.key == keys.si]
+    first = [o.body["si"] for o in sent if o.key == keys.of("si")]
     assert first and first[0] == {"SGen1": True, "SGen2": False}
 
 
@@ -235,13 +235,13 @@ def test_availability_monitor_builds_si_from_heartbeats(config: Config) -> None:
     keys = Keys(config.grid)
 
     def si_of(out):
-        return [o.body["si"] for o in out if o.key == keys.si]
+        return [o.body["si"] for o in out if o.key == keys.of("si")]
 
     assert si_of(monitor.on_timer(monitor.next_timer_ns())) == [{"SGen1": True, "SGen2": True}]
 
     def beat(der_id: str, t_ns: int, available: bool, mode: str = "control"):
         """Deliver a heartbeat at ``t_ns``, then end the instant; return what was sent."""
-        assert monitor.on_message(t_ns, message(keys.heartbeat(der_id), t_ns,
+        assert monitor.on_message(t_ns, message(keys.of("heartbeat", der_id), t_ns,
                                                 {"available": available, "mode": mode},
                                                 src=f"der/{der_id}")) == []
         return monitor.on_timer(t_ns) if monitor.next_timer_ns() == t_ns else []
@@ -249,7 +249,7 @@ def test_availability_monitor_builds_si_from_heartbeats(config: Config) -> None:
     assert beat("SGen1", 100 * MS, True) == []                  # no change, nothing sent
     out = beat("SGen2", 150 * MS, False)
     assert si_of(out) == [{"SGen1": True, "SGen2": False}]
-    assert [(o.body["kind"], o.body["subject"]) for o in out if o.key != keys.si] == [
+    assert [(o.body["kind"], o.body["subject"]) for o in out if o.key != keys.of("si")] == [
         ("unavailable", "der/SGen2")]
     assert si_of(monitor.on_timer(monitor.next_timer_ns())) == [      # repeated every second
         {"SGen1": True, "SGen2": False}]
@@ -280,11 +280,11 @@ def test_availability_monitor_sends_one_si_for_simultaneous_changes(configs_dir:
         t_ns = second * 1000 * MS
         for der_id in simbench.der_ids():
             available = second < change.t_s or der_id not in change.ders
-            node.receive(keys.heartbeat(der_id), payload(
-                keys.heartbeat(der_id), {"available": available}, seq=second, t_send_ns=t_ns,
+            node.receive(keys.of("heartbeat", der_id), payload(
+                keys.of("heartbeat", der_id), {"available": available}, seq=second, t_send_ns=t_ns,
                 t_deliver_ns=t_ns + 100 * MS))
         sent += [json.loads(payload) for key, payload in node.advance(t_ns + 500 * MS)
-                 if key == keys.si]
+                 if key == keys.of("si")]
     changes = [m for i, m in enumerate(sent) if i == 0 or m["si"] != sent[i - 1]["si"]]
     assert [(m["t_send_ns"], m["si"]) for m in changes] == [
         (0, dict.fromkeys(simbench.der_ids(), True)),
@@ -301,9 +301,9 @@ def run_cpfc(cpfc: CPFC, until_ns: int, p_meas=None, si_at=None):
     while cpfc.next_timer_ns() < until_ns:
         t = cpfc.next_timer_ns()
         if si_at is not None and t == si_at[0]:
-            cpfc.on_message(t, message(keys.si, t, {"si": si_at[1]}, src="availability"))
+            cpfc.on_message(t, message(keys.of("si"), t, {"si": si_at[1]}, src="availability"))
         if p_meas is not None:
-            cpfc.on_message(t, message(keys.p_ip, t, {"p_ip_w": p_meas(t)}, src="measurement"))
+            cpfc.on_message(t, message(keys.of("p_ip"), t, {"p_ip_w": p_meas(t)}, src="measurement"))
         out += [(t, o) for o in cpfc.on_timer(t)]
     return out
 
@@ -411,7 +411,7 @@ def heartbeat(cpfc: CPFC, der_id: str, t_ns: int, mode: str, p_y: float = 0.0,
               t_send_ns: int | None = None) -> None:
     keys = Keys(cpfc.config.grid)
     sent = t_ns - 100 * MS if t_send_ns is None else t_send_ns
-    cpfc.on_message(t_ns, message(keys.heartbeat(der_id), sent,
+    cpfc.on_message(t_ns, message(keys.of("heartbeat", der_id), sent,
                                   {"available": True, "mode": mode, "p_y": p_y, "entry": 0},
                                   src=f"der/{der_id}"))
 
@@ -426,8 +426,8 @@ def drive(cpfc: CPFC, until_ns: int, p_meas, on_sample=lambda t: None) -> list:
         on_sample(t)
         value = p_meas(t)
         if value is not None:
-            cpfc.on_message(t, message(keys.p_ip, t, {"p_ip_w": value}, src="measurement"))
-        out += [(t, o.body) for o in cpfc.on_timer(t) if o.key == keys.p_y]
+            cpfc.on_message(t, message(keys.of("p_ip"), t, {"p_ip_w": value}, src="measurement"))
+        out += [(t, o.body) for o in cpfc.on_timer(t) if o.key == keys.of("p_y")]
     return out
 
 
@@ -480,9 +480,9 @@ def test_cpfc_hands_returning_ders_their_share_of_the_power(config, table) -> No
 
     def si(t):
         if t == 2000 * MS:
-            cpfc.on_message(t, message(keys.si, t, {"si": {"SGen1": True, "SGen2": False}}))
+            cpfc.on_message(t, message(keys.of("si"), t, {"si": {"SGen1": True, "SGen2": False}}))
         if t == 6000 * MS:
-            cpfc.on_message(t, message(keys.si, t, {"si": {"SGen1": True, "SGen2": True}}))
+            cpfc.on_message(t, message(keys.of("si"), t, {"si": {"SGen1": True, "SGen2": True}}))
 
     out = drive(cpfc, 6100 * MS, lambda t: -2.2e6, si)
     by_t = dict(out)
@@ -504,7 +504,7 @@ def test_a_restarted_cpfc_resumes_from_the_acknowledged_p_y(config, table) -> No
 
     def inputs(t):
         if t == 5100 * MS:
-            cpfc.on_message(t, message(keys.si, t, {"si": {"SGen1": True, "SGen2": True}}))
+            cpfc.on_message(t, message(keys.of("si"), t, {"si": {"SGen1": True, "SGen2": True}}))
         if t == 5300 * MS:
             heartbeat(cpfc, "SGen1", t, "watchdog", 0.2125)
         if t == 5600 * MS:

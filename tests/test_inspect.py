@@ -189,23 +189,23 @@ def test_inspect_finds_the_windows_of_up_s_summary(tmp_path: Path) -> None:
 
     keys, s = Keys("g"), 1_000_000_000
     gains = {"p_y": 0.1, "p_ref_w": 0.0, "kp": 1e-7, "ki": 2e-7, "entry": 3}
-    events = [(0, keys.start, "up", {"clock": "sim", "epoch_ns": 0, "speed": 1.0,
+    events = [(0, keys.of("clock_start"), "up", {"clock": "sim", "epoch_ns": 0, "speed": 1.0,
                                      "end_ns": 70 * s, "seed": 0}),
-              (0, keys.si, "availability", {"si": {"A": True, "B": True}}),
-              (3 * s, keys.si, "availability", {"si": {"A": True, "B": True}}),
-              (8 * s, keys.p_y, "cpfc", {**gains, "kp": 3e-7}),          # no switch record
-              (12 * s, keys.p_y, "cpfc", {**gains, "w": {"A": 1.0}, "switch": Switch(
+              (0, keys.of("si"), "availability", {"si": {"A": True, "B": True}}),
+              (3 * s, keys.of("si"), "availability", {"si": {"A": True, "B": True}}),
+              (8 * s, keys.of("p_y"), "cpfc", {**gains, "kp": 3e-7}),          # no switch record
+              (12 * s, keys.of("p_y"), "cpfc", {**gains, "w": {"A": 1.0}, "switch": Switch(
                   p_y_before=0.1, p_y_limited=0.1, kp_before=3e-7, ki_before=2e-7)}),
-              (15 * s, keys.heartbeat("B"), "der/B", {"available": True}),
-              (22 * s, keys.heartbeat("B"), "der/B", {"available": False}),
-              (33 * s, keys.si, "availability", {"si": {"A": False, "B": False}}),
-              (1 * s, keys.faults, "up", {"fault_id": 1, "kind": "der_offline", "der": "A",
+              (15 * s, keys.of("heartbeat", "B"), "der/B", {"available": True}),
+              (22 * s, keys.of("heartbeat", "B"), "der/B", {"available": False}),
+              (33 * s, keys.of("si"), "availability", {"si": {"A": False, "B": False}}),
+              (1 * s, keys.of("fault"), "up", {"fault_id": 1, "kind": "der_offline", "der": "A",
                                           "start_ns": 41 * s, "end_ns": 80 * s})]
     steps = ((0, 0.0), (5, 1e6), (20, 0.0), (30, 1e6), (40, 0.0), (60, 1e6))
-    events += [(t * s, keys.p_ref, "cpfc", {"p_ref_w": w}) for t, w in steps]
+    events += [(t * s, keys.of("p_ref"), "cpfc", {"p_ref_w": w}) for t, w in steps]
     p_ip = 0.0                                   # P_ref through a 1 s lag, sampled every 10 ms
     for k in range(7001):
-        events.append((k * 10_000_000, keys.p_ip, "measurement", {"p_ip_w": p_ip}))
+        events.append((k * 10_000_000, keys.of("p_ip"), "measurement", {"p_ip_w": p_ip}))
         p_ref = [w for t, w in steps if t * 100 <= k][-1]
         p_ip += (p_ref - p_ip) * (1 - math.exp(-0.01))
     path = tmp_path / "windows.mcap"

@@ -15,7 +15,8 @@ from adnmesh.config import load_config
 from adnmesh.runtime.realtime import OVERRUN_EVERY_NS, OverrunWatch, ScaledClock, tolerance_ns
 from adnmesh.results.realtime_report import realtime_figures
 from adnmesh.sim.latency import BINS, Latency, bin_of, merge, percentile, upper_edge_ns
-from adnmesh.sim.topology import ICT_LINKS, Topology
+from adnmesh.names import ICT_LINKS
+from adnmesh.sim.topology import Topology
 from up_runs import CASE
 
 # --- the histogram ---------------------------------------------------------------------------

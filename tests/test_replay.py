@@ -247,15 +247,15 @@ def test_the_series_table_understands_the_runtimes_messages(tmp_path: Path) -> N
     keys = Keys("g")
     switch = Switch(p_y_before=0.1, p_y_limited=0.1, kp_before=1e-7, ki_before=2e-7)
     sent = [
-        (keys.p_ref, {"p_ref_w": 2.0e6}),
-        (keys.p_ip, {"p_ip_w": 1.5e6}),
-        (keys.p_y, {"p_y": 0.1, "p_ref_w": 2e6, "kp": 1e-7, "ki": 2e-7, "entry": 3}),
-        (keys.p_y, {"p_y": 0.1, "p_ref_w": 2e6, "kp": 3e-7, "ki": 4e-7, "entry": 1,
+        (keys.of("p_ref"), {"p_ref_w": 2.0e6}),
+        (keys.of("p_ip"), {"p_ip_w": 1.5e6}),
+        (keys.of("p_y"), {"p_y": 0.1, "p_ref_w": 2e6, "kp": 1e-7, "ki": 2e-7, "entry": 3}),
+        (keys.of("p_y"), {"p_y": 0.1, "p_ref_w": 2e6, "kp": 3e-7, "ki": 4e-7, "entry": 1,
                     "w": {"SGen1": 1.0}, "switch": switch}),
-        (keys.der_state("SGen1"), {"p_w": 1e6, "setpoint_w": 1.1e6, "mode": "control"}),
-        (keys.heartbeat("SGen1"), {"available": True}),
-        (keys.si, {"si": {"SGen1": True, "SGen2": False}}),
-        (keys.faults, {"fault_id": 1, "kind": "der_offline", "der": "SGen2",
+        (keys.of("der_state", "SGen1"), {"p_w": 1e6, "setpoint_w": 1.1e6, "mode": "control"}),
+        (keys.of("heartbeat", "SGen1"), {"available": True}),
+        (keys.of("si"), {"si": {"SGen1": True, "SGen2": False}}),
+        (keys.of("fault"), {"fault_id": 1, "kind": "der_offline", "der": "SGen2",
                        "start_ns": 700_000_000, "end_ns": None}),
     ]
     path = tmp_path / "runtime.mcap"

@@ -144,7 +144,7 @@ def test_the_tap_never_asks_the_clock_while_it_holds_its_own_lock(tmp_path, simb
     with Recorder(tmp_path / "tap.mcap", metadata={"run_id": "tap"},
                   schemas=recording_schemas()) as recorder:
         tap = RecorderTap(recorder, topology, RunSeries(), now_ns)
-        key = topology.keys.grant("cpfc")
+        key = topology.keys.of("clock_grant", "cpfc")
         grant = ClockGrant(MESSAGE_VERSION, "clock_grant", "up", 0, 0, 0, until_ns=1, expect=0)
         with clock:
             junk = threading.Thread(target=tap.take, args=(sorted(topology.subscriptions[

@@ -183,7 +183,7 @@ def publish_junk(endpoint: str, keys: list[str], per_key: int, done: threading.E
     answered = threading.Event()
     with zenoh.open(client_config([endpoint])) as session:
         grid = keys[0].split("/")[1]
-        answer = session.declare_subscriber(Keys(grid).event("up"), lambda s: (
+        answer = session.declare_subscriber(Keys(grid).of("event", "up"), lambda s: (
             b"sentinel" in s.payload.to_bytes() and answered.set()))
         for key in keys:
             sender = route(key).sender
@@ -194,7 +194,7 @@ def publish_junk(endpoint: str, keys: list[str], per_key: int, done: threading.E
                 publisher.put(payload)
                 counted[0] += 1
             publisher.undeclare()
-        session.put(Keys(grid).fault_request, encode(FaultRequest(
+        session.put(Keys(grid).of("fault_request"), encode(FaultRequest(
             1, "fault_request", "operator", 1, 0, 0, request_id="sentinel", kind="link_delay",
             at_ns=10 ** 15, for_ns=1, link="cpfc_to_der", delay_ns=0)))
         answered.wait(60)
@@ -216,9 +216,9 @@ def test_junk_on_every_subscribed_key_changes_nothing(tmp_path: Path) -> None:
     config, table = write_case(tmp_path, "junk", **changes)
     topology = Topology.from_config(load_config(config))
     keys = sorted({k for subs in topology.subscriptions.values() for k in subs}
-                  | {topology.keys.grant(a) for a in topology.agents}
-                  | {topology.keys.kill(a) for a in topology.agents}
-                  | {topology.keys.start, topology.keys.stop, topology.keys.fault_request})
+                  | {topology.keys.of("clock_grant", a) for a in topology.agents}
+                  | {topology.keys.of("clock_kill", a) for a in topology.agents}
+                  | {topology.keys.of(kind) for kind in ("clock_start", "clock_stop", "fault_request")})
     proc, agents, _ = start_long_run(tmp_path, "junky", "--summary-json",
                                      str(tmp_path / "junky.json"), **changes)
     endpoint = json.loads((tmp_path / "junky.run.json").read_text())["endpoint"]

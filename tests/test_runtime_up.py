@@ -314,14 +314,14 @@ def test_an_agent_closes_its_session_only_after_up_has_its_goodbye() -> None:
 
     with zenoh.open(router_config([endpoint])) as router:
         token = router.liveliness().declare_token(keys.liveliness("up"))
-        subs = [router.declare_subscriber(keys.report("availability"),
+        subs = [router.declare_subscriber(keys.of("clock_report", "availability"),
                                           lambda s: reported.set()),
-                router.declare_subscriber(keys.bye("availability"),
+                router.declare_subscriber(keys.of("agent_bye", "availability"),
                                           lambda s: said_bye.set())]
 
         def play_up() -> None:
             assert reported.wait(30)
-            router.put(keys.stop, payload(keys.stop, {"reason": "test"}))
+            router.put(keys.of("clock_stop"), payload(keys.of("clock_stop"), {"reason": "test"}))
             assert said_bye.wait(30)
             # the goodbye is in; the agent must still hold its session until up withdraws
             closed_early.append(returned.wait(0.5))
@@ -389,7 +389,8 @@ def test_an_agent_whose_code_raises_in_a_window_ends_at_once_with_one_line() -> 
 
     config = load_config(CASE)
     keys = Keys(config.grid)
-    report_key, grant_key = keys.report("availability"), keys.grant("availability")
+    report_key = keys.of("clock_report", "availability")
+    grant_key = keys.of("clock_grant", "availability")
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     reports: queue.Queue = queue.Queue()
 
@@ -410,9 +411,9 @@ def test_an_agent_whose_code_raises_in_a_window_ends_at_once_with_one_line() -> 
                                  stderr=subprocess.PIPE, text=True)
         try:
             report_granted(0)                                       # ready
-            router.put(keys.start, payload(keys.start, {"clock": "sim", "epoch_ns": 0,
-                                                        "speed": 1.0, "end_ns": 10**10,
-                                                        "seed": 1}))
+            start = keys.of("clock_start")
+            router.put(start, payload(start, {"clock": "sim", "epoch_ns": 0, "speed": 1.0,
+                                              "end_ns": 10**10, "seed": 1}))
             router.put(grant_key, payload(grant_key, {"until_ns": 10**9, "expect": 0}))
             assert report_granted(10**9).next_ns >= 10**9
             router.put(grant_key, payload(grant_key, {"until_ns": 10**10, "expect": 0},
@@ -448,7 +449,8 @@ def test_an_agent_that_lost_the_router_says_so_when_up_is_back_in_sight() -> Non
     reported = threading.Event()
     router = zenoh.open(router_config([endpoint]))
     token = router.liveliness().declare_token(keys.liveliness("up"))
-    sub = router.declare_subscriber(keys.report("availability"), lambda s: reported.set())
+    sub = router.declare_subscriber(keys.of("clock_report", "availability"),
+                                    lambda s: reported.set())
     agent = subprocess.Popen([sys.executable, "-c", _AGENT, str(CASE), endpoint, "plain"],
                              stderr=subprocess.PIPE, text=True)
     try:

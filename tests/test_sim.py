@@ -101,11 +101,11 @@ def test_topology_routes_and_lookahead(config: Config) -> None:
     topo = Topology.from_config(config)
     keys = topo.keys
     assert topo.agents == ("cpfc", "measurement", "availability", "der/SGen1", "der/SGen2")
-    assert topo.receivers[keys.p_y] == ("der/SGen1", "der/SGen2")
-    assert topo.subscriptions["measurement"] == (keys.der_state("SGen1"), keys.der_state("SGen2"),
-                                                 keys.faults)
-    assert topo.receivers[keys.heartbeat("SGen1")] == ("availability", "cpfc")
-    assert topo.link("cpfc", keys.p_y).delay_ns == ns(config.t_com_s)
+    assert topo.receivers[keys.of("p_y")] == ("der/SGen1", "der/SGen2")
+    assert topo.subscriptions["measurement"] == (
+        keys.of("der_state", "SGen1"), keys.of("der_state", "SGen2"), keys.of("fault"))
+    assert topo.receivers[keys.of("heartbeat", "SGen1")] == ("availability", "cpfc")
+    assert topo.link("cpfc", keys.of("p_y")).delay_ns == ns(config.t_com_s)
     look = topo.lookahead_ns
     assert look[("der/SGen1", "measurement")] == 0
     assert look[("cpfc", "measurement")] == ns(0.1)                    # via a DER
@@ -156,7 +156,7 @@ def test_coordinator_counts_messages_in_flight(config: Config) -> None:
 
     def sent(grant):  # every DER window sends 10 states, the first delivered at its start
         if grant.agent.startswith("der/"):
-            return {keys.der_state(grant.agent[4:]): (10, grant.until_ns - ns(0.1))}
+            return {keys.of("der_state", grant.agent[4:]): (10, grant.until_ns - ns(0.1))}
         return {}
 
     log = drive(clock, clock.start(), sent, stop=lambda g: g.agent == "measurement")
@@ -238,17 +238,17 @@ def state(der: str, t: int, seq: int, p_w: float = 1.0, src: str | None = None) 
 def test_node_orders_messages_before_timers(config: Config) -> None:
     topo = Topology.from_config(config)
     keys = topo.keys
-    agent = Ticker(keys.p_ip)
+    agent = Ticker(keys.of("p_ip"))
     node = Node(agent, topo, seed=0)
-    node.receive(keys.der_state("SGen2"), state("SGen2", 10, 0))
-    node.receive(keys.der_state("SGen1"), state("SGen1", 10, 0))
+    node.receive(keys.of("der_state", "SGen2"), state("SGen2", 10, 0))
+    node.receive(keys.of("der_state", "SGen1"), state("SGen1", 10, 0))
     out = node.advance(21)
     assert agent.seen == [("timer", 0), ("SGen1", 10, 1.0), ("SGen2", 10, 1.0),
                           ("timer", 10), ("timer", 20)]
     assert [decode(k, p).t_deliver_ns for k, p in out] == [ns(0.1), ns(0.1) + 10,
                                                            ns(0.1) + 20]
     report = node.report()
-    assert report.sent == {keys.p_ip: (3, ns(0.1))} and report.next_ns == 30
+    assert report.sent == {keys.of("p_ip"): (3, ns(0.1))} and report.next_ns == 30
     assert report.received == 2
     assert node.report().sent == {}
 
@@ -258,20 +258,20 @@ def test_node_rejects_before_counting_per_key_and_reason(config: Config) -> None
     counted per key and reason and never reaches the agent."""
     topo = Topology.from_config(config)
     keys = topo.keys
-    agent = Ticker(keys.p_ip)
+    agent = Ticker(keys.of("p_ip"))
     node = Node(agent, topo, seed=0)
-    k1 = keys.der_state("SGen1")
+    k1 = keys.of("der_state", "SGen1")
     node.receive(k1, state("SGen1", 10, 3))
     node.receive(k1, b"garbage")
     node.receive(k1, state("SGen1", 10, 4, src="der/SGen2"))       # another DER's name
     node.receive(k1, state("SGen1", 10, 3, p_w=9.0))                # replay of (10, 3)
     node.receive(k1, state("SGen1", 9, 9))                          # older send time
-    node.receive(keys.p_y, state("SGen1", 10, 5))                   # not subscribed
+    node.receive(keys.of("p_y"), state("SGen1", 10, 5))                   # not subscribed
     node.receive(k1, state("SGen1", 10, 2 ** 70))                   # seq out of range
     assert node.counts.received == 1
     assert node.counts.rejected == {
         k1: {"malformed": 1, "wrong_sender": 1, "replayed": 2, "invalid": 1},
-        keys.p_y: {"not_subscribed": 1}}
+        keys.of("p_y"): {"not_subscribed": 1}}
     node.advance(21)
     assert agent.seen[1:] == [("SGen1", 10, 1.0), ("timer", 10), ("timer", 20)]
     node.receive(k1, state("SGen1", 15, 0))                         # genuine but in the past
@@ -297,11 +297,12 @@ def fault(key: str, seq: int, kind: str, start_s: float, end_s: float | None, t_
 
 def test_node_stops_for_good_at_an_injected_kill(config: Config) -> None:
     topo = Topology.from_config(config)
-    agent = Ticker(topo.keys.p_ip)
+    agent = Ticker(topo.keys.of("p_ip"))
     node = Node(agent, topo, seed=0)
-    node.receive(topo.keys.faults, fault(topo.keys.faults, 0, "kill", 25e-9, None,
+    node.receive(topo.keys.of("fault"), fault(topo.keys.of("fault"), 0, "kill", 25e-9, None,
                                          agent="measurement"))
-    node.receive(topo.keys.faults, fault(topo.keys.faults, 1, "kill", 1.0, None, agent="cpfc"))
+    faults = topo.keys.of("fault")
+    node.receive(faults, fault(faults, 1, "kill", 1.0, None, agent="cpfc"))
     node.advance(21)
     assert not node.killed and [t for _, t in agent.seen] == [0, 10, 20]
     node.advance(100)
@@ -315,12 +316,12 @@ def test_node_impairs_its_own_links_and_drops_while_offline(config: Config) -> N
     topo = Topology.from_config(config)
     keys = topo.keys
     der = Node(build_agent("der/SGen1", config), topo, seed=0)
-    der.receive(keys.faults, fault(keys.faults, 0, "der_offline", 1.0, 2.0, der="SGen1"))
-    der.receive(keys.faults, fault(keys.faults, 1, "der_offline", 1.0, 2.0, der="SGen2"))
-    der.receive(keys.faults, fault(keys.faults, 0, "der_offline", 1.0, 2.0, der="SGen1"))
-    assert der.counts.rejected[keys.faults] == {"replayed": 1}
+    der.receive(keys.of("fault"), fault(keys.of("fault"), 0, "der_offline", 1.0, 2.0, der="SGen1"))
+    der.receive(keys.of("fault"), fault(keys.of("fault"), 1, "der_offline", 1.0, 2.0, der="SGen2"))
+    der.receive(keys.of("fault"), fault(keys.of("fault"), 0, "der_offline", 1.0, 2.0, der="SGen1"))
+    assert der.counts.rejected[keys.of("fault")] == {"replayed": 1}
     for t_ms in range(0, 3000, 10):   # a command every 10 ms, delivered 0.1 s later
-        der.receive(keys.p_y, payload_p_y(t_ms, w=t_ms == 0))
+        der.receive(keys.of("p_y"), payload_p_y(t_ms, w=t_ms == 0))
     sent = der.advance(ns(3.0))
     heartbeats = [decode(k, p).t_send_ns for k, p in sent if k.endswith("/heartbeat")]
     states = [decode(k, p).t_send_ns for k, p in sent if k.endswith("/state")]
@@ -364,9 +365,9 @@ def test_a_restarted_node_begins_late_and_rejects_older_messages(config: Config)
     agent = build_agent("measurement", config)
     node = Node(agent, topo, seed=0, start_ns=ns(2.005))
     assert agent.next_timer_ns() == ns(2.01) and node.now_ns == ns(2.005)
-    node.receive(keys.der_state("SGen1"), state("SGen1", ns(2.0), 0))
-    node.receive(keys.der_state("SGen1"), state("SGen1", ns(2.01), 1))
-    assert node.counts.rejected == {keys.der_state("SGen1"): {"before_start": 1}}
+    node.receive(keys.of("der_state", "SGen1"), state("SGen1", ns(2.0), 0))
+    node.receive(keys.of("der_state", "SGen1"), state("SGen1", ns(2.01), 1))
+    assert node.counts.rejected == {keys.of("der_state", "SGen1"): {"before_start": 1}}
     assert node.counts.received == 1
 
 

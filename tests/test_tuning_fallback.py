@@ -41,10 +41,10 @@ def _run(cpfc: CPFC, t0_ns: int, until_ns: int, si_at: int | None = None) -> lis
     while cpfc.next_timer_ns() < until_ns:
         t = cpfc.next_timer_ns()
         if t == si_at:
-            cpfc.on_message(t, message(keys.si, t, {"si": {"SGen1": True, "SGen2": False}},
+            cpfc.on_message(t, message(keys.of("si"), t, {"si": {"SGen1": True, "SGen2": False}},
                                        src="availability"))
         if t >= t0_ns:
-            cpfc.on_message(t, message(keys.p_ip, t, {"p_ip_w": -2.5e6 + 0.6e6 * min(1, t / 4e9)},
+            cpfc.on_message(t, message(keys.of("p_ip"), t, {"p_ip_w": -2.5e6 + 0.6e6 * min(1, t / 4e9)},
                                        src="measurement"))
         out += [(t, o.body) for o in cpfc.on_timer(t) if o.key.endswith("/p_y")]
     return out

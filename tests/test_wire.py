@@ -20,73 +20,80 @@ from adnmesh.wire.envelope import (
     split_frame,
 )
 from adnmesh.wire.keys import Keys, Route, route
-from adnmesh.wire.messages import MESSAGE_TYPES, MESSAGE_VERSION, Switch
+from adnmesh.wire.messages import MESSAGE_VERSION, Switch
+from adnmesh.wire.protocol import KINDS, PROTOCOL, STRUCTS
 from adnmesh.wire.schemas import message_schemas
 from adnmesh.wire.units import NS_MAX, ns
 
 KEYS = Keys("g")
-SENDER = {KEYS.grid_state: "measurement", KEYS.p_y: "cpfc", KEYS.p_ref: "cpfc", KEYS.der_state("SGen1"): "der/SGen1",
-          KEYS.heartbeat("SGen1"): "der/SGen1", KEYS.p_ip: "measurement",
-          KEYS.si: "availability", KEYS.faults: "up", KEYS.event("der/SGen1"): "der/SGen1",
-          KEYS.event("up"): "up", KEYS.fault_request: "operator", KEYS.kill("cpfc"): "up",
-          KEYS.report("der/SGen1"): "der/SGen1", KEYS.grant("cpfc"): "up", KEYS.start: "up",
-          KEYS.stop: "up", KEYS.bye("measurement"): "measurement"}
+SENDER = {KEYS.of(kind, *who): sender for kind, who, sender in [
+    ("grid_state", (), "measurement"), ("p_y", (), "cpfc"), ("p_ref", (), "cpfc"),
+    ("der_state", ("SGen1",), "der/SGen1"), ("heartbeat", ("SGen1",), "der/SGen1"),
+    ("p_ip", (), "measurement"), ("si", (), "availability"), ("fault", (), "up"),
+    ("event", ("der/SGen1",), "der/SGen1"), ("event", ("up",), "up"),
+    ("fault_request", (), "operator"), ("clock_kill", ("cpfc",), "up"),
+    ("clock_report", ("der/SGen1",), "der/SGen1"), ("clock_grant", ("cpfc",), "up"),
+    ("clock_start", (), "up"), ("clock_stop", (), "up"),
+    ("agent_bye", ("measurement",), "measurement")]}
+"""Every kind's key and the one sender it must route to (written out here, not read from the
+table)."""
 EXAMPLES = {
-    KEYS.p_y: {"p_y": 0.25, "p_ref_w": 1e6, "kp": 5e-8, "ki": 2e-7, "entry": 1,
+    KEYS.of("p_y"): {"p_y": 0.25, "p_ref_w": 1e6, "kp": 5e-8, "ki": 2e-7, "entry": 1,
                "w": {"SGen1": 1.0}, "switch": {"p_y_before": 0.25, "p_y_limited": 0.25,
                                                "kp_before": 1e-7, "ki_before": 3e-7}},
-    KEYS.p_ref: {"p_ref_w": -2.5e6},
-    KEYS.der_state("SGen1"): {"p_w": 1e5, "setpoint_w": 2e5, "mode": "watchdog"},
-    KEYS.heartbeat("SGen1"): {"available": False, "mode": "watchdog", "p_y": 0.0, "entry": 2},
-    KEYS.p_ip: {"p_ip_w": 3.5, "q_ip_var": -2.5e5},
-    KEYS.grid_state: {"v_min_pu": 0.98, "v_max_pu": 1.03, "line_loading_max_pct": 41.5,
+    KEYS.of("p_ref"): {"p_ref_w": -2.5e6},
+    KEYS.of("der_state", "SGen1"): {"p_w": 1e5, "setpoint_w": 2e5, "mode": "watchdog"},
+    KEYS.of("heartbeat", "SGen1"): {"available": False, "mode": "watchdog", "p_y": 0.0, "entry": 2},
+    KEYS.of("p_ip"): {"p_ip_w": 3.5, "q_ip_var": -2.5e5},
+    KEYS.of("grid_state"): {"v_min_pu": 0.98, "v_max_pu": 1.03, "line_loading_max_pct": 41.5,
                       "trafo_loading_max_pct": 30.0, "q_ip_var": 3.5e5, "samples": 100,
                       "outside_band": 0, "not_converged": 0},
-    KEYS.si: {"si": {"SGen1": True, "SGen2": False}},
-    KEYS.faults: {"fault_id": 3, "kind": "link_loss", "start_ns": 10, "end_ns": 20,
+    KEYS.of("si"): {"si": {"SGen1": True, "SGen2": False}},
+    KEYS.of("fault"): {"fault_id": 3, "kind": "link_loss", "start_ns": 10, "end_ns": 20,
                   "link": "cpfc_to_der", "probability": 0.5, "origin": "command"},
-    KEYS.event("der/SGen1"): {"level": "WARNING", "kind": "watchdog_fallback", "text": "x",
+    KEYS.of("event", "der/SGen1"): {"level": "WARNING", "kind": "watchdog_fallback", "text": "x",
                               "subject": "der/SGen1"},
-    KEYS.fault_request: {"request_id": "ab12", "kind": "kill", "at_ns": None, "for_ns": 5,
+    KEYS.of("fault_request"): {"request_id": "ab12", "kind": "kill", "at_ns": None, "for_ns": 5,
                          "agent": "cpfc"},
-    KEYS.report("der/SGen1"): {"next_ns": None, "granted_ns": 5, "received": 3,
-                               "sent": {KEYS.p_ip: [2, 100]}, "killed_ns": 5},
-    KEYS.grant("cpfc"): {"until_ns": 10, "expect": 4},
-    KEYS.start: {"clock": "sim", "epoch_ns": 0, "speed": 1.0, "end_ns": 9, "seed": 3},
-    KEYS.stop: {"reason": "finished"},
-    KEYS.bye("measurement"): {"published": {KEYS.p_ip: 3}, "rejected": {KEYS.p_ip: {"x": 1}},
-                              "lost": 1, "stats": {"cpu_s": 0.5}},
+    KEYS.of("clock_report", "der/SGen1"): {"next_ns": None, "granted_ns": 5, "received": 3,
+                               "sent": {KEYS.of("p_ip"): [2, 100]}, "killed_ns": 5},
+    KEYS.of("clock_grant", "cpfc"): {"until_ns": 10, "expect": 4},
+    KEYS.of("clock_start"): {"clock": "sim", "epoch_ns": 0, "speed": 1.0, "end_ns": 9, "seed": 3},
+    KEYS.of("clock_stop"): {"reason": "finished"},
+    KEYS.of("agent_bye", "measurement"): {"published": {KEYS.of("p_ip"): 3},
+                                          "rejected": {KEYS.of("p_ip"): {"x": 1}},
+                                          "lost": 1, "stats": {"cpu_s": 0.5}},
 }
 
 # (key, body change) -> must be rejected as invalid
 BAD = [
-    (KEYS.p_y, {"p_y": "high"}),
-    (KEYS.p_y, {"kp": 0.0}),
-    (KEYS.p_y, {"w": {"SGen1": 1.5}}),
-    (KEYS.p_y, {"w": {"1x": 0.5}}),
-    (KEYS.p_y, {"w": None}),
-    (KEYS.p_y, {"entry": -1}),
-    (KEYS.p_y, {"extra": 1}),
-    (KEYS.p_y, {"switch": {"p_y_before": 0.25}}),
-    (KEYS.der_state("SGen1"), {"mode": "dancing"}),
-    (KEYS.der_state("SGen1"), {"p_w": True}),
-    (KEYS.der_state("SGen1"), {"p_w": 1e300}),
-    (KEYS.heartbeat("SGen1"), {"available": 1}),
-    (KEYS.si, {"si": {}}),
-    (KEYS.si, {"si": {f"D{i}": True for i in range(1001)}}),
-    (KEYS.report("der/SGen1"), {"sent": {KEYS.p_y: [0, 5]}}),
-    (KEYS.report("der/SGen1"), {"sent": {KEYS.p_y: [1]}}),
-    (KEYS.report("der/SGen1"), {"granted_ns": 2**63}),
-    (KEYS.start, {"clock": "lunar"}),
-    (KEYS.faults, {"kind": "meteor"}),
-    (KEYS.faults, {"fault_id": 0}),
-    (KEYS.faults, {"link": "carrier_pigeon"}),
-    (KEYS.faults, {"probability": 1.5}),
-    (KEYS.event("der/SGen1"), {"kind": "Not A Kind"}),
-    (KEYS.event("der/SGen1"), {"level": "PANIC"}),
-    (KEYS.heartbeat("SGen1"), {"mode": "dancing"}),
-    (KEYS.start, {"speed": 0}),
-    (KEYS.stop, {"reason": "x" * 501}),
+    (KEYS.of("p_y"), {"p_y": "high"}),
+    (KEYS.of("p_y"), {"kp": 0.0}),
+    (KEYS.of("p_y"), {"w": {"SGen1": 1.5}}),
+    (KEYS.of("p_y"), {"w": {"1x": 0.5}}),
+    (KEYS.of("p_y"), {"w": None}),
+    (KEYS.of("p_y"), {"entry": -1}),
+    (KEYS.of("p_y"), {"extra": 1}),
+    (KEYS.of("p_y"), {"switch": {"p_y_before": 0.25}}),
+    (KEYS.of("der_state", "SGen1"), {"mode": "dancing"}),
+    (KEYS.of("der_state", "SGen1"), {"p_w": True}),
+    (KEYS.of("der_state", "SGen1"), {"p_w": 1e300}),
+    (KEYS.of("heartbeat", "SGen1"), {"available": 1}),
+    (KEYS.of("si"), {"si": {}}),
+    (KEYS.of("si"), {"si": {f"D{i}": True for i in range(1001)}}),
+    (KEYS.of("clock_report", "der/SGen1"), {"sent": {KEYS.of("p_y"): [0, 5]}}),
+    (KEYS.of("clock_report", "der/SGen1"), {"sent": {KEYS.of("p_y"): [1]}}),
+    (KEYS.of("clock_report", "der/SGen1"), {"granted_ns": 2**63}),
+    (KEYS.of("clock_start"), {"clock": "lunar"}),
+    (KEYS.of("fault"), {"kind": "meteor"}),
+    (KEYS.of("fault"), {"fault_id": 0}),
+    (KEYS.of("fault"), {"link": "carrier_pigeon"}),
+    (KEYS.of("fault"), {"probability": 1.5}),
+    (KEYS.of("event", "der/SGen1"), {"kind": "Not A Kind"}),
+    (KEYS.of("event", "der/SGen1"), {"level": "PANIC"}),
+    (KEYS.of("heartbeat", "SGen1"), {"mode": "dancing"}),
+    (KEYS.of("clock_start"), {"speed": 0}),
+    (KEYS.of("clock_stop"), {"reason": "x" * 501}),
 ]
 
 
@@ -102,7 +109,7 @@ def raw(key: str, body: dict, **fields) -> bytes:
 
 
 def test_every_message_type_has_a_schema_and_an_example() -> None:
-    assert {route(k).type for k in EXAMPLES} == set(MESSAGE_TYPES) == set(message_schemas())
+    assert {route(k).type for k in EXAMPLES} == set(STRUCTS) == set(message_schemas())
 
 
 @pytest.mark.parametrize("key", list(EXAMPLES))
@@ -116,7 +123,7 @@ def test_examples_decode_and_encode_back_to_the_same_bytes(key: str) -> None:
 
 
 def test_encode_puts_the_envelope_first_and_omits_unset_fields() -> None:
-    message = MESSAGE_TYPES["p_y"](1, "p_y", "cpfc", 3, 10, 20, p_y=0.5, p_ref_w=1e6, kp=1e-8,
+    message = STRUCTS["p_y"](1, "p_y", "cpfc", 3, 10, 20, p_y=0.5, p_ref_w=1e6, kp=1e-8,
                                    ki=2e-8, entry=0)
     assert encode(message) == (b'{"v":1,"type":"p_y","src":"cpfc","seq":3,"t_send_ns":10,'
                                b'"t_deliver_ns":20,"p_y":0.5,"p_ref_w":1000000.0,"kp":1e-8,'
@@ -161,7 +168,7 @@ P_IP = b'{"v":1,"type":"p_ip","src":"measurement","seq":0,"t_send_ns":%s,"t_deli
 def test_malformed_payloads_are_rejected_with_a_reason(payload: bytes, reason: str,
                                                        text: str) -> None:
     with pytest.raises(MessageError) as info:
-        decode(KEYS.p_ip, payload)
+        decode(KEYS.of("p_ip"), payload)
     assert info.value.reason == reason
     assert text in str(info.value)
     assert "\n" not in str(info.value)
@@ -169,10 +176,24 @@ def test_malformed_payloads_are_rejected_with_a_reason(payload: bytes, reason: s
 
 def test_keys_route_to_their_type_and_one_sender() -> None:
     for key, sender in SENDER.items():
-        assert route(key) == Route(route(key).type, sender)
-    assert route(KEYS.grant("der/SGen1")) == Route("clock_grant", "up")
-    assert route(KEYS.bye("der/SGen1")) == Route("agent_bye", "der/SGen1")
-    assert route(KEYS.kill("der/SGen1")) == Route("clock_stop", "up")
+        assert route(key).sender == sender
+    assert route(KEYS.of("clock_grant", "der/SGen1")) == Route(KINDS["clock_grant"], "up")
+    assert route(KEYS.of("agent_bye", "der/SGen1")) == Route(KINDS["agent_bye"], "der/SGen1")
+    kill = route(KEYS.of("clock_kill", "der/SGen1"))
+    assert kill == Route(KINDS["clock_kill"], "up") and kill.type == "clock_stop"
+
+
+def test_every_kind_builds_a_key_that_routes_back_to_it() -> None:
+    """The key builder and the key parser are one table read both ways."""
+    who = {"der": "SGen1", "agent": "der/SGen1", "party": "cpfc"}
+    for kind in PROTOCOL:
+        key = KEYS.of(kind.name, who.get(kind.placeholder))
+        assert route(key).kind is kind, key
+        assert route(key).type == kind.type and STRUCTS[kind.type] is kind.struct
+    with pytest.raises(ValueError):
+        KEYS.of("der_state")                  # its DER missing
+    with pytest.raises(ValueError):
+        KEYS.of("p_y", "SGen1")               # no placeholder to fill
 
 
 @pytest.mark.parametrize("key", ["adn/g/cpfc", "adn/g/der/x/y/state", "other/g/cpfc/p_y",
@@ -194,9 +215,9 @@ def test_schemas_are_valid_draft_2020_12_and_agree_with_decoding() -> None:
         jsonschema.Draft202012Validator.check_schema(schema)
     cases = [(k, envelope(k, b)) for k, b in EXAMPLES.items()]
     cases += [(k, envelope(k, {**EXAMPLES[k], **c})) for k, c in BAD]
-    cases += [(KEYS.p_ip, envelope(KEYS.p_ip, {"p_ip_w": 1}, seq=NS_MAX + 1)),
-              (KEYS.p_ip, envelope(KEYS.p_ip, {"p_ip_w": 1})),
-              (KEYS.p_ip, envelope(KEYS.p_ip, {}))]
+    cases += [(KEYS.of("p_ip"), envelope(KEYS.of("p_ip"), {"p_ip_w": 1}, seq=NS_MAX + 1)),
+              (KEYS.of("p_ip"), envelope(KEYS.of("p_ip"), {"p_ip_w": 1})),
+              (KEYS.of("p_ip"), envelope(KEYS.of("p_ip"), {}))]
     for key, payload in cases:
         name = route(key).type
         reference = jsonschema.Draft202012Validator(schemas[name]).is_valid(payload)
@@ -207,14 +228,14 @@ def test_schemas_are_valid_draft_2020_12_and_agree_with_decoding() -> None:
             ours = False
         assert ours == reference, (name, payload)
     # one thing decoding is stricter in than JSON Schema can say: an integer is written as one
-    seq_as_float = envelope(KEYS.p_ip, {"p_ip_w": 1}, seq=2.0)
+    seq_as_float = envelope(KEYS.of("p_ip"), {"p_ip_w": 1}, seq=2.0)
     assert jsonschema.Draft202012Validator(schemas["p_ip"]).is_valid(seq_as_float)
     with pytest.raises(MessageError):
         decode_as("p_ip", json.dumps(seq_as_float).encode())
 
 
 def test_envelope_times_read_without_the_body() -> None:
-    assert envelope_times(raw(KEYS.p_ip, {"p_ip_w": 1.0})) == (5, 7)
+    assert envelope_times(raw(KEYS.of("p_ip"), {"p_ip_w": 1.0})) == (5, 7)
     assert envelope_times(b'{"t_send_ns": 1, "t_deliver_ns": 2, "junk": [[[]]]}') == (1, 2)
     for bad in (b"x", b"{}", b'{"t_send_ns": -1, "t_deliver_ns": 2}',
                 b'{"t_send_ns": 1, "t_deliver_ns": ' + b"9" * 40 + b"}"):
@@ -238,4 +259,4 @@ def test_ns_rounds_seconds_to_integer_nanoseconds() -> None:
 
 def test_msgspec_is_the_decoder() -> None:
     """The structs are msgspec structs (the schemas and decoding come from them)."""
-    assert all(issubclass(cls, msgspec.Struct) for cls in MESSAGE_TYPES.values())
+    assert all(issubclass(cls, msgspec.Struct) for cls in STRUCTS.values())

@@ -13,7 +13,7 @@ from adnmesh.control.registry import build_agent
 from adnmesh.runtime.process import (AgentProcess, add_agent_arguments, load_config_or_exit,
                                      open_session)
 from adnmesh.sim.node import Node
-from adnmesh.wire.keys import der_agent_id
+from adnmesh.names import der_agent_id
 
 
 def main(argv: list[str] | None = None) -> int:

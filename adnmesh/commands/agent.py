@@ -13,10 +13,11 @@ import importlib
 import sys
 
 from adnmesh.errors import UsageError
+from adnmesh.names import AGENT_KINDS
 
 __all__ = ["KINDS", "add_parser", "run"]
 
-KINDS = ("cpfc", "der", "measurement", "availability")
+KINDS = AGENT_KINDS
 """The agent kinds (one program each in :mod:`adnmesh.agents`)."""
 
 

@@ -47,13 +47,13 @@ def run(args: argparse.Namespace) -> int:
     """Create what is missing; print what was created and kept."""
     from adnmesh.runtime.certificates import DEFAULT_HOSTS, issue
     from adnmesh.runtime.identity import identities, router_identity
-    from adnmesh.wire.keys import LAUNCHER, OPERATOR
+    from adnmesh.names import LAUNCHER, OPERATOR, SINGLE_AGENT_KINDS
 
     if args.config:
         from adnmesh.config import load_config
         names = list(identities(load_config(args.config)))
     else:
-        names = ["cpfc", "measurement", "availability", LAUNCHER, OPERATOR]
+        names = [*SINGLE_AGENT_KINDS, LAUNCHER, OPERATOR]
     names += [router_identity(n) for n in args.router]
     renew = [n.strip() for n in (args.renew or "").split(",") if n.strip()]
     directory = Path(args.directory)

@@ -25,8 +25,9 @@ from adnmesh.errors import UsageError
 from adnmesh.runtime.bus import client_config
 from adnmesh.runtime.injector import new_request_id
 from adnmesh.wire.envelope import MessageError, decode, encode
-from adnmesh.wire.keys import LAUNCHER, OPERATOR, Keys
-from adnmesh.wire.messages import FAULT_KINDS, LINK_NAMES, MESSAGE_VERSION, FaultRequest
+from adnmesh.names import FAULT_KINDS, ICT_LINKS, LAUNCHER, OPERATOR
+from adnmesh.wire.keys import Keys
+from adnmesh.wire.outbox import Outbox
 from adnmesh.wire.units import ns
 
 __all__ = ["EXIT_NO_ANSWER", "add_parser", "run", "run_file_path"]
@@ -49,7 +50,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "fault", help="inject a fault into a running `adnmesh up`",
         description="Inject a fault into a running `adnmesh up`: in sim time at --at (or, if "
         "the run has passed it, at the earliest instant it can still change), in real time at "
-        "once. KIND and TARGET: link_outage|link_loss|link_delay LINK (" + ", ".join(LINK_NAMES)
+        "once. KIND and TARGET: link_outage|link_loss|link_delay LINK (" + ", ".join(ICT_LINKS)
         + "); der_offline DER; ict_outage; kill AGENT (cpfc, measurement, availability, "
         "der/<id>). Exit code 0 when the fault was injected, 2 when refused, 1 without answer.")
     parser.add_argument("run_ref", metavar="RUN",
@@ -148,11 +149,13 @@ def run(args: argparse.Namespace) -> int:
                 answer.append(event)
                 got.set()
 
-        subscriber = session.declare_subscriber(keys.event(LAUNCHER), on_event)
+        subscriber = session.declare_subscriber(keys.of("event", LAUNCHER), on_event)
         # seq: the wall clock, so that every request is newer than the last (the run rejects
         # a repeated (send time, seq) as a replay); the times are 0, the run's own start
-        session.put(keys.fault_request, encode(FaultRequest(
-            MESSAGE_VERSION, "fault_request", OPERATOR, time.time_ns(), 0, 0, **body)))
+        # seq: the wall clock, so that every request (each from a new process) comes after
+        # the last one up accepted on the key
+        key = keys.of("fault_request")
+        session.put(key, encode(Outbox(OPERATOR).message(key, time.time_ns(), 0, 0, body)))
         got.wait(args.timeout)
         subscriber.undeclare()
     if not answer:

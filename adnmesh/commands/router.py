@@ -50,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
     from adnmesh.runtime.bus import DEFAULT_HOST, free_port, router_config
     from adnmesh.runtime.identity import router_identity
     from adnmesh.sim.topology import Topology
-    from adnmesh.wire.keys import LAUNCHER
+    from adnmesh.names import LAUNCHER
 
     topology = Topology.from_config(load_config(args.config))
     identity = router_identity(args.name)

@@ -23,7 +23,8 @@ from __future__ import annotations
 
 from adnmesh.config import Config
 from adnmesh.control.base import Agent, Outgoing
-from adnmesh.wire.keys import Keys, der_id_of
+from adnmesh.names import der_agent_id, der_id_of
+from adnmesh.wire.keys import Keys
 from adnmesh.wire.messages import Envelope
 from adnmesh.wire.units import ns
 
@@ -37,8 +38,8 @@ class AvailabilityMonitor(Agent):
 
     def __init__(self, config: Config) -> None:
         keys = Keys(config.grid)
-        self._si_key = keys.si
-        self._event_key = keys.event(self.agent_id)
+        self._si_key = keys.of("si")
+        self._event_key = keys.of("event", self.agent_id)
         self.timeout_ns = ns(config.runtime.heartbeat_timeout_s)
         self.period_ns = ns(config.runtime.heartbeat_period_s)
         self.der_ids = config.der_ids()
@@ -108,7 +109,7 @@ class AvailabilityMonitor(Agent):
                     out.append(Outgoing(self._event_key, {
                         "level": "INFO" if si[der_id] else "WARNING",
                         "kind": "available" if si[der_id] else "unavailable",
-                        "subject": f"der/{der_id}",
+                        "subject": der_agent_id(der_id),
                         "text": f"{der_id} available again" if si[der_id] else
                                 f"{der_id} unavailable: {self.reason[der_id]}"}))
         self._sent = si

@@ -70,6 +70,7 @@ from adnmesh.config import Config
 from adnmesh.control.base import Agent, Outgoing
 from adnmesh.control.operating_point import available_power_w, initial_p_ip_w
 from adnmesh.control.pi import SampledPI, SwitchRecord
+from adnmesh.names import der_id_of
 from adnmesh.wire.keys import Keys
 from adnmesh.wire.messages import Envelope, Switch
 from adnmesh.wire.units import ns
@@ -294,7 +295,7 @@ class CPFC(Agent):
         self.next_sample_ns = 0
         self._next_weights_ns = 0
         self._p_ref_sent: float | None = None
-        self._event_key = self.keys.event(self.agent_id)
+        self._event_key = self.keys.of("event", self.agent_id)
         self.switches: list[SwitchEvent] = []
         self.counts: dict[str, int] = {"samples": 0, "no_gains": 0, "rejected_si": 0,
                                        "held_samples": 0, "rollbacks": 0}
@@ -339,7 +340,7 @@ class CPFC(Agent):
 
     def _ack(self, t_ns: int, message) -> None:
         """A DER's acknowledgement; a new fallback undoes the samples it disturbed."""
-        der = message.src[4:]
+        der = der_id_of(message.src)
         before = self.acks.get(der)
         self.acks[der] = (t_ns, message.mode, message.p_y)
         fell_back = message.mode == "watchdog" and (before is None or before[1] != "watchdog")
@@ -383,7 +384,7 @@ class CPFC(Agent):
             self._next_weights_ns = t_ns + self.weights_period_ns
         if self.hold is not None:
             body["hold"] = self.hold
-        out.append(Outgoing(self.keys.p_y, body))
+        out.append(Outgoing(self.keys.of("p_y"), body))
         self.counts["samples"] += 1
         self._history.append((t_ns, self.pi.snapshot()))
         return out
@@ -411,7 +412,7 @@ class CPFC(Agent):
         if self.p_ref_w == self._p_ref_sent:
             return []
         self._p_ref_sent = self.p_ref_w
-        return [Outgoing(self.keys.p_ref, {"p_ref_w": self.p_ref_w})]
+        return [Outgoing(self.keys.of("p_ref"), {"p_ref_w": self.p_ref_w})]
 
     def _watch_measurement(self, t_ns: int, error_w: float, out: list) -> None:
         """Hold while measurements are missing; re-enter without a jump when they return."""

@@ -40,7 +40,8 @@ from adnmesh.control.base import Agent, Outgoing
 from adnmesh.control.der_model import der_params
 from adnmesh.dermodels import infeed_at, set_point, steady_state
 from adnmesh.dermodels.limits import held_at
-from adnmesh.wire.keys import Keys, der_agent_id
+from adnmesh.names import der_agent_id
+from adnmesh.wire.keys import Keys
 from adnmesh.wire.messages import Envelope
 from adnmesh.wire.units import ns
 
@@ -59,9 +60,9 @@ class DERController(Agent):
         self.p_avail_w = der.p_inst_w if p_avail_w is None else min(p_avail_w, der.p_inst_w)
         self.agent_id = der_agent_id(der.id)
         keys = Keys(config.grid)
-        self._state_key = keys.der_state(der.id)
-        self._heartbeat_key = keys.heartbeat(der.id)
-        self._event_key = keys.event(self.agent_id)
+        self._state_key = keys.of("der_state", der.id)
+        self._heartbeat_key = keys.of("heartbeat", der.id)
+        self._event_key = keys.of("event", self.agent_id)
         rt = config.runtime
         self.params = der_params(der, config, self.p_avail_w)
         self.state = steady_state(self.params, der.p_sched_w)

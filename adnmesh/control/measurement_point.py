@@ -23,6 +23,7 @@ from msgspec import UNSET
 from adnmesh.config import Config
 from adnmesh.control.base import Agent, Outgoing
 from adnmesh.control.operating_point import grid_solver, initial_p_ip_w
+from adnmesh.names import der_agent_id
 from adnmesh.wire.keys import Keys
 from adnmesh.wire.messages import Envelope
 from adnmesh.wire.units import ns
@@ -70,11 +71,11 @@ class Measurement(Agent):
 
     def __init__(self, config: Config) -> None:
         keys = Keys(config.grid)
-        self._p_ip_key, self._grid_key = keys.p_ip, keys.grid_state
+        self._p_ip_key, self._grid_key = keys.of("p_ip"), keys.of("grid_state")
         self.period_ns = ns(config.runtime.measurement_period_s)
         self.rest_of_grid_w = config.runtime.rest_of_grid_w
         # infeed per DER agent, in config order (fixed summation order: reproducible sums)
-        self.infeed_w = {f"der/{d.id}": d.p_sched_w for d in config.ders}
+        self.infeed_w = {der_agent_id(d.id): d.p_sched_w for d in config.ders}
         self.held: dict[str, int] = {}          # DERs that follow P_Y: their limit state
         self.next_sample_ns = 0
         self.solver = grid_solver(config)

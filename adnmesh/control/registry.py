@@ -13,18 +13,9 @@ from adnmesh.control.cpfc_controller import CPFC, GainSchedule
 from adnmesh.control.der_controller import DERController
 from adnmesh.control.measurement_point import Measurement
 from adnmesh.control.operating_point import available_power_w
-from adnmesh.wire.keys import der_agent_id, der_id_of
+from adnmesh.names import der_id_of
 
-__all__ = ["AGENT_KINDS", "agent_ids", "build_agent"]
-
-AGENT_KINDS = ("cpfc", "measurement", "availability", "der")
-"""The kinds of agent; ``der`` runs once per DER (agent id ``der/<id>``)."""
-
-
-def agent_ids(config: Config) -> tuple[str, ...]:
-    """Every agent of ``config``: ``cpfc``, ``measurement``, ``availability``, then the DERs."""
-    return ("cpfc", "measurement", "availability", *(der_agent_id(d.id) for d in config.ders))
-
+__all__ = ["build_agent"]
 
 def build_agent(agent_id: str, config: Config, schedule: GainSchedule | None = None,
                 p_avail_w: float | None = None) -> Agent:

@@ -25,6 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from adnmesh.names import der_agent_id
+
 __all__ = ["DETECTION_KINDS", "FaultFigures", "fault_figures"]
 
 DETECTION_KINDS = frozenset({"watchdog_fallback", "unavailable", "hold"})
@@ -80,7 +82,7 @@ def _first_reaction(reactions, start: float, stop: float, fault: dict):
         return None
     first = min(t for t, _ in inside)
     at_first = [who for t, who in inside if t == first]
-    own = f"der/{fault.get('der')}"
+    own = der_agent_id(str(fault.get('der')))
     return first, own if own in at_first else min(at_first)
 
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from adnmesh.names import der_agent_id
 from adnmesh.sim.latency import merge, percentile
 
 __all__ = ["ALARM_TIMEOUTS", "LateAlarm", "LinkErrors", "RealtimeFigures", "realtime_figures",
@@ -107,7 +108,7 @@ def realtime_figures(byes, alarms, faults, config, *, speed: float,
 
 
 def _late_alarms(alarms, overruns, faults, config):
-    scheduled = [(c.t_s, {f"der/{d}" for d in c.ders}) for c in config.scenario.availability]
+    scheduled = [(c.t_s, {der_agent_id(d) for d in c.ders}) for c in config.scenario.availability]
     for t, _, kind, subject, _ in alarms:
         if kind not in ALARM_TIMEOUTS:
             continue

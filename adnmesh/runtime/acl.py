@@ -27,7 +27,8 @@ agents' liveliness tokens (``up`` may publish all keys and tokens), declare subs
 liveliness subscribers on ``adn/<grid>/**``, and is sent everything; each router enforces the
 rules above on its own clients.
 
-:func:`rights` is the table above computed from a :class:`~adnmesh.sim.topology.Topology`;
+:func:`rights` is the table above computed from a :class:`~adnmesh.sim.topology.Topology` (the
+routes of the protocol table, :mod:`adnmesh.wire.protocol`);
 :func:`access_control` turns it into the ``access_control`` section of a router's Zenoh config.
 """
 
@@ -35,8 +36,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from adnmesh.names import LAUNCHER, OPERATOR
 from adnmesh.sim.topology import Topology
-from adnmesh.wire.keys import LAUNCHER, OPERATOR
 
 __all__ = ["Rights", "access_control", "launcher_keys", "rights"]
 
@@ -71,22 +72,18 @@ class Rights:
 def launcher_keys(topology: Topology) -> tuple[str, ...]:
     """The keys only ``up`` publishes: clock start, stop, grants and kills; faults; its
     events."""
-    keys = topology.keys
-    return (keys.start, keys.stop, keys.faults, keys.event(LAUNCHER),
-            *(keys.grant(a) for a in topology.agents), *(keys.kill(a) for a in topology.agents))
+    return topology.sends(LAUNCHER)
 
 
 def rights(topology: Topology) -> dict[str, Rights]:
-    """The rights of every client identity of a run (agents and ``operator``), by identity."""
+    """The rights of every client identity of a run (agents and ``operator``), by identity:
+    what the protocol table has it send and receive (:mod:`adnmesh.wire.protocol`); the
+    operator also hears ``up``'s events, where ``up`` answers its requests."""
     keys = topology.keys
-    found = {}
-    for agent in topology.agents:
-        publishes = (*topology.publishes(agent), keys.report(agent), keys.bye(agent))
-        receives = (*topology.subscriptions[agent], keys.grant(agent), keys.start, keys.stop,
-                    keys.kill(agent))
-        found[agent] = Rights(agent, publishes, receives, keys.liveliness(agent),
-                              (keys.liveliness(LAUNCHER),))
-    found[OPERATOR] = Rights(OPERATOR, (keys.fault_request,), (keys.event(LAUNCHER),))
+    found = {agent: Rights(agent, topology.sends(agent), topology.gets(agent),
+                           keys.liveliness(agent), (keys.liveliness(LAUNCHER),))
+             for agent in topology.agents}
+    found[OPERATOR] = Rights(OPERATOR, topology.sends(OPERATOR), (keys.of("event", LAUNCHER),))
     return found
 
 

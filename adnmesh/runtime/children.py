@@ -21,7 +21,7 @@ import threading
 import time
 from pathlib import Path
 
-from adnmesh.wire.keys import der_id_of
+from adnmesh.names import der_id_of
 
 EXIT_INTERNAL_ERROR = 70
 """Exit code of an agent whose own code raised (EX_SOFTWARE). The process ends at once with one

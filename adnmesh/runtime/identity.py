@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from adnmesh.errors import UsageError
-from adnmesh.wire.keys import AGENT_PATTERN, ID_PATTERN, LAUNCHER, OPERATOR, der_agent_id
+from adnmesh.names import AGENT_PATTERN, AGENTS_IN_WORDS, ID_PATTERN, LAUNCHER, OPERATOR, agent_ids
 
 __all__ = ["CA", "CertFiles", "cert_files", "check_identity", "identities", "router_identity"]
 
@@ -38,15 +38,14 @@ def router_identity(name: str) -> str:
 def check_identity(identity: str) -> str:
     """``identity`` if it is one (see the module docstring); else a :class:`UsageError`."""
     if len(identity) > 80 or not _IDENTITY.match(identity):
-        raise UsageError(f"not an identity: {identity!r} (cpfc, measurement, availability, "
-                         "der/<id>, up, operator, router/<name>)")
+        raise UsageError(f"not an identity: {identity!r} ({AGENTS_IN_WORDS}, {LAUNCHER}, "
+                         f"{OPERATOR}, router/<name>)")
     return identity
 
 
 def identities(config) -> tuple[str, ...]:
     """Every identity a run of ``config`` needs: its agents, ``up`` and ``operator``."""
-    return ("cpfc", "measurement", "availability", *(der_agent_id(d) for d in config.der_ids()),
-            LAUNCHER, OPERATOR)
+    return (*agent_ids(config.der_ids()), LAUNCHER, OPERATOR)
 
 
 @dataclass(frozen=True)

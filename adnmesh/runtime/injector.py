@@ -27,7 +27,7 @@ import time
 import uuid
 
 from adnmesh.sim.faults import FaultError, FaultPlan, PlannedFault, fault_events, resend_body
-from adnmesh.wire.keys import LAUNCHER
+from adnmesh.names import LAUNCHER
 
 __all__ = ["FaultInjector", "new_request_id"]
 
@@ -77,7 +77,7 @@ class FaultInjector:
             self.killed.add(agent)
             restart = self._restart_at.get(agent)
         launch = self.launch
-        launch.outbox.send(self.keys.kill(agent), message.killed_ns, reason="killed")
+        launch.outbox.send(self.keys.of("clock_kill", agent), message.killed_ns, reason="killed")
         self._event(message.killed_ns, "WARNING", "killed", f"{agent} killed at "
                     f"{message.killed_ns / 1e9:g} s (injected fault)", subject=agent)
         if restart is not None and launch.clock is not None:
@@ -166,13 +166,14 @@ class FaultInjector:
         body = planned.body if body is None else body
         if launch.clock is not None:
             launch.clock.inject(launch.topology.agents)
-        launch.outbox.send(self.keys.faults, t_send, t_deliver_ns=max(body["start_ns"], t_send),
+        launch.outbox.send(self.keys.of("fault"), t_send,
+                           t_deliver_ns=max(body["start_ns"], t_send),
                            **body)
         if announce:
             event = fault_events(planned)
             if request_id is not None:
                 event["request_id"] = request_id
-            launch.outbox.send(self.keys.event(LAUNCHER), t_send, **event)
+            launch.outbox.send(self.keys.of("event", LAUNCHER), t_send, **event)
 
     def _plan_restart(self, agent: str, at_ns: int) -> None:
         with self._lock:
@@ -241,5 +242,5 @@ class FaultInjector:
         return max(0, int((time.time_ns() - epoch) * speed)) if epoch else 0
 
     def _event(self, t_ns: int, level: str, kind: str, text: str, **extra) -> None:
-        self.launch.outbox.send(self.keys.event(LAUNCHER), t_ns, level=level, kind=kind,
+        self.launch.outbox.send(self.keys.of("event", LAUNCHER), t_ns, level=level, kind=kind,
                                 text=text, **extra)

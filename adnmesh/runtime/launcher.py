@@ -66,7 +66,7 @@ from adnmesh.results.summary import RunSeries
 from adnmesh.runtime.tap import RecorderTap, recording_schemas
 from adnmesh.sim.clock import Coordinator
 from adnmesh.sim.topology import Topology
-from adnmesh.wire.keys import LAUNCHER
+from adnmesh.names import LAUNCHER, der_id_of
 from adnmesh.wire.units import ns
 
 __all__ = ["EXIT_FAILED", "EXIT_NOT_REALTIME", "EXIT_OK", "UpOptions", "UpResult",
@@ -359,7 +359,7 @@ class _Launch:
             self.options.log(f"external agent {agent_id}: start it on its host with "
                              f"{self.agent_command(agent_id, resume_ns)}")
             return
-        der_id = agent_id[4:] if agent_id.startswith("der/") else None
+        der_id = der_id_of(agent_id)
         argv = agent_argv(agent_id, Path(self.config.path), self.endpoint,
                           self.options.table_path, self.options.available_w.get(der_id),
                           self.options.certs)
@@ -380,7 +380,7 @@ class _Launch:
 
     def announce_start(self) -> None:
         """Publish ``clock/start`` (again, for an agent that restarted)."""
-        self.outbox.send(self.keys.start, 0, **self._start_body)
+        self.outbox.send(self.keys.of("clock_start"), 0, **self._start_body)
 
     def clock_lock(self):
         """The sim clock's lock (held while a fault is injected), or a dummy one."""
@@ -542,7 +542,7 @@ def shutdown(launch: _Launch, reason: str) -> None:
     """Announce the stop, collect the goodbyes, end every process (see the module docstring)."""
     options, roster, children = launch.options, launch.roster, launch.children
     t_stop = launch.clock.now_ns() if launch.clock is not None else 0
-    launch.outbox.send(launch.keys.stop, t_stop, reason=reason)
+    launch.outbox.send(launch.keys.of("clock_stop"), t_stop, reason=reason)
     deadline = time.monotonic() + options.shutdown_timeout_s
     # realtime, not kept up: agents far behind, and the router's queue to the recorder, drain
     # their backlog first; while goodbyes or recorded messages still come, wait on, up to
@@ -556,7 +556,7 @@ def shutdown(launch: _Launch, reason: str) -> None:
             break
         if options.clock == "realtime" and time.monotonic() > again:
             # a session that dropped under load and came back missed the stop: say it again
-            launch.outbox.send(launch.keys.stop, t_stop, reason=reason)
+            launch.outbox.send(launch.keys.of("clock_stop"), t_stop, reason=reason)
             again = time.monotonic() + _STOP_AGAIN_S
             if _progress(launch) > heard and launch.overloaded():
                 heard = _progress(launch)
@@ -594,12 +594,13 @@ def verify(launch: _Launch) -> None:
     result = launch.result
     excused = _overloaded_agents(launch)
     unverified = _keys_of(launch, launch.injector.killed | excused)
-    not_counted = unverified | {launch.keys.fault_request}   # a person's commands: uncounted
+    not_counted = unverified | {launch.keys.of("fault_request")}  # a person's commands: uncounted
     result.published = {k: v for k, v in launch.roster.published(launch.outbox.counts()).items()
                         if k not in not_counted}
     # the ready reports an agent sent before up heard its first one had no route to the
     # recorder yet (re-sent until heard): not counted, and the recording says how many
-    before_contact = {launch.keys.report(a): n for a, n in launch.roster.unheard.items() if n}
+    before_contact = {launch.keys.of("clock_report", a): n
+                      for a, n in launch.roster.unheard.items() if n}
     for key, n in before_contact.items():
         if key in result.published:
             result.published[key] -= n
@@ -631,7 +632,7 @@ def verify(launch: _Launch) -> None:
     launch.recorder.add_metadata(PUBLISHED_METADATA,
                                  {k: str(v) for k, v in result.published.items()})
     uncounted = {launch.tap.rejected_key: "payloads the recorder rejected",
-                 launch.keys.fault_request: "a person's fault requests",
+                 launch.keys.of("fault_request"): "a person's fault requests",
                  **{k: "a process of its agent died" for k in unverified}}
     launch.recorder.add_metadata(UNCOUNTED_METADATA, uncounted)
     if before_contact:      # per report key: ready reports sent before up heard the agent
@@ -685,7 +686,7 @@ def _keys_of(launch: _Launch, agents) -> set[str]:
     found = set()
     for agent in agents:
         found |= set(launch.topology.publishes(agent))
-        found |= {keys.report(agent), keys.bye(agent)}
+        found |= {keys.of("clock_report", agent), keys.of("agent_bye", agent)}
     return found
 
 

@@ -16,9 +16,10 @@ from msgspec import UNSET
 
 from adnmesh.runtime.tap import RecorderTap
 from adnmesh.sim.clock import ClockError, Coordinator, Report
+from adnmesh.names import LAUNCHER
 from adnmesh.wire.envelope import encode
-from adnmesh.wire.keys import LAUNCHER, Keys, route
-from adnmesh.wire.messages import MESSAGE_TYPES, MESSAGE_VERSION
+from adnmesh.wire.keys import Keys
+from adnmesh.wire.outbox import Outbox
 
 __all__ = ["LauncherOutbox", "SimClockDriver"]
 
@@ -31,23 +32,18 @@ class LauncherOutbox:
         self._tap = tap
         self.lock = threading.Lock()
         self._publishers: dict[str, zenoh.Publisher] = {}
-        self.published: dict[str, int] = {}
+        self._outbox = Outbox(LAUNCHER)
 
     def send(self, key: str, t_ns: int, t_deliver_ns: int | None = None, **body) -> None:
         """Publish a message of ``up`` sent at sim time ``t_ns`` (delivered then, or at
         ``t_deliver_ns``) and record it."""
-        type_name = route(key).type
         with self.lock:
-            seq = self.published.get(key, 0)
-            self.published[key] = seq + 1
             publisher = self._publishers.get(key)
             if publisher is None:
                 publisher = self._publishers[key] = self._session.declare_publisher(
                     key, congestion_control=zenoh.CongestionControl.BLOCK,
                     allowed_destination=zenoh.Locality.REMOTE)
-            message = MESSAGE_TYPES[type_name](MESSAGE_VERSION, type_name, LAUNCHER, seq, t_ns,
-                                               t_ns if t_deliver_ns is None else t_deliver_ns,
-                                               **body)
+            message = self._outbox.send(key, t_ns, body, t_deliver_ns)
             payload = encode(message)
             publisher.put(payload)
             self._tap.record_own(key, message, payload)
@@ -55,7 +51,7 @@ class LauncherOutbox:
     def counts(self) -> dict[str, int]:
         """Messages sent per key."""
         with self.lock:
-            return dict(self.published)
+            return self._outbox.counts()
 
 
 class SimClockDriver:
@@ -147,7 +143,8 @@ class SimClockDriver:
             self.last_grant_s = time.monotonic()
         t = self.coordinator.now_ns() if grants else 0
         for g in grants:
-            self._outbox.send(self._keys.grant(g.agent), t, until_ns=g.until_ns, expect=g.expect)
+            self._outbox.send(self._keys.of("clock_grant", g.agent), t, until_ns=g.until_ns,
+                              expect=g.expect)
         if self.coordinator.finished and not self.finished:
             self.finished = True
             self._on_change()

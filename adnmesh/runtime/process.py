@@ -62,8 +62,8 @@ from adnmesh.runtime.os_scheduling import (PRIORITIES, PRIORITY_ENV, SpinPlan, f
                                        raise_priority, spin_ns_from_env, tighten_timers)
 from adnmesh.sim.node import Node
 from adnmesh.wire.envelope import MessageError, decode, encode, frames, split_frame
-from adnmesh.wire.keys import Keys, route
-from adnmesh.wire.messages import MESSAGE_TYPES, MESSAGE_VERSION
+from adnmesh.wire.keys import Keys
+from adnmesh.wire.outbox import Outbox
 
 __all__ = ["AgentProcess", "add_agent_arguments", "die_with_parent", "load_config_or_exit",
            "open_session"]
@@ -208,7 +208,7 @@ class AgentProcess:
         self.reported = False                # the first report is sent (up was seen)
         self.window_cpu_s = 0.0              # CPU time spent processing grants
         self._publishers: dict[str, zenoh.Publisher] = {}
-        self._own: dict[str, int] = {}       # what this wrapper published itself, per key
+        self._own = Outbox(node.agent_id)    # what this wrapper sends itself (clock protocol)
         self._handles: list = []
         self._signals: dict = {}
         self.overruns: OverrunWatch | None = None
@@ -270,8 +270,8 @@ class AgentProcess:
         self._handles = [session.declare_subscriber(key, on_data)
                          for key in self.node.subscriptions]
         self._handles += [session.declare_subscriber(key, on_clock)
-                          for key in (keys.grant(self.agent), keys.start, keys.stop,
-                                      keys.kill(self.agent))]
+                          for key in (keys.of("clock_grant", self.agent), keys.of("clock_start"),
+                                      keys.of("clock_stop"), keys.of("clock_kill", self.agent))]
         self._handles.append(session.liveliness().declare_token(keys.liveliness(self.agent)))
         # up declares its token after its recorder's subscriber, but behind a site router the
         # token can still arrive before the route: reports before the first one up hears are
@@ -318,8 +318,8 @@ class AgentProcess:
             self.mode, self.said_bye = None, True
             self._publish_all(self.node.finish())
             node, counts = self.node, self.node.counts
-            bye_key = self.keys.bye(self.agent)
-            published = {**counts.published, **self._own}
+            bye_key = self.keys.of("agent_bye", self.agent)
+            published = {**counts.published, **self._own.counts()}
             published[bye_key] = published.get(bye_key, 0) + 1
             stats = {**node.agent.stats(), "cpu_s": time.process_time(),
                      "window_cpu_s": self.window_cpu_s, "late": float(counts.late),
@@ -390,7 +390,7 @@ class AgentProcess:
                 message = decode(key, payload)
             except MessageError as exc:
                 with self.lock:
-                    self.node.counts.reject(key, exc.reason)
+                    self.node.gate.reject(key, exc.reason)
                 continue
             with self.lock:
                 self._take_clock(key, message)
@@ -402,7 +402,7 @@ class AgentProcess:
             return
         if message.type == "clock_start" and self.start is None:
             self.start = message
-        elif message.type == "clock_stop" and key == self.keys.kill(self.agent):
+        elif message.type == "clock_stop" and key == self.keys.of("clock_kill", self.agent):
             self.kill_acked = True
         elif message.type == "clock_stop":
             self.stop = self.stop or message.reason
@@ -457,18 +457,12 @@ class AgentProcess:
 
     def _send_own(self, key: str, **body) -> None:
         """Send a clock-protocol message of this wrapper (report, goodbye) at the node's time."""
-        seq = self._own.get(key, 0)
-        self._own[key] = seq + 1
-        now = self.node.now_ns
-        type_name = route(key).type
-        message = MESSAGE_TYPES[type_name](MESSAGE_VERSION, type_name, self.agent, seq, now,
-                                           now, **body)
-        self._publish(key, encode(message))
+        self._publish(key, encode(self._own.send(key, self.node.now_ns, body)))
 
     def _report(self) -> None:
         r = self.node.report()
         extra = {} if r.killed_ns is None else {"killed_ns": r.killed_ns}
-        self._send_own(self.keys.report(self.agent), next_ns=r.next_ns,
+        self._send_own(self.keys.of("clock_report", self.agent), next_ns=r.next_ns,
                        granted_ns=self.node.granted_ns, received=r.received,
                        sent={k: tuple(v) for k, v in r.sent.items()}, **extra)
 
@@ -542,4 +536,4 @@ class AgentProcess:
 
     def _note_overrun(self, body: dict | None) -> None:
         if body is not None:
-            self._publish_all(self.node.send_now(self.keys.event(self.agent), body))
+            self._publish_all(self.node.send_now(self.keys.of("event", self.agent), body))

@@ -14,7 +14,8 @@ from __future__ import annotations
 
 import time
 
-from adnmesh.sim.topology import ICT_LINKS, Topology
+from adnmesh.names import ICT_LINKS
+from adnmesh.sim.topology import Topology
 
 __all__ = ["OVERRUN_EVERY_NS", "OverrunWatch", "ScaledClock", "tolerance_ns"]
 

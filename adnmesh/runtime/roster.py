@@ -11,7 +11,7 @@ import threading
 
 import zenoh
 
-from adnmesh.wire.keys import LAUNCHER
+from adnmesh.names import LAUNCHER
 
 __all__ = ["Roster"]
 

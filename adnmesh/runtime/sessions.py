@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import zenoh
 
-from adnmesh.wire.keys import OPERATOR
+from adnmesh.names import OPERATOR
 
 __all__ = ["SessionReport", "SessionWatch"]
 

@@ -2,8 +2,9 @@
 
 The tap takes every sample the agents publish (one subscriber on ``adn/<grid>/**``) and every
 message ``up`` sends itself, and writes one MCAP message per envelope. It decodes and validates
-each envelope first (:func:`adnmesh.wire.decode`: every field in range, the key's own sender,
-a key of this run's topology, no (send time, seq) repeated on a key), so that only genuine
+each envelope first, through the same gate every agent uses (:mod:`adnmesh.wire.gate`: a key
+some party of the run sends, every field in range, the key's own sender, no unknown DER, no
+(send time, seq) repeated on a key), so that only genuine
 messages reach their channel, the summary's series and the caller (clock reports and goodbyes
 go on to the clock and the shutdown). Anything else is **rejected**: counted per key and reason
 and recorded apart on the channel ``adn/<grid>/rejected`` (type ``rejected``: the key, the
@@ -24,9 +25,10 @@ import msgspec
 from msgspec import Meta, Struct
 
 from adnmesh.results.summary import SUMMARY_TYPES, RunSeries
-from adnmesh.sim.node import names_known_ders
+from adnmesh.names import LAUNCHER
 from adnmesh.sim.topology import Topology
-from adnmesh.wire.envelope import MessageError, decode, encode, envelope_times, split_frame
+from adnmesh.wire.envelope import MessageError, encode, envelope_times, split_frame
+from adnmesh.wire.gate import Gate
 from adnmesh.wire.messages import Envelope
 from adnmesh.wire.schemas import SCHEMA_DIALECT, message_schemas
 
@@ -84,16 +86,13 @@ class RecorderTap:
         self.view = view
         self.series = series
         self._now_ns = now_ns
-        keys = topology.keys
-        self.rejected_key = f"{keys.root}/rejected"
-        self._known = {key for _, key in topology.links}
-        for agent in topology.agents:
-            self._known |= {keys.report(agent), keys.bye(agent)}
-        self._known.add(keys.fault_request)
-        self._der_ids = topology.der_ids
-        self._last: dict[str, tuple[int, int]] = {}
+        self.rejected_key = f"{topology.keys.root}/rejected"
+        # every key a party of the run sends, but up's own (recorded as it sends them)
+        self._gate = Gate({r.key for r in topology.routes if r.sender != LAUNCHER},
+                          topology.der_ids, outside_reason="unknown_key",
+                          outside_detail="not a key of this run's agents")
+        self.rejected = self._gate.rejected
         self._lock = threading.Lock()
-        self.rejected: dict[str, dict[str, int]] = {}
         self.record_errors = 0
         self.problems: list[str] = []
 
@@ -127,37 +126,21 @@ class RecorderTap:
     def count_rejected(self, key: str, reason: str) -> None:
         """Count a payload rejected elsewhere in ``up`` (e.g. a malformed fault request)."""
         with self._lock:
-            self._count(key, reason)
+            self._gate.reject(key, reason)
 
     def rejected_total(self) -> int:
         """Every rejected payload so far."""
         with self._lock:
-            return sum(sum(r.values()) for r in self.rejected.values())
+            return self._gate.rejected_total
 
     # -- internals (with the lock held) ----------------------------------------------------------
 
     def _check(self, key: str, payload: bytes, rejects: list, now_ns: int) -> Envelope | None:
         try:
-            if key not in self._known:
-                raise MessageError("unknown_key", "not a key of this run's agents")
-            message = decode(key, payload)
-            if not names_known_ders(message, self._der_ids):
-                raise MessageError("unknown_der", "names a DER this run does not have")
-            stamp = (message.t_send_ns, message.seq)
-            if key in self._last and stamp <= self._last[key]:
-                raise MessageError("replayed", f"(t_send_ns, seq) {stamp} already seen")
+            return self._gate.admit(key, payload)
         except MessageError as exc:
-            self._count(key, exc.reason)
             rejects.append(self._rejected_record(key, payload, exc, now_ns))
             return None
-        self._last[key] = stamp
-        return message
-
-    def _count(self, key: str, reason: str) -> None:
-        if key not in self.rejected and len(self.rejected) >= 256:
-            key = "(other keys)"
-        per_key = self.rejected.setdefault(key, {})
-        per_key[reason] = per_key.get(reason, 0) + 1
 
     def _rejected_record(self, key: str, payload: bytes, exc: MessageError, now_ns: int):
         record = Rejected(key=key[:512], reason=exc.reason, detail=exc.detail[:1000],

@@ -16,8 +16,7 @@ from dataclasses import dataclass
 from msgspec import UNSET
 
 from adnmesh.config import Config
-from adnmesh.wire.keys import der_agent_id
-from adnmesh.wire.messages import LINK_NAMES
+from adnmesh.names import AGENTS_IN_WORDS, ICT_LINKS, der_agent_id
 from adnmesh.wire.units import ns
 
 __all__ = ["FaultError", "FaultPlan", "PlannedFault", "describe", "fault_events", "resend_body"]
@@ -120,9 +119,9 @@ class FaultPlan:
             raise FaultError(f"{kind} needs a {needed}")
         out = {}
         if needed == "link":
-            if given["link"] not in LINK_NAMES:
+            if given["link"] not in ICT_LINKS:
                 raise FaultError(f"unknown link {given['link']!r} (links: "
-                                 f"{', '.join(LINK_NAMES)})")
+                                 f"{', '.join(ICT_LINKS)})")
             out["link"] = given["link"]
         elif needed == "der":
             if given["der"] not in self.der_ids:
@@ -134,8 +133,7 @@ class FaultPlan:
             if agent not in self.agents and der_agent_id(agent) in self.agents:
                 agent = der_agent_id(agent)
             if agent not in self.agents:
-                raise FaultError(f"unknown agent {given['agent']!r} (agents: cpfc, measurement, "
-                                 "availability, der/<id>)")
+                raise FaultError(f"unknown agent {given['agent']!r} (agents: {AGENTS_IN_WORDS})")
             out["agent"] = agent
         if kind == "link_loss":
             if "probability" not in given:

@@ -19,9 +19,9 @@ from adnmesh.sim.clock import Coordinator
 from adnmesh.sim.faults import FaultPlan, PlannedFault, fault_events, resend_body
 from adnmesh.sim.node import Node
 from adnmesh.sim.topology import Topology
+from adnmesh.names import LAUNCHER
 from adnmesh.wire.envelope import encode
-from adnmesh.wire.keys import LAUNCHER, route
-from adnmesh.wire.messages import MESSAGE_TYPES, MESSAGE_VERSION
+from adnmesh.wire.outbox import Outbox
 from adnmesh.wire.units import ns
 
 __all__ = ["LocalRun", "run_local"]
@@ -58,7 +58,7 @@ class _LocalRunner:
         self.plan = FaultPlan(config, self.topology.agents)
         self.coordinator = self.run.coordinator = Coordinator(self.topology, end_ns,
                                                               on_rejoin=self._rejoined)
-        self._seq: dict[str, int] = {}
+        self.outbox = Outbox(LAUNCHER)
         for agent_id in self.topology.agents:
             self.run.nodes[agent_id] = self._node(agent_id, 0)
 
@@ -68,13 +68,7 @@ class _LocalRunner:
 
     def send_own(self, key: str, t_send: int, body: dict, t_deliver: int | None = None) -> None:
         """A message of ``up``: recorded, delivered to the key's receivers."""
-        type_name = route(key).type
-        seq = self._seq.get(key, 0)
-        self._seq[key] = seq + 1
-        payload = encode(MESSAGE_TYPES[type_name](MESSAGE_VERSION, type_name, LAUNCHER, seq,
-                                                  t_send, t_send if t_deliver is None
-                                                  else t_deliver, **body))
-        self.deliver(key, payload)
+        self.deliver(key, encode(self.outbox.send(key, t_send, body, t_deliver)))
 
     def deliver(self, key: str, payload: bytes) -> None:
         self.run.messages.append((key, payload))
@@ -85,7 +79,7 @@ class _LocalRunner:
         keys = self.topology.keys
         body = planned.body if body is None else body
         self.coordinator.inject(self.topology.agents)
-        self.send_own(keys.faults, t_send, body, max(body["start_ns"], t_send))
+        self.send_own(keys.of("fault"), t_send, body, max(body["start_ns"], t_send))
 
     def start(self) -> deque:
         keys = self.topology.keys
@@ -94,7 +88,7 @@ class _LocalRunner:
         self.plan.from_config(self.config)
         for planned in self.plan.faults:
             self.inject(planned, 0)
-            self.send_own(keys.event(LAUNCHER), 0, fault_events(planned))
+            self.send_own(keys.of("event", LAUNCHER), 0, fault_events(planned))
         for agent, at in self.plan.restarts():
             self.coordinator.plan_restart(agent, at)
         return deque(self.coordinator.start())
@@ -115,7 +109,7 @@ class _LocalRunner:
     def _killed(self, agent: str, at_ns: int) -> list:
         keys = self.topology.keys
         restart = [t for a, t in self.plan.restarts() if a == agent and t > at_ns]
-        self.send_own(keys.event(LAUNCHER), at_ns, {
+        self.send_own(keys.of("event", LAUNCHER), at_ns, {
             "level": "WARNING", "kind": "killed", "subject": agent,
             "text": f"{agent} killed at {at_ns / 1e9:g} s (injected fault)"})
         if not restart:
@@ -125,7 +119,7 @@ class _LocalRunner:
 
     def _rejoined(self, agent: str, now: int) -> None:
         keys = self.topology.keys
-        self.send_own(keys.event(LAUNCHER), now, {
+        self.send_own(keys.of("event", LAUNCHER), now, {
             "level": "INFO", "kind": "rejoined", "subject": agent,
             "text": f"{agent} restarted and rejoined at {now / 1e9:g} s"})
         for planned in self.plan.faults:

@@ -5,16 +5,15 @@ process (:mod:`adnmesh.runtime.process`), the in-process runner (:mod:`adnmesh.s
 and tests all drive agents through it, so the order in which an agent sees its events is the
 same everywhere:
 
-- :meth:`Node.receive` takes a payload from the bus and decodes it (validating every field and
-  that ``src`` is the key's sender, :func:`adnmesh.wire.decode`) **before anything counts it**:
-  a payload that fails, arrives on a key the agent does not subscribe to, or repeats a
-  (send time, seq) already seen on its key is rejected, counted per key and reason, and dropped,
-  never raised; only genuine messages count toward what the sim clock expects;
+- :meth:`Node.receive` lets a payload from the bus in through the node's gate
+  (:mod:`adnmesh.wire.gate`: the accept rules every receiver applies) **before anything counts
+  it**: a payload the gate rejects is counted per key and reason and dropped, never raised; only
+  genuine messages count toward what the sim clock expects;
 - :meth:`Node.advance` processes every event before a time: at equal times delivered messages
   first, ordered by (delivery time, key, seq) and then by arrival, then the agent's timers;
 - what the agent returns goes through the sender side of its ICT link (fate and delivery time,
-  :class:`~adnmesh.sim.links.Link`), gets its envelope (``seq`` per key, counted also for
-  lost messages so that receivers see the gap) and is returned as ``(key, payload)`` to publish;
+  :class:`~adnmesh.sim.links.Link`), gets its envelope from the node's outbox
+  (:mod:`adnmesh.wire.outbox`) and is returned as ``(key, payload)`` to publish;
 - :meth:`Node.report` summarises the window for the sim clock.
 
 **Injected faults** (``fault`` messages from ``up`` on ``faults``, :mod:`adnmesh.wire.messages`)
@@ -22,35 +21,26 @@ are applied by the node, never seen by the agent: a link fault impairs the node'
 side of that link (:class:`~adnmesh.sim.links.Impairment`), ``ict_outage`` every ICT link it
 sends on, ``der_offline`` of its own DER every ICT link it sends on *and* every ICT message
 delivered to it in the window; ``kill`` of its own agent stops :meth:`Node.advance` at the
-kill time for good (:attr:`Node.killed`; the process then dies). A node started late (``start_ns``, a restarted agent)
-begins at that time and rejects messages sent before it (it did not exist then).
+kill time for good (:attr:`Node.killed`; the process then dies). A node started late
+(``start_ns``, a restarted agent) begins at that time and rejects messages sent before it (it
+did not exist then).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from msgspec import UNSET
-
 from adnmesh.control.base import Agent
+from adnmesh.names import ICT_LINKS, der_agent_id
 from adnmesh.sim.clock import Report
 from adnmesh.sim.latency import Latency
 from adnmesh.sim.links import Impairment, Link
-from adnmesh.sim.topology import ICT_LINKS, Topology
-from adnmesh.wire.envelope import MessageError, decode, encode
-from adnmesh.wire.keys import route
-from adnmesh.wire.messages import MESSAGE_TYPES, MESSAGE_VERSION
+from adnmesh.sim.topology import Topology
+from adnmesh.wire.envelope import MessageError, encode
+from adnmesh.wire.gate import Gate
+from adnmesh.wire.outbox import Outbox
 
-__all__ = ["Node", "NodeCounts", "names_known_ders"]
-
-
-def names_known_ders(message, der_ids: frozenset[str]) -> bool:
-    """False if ``message`` names a DER the run does not have (SI, the CPFC's weights)."""
-    if message.type == "si":
-        return message.si.keys() <= der_ids
-    if message.type == "p_y" and message.w is not UNSET:
-        return message.w.keys() <= der_ids
-    return True
+__all__ = ["Node", "NodeCounts"]
 
 
 @dataclass
@@ -64,7 +54,7 @@ class NodeCounts:
     received : int
         Genuine messages received (valid, from the key's sender): what the sim clock counts.
     rejected : dict
-        ``key -> {reason -> count}`` of payloads rejected (see :meth:`Node.receive`).
+        ``key -> {reason -> count}`` of payloads rejected (the node's gate's counts).
     lost : int
         Messages the ICT link model dropped (never published).
     dropped_offline : int
@@ -80,31 +70,20 @@ class NodeCounts:
     dropped_offline: int = 0
     late: int = 0
 
-    def reject(self, key: str, reason: str) -> None:
-        """Count one rejected payload on ``key`` (at most 256 distinct keys are told apart)."""
-        rejected = self.rejected
-        if key not in rejected and len(rejected) >= 256:
-            key = "(other keys)"
-        per_key = rejected.setdefault(key, {})
-        per_key[reason] = per_key.get(reason, 0) + 1
-
     @property
     def rejected_total(self) -> int:
         """Every rejected payload."""
         return sum(sum(r.values()) for r in self.rejected.values())
 
 
-class _Outbox:
-    """A node's sender side of one key: its link, message struct and next ``seq``, and what it
-    sent on the key in the current clock window (count, earliest delivery, ns)."""
+class _Sending:
+    """A node's sender side of one key: its link, and what it sent on the key in the current
+    clock window (count, earliest delivery, ns)."""
 
-    __slots__ = ("link", "type", "cls", "seq", "window_count", "window_earliest_ns")
+    __slots__ = ("link", "window_count", "window_earliest_ns")
 
-    def __init__(self, link: Link, type_name: str) -> None:
+    def __init__(self, link: Link) -> None:
         self.link = link
-        self.type = type_name
-        self.cls = MESSAGE_TYPES[type_name]
-        self.seq = 0
         self.window_count = 0
         self.window_earliest_ns = 0
 
@@ -136,12 +115,13 @@ class Node:
         self.subscriptions = topology.subscriptions[agent.agent_id]
         self._topology = topology
         self.seed = seed
-        self._outboxes = {key: _Outbox(Link(topology.link(agent.agent_id, key), seed,
-                                            agent.agent_id), route(key).type)
-                          for key in topology.publishes(agent.agent_id)}
-        self._subscribed = frozenset(self.subscriptions)
-        self._der_ids = topology.der_ids
-        self._last: dict[str, tuple[int, int]] = {}   # key -> (t_send, seq) last accepted
+        self._sending = {key: _Sending(Link(topology.link(agent.agent_id, key), seed,
+                                            agent.agent_id))
+                         for key in topology.publishes(agent.agent_id)}
+        self.outbox = Outbox(agent.agent_id)
+        self.gate = Gate(self.subscriptions, topology.der_ids, outside_reason="not_subscribed",
+                         start_ns=start_ns)
+        self.counts = NodeCounts(rejected=self.gate.rejected)
         self._window_keys: list[str] = []   # keys sent on in this window, in first-send order
         # held messages (t_deliver, key, seq, receive count, message); sorted latest first
         # (timsort merges the senders' runs; pop() takes the next) when _inbox_sorted
@@ -159,7 +139,6 @@ class Node:
         self.kill_ns: int | None = None
         self.start_ns = self.now_ns = self.granted_ns = int(start_ns)
         self.strict = strict
-        self.counts = NodeCounts()
         if start_ns:
             agent.resume(self.start_ns)
 
@@ -171,39 +150,24 @@ class Node:
     def reseed(self, seed: int) -> None:
         """Restart the ICT random streams with ``seed`` (before the first event only)."""
         self.seed = seed
-        for outbox in self._outboxes.values():
-            impairments = outbox.link.impairments
-            outbox.link = Link(outbox.link.params, seed, self.agent_id)
+        for sending in self._sending.values():
+            impairments = sending.link.impairments
+            sending.link = Link(sending.link.params, seed, self.agent_id)
             for impairment in impairments:
-                outbox.link.impair(impairment)
+                sending.link.impair(impairment)
 
     # -- input ---------------------------------------------------------------------------------
 
     def receive(self, key: str, payload: bytes) -> None:
-        """Take one payload from the bus; reject (count, drop) anything that is not a genuine
-        message of a subscribed key, or that repeats one already accepted on the key, or names a DER
-  the run does not have."""
-        counts = self.counts
-        if key not in self._subscribed:
-            counts.reject(key, "not_subscribed")
-            return
+        """Take one payload from the bus; what the gate rejects (:mod:`adnmesh.wire.gate`: a
+        key not subscribed, an invalid message, one from the wrong sender, naming an unknown
+        DER, repeating one already accepted on the key, sent before the node began) is counted
+        and dropped."""
         try:
-            message = decode(key, payload)
-        except MessageError as exc:
-            counts.reject(key, exc.reason)
+            message = self.gate.admit(key, payload)
+        except MessageError:
             return
-        if not names_known_ders(message, self._der_ids):
-            counts.reject(key, "unknown_der")
-            return
-        stamp = (message.t_send_ns, message.seq)
-        last = self._last.get(key)
-        if last is not None and stamp <= last:
-            counts.reject(key, "replayed")
-            return
-        if message.t_send_ns < self.start_ns:
-            counts.reject(key, "before_start")
-            return
-        self._last[key] = stamp
+        counts = self.counts
         counts.received += 1
         if message.type == "fault":
             self._apply(message)
@@ -211,7 +175,7 @@ class Node:
         t = message.t_deliver_ns
         if self.strict:
             if t < self.now_ns:
-                counts.reject(key, "past")
+                self.gate.reject(key, "past")
                 return
         elif t < self.granted_ns:   # realtime: its instant was already processed
             counts.late += 1
@@ -232,17 +196,17 @@ class Node:
                 self.kill_ns = max(fault.start_ns, self.now_ns)
             return
         if kind == "der_offline":
-            if me != f"der/{fault.der}":
+            if me != der_agent_id(fault.der):
                 return
             self._offline.append(window)
         impairment = Impairment(fault.fault_id, {"link_loss": "loss", "link_delay": "delay"}.get(
             kind, "outage"), *window,
             value=fault.probability if kind == "link_loss" else
             fault.delay_ns if kind == "link_delay" else 0.0)
-        for outbox in self._outboxes.values():
-            name = outbox.link.params.name
+        for sending in self._sending.values():
+            name = sending.link.params.name
             if name in ICT_LINKS and (kind in ("der_offline", "ict_outage") or name == fault.link):
-                outbox.link.impair(impairment)
+                sending.link.impair(impairment)
 
     def _is_offline(self, key: str, t_ns: int) -> bool:
         return key in self._ict_in and any(
@@ -331,23 +295,21 @@ class Node:
         return self.kill_ns is not None and self.granted_ns >= self.kill_ns
 
     def _emit(self, t: int, key: str, body: dict, out: list) -> None:
-        outbox = self._outboxes[key]
-        seq = outbox.seq
-        outbox.seq = seq + 1
-        t_deliver = outbox.link.transmit(t)
+        sending = self._sending[key]
+        seq = self.outbox.take_seq(key)       # counted also if lost: receivers see the gap
+        t_deliver = sending.link.transmit(t)
         if t_deliver is None:
             self.counts.lost += 1
             return
-        out.append((key, encode(outbox.cls(MESSAGE_VERSION, outbox.type, self.agent_id, seq, t,
-                                           t_deliver, **body))))
+        out.append((key, encode(self.outbox.message(key, seq, t, t_deliver, body))))
         published = self.counts.published
         published[key] = published.get(key, 0) + 1
-        if not outbox.window_count:
+        if not sending.window_count:
             self._window_keys.append(key)
-            outbox.window_earliest_ns = t_deliver
-        elif t_deliver < outbox.window_earliest_ns:
-            outbox.window_earliest_ns = t_deliver
-        outbox.window_count += 1
+            sending.window_earliest_ns = t_deliver
+        elif t_deliver < sending.window_earliest_ns:
+            sending.window_earliest_ns = t_deliver
+        sending.window_count += 1
 
     def finish(self) -> list[tuple[str, bytes]]:
         """The agent's last messages at the stop (:meth:`Agent.finish`), ready to publish."""
@@ -362,9 +324,9 @@ class Node:
         """The report after a window; resets the per-window send counts."""
         sent = {}
         for key in self._window_keys:
-            outbox = self._outboxes[key]
-            sent[key] = (outbox.window_count, outbox.window_earliest_ns)
-            outbox.window_count = 0
+            sending = self._sending[key]
+            sent[key] = (sending.window_count, sending.window_earliest_ns)
+            sending.window_count = 0
         self._window_keys = []
         killed = self.kill_ns if self.killed else None
         return Report(self.agent_id, None if killed is not None else self.next_event_ns(),

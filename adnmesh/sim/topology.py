@@ -1,27 +1,16 @@
 """Who talks to whom: the agents of a config, the keys they publish, and the links in between.
 
-The topology is static (it follows from the config), so every process can compute it for itself:
-agents use it to know what to subscribe to and which link a key goes over; the coordinator uses it
-to know who receives a message (for counting messages in flight) and how far ahead every agent may
-run (the lookahead: the shortest sum of link delays from one agent to another).
+The topology is static: it follows from the config and the protocol table
+(:mod:`adnmesh.wire.protocol`), so every process computes it for itself. Agents use it to know
+what to subscribe to and which link a key goes over; the coordinator uses it to know who
+receives a message (for counting messages in flight) and how far ahead every agent may run (the
+lookahead: the shortest sum of link delays from one agent to another); the secure profile
+derives every identity's rights from its :attr:`~Topology.routes`.
 
-================  =====================  =================  ===============================
-sender            key (``adn/<grid>/``)  receivers          link (least delay)
-================  =====================  =================  ===============================
-``cpfc``          ``cpfc/p_y``           every DER          ``cpfc_to_der`` (T_com)
-``cpfc``          ``scenario/p_ref``     (recorded only)    ``local`` (0)
-``der/<id>``      ``der/<id>/state``     ``measurement``    ``physical`` (0)
-``der/<id>``      ``der/<id>/heartbeat`` availability,      ``der_to_availability``
-                                         ``cpfc`` (acks)
-``measurement``   ``measurement/p_ip``   ``cpfc``           ``measurement_to_cpfc`` (T_meas)
-``measurement``   ``measurement/grid``   (recorded only)    ``local`` (0)
-``availability``  ``availability/si``    ``cpfc``           ``availability_to_cpfc``
-any agent         ``event/<agent>``      (recorded only)    ``local`` (0)
-``up``            ``faults``             every agent        (``up``'s own, not a link)
-================  =====================  =================  ===============================
-
-:data:`ICT_LINKS` are the links an injected fault can disturb; ``physical`` (a DER's infeed is
-physics, not communication) and ``local`` (records nobody receives) are not among them.
+A row's ``link`` names the link its messages take; the ICT links' delays, jitter, loss and
+outages come from the config's ``runtime.links`` (the CPFC -> DER delay defaults to ``t_com_s``,
+the measurement -> CPFC delay to ``t_meas_s``); ``physical`` and ``local`` have none.
+:data:`adnmesh.names.ICT_LINKS` are the links an injected fault can disturb.
 
 Every cycle passes CPFC → DERs, whose delay ``t_com_s`` is positive, so the lookahead around
 every cycle is positive and the conservative clock always makes progress.
@@ -31,19 +20,28 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 from adnmesh.config import Config, LinkSettings
+from adnmesh.names import (ICT_LINKS, LAUNCHER, OPERATOR, PER_DER_KIND, agent_ids, der_agent_id,
+                           der_id_of)
 from adnmesh.sim.links import LinkParams
-from adnmesh.wire.keys import Keys, der_agent_id
+from adnmesh.wire.keys import Keys
+from adnmesh.wire.protocol import EVERY_AGENT, PROTOCOL, MessageKind
 
-__all__ = ["ICT_LINKS", "INF_NS", "Topology"]
-
-ICT_LINKS = frozenset({"cpfc_to_der", "measurement_to_cpfc", "der_to_availability",
-                       "availability_to_cpfc"})
-"""The links that are communication (and can fail)."""
+__all__ = ["INF_NS", "Route", "Topology"]
 
 INF_NS = math.inf
 """'Never' on the nanosecond time axis."""
+
+
+class Route(NamedTuple):
+    """One key of a run: its kind, its one sender and the agents that receive it."""
+
+    kind: MessageKind
+    sender: str
+    key: str
+    receivers: tuple[str, ...]
 
 
 @dataclass(frozen=True)
@@ -56,12 +54,16 @@ class Topology:
         Bus keys of the grid.
     agents : tuple of str
         Agent ids: ``cpfc``, ``measurement``, ``availability``, then ``der/<id>`` in config order.
+    routes : tuple of Route
+        Every key any party of the run sends (``up`` and ``operator`` included), in the order
+        of the protocol table.
     links : dict
-        ``(sender, key) -> LinkParams`` for every key an agent publishes.
+        ``(sender, key) -> LinkParams`` for every key an agent publishes through its node.
     receivers : dict
-        ``key -> tuple of agent ids`` that subscribe to it (empty for records nobody consumes).
+        ``key -> tuple of agent ids`` that receive it through their nodes (empty for records
+        nobody consumes).
     subscriptions : dict
-        ``agent -> tuple of keys`` it subscribes to.
+        ``agent -> tuple of keys`` it receives through its node.
     lookahead_ns : dict
         ``(a, b) -> ns``: least total link delay of any message chain from ``a`` to ``b``
         (``(a, a)``: around the shortest cycle through ``a``); missing if ``b`` is unreachable.
@@ -69,6 +71,7 @@ class Topology:
 
     keys: Keys
     agents: tuple[str, ...]
+    routes: tuple[Route, ...] = field(repr=False)
     links: dict = field(repr=False)
     receivers: dict = field(repr=False)
     subscriptions: dict = field(repr=False)
@@ -77,45 +80,27 @@ class Topology:
     @property
     def der_ids(self) -> frozenset[str]:
         """The DER ids of the run."""
-        return frozenset(a[4:] for a in self.agents if a.startswith("der/"))
+        return frozenset(d for a in self.agents if (d := der_id_of(a)) is not None)
 
     @classmethod
     def from_config(cls, config: Config) -> Topology:
         keys = Keys(config.grid)
-        rt = config.runtime
-        ders = [der_agent_id(d.id) for d in config.ders]
-        agents = ("cpfc", "measurement", "availability", *ders)
-        to_der = LinkParams.from_settings("cpfc_to_der", rt.links.cpfc_to_der, config.t_com_s)
-        to_cpfc = LinkParams.from_settings("measurement_to_cpfc", rt.links.measurement_to_cpfc,
-                                           config.t_meas_s)
-        heartbeat = LinkParams.from_settings("der_to_availability",
-                                             rt.links.der_to_availability)
-        si = LinkParams.from_settings("availability_to_cpfc", rt.links.availability_to_cpfc)
-        physical = LinkParams.from_settings("physical", LinkSettings(delay_s=0.0))
-        local = LinkParams.from_settings("local", LinkSettings(delay_s=0.0))
-
+        der_ids = [d.id for d in config.ders]
+        agents = agent_ids(der_ids)
+        params = _link_params(config)
+        routes = tuple(_routes(keys, agents, der_ids))
         links: dict[tuple[str, str], LinkParams] = {}
         receivers: dict[str, tuple[str, ...]] = {}
-
-        def route(sender: str, key: str, link: LinkParams, to: tuple[str, ...]) -> None:
-            links[(sender, key)] = link
-            receivers[key] = to
-
-        route("cpfc", keys.p_y, to_der, tuple(ders))
-        route("cpfc", keys.p_ref, local, ())
-        route("measurement", keys.p_ip, to_cpfc, ("cpfc",))
-        route("measurement", keys.grid_state, local, ())
-        route("availability", keys.si, si, ("cpfc",))
-        for der in config.ders:
-            agent = der_agent_id(der.id)
-            route(agent, keys.der_state(der.id), physical, ("measurement",))
-            route(agent, keys.heartbeat(der.id), heartbeat, ("availability", "cpfc"))
-        for agent in agents:
-            route(agent, keys.event(agent), local, ())
-        receivers[keys.faults] = agents
-
+        for r in routes:
+            if r.kind.clock:
+                continue                       # spoken by the agent process, not its node
+            if r.kind.link is not None and r.sender in agents:
+                links[(r.sender, r.key)] = params[r.kind.link]
+                receivers[r.key] = r.receivers
+            elif r.receivers:                  # up's own to agents (faults)
+                receivers[r.key] = r.receivers
         subscriptions = {a: tuple(k for k, to in receivers.items() if a in to) for a in agents}
-        return cls(keys, agents, links, receivers, subscriptions,
+        return cls(keys, agents, routes, links, receivers, subscriptions,
                    _lookahead(agents, links, receivers))
 
     def link(self, sender: str, key: str) -> LinkParams:
@@ -136,8 +121,57 @@ class Topology:
         return None
 
     def publishes(self, agent: str) -> tuple[str, ...]:
-        """Keys ``agent`` publishes."""
+        """Keys ``agent`` publishes through its node."""
         return tuple(k for (a, k) in self.links if a == agent)
+
+    def sends(self, party: str) -> tuple[str, ...]:
+        """Every key ``party`` (an agent, ``up`` or ``operator``) sends, clock protocol
+        included."""
+        return tuple(r.key for r in self.routes if r.sender == party)
+
+    def gets(self, agent: str) -> tuple[str, ...]:
+        """Every key ``agent`` receives, clock protocol included."""
+        return tuple(r.key for r in self.routes if agent in r.receivers)
+
+
+def _link_params(config: Config) -> dict[str, LinkParams]:
+    """Every link's parameters, by name."""
+    settings = config.runtime.links
+    default_delay_s = {"cpfc_to_der": config.t_com_s, "measurement_to_cpfc": config.t_meas_s}
+    params = {name: LinkParams.from_settings(name, getattr(settings, name),
+                                             default_delay_s.get(name))
+              for name in ICT_LINKS}
+    for name in ("physical", "local"):
+        params[name] = LinkParams.from_settings(name, LinkSettings(delay_s=0.0))
+    return params
+
+
+def _routes(keys: Keys, agents: tuple[str, ...], der_ids: list[str]):
+    """The routes of every row of the protocol table for this run's parties."""
+    ders = tuple(der_agent_id(d) for d in der_ids)
+    for row in PROTOCOL:
+        if row.sender == PER_DER_KIND:
+            senders = [(der_agent_id(d), d) for d in der_ids]
+        elif row.sender == "{agent}":
+            senders = [(a, a) for a in agents]
+        elif row.sender == "{party}":
+            senders = [(a, a) for a in (*agents, LAUNCHER)]
+        elif row.placeholder == "agent":       # up's messages to one agent each
+            senders = [(row.sender, a) for a in agents]
+        else:
+            senders = [(row.sender, None)]
+        for sender, who in senders:
+            to: list[str] = []
+            for name in row.receivers:
+                if name == EVERY_AGENT:
+                    to += agents
+                elif name == PER_DER_KIND:
+                    to += ders
+                elif name == f"{{{row.placeholder}}}":
+                    to.append(who)
+                elif name not in (LAUNCHER, OPERATOR):
+                    to.append(name)
+            yield Route(row, sender, keys.of(row.name, who), tuple(to))
 
 
 def _lookahead(agents, links, receivers) -> dict[tuple[str, str], int]:

@@ -1,7 +1,7 @@
 """Encoding and decoding envelopes, and framing several envelopes into one sample.
 
 :func:`decode` is the one way in: a payload received on a key becomes the typed message of the
-key's type (:mod:`adnmesh.wire.messages`) or raises :class:`MessageError`, whose ``reason`` is a
+key's kind (:mod:`adnmesh.wire.protocol`) or raises :class:`MessageError`, whose ``reason`` is a
 short category (for per-reason counts) and whose text says what was wrong. Decoding validates in
 one step (msgspec checks every field while it parses), then checks what a schema cannot state:
 the sender is the key's legitimate sender, and a message is not delivered before it was sent.
@@ -20,7 +20,8 @@ from __future__ import annotations
 import msgspec
 
 from adnmesh.wire.keys import route
-from adnmesh.wire.messages import MESSAGE_TYPES, Envelope
+from adnmesh.wire.messages import Envelope
+from adnmesh.wire.protocol import STRUCTS
 
 __all__ = [
     "MAX_ENVELOPE_BYTES",
@@ -67,7 +68,7 @@ class MessageError(ValueError):
         self.detail = detail
 
 
-_DECODERS = {name: msgspec.json.Decoder(cls) for name, cls in MESSAGE_TYPES.items()}
+_DECODERS = {name: msgspec.json.Decoder(cls) for name, cls in STRUCTS.items()}
 _ENCODER = msgspec.json.Encoder()
 
 

@@ -6,7 +6,7 @@ body of its type::
     {"v": 1, "type": "p_ip", "src": "measurement", "seq": 41,
      "t_send_ns": 4100000000, "t_deliver_ns": 4200000000, "p_ip_w": 1000012.5}
 
-``type`` is fixed by the key (:func:`adnmesh.wire.keys.route`), ``src`` is the sending agent,
+``type`` is fixed by the key (the protocol table, :mod:`adnmesh.wire.protocol`), ``src`` is the sending agent,
 ``seq`` counts one sender's messages on one key from 0, and the two times are ns of sim time
 (:mod:`adnmesh.wire.units`): when the sender sent it and when the ICT channel model delivers it.
 
@@ -23,11 +23,11 @@ from typing import Annotated, Literal
 
 from msgspec import UNSET, Meta, Struct, UnsetType
 
-from adnmesh.wire.keys import AGENT_PATTERN, ID_MAX_CHARS, ID_PATTERN
+from adnmesh.names import (AGENT_PATTERN, FAULT_KINDS, ICT_LINKS, ID_MAX_CHARS, ID_PATTERN,
+                           LAUNCHER, OPERATOR)
 from adnmesh.wire.units import NS_MAX
 
 __all__ = [
-    "MESSAGE_TYPES",
     "MESSAGE_VERSION",
     "AgentBye",
     "ClockGrant",
@@ -36,12 +36,10 @@ __all__ = [
     "ClockStop",
     "DERState",
     "Envelope",
-    "FAULT_KINDS",
     "Fault",
     "FaultRequest",
     "GridState",
     "Event",
-    "LINK_NAMES",
     "Heartbeat",
     "PIP",
     "PRef",
@@ -64,7 +62,7 @@ Gain = Annotated[float, Meta(gt=0.0, le=1e3)]
 Weight = Annotated[float, Meta(ge=0.0, le=1.0)]
 DERId = Annotated[str, Meta(pattern=f"^{ID_PATTERN}$", max_length=ID_MAX_CHARS)]
 Sender = Annotated[str, Meta(max_length=2 * ID_MAX_CHARS,
-                             extra_json_schema={"pattern": f"^(up|operator|{AGENT_PATTERN})$"})]
+                             extra_json_schema={"pattern": f"^({LAUNCHER}|{OPERATOR}|{AGENT_PATTERN})$"})]
 Agent = Annotated[str, Meta(pattern=f"^{AGENT_PATTERN}$", max_length=2 * ID_MAX_CHARS)]
 Key = Annotated[str, Meta(max_length=256)]
 Text = Annotated[str, Meta(max_length=500)]
@@ -178,13 +176,6 @@ class SI(Envelope):
     si: Annotated[dict[DERId, bool], Meta(min_length=1, max_length=MAX_DERS)]
 
 
-FAULT_KINDS = ("link_outage", "link_loss", "link_delay", "der_offline", "ict_outage", "kill")
-"""Kinds of injectable fault (see :class:`Fault`)."""
-
-LINK_NAMES = ("cpfc_to_der", "measurement_to_cpfc", "der_to_availability",
-              "availability_to_cpfc")
-"""The ICT links a fault may name."""
-
 
 class Fault(Envelope):
     """A fault ``up`` injects, sent to every agent (and recorded), delivered at its start.
@@ -201,7 +192,7 @@ class Fault(Envelope):
     kind: Literal[FAULT_KINDS]
     start_ns: NS
     end_ns: NS | None
-    link: Literal[LINK_NAMES] | UnsetType = UNSET
+    link: Literal[ICT_LINKS] | UnsetType = UNSET
     der: DERId | UnsetType = UNSET
     agent: Agent | UnsetType = UNSET
     probability: Annotated[float, Meta(ge=0.0, le=1.0)] | UnsetType = UNSET
@@ -296,23 +287,3 @@ class AgentBye(Envelope):
     latency: Annotated[dict[Annotated[str, Meta(max_length=64)],
                             Annotated[list[Count], Meta(max_length=128)]],
                        Meta(max_length=64)] | UnsetType = UNSET
-
-
-MESSAGE_TYPES: dict[str, type[Envelope]] = {
-    "p_y": PY,
-    "p_ref": PRef,
-    "der_state": DERState,
-    "heartbeat": Heartbeat,
-    "p_ip": PIP,
-    "grid_state": GridState,
-    "si": SI,
-    "fault": Fault,
-    "fault_request": FaultRequest,
-    "event": Event,
-    "clock_report": ClockReport,
-    "clock_grant": ClockGrant,
-    "clock_start": ClockStart,
-    "clock_stop": ClockStop,
-    "agent_bye": AgentBye,
-}
-"""Message type name -> its struct."""

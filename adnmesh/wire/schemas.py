@@ -2,7 +2,7 @@
 
 Recordings carry one schema per message type (schema encoding ``jsonschema``, draft 2020-12) so
 that Foxglove and any JSON Schema validator read them without adnmesh. They are generated from
-the structs of :mod:`adnmesh.wire.messages` by msgspec, so they say exactly what decoding
+the structs of the protocol table (:mod:`adnmesh.wire.protocol`) by msgspec, so they say exactly what decoding
 accepts: field types, bounds, string and mapping lengths, required fields, no other fields. The
 one check a schema cannot state (``t_deliver_ns >= t_send_ns``, and the sender of a key) is in
 each schema's description.
@@ -14,7 +14,8 @@ import functools
 
 import msgspec
 
-from adnmesh.wire.messages import MESSAGE_TYPES, MESSAGE_VERSION
+from adnmesh.wire.messages import MESSAGE_VERSION
+from adnmesh.wire.protocol import STRUCTS
 
 __all__ = ["SCHEMA_DIALECT", "message_schema", "message_schemas"]
 
@@ -24,7 +25,7 @@ SCHEMA_DIALECT = "https://json-schema.org/draft/2020-12/schema"
 
 def message_schema(type_name: str) -> dict:
     """The JSON Schema of one message type (a self-contained document, no top-level $ref)."""
-    cls = MESSAGE_TYPES[type_name]
+    cls = STRUCTS[type_name]
     generated = msgspec.json.schema(cls)
     definitions = dict(generated.get("$defs", {}))
     name = generated["$ref"].rsplit("/", 1)[-1]
@@ -42,4 +43,4 @@ def message_schema(type_name: str) -> dict:
 @functools.cache
 def message_schemas() -> dict[str, dict]:
     """Message type -> its JSON Schema, for every type."""
-    return {name: message_schema(name) for name in MESSAGE_TYPES}
+    return {name: message_schema(name) for name in STRUCTS}
