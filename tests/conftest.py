@@ -54,7 +54,7 @@ def _no_global_state_changed():
 #: modules whose tests bound the processes, sessions or threads they start by wall-clock time
 _TIMED_MODULES = {"test_acl", "test_cli", "test_inspect", "test_margins_cli", "test_recording",
                   "test_reference_case", "test_runtime_faults", "test_runtime_secure",
-                  "test_runtime_up", "test_tuning_fallback"}
+                  "test_runtime_up", "test_tuning_fallback", "test_wheel"}
 #: longest wait for the machine lock, s (the test holding it is bounded by its own timeouts)
 _LOCK_WAIT_S = 3600
 
