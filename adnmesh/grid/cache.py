@@ -27,7 +27,6 @@ import hashlib
 import json
 import os
 import re
-import tempfile
 import warnings
 from collections.abc import Callable
 from importlib.metadata import PackageNotFoundError, version
@@ -35,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
+from adnmesh.files import write_atomic
 from adnmesh.grid.data import GridData, from_arrays, to_arrays
 
 __all__ = ["FORMAT_VERSION", "default_cache_dir", "cache_key", "cache_path", "model_path",
@@ -150,13 +150,4 @@ def _write(path: Path, key: dict, data: GridData) -> None:
     arrays = to_arrays(data)
     arrays["cache_key"] = np.array(json.dumps(key, sort_keys=True))
     arrays["model_sha256"] = np.array(_sha256(model))
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez(fh, **arrays)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_atomic(path, lambda fh: np.savez(fh, **arrays), mode=0o600)

@@ -14,9 +14,7 @@ one line naming the file; the command line reports it with exit code 2.
 from __future__ import annotations
 
 import json
-import os
 import struct
-import tempfile
 from dataclasses import dataclass, field
 from io import BytesIO
 from pathlib import Path
@@ -29,6 +27,7 @@ from mcap.stream_reader import breakup_chunk
 from mcap.writer import CompressionType, Writer
 
 from adnmesh.errors import UsageError
+from adnmesh.files import write_atomic
 from adnmesh.recording.writer import RECOVERY_METADATA, RUN_METADATA, SCHEMA_ENCODING
 
 __all__ = [
@@ -300,33 +299,27 @@ def read_recording(path: str | Path) -> Recording:
 
 def write_recording(recording: Recording, out_path: str | Path,
                     extra_metadata: tuple[tuple[str, dict[str, str]], ...] = ()) -> None:
-    """Write ``recording`` as a complete MCAP file (atomically: temporary file, then rename)."""
-    out_path = Path(out_path)
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{out_path.name}.", dir=out_path.parent)
-    try:
-        with os.fdopen(fd, "wb") as stream:
-            writer = Writer(stream, compression=CompressionType.ZSTD)
-            writer.start(profile="", library=recording.library)
-            for name, data in recording.metadata_records + tuple(extra_metadata):
-                writer.add_metadata(name, data)
-            schema_ids = {name: writer.register_schema(name, SCHEMA_ENCODING,
-                                                       json.dumps(schema, sort_keys=True).encode())
-                          for name, schema in recording.schemas.items()}
-            channel_ids = {
-                topic: writer.register_channel(topic, info.message_encoding,
-                                               schema_ids.get(info.schema_name, 0), info.metadata)
-                for topic, info in recording.channels.items()}
-            for m in recording.messages:
-                writer.add_message(channel_ids[m.topic], log_time=m.log_time_ns, data=m.data,
-                                   publish_time=m.publish_time_ns, sequence=m.sequence)
-            writer.finish()
-            stream.flush()
-            os.fsync(stream.fileno())
-        os.replace(tmp, out_path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    """Write ``recording`` as a complete MCAP file (atomically:
+    :func:`adnmesh.files.write_atomic`)."""
+
+    def write(stream) -> None:
+        writer = Writer(stream, compression=CompressionType.ZSTD)
+        writer.start(profile="", library=recording.library)
+        for name, data in recording.metadata_records + tuple(extra_metadata):
+            writer.add_metadata(name, data)
+        schema_ids = {name: writer.register_schema(name, SCHEMA_ENCODING,
+                                                   json.dumps(schema, sort_keys=True).encode())
+                      for name, schema in recording.schemas.items()}
+        channel_ids = {
+            topic: writer.register_channel(topic, info.message_encoding,
+                                           schema_ids.get(info.schema_name, 0), info.metadata)
+            for topic, info in recording.channels.items()}
+        for m in recording.messages:
+            writer.add_message(channel_ids[m.topic], log_time=m.log_time_ns, data=m.data,
+                               publish_time=m.publish_time_ns, sequence=m.sequence)
+        writer.finish()
+
+    write_atomic(out_path, write, mode=0o600)
 
 
 def recover(path: str | Path, out_path: str | Path) -> int:

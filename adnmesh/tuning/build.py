@@ -8,9 +8,9 @@ atomically, so an interrupted run leaves a valid partial table that ``resume`` c
 from __future__ import annotations
 
 import csv
+import io
 import math
 import multiprocessing
-import os
 import threading
 import time
 from contextlib import contextmanager
@@ -20,6 +20,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from adnmesh.files import write_atomic
 from adnmesh.tuning.certify import PlantGroup, certified_entries
 from adnmesh.tuning.global_search import tune_global
 from adnmesh.tuning.paper import initial_values, tune_paper
@@ -319,22 +320,20 @@ def write_csv(table: SchedulingTable, path: Path) -> None:
     """One row per entry, tidy (every cell one value; pandas reads it with its defaults): the
     subset's label (``+``-joined), ``in_<der>`` (1 if the DER is in the subset, else 0) and
     ``w_<der>`` (its weight, empty if it is not) per DER of the table, the gains (1/W,
-    1/(W s)), feasibility, the reason (text) and the figures (empty: none)."""
-    path = Path(path)
+    1/(W s)), feasibility, the reason (text) and the figures (empty: none). Written atomically."""
     keys = list(FIGURE_KEYS) + ["settling_time_2pct_s", "design_rise_time_s",
                                 "global_rise_time_s", "tuned_by"]
     ders = list(table.der_ids)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    with open(tmp, "w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(["subset", "kp_per_w", "ki_per_w_s"] + [f"in_{d}" for d in ders]
-                   + [f"w_{d}" for d in ders] + ["feasible", "reason"] + keys)
-        for e in table.to_json()["entries"]:
-            members = set(e["ders"])
-            w.writerow(["+".join(e["ders"]), _number(e["kp"]), _number(e["ki"])]
-                       + [int(d in members) for d in ders]
-                       + [_number(e["w"].get(d)) if d in members else "" for d in ders]
-                       + [e["feasible"], e["reason"] or ""]
-                       + [_number(e.get(k)) if k != "tuned_by" else e.get(k) or ""
-                          for k in keys])
-    os.replace(tmp, path)
+    text = io.StringIO(newline="")
+    w = csv.writer(text)
+    w.writerow(["subset", "kp_per_w", "ki_per_w_s"] + [f"in_{d}" for d in ders]
+               + [f"w_{d}" for d in ders] + ["feasible", "reason"] + keys)
+    for e in table.to_json()["entries"]:
+        members = set(e["ders"])
+        w.writerow(["+".join(e["ders"]), _number(e["kp"]), _number(e["ki"])]
+                   + [int(d in members) for d in ders]
+                   + [_number(e["w"].get(d)) if d in members else "" for d in ders]
+                   + [e["feasible"], e["reason"] or ""]
+                   + [_number(e.get(k)) if k != "tuned_by" else e.get(k) or ""
+                      for k in keys])
+    write_atomic(path, text.getvalue())

@@ -18,12 +18,12 @@ never a stale one.
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterable
 
 from adnmesh.errors import ConfigError
+from adnmesh.files import write_atomic
 
 __all__ = ["TableEntry", "SchedulingTable", "default_table_path", "load_table", "save_table",
            "FIGURE_KEYS"]
@@ -134,12 +134,9 @@ def default_table_path(config) -> Path:
 
 
 def save_table(table: SchedulingTable, path: str | Path) -> None:
-    """Write atomically (temp file + rename): an interrupted write never leaves a broken table."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(table.to_json(), indent=1, allow_nan=False))
-    os.replace(tmp, path)
+    """Write atomically (:func:`adnmesh.files.write_atomic`): an interrupted write never leaves
+    a broken table."""
+    write_atomic(path, json.dumps(table.to_json(), indent=1, allow_nan=False))
 
 
 def load_table(path: str | Path, config=None) -> SchedulingTable:
