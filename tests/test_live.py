@@ -21,7 +21,8 @@ from adnmesh.recording import read_recording
 from adnmesh.results.live import LiveView
 from adnmesh.results.rerun_export import (APPLICATION_ID, DELIVERY_TIMELINE, SIM_TIMELINE,
                                             export_rrd)
-from adnmesh.results.series import Event, extract
+from adnmesh.results.rules import Event
+from adnmesh.results.series import extract
 from adnmesh.runtime.liveview import ViewTarget, open_view, parse_view, viewer_argv
 from adnmesh.runtime.progress import RunProgress, event_line, speed_factor
 from rrd_columns import rrd_columns

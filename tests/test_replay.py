@@ -17,7 +17,8 @@ from adnmesh.results.rerun_export import (
     rerun_entity_path,
     viewer_command,
 )
-from adnmesh.results.series import SERIES, extract, match_key
+from adnmesh.results.rules import SERIES, match_key
+from adnmesh.results.series import extract
 from rrd_columns import rrd_columns
 from synthetic_runs import FAKE_DERS, write_fake_run
 

@@ -4,7 +4,9 @@ The recording (:mod:`adnmesh.recording`) is the file format; this package reads 
 it, with one rule for each thing a person looks at, used alike by ``adnmesh up``'s summary,
 ``inspect``, ``plot``, ``replay`` and the live view:
 
-- :mod:`~adnmesh.results.series`: recorded messages to named time series and events;
+- :mod:`~adnmesh.results.rules`: the one table of what messages mean (series, events);
+- :mod:`~adnmesh.results.series`: recorded messages to named time series and events, by those
+  rules;
 - :mod:`~adnmesh.results.eventlog`: the events as ``foxglove.Log`` records while a run records;
 - :mod:`~adnmesh.results.figures`: how P_IP followed each step of P_ref (step windows);
 - :mod:`~adnmesh.results.fault_figures`: per fault, detection, deviation and recovery;

@@ -3,7 +3,7 @@
 While it records, the recorder (:class:`~adnmesh.recording.Recorder`, to which ``adnmesh up``
 passes :meth:`EventLog.observe` as its ``events``) gives each message to an :class:`EventLog`,
 which says what happened in the words of
-:mod:`adnmesh.results.series` (the same rules ``replay`` and ``inspect`` use): gain switches,
+:mod:`adnmesh.results.rules` (the same rules ``replay`` and ``inspect`` use): gain switches,
 availability changes (SI, a DER's heartbeat flag), injected faults, the agents' own events
 (watchdog fallbacks, overruns, alarms), rejected payloads and the run's start. Each becomes a
 message in Foxglove's ``foxglove.Log`` schema, in its JSON form, on the events topic, at the
@@ -19,7 +19,8 @@ from __future__ import annotations
 import json
 
 from adnmesh.recording.foxglove_log import log_record
-from adnmesh.results import series
+from adnmesh.results.rules import (AVAILABILITY_KEYS, EVENTS, available_ders, match_key,
+                                   message_body)
 
 __all__ = ["EventLog"]
 
@@ -31,7 +32,6 @@ class EventLog:
     """Finds events in recorded messages, one topic's previous message at a time."""
 
     def __init__(self) -> None:
-        self._series = series
         self._rules: dict[str, list] = {}
         self._previous: dict[str, dict] = {}
         self._available: frozenset[str] | None = None
@@ -47,7 +47,7 @@ class EventLog:
         if not rules or (schema_name == "p_y" and b'"switch"' not in payload):
             return []
         try:
-            body = self._series._body(json.loads(payload))
+            body = message_body(json.loads(payload))
         except ValueError:
             return []
         found = []
@@ -63,17 +63,17 @@ class EventLog:
         self._previous[topic] = body
         return found
 
-    def _plan(self, topic: str) -> list:
-        s = self._series
-        rules = [(rule.kind, rule.rule, captures) for pattern, rule in s.EVENTS.items()
+    @staticmethod
+    def _plan(topic: str) -> list:
+        rules = [(rule.kind, rule.rule, captures) for pattern, rule in EVENTS.items()
                  if rule.kind not in _SKIPPED
-                 and (captures := s.match_key(pattern, topic)) is not None]
-        if any(s.match_key(p, topic) is not None for p in s.AVAILABILITY_KEYS):
+                 and (captures := match_key(pattern, topic)) is not None]
+        if any(match_key(p, topic) is not None for p in AVAILABILITY_KEYS):
             rules.append(("availability", None, {}))
         return rules
 
     def _availability(self, body: dict, t_ns: int) -> list[bytes]:
-        available, _ = self._series.available_ders(body)
+        available, _ = available_ders(body)
         if frozenset(available) == self._available:
             return []
         self._available = frozenset(available)

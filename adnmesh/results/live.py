@@ -19,7 +19,8 @@ import numpy as np
 
 from adnmesh.results.rerun_export import (blueprint, events_path, held, log_style,
                                             send_events, send_series)
-from adnmesh.results.series import Event, LiveCollector, RunData, Series
+from adnmesh.results.rules import Event
+from adnmesh.results.series import LiveCollector, RunData, Series
 
 __all__ = ["LiveView", "VIEW_PERIOD_S"]
 
@@ -50,7 +51,7 @@ class LiveView:
     period_s : float
         How often what came is sent, wall s.
     on_events : callable, optional
-        Gets the list of new :class:`~adnmesh.results.series.Event` (in time order) at each
+        Gets the list of new :class:`~adnmesh.results.rules.Event` (in time order) at each
         send, on the view's thread.
     viewer_pid : int, optional
         The viewer process the stream is connected to (it outlives the run).

@@ -23,8 +23,9 @@ from pathlib import Path
 import numpy as np
 
 from adnmesh.recording.reader import Recording
-from adnmesh.results.series import Event, RunData, Series, extract
 from adnmesh.recording.stream import ScannedRecording
+from adnmesh.results.rules import Event
+from adnmesh.results.series import RunData, Series, extract
 
 __all__ = [
     "APPLICATION_ID",

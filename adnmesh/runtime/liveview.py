@@ -79,7 +79,7 @@ class ViewProcess:
     run_id : str
         The Rerun recording id and name.
     on_events : callable, optional
-        Gets the new events (a list of :class:`~adnmesh.results.series.Event`), on a thread
+        Gets the new events (a list of :class:`~adnmesh.results.rules.Event`), on a thread
         of this process.
     viewer_pid : int, optional
         The viewer process the stream goes to (it outlives the run).

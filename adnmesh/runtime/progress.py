@@ -14,7 +14,7 @@ from collections import deque
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-from adnmesh.results.series import Event
+from adnmesh.results.rules import Event
 
 __all__ = ["SHOWN_EVENTS", "RunProgress", "event_line", "speed_factor"]
 

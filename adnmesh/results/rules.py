@@ -1,0 +1,309 @@
+"""What recorded messages mean: the one table to adjust, of series and events.
+
+:data:`SERIES` maps key patterns to the numbers taken from each message on a matching key;
+:data:`EVENTS` maps key patterns to the text events derived from them; :data:`AVAILABILITY_KEYS`
+names the keys of the availability vector SI; :data:`QUIET_KEYS` the keys whose numbers are
+not kept. Everything
+that reads meaning into messages applies these rules: the extraction of a recording's series
+and events (:mod:`adnmesh.results.series`: ``adnmesh replay``, ``plot``, ``inspect``, the live
+view), the events the recorder logs while a run records (:mod:`adnmesh.results.eventlog`) and
+``adnmesh up``'s summary (:class:`adnmesh.results.summary.RunSeries`); so a renamed key or
+field is fixed here, once. The keys and fields are those of :mod:`adnmesh.wire.messages`.
+
+Key patterns are bus keys with placeholders: ``{name}`` matches one key level and captures it
+(``{der}`` is the DER id; series names may use it), ``*`` matches one level, ``**`` the rest.
+A payload's fields are looked up in the payload itself, or in its ``body`` object if it has
+one (:func:`message_body`). Every value is placed at the message's **send time**
+(``publish_time``: the instant the sender sampled or decided it).
+
+Numbers on keys that no pattern matches are kept too, as series named ``<key>/<field>`` with
+role ``"other"`` (except on :data:`QUIET_KEYS`), so nothing numeric is invisible.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from functools import lru_cache
+
+__all__ = [
+    "AVAILABILITY_KEYS",
+    "ENVELOPE_FIELDS",
+    "EVENTS",
+    "Event",
+    "EventRule",
+    "Field",
+    "QUIET_KEYS",
+    "SERIES",
+    "available_ders",
+    "match_key",
+    "message_body",
+]
+
+ENVELOPE_FIELDS = frozenset({"v", "type", "src", "seq", "t_send_ns", "t_deliver_ns"})
+"""Fields of the message envelope (not plotted, not shown in event texts)."""
+
+
+@dataclass(frozen=True)
+class Field:
+    """Take the number ``field`` of a payload as one sample of the series ``name``.
+
+    Attributes
+    ----------
+    field : str
+        Payload field (a number; booleans become 0/1).
+    name : str
+        Series name; ``{der}`` and other key captures are filled in.
+    role : str
+        What the series is, for plots and layouts: ``p_ref``, ``p_ip``, ``p_y``, ``kp``,
+        ``ki``, ``entry``, ``der_infeed``, ``der_setpoint``, ``availability``,
+        ``available_count`` or ``other``.
+    unit : str
+        Unit of the value (SI; ``"1"`` for dimensionless).
+    step : bool
+        The value holds until the next sample (drawn as steps).
+    color : tuple of int, optional
+        RGB colour of the line in Rerun (default: Rerun's choice).
+    """
+
+    field: str
+    name: str
+    role: str
+    unit: str = "W"
+    step: bool = False
+    color: tuple[int, int, int] | None = None
+
+
+SERIES: dict[str, tuple[Field, ...]] = {
+    "adn/{grid}/scenario/p_ref": (Field("p_ref_w", "P_ref", "p_ref", step=True,
+                                        color=(255, 160, 0)),),
+    "adn/{grid}/measurement/p_ip": (Field("p_ip_w", "P_IP", "p_ip", color=(60, 150, 255)),),
+    "adn/{grid}/cpfc/p_y": (
+        Field("p_y", "P_Y", "p_y", unit="1", color=(40, 180, 80)),
+        Field("kp", "K_P", "kp", unit="1/W", step=True, color=(170, 100, 220)),
+        Field("ki", "K_I", "ki", unit="1/(W s)", step=True, color=(255, 130, 40)),
+        Field("entry", "table entry", "entry", unit="1", step=True),
+    ),
+    "adn/{grid}/der/{der}/state": (
+        Field("p_w", "{der} infeed", "der_infeed"),
+        Field("setpoint_w", "{der} setpoint", "der_setpoint", step=True),
+    ),
+    "adn/{grid}/measurement/grid": (
+        Field("v_min_pu", "lowest bus voltage", "grid_v_min", unit="p.u.", step=True,
+              color=(200, 60, 60)),
+        Field("v_max_pu", "highest bus voltage", "grid_v_max", unit="p.u.", step=True,
+              color=(60, 60, 200)),
+        Field("line_loading_max_pct", "highest line loading", "grid_line_loading", unit="%",
+              step=True),
+        Field("trafo_loading_max_pct", "highest transformer loading", "grid_trafo_loading",
+              unit="%", step=True),
+        Field("q_ip_var", "Q_IP", "q_ip", unit="var", step=True),
+    ),
+}
+"""Key pattern -> the series taken from each message on a matching key."""
+
+AVAILABILITY_KEYS = ("adn/{grid}/availability/si",)
+"""Keys whose messages carry the availability vector SI (see :func:`available_ders`): each
+gives a 0/1 step series per DER (role ``availability``), the count of available DERs (role
+``available_count``) and an event whenever the set of available DERs changes."""
+
+QUIET_KEYS = ("adn/{grid}/clock/**", "adn/{grid}/alive/**", "adn/{grid}/der/{der}/heartbeat")
+"""Keys whose numbers are not kept as series of role ``other`` (sim-clock traffic,
+liveliness, heartbeats); they are still counted by ``adnmesh inspect``."""
+
+
+@dataclass(frozen=True)
+class Event:
+    """Something that happened: a gain switch, an availability change, a fault, a DER mode change,
+    a DER's heartbeat flag change, the run's start.
+
+    ``t_ns`` is the send time; ``data`` holds the details (e.g. ``available`` for an availability
+    change, ``active`` for a fault that has a start and an end, ``switch`` for a gain switch
+    that carries the CPFC's switch record, ``end_ns`` for the run's start).
+    """
+
+    t_ns: int
+    kind: str
+    level: str
+    text: str
+    topic: str
+    data: dict = field(default_factory=dict)
+
+
+def _gain_switch(body: dict, previous: dict | None, captures: dict) -> tuple[str, str, dict] | None:
+    """A p_y message with a ``switch`` object, or whose gains differ from the previous one's."""
+    kp, ki = body.get("kp"), body.get("ki")
+    switch = body.get("switch")
+    if isinstance(switch, Mapping):
+        before = switch
+    elif previous is not None and (previous.get("kp"), previous.get("ki")) != (kp, ki):
+        before = {"kp_before": previous.get("kp"), "ki_before": previous.get("ki"),
+                  "p_y_before": previous.get("p_y")}
+    else:
+        return None
+    weights = body.get("w")
+    active = sorted(d for d, w in weights.items() if w) if isinstance(weights, Mapping) else []
+    entry = f" to entry {body['entry']}" if "entry" in body else ""
+    text = (f"gain switch{entry}: K_P {_g(before.get('kp_before'))} -> {_g(kp)} 1/W, "
+            f"K_I {_g(before.get('ki_before'))} -> {_g(ki)} 1/(W s)")
+    if isinstance(switch, Mapping):
+        text += f", P_Y {_g(before.get('p_y_before'))} -> {_g(body.get('p_y'))}"
+    if active:
+        text += f"; DERs: {', '.join(active)}"
+    return "INFO", text, {"kp": kp, "ki": ki, "entry": body.get("entry"), "active": active,
+                          "switch": isinstance(switch, Mapping)}
+
+
+def _der_mode(body: dict, previous: dict | None, captures: dict) -> tuple[str, str, dict] | None:
+    """A DER whose mode (control, schedule, watchdog) differs from its previous state's."""
+    mode, old = body.get("mode"), (previous or {}).get("mode")
+    if mode is None or old is None or mode == old:
+        return None
+    der = captures.get("der", "?")
+    return ("WARN" if mode == "watchdog" else "INFO", f"{der}: mode {old} -> {mode}",
+            {"der": der, "mode": mode})
+
+
+def _der_available(body: dict, previous: dict | None,
+                   captures: dict) -> tuple[str, str, dict] | None:
+    """A DER heartbeat whose ``available`` flag differs from the DER's previous heartbeat's
+    (a DER counts as available before its first heartbeat)."""
+    flag = body.get("available")
+    old = True if previous is None else previous.get("available")
+    if not isinstance(flag, bool) or flag == old:
+        return None
+    der = captures.get("der", "?")
+    return ("INFO", f"{der}: heartbeat says {'available' if flag else 'unavailable'}",
+            {"der": der, "available": flag})
+
+
+def _run_start(body: dict, previous: dict | None, captures: dict) -> tuple[str, str, dict] | None:
+    """The sim clock's start message: the clock mode and the run's end (``end_ns``)."""
+    end = body.get("end_ns")
+    if not isinstance(end, int) or isinstance(end, bool):
+        return None
+    clock = body.get("clock", "?")
+    return "INFO", f"run starts: {clock} clock, ends at {end / 1e9:g} s", {"end_ns": end,
+                                                                          "clock": clock}
+
+
+def _fault(body: dict, previous: dict | None, captures: dict) -> tuple[str, str, dict] | None:
+    """An injected fault (``up``'s ``faults`` messages): its window ``[start_ns, end_ns)``."""
+    if not isinstance(body.get("start_ns"), int) or "fault_id" not in body:
+        return None
+    details = {k: v for k, v in body.items() if k not in ENVELOPE_FIELDS}
+    target = next((str(details[k]) for k in ("link", "der", "agent") if details.get(k)),
+                  "all ICT")
+    end = details.get("end_ns")
+    text = (f"fault {details['fault_id']}: {details.get('kind')} of {target} from "
+            f"{details['start_ns'] / 1e9:g} s" + ("" if end is None else f" to {end / 1e9:g} s"))
+    return "WARN", text, details
+
+
+_LEVELS = {"DEBUG": "DEBUG", "INFO": "INFO", "WARNING": "WARN", "ERROR": "ERROR"}
+
+
+def _agent_event(body: dict, previous: dict | None,
+                 captures: dict) -> tuple[str, str, dict] | None:
+    """What an agent (or ``up``) noticed or did: its event message, as it says it."""
+    text = body.get("text")
+    if not isinstance(text, str):
+        return None
+    return (_LEVELS.get(body.get("level"), "INFO"), f"{body.get('src', '?')}: {text}",
+            {k: body[k] for k in ("kind", "subject", "fault_id") if k in body})
+
+
+RuleFunction = Callable[[dict, "dict | None", dict], "tuple[str, str, dict] | None"]
+
+
+@dataclass(frozen=True)
+class EventRule:
+    """How to find one kind of event in the messages on a key.
+
+    Attributes
+    ----------
+    kind : str
+        The event kind (:attr:`Event.kind`).
+    rule : callable
+        Gets the payload body, the body of the previous message on the same key (None for the
+        first) and the key's captures; returns (level, text, data) or None.
+    fields : tuple of str, optional
+        The body fields ``rule`` reads (of both bodies); None: it may read any.
+    watch, present : tuple of str
+        Where ``fields`` is given, the rule is asked only about the first message and those
+        in which a ``watch`` field differs from the previous message's or a ``present`` field
+        is there (not null); empty both: about every message.
+    """
+
+    kind: str
+    rule: RuleFunction
+    fields: tuple[str, ...] | None = None
+    watch: tuple[str, ...] = ()
+    present: tuple[str, ...] = ()
+
+
+EVENTS: dict[str, EventRule] = {
+    "adn/{grid}/cpfc/p_y": EventRule("gain_switch", _gain_switch,
+                                     ("kp", "ki", "p_y", "entry", "switch", "w"),
+                                     watch=("kp", "ki"), present=("switch",)),
+    "adn/{grid}/der/{der}/state": EventRule("der_mode", _der_mode, ("mode",), watch=("mode",)),
+    "adn/{grid}/der/{der}/heartbeat": EventRule("der_available", _der_available,
+                                                ("available",), watch=("available",)),
+    "adn/{grid}/faults": EventRule("fault", _fault),
+    "adn/{grid}/event/**": EventRule("event", _agent_event),
+    "adn/{grid}/clock/start": EventRule("run_start", _run_start, ("end_ns", "clock")),
+}
+"""Key pattern -> its :class:`EventRule`. Availability changes come from
+:data:`AVAILABILITY_KEYS`."""
+
+
+def available_ders(body: Mapping) -> tuple[set[str], set[str]]:
+    """Return (available, known) DER ids of an SI message.
+
+    Accepted forms: ``{"available": [ids]}`` (optionally with ``"der_ids"``: all ids),
+    ``{"si": {id: bool}}`` / ``{"available": {id: bool}}``, or ``{"si": [bool], "der_ids": [ids]}``.
+    """
+    ids = [str(i) for i in body.get("der_ids") or ()]
+    for key in ("available", "si"):
+        value = body.get(key)
+        if isinstance(value, Mapping):
+            return {str(k) for k, v in value.items() if v}, {str(k) for k in value} | set(ids)
+        if isinstance(value, list) and value and all(isinstance(v, bool) for v in value):
+            return {i for i, v in zip(ids, value) if v}, set(ids)
+        if isinstance(value, list):
+            return {str(v) for v in value}, {str(v) for v in value} | set(ids)
+    return set(), set(ids)
+
+
+@lru_cache(maxsize=None)
+def _compile(pattern: str) -> re.Pattern:
+    parts = []
+    for level in pattern.split("/"):
+        if level == "**":
+            parts.append(r"(?:[^/]+(?:/[^/]+)*)")
+        elif level == "*":
+            parts.append(r"[^/]+")
+        else:
+            parts.append(re.sub(r"\\\{(\w+)\\\}", r"(?P<\1>[^/]+)", re.escape(level)))
+    return re.compile("^" + "/".join(parts) + "$")
+
+
+def match_key(pattern: str, key: str) -> dict[str, str] | None:
+    """Return the captures if ``key`` matches ``pattern`` (see the module doc), else None."""
+    found = _compile(pattern).match(key)
+    return None if found is None else found.groupdict()
+
+
+def message_body(payload: object) -> dict:
+    """The fields of a decoded payload: its own, and those of its ``body`` object if it has one
+    (empty for anything that is not a JSON object)."""
+    if not isinstance(payload, dict):
+        return {}
+    inner = payload.get("body")
+    return {**payload, **inner} if isinstance(inner, dict) else payload
+
+
+
+def _g(value: object) -> str:
+    return f"{value:.4g}" if isinstance(value, (int, float)) else str(value)
