@@ -15,7 +15,7 @@ import sys
 from collections.abc import Sequence
 from types import ModuleType
 
-from adnmesh import __version__
+from adnmesh import __version__, one_blas_thread
 from adnmesh.errors import ConfigError, UsageError
 
 __all__ = ["COMMANDS", "COMMAND_NAMES", "EXIT_INTERRUPTED", "EXIT_USER_ERROR", "build_parser",
@@ -68,7 +68,12 @@ def _error(message: str) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run the command line with ``argv`` (default: ``sys.argv[1:]``); return the exit code."""
+    """Run the command line with ``argv`` (default: ``sys.argv[1:]``); return the exit code.
+
+    OpenBLAS is set to one thread first (:func:`adnmesh.one_blas_thread`), before any command
+    module imports numpy; the processes a command starts (tuning workers, agents) inherit it.
+    """
+    one_blas_thread()
     try:
         try:
             argv = list(sys.argv[1:] if argv is None else argv)

@@ -32,11 +32,13 @@ import tempfile
 import time
 from pathlib import Path
 
-#: the caller's OpenBLAS setting, before importing adnmesh sets it to one thread: each run
+#: the caller's OpenBLAS setting, before this process sets it to one thread: each run
 #: gets the environment it would get from the caller's shell
 _CALLER_OPENBLAS = os.environ.get("OPENBLAS_NUM_THREADS")
 
-import adnmesh  # noqa: E402,F401  (before numpy, for this process's in-process runs)
+import adnmesh  # noqa: E402
+
+adnmesh.one_blas_thread()   # before numpy, for this process's in-process runs, as the CLI does
 import numpy as np  # noqa: E402
 
 from adnmesh.config import load_config  # noqa: E402

@@ -7,11 +7,15 @@ import os
 import signal
 from pathlib import Path
 
-import adnmesh  # noqa: F401  (first: it keeps OpenBLAS on one thread, read when numpy loads)
-import numpy as np
-import pytest
+import adnmesh
 
-from adnmesh.config import Config, load_config
+# first: OpenBLAS on one thread, read when numpy loads, as the command line does (so a test that
+# runs adnmesh.cli.main in this process leaves the environment as it found it)
+adnmesh.one_blas_thread()
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+from adnmesh.config import Config, load_config  # noqa: E402
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 

@@ -156,15 +156,20 @@ def test_schema_takes_a_name_from_its_registry(capsys) -> None:
 
 
 @pytest.mark.parametrize("given, expected", [(None, "1"), ("2", "2")])
-def test_importing_adnmesh_keeps_openblas_on_one_thread_unless_told(given, expected) -> None:
-    """The package sets OpenBLAS to one thread before numpy loads (its idle threads busy-wait
-    and take CPU from the other tuning worker); a value the user set is kept."""
+def test_the_command_line_keeps_openblas_on_one_thread_unless_told(given, expected) -> None:
+    """The command line sets OpenBLAS to one thread before numpy loads (its idle threads
+    busy-wait and take CPU from the other tuning worker; workers and agents inherit it); a
+    value the user set is kept. Importing adnmesh.cli (what the console script does first)
+    neither sets it nor loads numpy."""
     import os
 
     env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
     if given is not None:
         env["OPENBLAS_NUM_THREADS"] = given
-    out = subprocess.run([sys.executable, "-c",
-                          "import adnmesh, os; print(os.environ['OPENBLAS_NUM_THREADS'])"],
-                         env=env, capture_output=True, text=True, timeout=60, check=True)
-    assert out.stdout.strip() == expected
+    probe = ("import os, sys; from adnmesh.cli import main; "
+             "print(os.environ.get('OPENBLAS_NUM_THREADS'), 'numpy' in sys.modules); "
+             "main(['--version']); print(os.environ['OPENBLAS_NUM_THREADS'])")
+    out = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True,
+                         text=True, timeout=60, check=True).stdout.splitlines()
+    assert out[0] == f"{given} False"
+    assert out[-1] == expected

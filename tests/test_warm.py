@@ -65,3 +65,17 @@ def test_an_unknown_share_is_an_error() -> None:
     problem = TuningProblem(load_config(ROOT / "configs" / "simbench.yaml"))
     with pytest.raises(ValueError, match="unknown share"):
         warm_share(problem, "everything")
+
+
+@pytest.mark.parametrize("given", [None, "3"])
+def test_pool_workers_start_with_one_blas_thread_unless_told(monkeypatch, given) -> None:
+    """The pool's workers get OPENBLAS_NUM_THREADS=1 (a spawned worker reads it when it imports
+    numpy); a value the caller set is kept, and the caller's environment is as it was after."""
+    from adnmesh.tuning.build import _one_blas_thread_in_workers
+
+    monkeypatch.delenv("OPENBLAS_NUM_THREADS", raising=False)
+    if given is not None:
+        monkeypatch.setenv("OPENBLAS_NUM_THREADS", given)
+    with _one_blas_thread_in_workers():
+        assert os.environ["OPENBLAS_NUM_THREADS"] == (given or "1")
+    assert os.environ.get("OPENBLAS_NUM_THREADS") == given

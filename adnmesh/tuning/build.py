@@ -11,6 +11,7 @@ import csv
 import io
 import math
 import multiprocessing
+import os
 import threading
 import time
 from contextlib import contextmanager
@@ -20,6 +21,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from adnmesh import BLAS_THREADS_ENV
 from adnmesh.files import write_atomic
 from adnmesh.tuning.certify import PlantGroup, certified_entries
 from adnmesh.tuning.global_search import tune_global
@@ -87,6 +89,22 @@ def plant_chunks(groups: list[PlantGroup], chunk_size: int) -> list[list[PlantGr
     resumed run and any number of workers tune the same batches."""
     n = max(1, -(-len(groups) // max(1, chunk_size)))
     return [groups[i::n] for i in range(n) if groups[i::n]]
+
+
+@contextmanager
+def _one_blas_thread_in_workers():
+    """While the pool starts its worker processes: ``OPENBLAS_NUM_THREADS=1`` in the
+    environment they get, unless the caller has set it (see :func:`adnmesh.one_blas_thread`).
+    A worker started afresh ("spawn", "forkserver") reads it when it imports numpy; a forked
+    one keeps this process's OpenBLAS as it is (one thread when run from the command line)."""
+    if BLAS_THREADS_ENV in os.environ:
+        yield
+        return
+    os.environ[BLAS_THREADS_ENV] = "1"
+    try:
+        yield
+    finally:
+        os.environ.pop(BLAS_THREADS_ENV, None)
 
 
 def _one_numba_thread_if(single_thread: bool) -> None:
@@ -219,8 +237,9 @@ def tune_table(config, method: str = "paper", workers: int = 1, out: Path | None
             size = min(workers, len(jobs) + (table.static is None))
             context = multiprocessing.get_context()
             start = (context.Value("i", 0), context.Barrier(size), config, problem.constraints)
-            with ProcessPoolExecutor(max_workers=size, mp_context=context,
-                                     initializer=_start_worker, initargs=start) as pool:
+            with _one_blas_thread_in_workers(), ProcessPoolExecutor(
+                    max_workers=size, mp_context=context, initializer=_start_worker,
+                    initargs=start) as pool:
                 # the static controller needs no entry: it runs beside the chunks, not after
                 pending = (pool.submit(_static_job, (*static_job, True))
                            if table.static is None else None)
