@@ -224,8 +224,75 @@ def test_inspect_finds_the_windows_of_up_s_summary(tmp_path: Path) -> None:
     assert math.isnan(summary.steps[3].figures.rise_time_s)     # 1 s: no 90 % crossing
     np.testing.assert_equal([dataclasses.astuple(x) for x in inspected.steps],
                             [dataclasses.astuple(x) for x in summary.steps])
+    _assert_one_window_rule(path, series)
 
 
+def _assert_one_window_rule(path: Path, series) -> None:
+    """The instants that ended windows in ``up``'s summary (``series``, fed as the recorder
+    tap feeds it) are those the one rule finds in the recording's events, and the summary
+    ``inspect`` computes of the recording itself has the same steps."""
+    import dataclasses
+
+    import numpy as np
+
+    from adnmesh.commands.inspect import _summary, _SummaryMessages
+    from adnmesh.results.figures import run_figures
+    from adnmesh.results.rules import window_ends
+    from adnmesh.results.series import read_run
+
+    found, messages = read_run(path, also=_SummaryMessages)
+    assert sorted(set(series.windows.instants)) == sorted(set(window_ends(found.run.events)))
+    again = _summary(found.recording, messages, 5.0)
+    np.testing.assert_equal([dataclasses.astuple(x) for x in again.steps],
+                            [dataclasses.astuple(x) for x in run_figures(found.run).steps])
+
+
+def test_up_s_summary_and_inspect_agree_on_a_run_with_every_kind_of_window_end(
+        fake: Path) -> None:
+    """The fake run (steps, a gain switch as two DERs leave, their heartbeat flags and SI, a
+    fault with its end): ``up``'s summary of its messages, fed as the recorder tap feeds
+    them, and ``inspect``'s figures of its recording have the same steps, windows and all."""
+    import dataclasses
+    import json
+
+    import numpy as np
+
+    from adnmesh.results.figures import run_figures
+    from adnmesh.results.series import extract
+    from adnmesh.results.summary import SUMMARY_TYPES, RunSeries, summarize
+
+    series = RunSeries()
+    for m in fake_run():
+        if m.schema_name in SUMMARY_TYPES and (m.schema_name != "p_y" or b'"switch"' in m.payload):
+            series.add(m.schema_name, json.loads(m.payload))
+    summary = summarize(series, end_ns=60_000_000_000)
+    inspected = run_figures(extract(read_recording(fake)))
+    assert [(x.t_s, x.window_s) for x in summary.steps] == [
+        (5.0, 10.0), (15.0, 10.0), (30.0, 10.0), (50.0, 10.0)]
+    # at 25 s the switch, SI and the two heartbeat flags; the fault from 40 s to 42 s
+    assert sorted(series.windows.instants) == [25_000_000_000] * 4 + [40_000_000_000,
+                                                                      42_000_000_000]
+    np.testing.assert_equal([dataclasses.astuple(x) for x in inspected.steps],
+                            [dataclasses.astuple(x) for x in summary.steps])
+    _assert_one_window_rule(fake, series)
+
+
+def test_the_summary_finds_its_window_events_by_the_event_rules() -> None:
+    """Each message type the summary asks about an event (:data:`WINDOW_EVENTS`) is the type
+    of the keys whose rule finds that kind of event (:data:`EVENTS`, SI:
+    :data:`AVAILABILITY_KEYS`): the summary and the extraction read the same messages."""
+    from adnmesh.results.rules import AVAILABILITY_KEYS, EVENTS
+    from adnmesh.results.summary import SUMMARY_TYPES, WINDOW_EVENTS
+    from adnmesh.wire.keys import route
+
+    def key(pattern: str) -> str:
+        return pattern.format(grid="g", der="D").replace("/**", "/cpfc")
+
+    patterns = {rule.kind: [p for p, r in EVENTS.items() if r.kind == rule.kind]
+                for rule in EVENTS.values()} | {"availability": list(AVAILABILITY_KEYS)}
+    assert set(WINDOW_EVENTS) <= SUMMARY_TYPES
+    for message_type, kind in WINDOW_EVENTS.items():
+        assert [route(key(p)).type for p in patterns[kind]] == [message_type], kind
 
 
 def test_inspect_json_is_one_object_with_topics_counts_figures_and_events(fake: Path,

@@ -19,8 +19,8 @@ from __future__ import annotations
 import json
 
 from adnmesh.recording.foxglove_log import log_record
-from adnmesh.results.rules import (AVAILABILITY_KEYS, EVENTS, available_ders, match_key,
-                                   message_body)
+from adnmesh.results.rules import (AVAILABILITY_KEYS, EVENTS, availability_change,
+                                   available_ders, match_key, message_body)
 
 __all__ = ["EventLog"]
 
@@ -74,11 +74,12 @@ class EventLog:
 
     def _availability(self, body: dict, t_ns: int) -> list[bytes]:
         available, _ = available_ders(body)
-        if frozenset(available) == self._available:
-            return []
+        found = availability_change(available, self._available)
         self._available = frozenset(available)
-        text = f"availability: {len(available)} available: {', '.join(sorted(available))}"
-        return [log_record(t_ns, "INFO", text, "availability")]
+        if found is None:
+            return []
+        level, text, _ = found
+        return [log_record(t_ns, level, text, "availability")]
 
     def _rejected(self, payload: bytes, t_ns: int) -> bytes:
         try:

@@ -1,11 +1,11 @@
 """Summary figures of a recorded run: how P_IP followed each step of P_ref.
 
 The step figures are those of ``adnmesh up``'s summary, by the same function
-(:func:`adnmesh.loopmodel.step_figures.reference_step_figures`) on the same windows, found in the
-recording by the rules of :class:`adnmesh.results.summary.RunSeries` (:func:`window_ends`):
-a step's window ends at the next step, gain switch, availability change (a DER's heartbeat
-flag, or SI) or fault message, else at the run's end (the ``clock/start`` message's
-``end_ns``; the last P_IP sample if the recording has none). Times are send (sampling) times;
+(:func:`adnmesh.loopmodel.step_figures.reference_step_figures`) on the same windows: a step's
+window ends at the next step or at the next event that ends a window by the one rule both apply,
+:class:`adnmesh.results.rules.StepWindowEnds` (a gain switch, an availability change: a DER's
+heartbeat flag or SI, a fault's start or end), else at the run's end (the ``clock/start``
+message's ``end_ns``; the last P_IP sample if the recording has none). Times are send (sampling) times;
 see :mod:`adnmesh.loopmodel.step_figures` for the definitions
 (docs/method.md#figures-of-merit, MATLAB ``stepinfo``).
 """
@@ -16,8 +16,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from adnmesh.results.series import RunData
 from adnmesh.loopmodel.step_figures import ReferenceStep, reference_step_figures
+from adnmesh.results import rules
+from adnmesh.results.series import RunData
 
 __all__ = ["RunFigures", "run_end_ns", "run_figures", "step_table", "window_ends"]
 
@@ -44,21 +45,9 @@ class RunFigures:
 
 
 def window_ends(run: RunData) -> list[int]:
-    """Instants (ns) other than P_ref steps that end a step's window: gain switches with a
-    switch record, heartbeat flag changes, SI changes (not the initial SI), fault messages."""
-    ends = []
-    initial = True
-    for event in run.events:
-        if event.kind == "availability":
-            if not initial:
-                ends.append(event.t_ns)
-            initial = False
-        elif event.kind == "der_available" or (
-                event.kind == "gain_switch" and event.data.get("switch")):
-            ends.append(event.t_ns)
-    for start, end, _ in run.fault_spans():
-        ends += [start] if end is None else [start, end]
-    return ends
+    """Instants (ns) other than P_ref steps that end a step's window: those of the run's events
+    by the rule of :class:`~adnmesh.results.rules.StepWindowEnds`."""
+    return rules.window_ends(run.events)
 
 
 def run_end_ns(run: RunData) -> int | None:

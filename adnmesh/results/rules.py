@@ -1,9 +1,9 @@
-"""What recorded messages mean: the one table to adjust, of series and events.
+"""What recorded messages mean: the one table to adjust, of series, events and step windows.
 
 :data:`SERIES` maps key patterns to the numbers taken from each message on a matching key;
 :data:`EVENTS` maps key patterns to the text events derived from them; :data:`AVAILABILITY_KEYS`
 names the keys of the availability vector SI; :data:`QUIET_KEYS` the keys whose numbers are
-not kept. Everything
+not kept. :class:`StepWindowEnds` says which of those events end a step's window. Everything
 that reads meaning into messages applies these rules: the extraction of a recording's series
 and events (:mod:`adnmesh.results.series`: ``adnmesh replay``, ``plot``, ``inspect``, the live
 view), the events the recorder logs while a run records (:mod:`adnmesh.results.eventlog`) and
@@ -23,7 +23,7 @@ role ``"other"`` (except on :data:`QUIET_KEYS`), so nothing numeric is invisible
 from __future__ import annotations
 
 import re
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from functools import lru_cache
 
@@ -36,9 +36,12 @@ __all__ = [
     "Field",
     "QUIET_KEYS",
     "SERIES",
+    "StepWindowEnds",
+    "availability_change",
     "available_ders",
     "match_key",
     "message_body",
+    "window_ends",
 ]
 
 ENVELOPE_FIELDS = frozenset({"v", "type", "src", "seq", "t_send_ns", "t_deliver_ns"})
@@ -293,6 +296,64 @@ def match_key(pattern: str, key: str) -> dict[str, str] | None:
     """Return the captures if ``key`` matches ``pattern`` (see the module doc), else None."""
     found = _compile(pattern).match(key)
     return None if found is None else found.groupdict()
+
+
+def availability_change(available: Iterable[str],
+                        before: frozenset[str] | None) -> tuple[str, str, dict] | None:
+    """An SI message whose set of available DERs (:func:`available_ders`) differs from the
+    previous SI's (``before``; None for the first SI, which is the initial state and an event
+    too); returns (level, text, data) as an :class:`EventRule`'s rule does, else None."""
+    available = sorted(available)
+    if before is not None and frozenset(available) == before:
+        return None
+    return ("INFO", f"availability: {len(available)} available: {', '.join(available)}",
+            {"available": available})
+
+
+class StepWindowEnds:
+    """What ends a step's window, besides the next step of P_ref: the one rule of ``adnmesh
+    up``'s summary (:class:`~adnmesh.results.summary.RunSeries`, fed as the run goes) and of
+    the figures ``adnmesh inspect`` finds in a recording (:func:`window_ends`).
+
+    Fed the run's events in time order (:meth:`take`), it keeps in :attr:`instants` (ns) those
+    of
+
+    - a gain switch with the CPFC's switch record (``gain_switch`` with ``switch``; a change
+      of the gains without one is no switch of the table entry),
+    - a DER's heartbeat flag that differs from its previous one (``der_available``),
+    - a change of the availability vector SI (``availability``; not the first SI, which is the
+      initial state),
+    - an injected fault: its start and, if it has one, its end (``fault``; a fault sent again
+      to a restarted agent counts once).
+    """
+
+    def __init__(self) -> None:
+        self.instants: list[int] = []
+        self._initial_si = True
+        self._faults: set = set()
+
+    def take(self, event: Event) -> None:
+        """Note ``event`` if it ends a window."""
+        kind = event.kind
+        if kind == "availability":
+            if not self._initial_si:
+                self.instants.append(event.t_ns)
+            self._initial_si = False
+        elif kind == "der_available" or (kind == "gain_switch" and event.data.get("switch")):
+            self.instants.append(event.t_ns)
+        elif kind == "fault" and event.data["fault_id"] not in self._faults:
+            self._faults.add(event.data["fault_id"])
+            self.instants += [t for t in (event.data["start_ns"], event.data.get("end_ns"))
+                              if t is not None]
+
+
+def window_ends(events: Iterable[Event]) -> list[int]:
+    """The instants (ns) at which ``events`` (in time order) end a step's window, by the rule
+    of :class:`StepWindowEnds`."""
+    ends = StepWindowEnds()
+    for event in events:
+        ends.take(event)
+    return ends.instants
 
 
 def message_body(payload: object) -> dict:

@@ -23,8 +23,8 @@ from adnmesh.recording.foxglove_log import FOXGLOVE_LOG
 from adnmesh.recording.reader import ChannelInfo, Recording
 from adnmesh.recording.stream import MessageBatch, ScannedRecording, Sink, decode_fields, scan
 from adnmesh.results.rules import (AVAILABILITY_KEYS, ENVELOPE_FIELDS, EVENTS, QUIET_KEYS, SERIES,
-                                   Event, EventRule, Field, available_ders, match_key,
-                                   message_body)
+                                   Event, EventRule, Field, availability_change, available_ders,
+                                   match_key, message_body)
 
 __all__ = [
     "LiveCollector",
@@ -245,11 +245,10 @@ class _Collector:
         self.availability.append((t_ns, log_ns, topic, frozenset(available)))
         self.add(f"/{topic}/available_count", _COUNT, _COUNT.name, topic, [t_ns], [log_ns],
                  [float(len(available))], (0, t_ns, order, 10_000))
-        if frozenset(available) != self.last_available:
-            self.last_available = frozenset(available)
-            text = f"availability: {len(available)} available: {', '.join(sorted(available))}"
-            self.events.append(((t_ns, order, 0), Event(t_ns, "availability", "INFO", text, topic,
-                                                        {"available": sorted(available)})))
+        found = availability_change(available, self.last_available)
+        self.last_available = frozenset(available)
+        if found is not None:
+            self.event((t_ns, order, 0), t_ns, "availability", found, topic)
 
     def result(self, t0_ns: int) -> RunData:
         # one 0/1 step series per DER from SI, now that every DER id is known

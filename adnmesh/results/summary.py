@@ -8,10 +8,12 @@ at the window's last sample, W. The figures and the windows are those of
 :func:`adnmesh.loopmodel.step_figures.reference_step_figures`, the rule ``adnmesh inspect`` applies to the
 recording too (:mod:`adnmesh.results.figures`), so both print the same figures.
 
-The events that end a window (:class:`RunSeries`): a ``p_y`` message with a ``switch`` record,
+The events that end a window are those of the one rule ``inspect`` applies too,
+:class:`adnmesh.results.rules.StepWindowEnds`, found in the messages by the event rules of
+:mod:`adnmesh.results.rules` (:class:`RunSeries`): a ``p_y`` message with a ``switch`` record,
 a DER heartbeat whose ``available`` flag differs from the DER's previous one (every DER
 counts as available before its first heartbeat), an SI message whose set of available DERs
-differs from the previous SI's (the first SI is the initial state), every ``fault`` message.
+differs from the previous SI's (the first SI is the initial state), a fault's start and end.
 
 For every gain switch (``cpfc/p_y`` messages with a ``switch`` record): the largest
 ``|P_IP - P_ref|`` in the ``window_s`` (10 s) after it, the factor the switch scaled ``P_Y``
@@ -36,16 +38,19 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from adnmesh.loopmodel.step_figures import ReferenceStep, reference_step_figures
 from adnmesh.results.fault_figures import FaultFigures, fault_figures
 from adnmesh.results.realtime_report import ALARM_TIMEOUTS, RealtimeFigures, realtime_lines
-from adnmesh.loopmodel.step_figures import ReferenceStep, reference_step_figures
+from adnmesh.results.rules import (EVENTS, Event, StepWindowEnds, availability_change,
+                                   available_ders)
 
 __all__ = [
-    "SUMMARY_TYPES",
     "GridFigures",
     "RunSeries",
     "RunSummary",
+    "SUMMARY_TYPES",
     "SwitchFigures",
+    "WINDOW_EVENTS",
     "summarize",
 ]
 
@@ -55,6 +60,14 @@ SUMMARY_TYPES = frozenset({"p_ip", "p_ref", "p_y", "heartbeat", "si", "fault", "
 the few the summary reads, not every message type of the wire."""
 
 _ALARM_KINDS = frozenset({"overrun", *ALARM_TIMEOUTS})
+
+WINDOW_EVENTS = {"p_y": "gain_switch", "heartbeat": "der_available", "fault": "fault",
+                 "si": "availability"}
+"""The types of :data:`SUMMARY_TYPES` whose messages may be an event that ends a step's
+window, and the kind of that event (:class:`~adnmesh.results.rules.EventRule` kinds of
+:data:`~adnmesh.results.rules.EVENTS`; ``availability``: SI changes)."""
+
+_RULES = {rule.kind: rule.rule for rule in EVENTS.values()}
 
 
 @dataclass
@@ -70,9 +83,10 @@ class RunSeries:
     switches : list of dict
         One per gain switch: ``t_ns``, ``p_y_before``, ``p_y_limited`` (limited to the new
         output range), ``p_y_after``, ``available`` (DER ids).
-    disturbances_ns : list of int
-        Instants of other events that disturb ``P_IP`` (a DER's availability flag or SI
-        changes, an injected fault starts or ends); a step's window ends at the next one.
+    windows : StepWindowEnds
+        The instants of the events that end a step's window (gain switches, a DER's
+        availability flag or SI changes, an injected fault starts or ends), by the rule of
+        :class:`~adnmesh.results.rules.StepWindowEnds`.
     faults : dict
         Fault number -> the body of its ``fault`` message (sent again to a restarted agent:
         kept once).
@@ -90,16 +104,18 @@ class RunSeries:
     p_ref_t_ns: list = field(default_factory=list)
     p_ref_w: list = field(default_factory=list)
     switches: list = field(default_factory=list)
-    disturbances_ns: list = field(default_factory=list)
     faults: dict = field(default_factory=dict)
     events: list = field(default_factory=list)
     alarms: list = field(default_factory=list)
     grid: list = field(default_factory=list)
-    _flags: dict = field(default_factory=dict, repr=False)
+    windows: StepWindowEnds = field(default_factory=StepWindowEnds, repr=False)
+    _previous: dict = field(default_factory=dict, repr=False)   # (type, sender) -> last body
     _si: frozenset | None = field(default=None, repr=False)
 
     def add(self, message_type: str, body: dict) -> None:
         """Take one decoded message (envelope and body) if the summary needs it."""
+        if message_type in WINDOW_EVENTS:
+            self._window_event(message_type, body)
         if message_type == "p_ip":
             self.p_ip_t_ns.append(body["t_send_ns"])
             self.p_ip_w.append(body["p_ip_w"])
@@ -114,19 +130,8 @@ class RunSeries:
                                   "p_y_after": body["p_y"],
                                   "scale": switch.get("scale", 1.0),
                                   "available": sorted(body.get("w", {}))})
-        elif message_type == "heartbeat":
-            if self._flags.get(body["src"], True) != body["available"]:
-                self.disturbances_ns.append(body["t_send_ns"])
-            self._flags[body["src"]] = body["available"]
-        elif message_type == "si":
-            available = frozenset(d for d, flag in body["si"].items() if flag)
-            if self._si is not None and self._si != available:
-                self.disturbances_ns.append(body["t_send_ns"])
-            self._si = available
         elif message_type == "fault" and body["fault_id"] not in self.faults:
             self.faults[body["fault_id"]] = body
-            self.disturbances_ns += [t for t in (body["start_ns"], body["end_ns"])
-                                     if t is not None]
         elif message_type == "event":
             self.events.append((body["t_send_ns"] * 1e-9, body["src"], body["kind"]))
             if body["kind"] in _ALARM_KINDS:
@@ -134,6 +139,23 @@ class RunSeries:
                                     body.get("subject") or body["src"], body["text"]))
         elif message_type == "grid_state":
             self.grid.append(body)
+
+    def _window_event(self, message_type: str, body: dict) -> None:
+        """Find the event in a message by the rules of :mod:`adnmesh.results.rules` (the
+        previous message of the same type and sender stands for the key's previous one) and
+        give it to :attr:`windows`."""
+        kind = WINDOW_EVENTS[message_type]
+        if kind == "availability":
+            available, _ = available_ders(body)
+            found = availability_change(available, self._si)
+            self._si = frozenset(available)
+        else:
+            sender = (message_type, body.get("src"))
+            found = _RULES[kind](body, self._previous.get(sender), {})
+            self._previous[sender] = body
+        if found is not None:
+            level, text, data = found
+            self.windows.take(Event(body["t_send_ns"], kind, level, text, "", data))
 
 
 @dataclass(frozen=True)
@@ -228,8 +250,7 @@ def summarize(series: RunSeries, *, end_ns: int, band_pct: float = 5.0,
     """
     steps = reference_step_figures(
         series.p_ip_t_ns, series.p_ip_w, series.p_ref_t_ns, series.p_ref_w,
-        [*(s["t_ns"] for s in series.switches), *series.disturbances_ns], end_ns,
-        band_pct=band_pct)
+        series.windows.instants, end_ns, band_pct=band_pct)
     t_ip = np.asarray(series.p_ip_t_ns, dtype=np.int64)
     p_ip = np.asarray(series.p_ip_w, dtype=float)
     switches = []
