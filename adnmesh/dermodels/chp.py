@@ -18,11 +18,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import cached_property, lru_cache
+from functools import lru_cache
 
 from adnmesh.dermodels.pieces import end_value, lag_of_pieces, rate_limited_lag
 from adnmesh.dermodels.risetime import ModelFunctions, rise_time
-from adnmesh.dermodels.state import DerState, evaluate, queue_set_point
+from adnmesh.dermodels.state import DeadTime, DerState, infeed_function, set_point
 
 __all__ = ["CHPParams", "default_params", "steady_state", "set_point", "infeed_at", "advance",
            "output", "DESIGN_STEP", "LAG_RATIO", "RATE_STEP"]
@@ -37,7 +37,7 @@ RATE_STEP = 0.15
 
 
 @dataclass(frozen=True)
-class CHPParams:
+class CHPParams(DeadTime):
     """Parameters of the CHP model (W, s, W/s).
 
     Parameters
@@ -71,11 +71,6 @@ class CHPParams:
                 and self.rate_down_w_per_s > 0 and 0 <= self.p_min_w <= self.p_max_w):
             raise ValueError(f"invalid CHP model parameters: {self}")
 
-    @cached_property
-    def t_delay_ns(self) -> int:
-        """Dead time, ns."""
-        return int(round(self.t_delay_s * 1e9))
-
 
 def steady_state(params: CHPParams, p_w: float, t_ns: int = 0) -> DerState:
     """At rest at ``p_w`` (limited) at ``t_ns``."""
@@ -96,14 +91,7 @@ def output(params: CHPParams, core: tuple) -> float:
     return core[1]
 
 
-def set_point(params: CHPParams, state: DerState, t_ns: int, setpoint_w: float) -> None:
-    """Input: setpoint ``setpoint_w`` (W) from ``t_ns`` on (time order)."""
-    queue_set_point(params, state, t_ns, setpoint_w)
-
-
-def infeed_at(params: CHPParams, state: DerState, t_ns: int) -> float:
-    """Infeed at ``t_ns`` (not before an earlier call), exact, W."""
-    return evaluate(advance, output, params, state, t_ns)
+infeed_at = infeed_function(advance, output)
 
 
 FUNCTIONS = ModelFunctions(steady_state, set_point, infeed_at)

@@ -16,18 +16,17 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import cached_property
 
 from adnmesh.dermodels.pieces import rate_limited_lag_end
 from adnmesh.dermodels.risetime import ModelFunctions
-from adnmesh.dermodels.state import DerState, evaluate, queue_set_point
+from adnmesh.dermodels.state import DeadTime, DerState, infeed_function, set_point
 
 __all__ = ["PVParams", "default_params", "steady_state", "set_point", "infeed_at", "advance",
            "output"]
 
 
 @dataclass(frozen=True)
-class PVParams:
+class PVParams(DeadTime):
     """Parameters of the PV model (W, s, W/s).
 
     Parameters
@@ -56,11 +55,6 @@ class PVParams:
         if math.isnan(self.p_max_w):
             object.__setattr__(self, "p_max_w", float(self.p_inst_w))
         _check(self)
-
-    @cached_property
-    def t_delay_ns(self) -> int:
-        """Dead time, ns."""
-        return int(round(self.t_delay_s * 1e9))
 
 
 def _check(p) -> None:
@@ -96,14 +90,7 @@ def output(params: PVParams, core: tuple) -> float:
     return core[0]
 
 
-def set_point(params: PVParams, state: DerState, t_ns: int, setpoint_w: float) -> None:
-    """Input: setpoint ``setpoint_w`` (W) from ``t_ns`` on (time order)."""
-    queue_set_point(params, state, t_ns, setpoint_w)
-
-
-def infeed_at(params: PVParams, state: DerState, t_ns: int) -> float:
-    """Infeed at ``t_ns`` (not before an earlier call), exact, W."""
-    return evaluate(advance, output, params, state, t_ns)
+infeed_at = infeed_function(advance, output)
 
 
 FUNCTIONS = ModelFunctions(steady_state, set_point, infeed_at)

@@ -1,14 +1,16 @@
 """State and inputs shared by the detailed DER models: dead time, limits, event commits.
 
-A model is its parameters (a frozen dataclass with ``t_delay_s``, ``p_min_w``, ``p_max_w``), a
-*core* (a tuple of its internal values, W) and two pure functions of the model's module::
+A model is its parameters (a frozen dataclass with ``t_delay_s``, ``p_min_w``, ``p_max_w``,
+derived from :class:`DeadTime`), a *core* (a tuple of its internal values, W) and two pure
+functions of the model's module::
 
     advance(params, core, u_w, dt_s) -> core      # exact, input u_w constant over dt_s
     output(params, core) -> p_w
 
 :class:`DerState` holds the core at ``t_ns``, the input the dynamics currently see and the
-setpoints still inside the dead time. :func:`set_point` and :func:`infeed_at` have the shape of
-the reference model's (:mod:`adnmesh.dermodels.pt1`): a setpoint given at ``t`` reaches the
+setpoints still inside the dead time. Every model's ``set_point`` is :func:`set_point`, its
+``infeed_at`` is :func:`infeed_function` of its ``advance`` and ``output``; both have the shape
+of the reference model's (:mod:`adnmesh.dermodels.pt1`): a setpoint given at ``t`` reaches the
 dynamics at ``t + t_delay`` (limited to ``[p_min_w, p_max_w]``), and ``infeed_at(t)`` is exact.
 
 The core is committed only at the instants where the dynamics' input changes; the infeed at any
@@ -21,8 +23,9 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass, field
+from functools import cached_property
 
-__all__ = ["DerState", "queue_set_point", "evaluate"]
+__all__ = ["DerState", "DeadTime", "set_point", "evaluate", "infeed_function"]
 
 
 @dataclass
@@ -50,9 +53,18 @@ class DerState:
     t_last_ns: int = 0
 
 
-def queue_set_point(params, state: DerState, t_ns: int, setpoint_w: float) -> None:
-    """Input: the setpoint becomes ``setpoint_w`` at ``t_ns`` (in time order), seen by the
-    dynamics ``t_delay_s`` later."""
+class DeadTime:
+    """Base of the models' parameter dataclasses: their dead time ``t_delay_s`` in ns."""
+
+    @cached_property
+    def t_delay_ns(self) -> int:
+        """Dead time, ns."""
+        return int(round(self.t_delay_s * 1e9))
+
+
+def set_point(params, state: DerState, t_ns: int, setpoint_w: float) -> None:
+    """Input: the setpoint becomes ``setpoint_w`` (W) at ``t_ns`` (in time order), seen by the
+    dynamics ``t_delay_s`` later. Every model's ``set_point``."""
     if t_ns < state.t_last_ns:
         raise ValueError(f"set-point at {t_ns} ns is before {state.t_last_ns} ns")
     state.queue.append((t_ns + params.t_delay_ns, float(setpoint_w)))
@@ -75,3 +87,12 @@ def evaluate(advance, output, params, state: DerState, t_ns: int) -> float:
     if t_ns > state.t_ns:
         core = advance(params, core, state.u_w, (t_ns - state.t_ns) * 1e-9)
     return output(params, core)
+
+
+def infeed_function(advance, output):
+    """A model's ``infeed_at(params, state, t_ns) -> W``: :func:`evaluate` with the model's
+    ``advance`` and ``output``."""
+    def infeed_at(params, state: DerState, t_ns: int) -> float:
+        """Infeed at ``t_ns`` (not before an earlier call), exact, W."""
+        return evaluate(advance, output, params, state, t_ns)
+    return infeed_at

@@ -21,13 +21,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import cached_property, lru_cache
+from functools import lru_cache
 
 from scipy.optimize import brentq
 
 from adnmesh.dermodels.pieces import rate_limited_lag_end
 from adnmesh.dermodels.risetime import ModelFunctions, rise_time
-from adnmesh.dermodels.state import DerState, evaluate, queue_set_point
+from adnmesh.dermodels.state import DeadTime, DerState, infeed_function, set_point
 
 __all__ = ["WTParams", "default_params", "steady_state", "set_point", "infeed_at", "advance",
            "output", "DESIGN_STEP", "RAMP_SHARE", "RATE_STEP"]
@@ -42,7 +42,7 @@ RATE_STEP = 0.25
 
 
 @dataclass(frozen=True)
-class WTParams:
+class WTParams(DeadTime):
     """Parameters of the WT model (W, s, W/s).
 
     Parameters
@@ -78,11 +78,6 @@ class WTParams:
                 and min(self.ramp_up_w_per_s, self.ramp_down_w_per_s, self.rate_up_w_per_s,
                         self.rate_down_w_per_s) > 0 and 0 <= self.p_min_w <= self.p_max_w):
             raise ValueError(f"invalid WT model parameters: {self}")
-
-    @cached_property
-    def t_delay_ns(self) -> int:
-        """Dead time, ns."""
-        return int(round(self.t_delay_s * 1e9))
 
 
 def steady_state(params: WTParams, p_w: float, t_ns: int = 0) -> DerState:
@@ -120,14 +115,7 @@ def output(params: WTParams, core: tuple) -> float:
     return core[1]
 
 
-def set_point(params: WTParams, state: DerState, t_ns: int, setpoint_w: float) -> None:
-    """Input: setpoint ``setpoint_w`` (W) from ``t_ns`` on (time order)."""
-    queue_set_point(params, state, t_ns, setpoint_w)
-
-
-def infeed_at(params: WTParams, state: DerState, t_ns: int) -> float:
-    """Infeed at ``t_ns`` (not before an earlier call), exact, W."""
-    return evaluate(advance, output, params, state, t_ns)
+infeed_at = infeed_function(advance, output)
 
 
 FUNCTIONS = ModelFunctions(steady_state, set_point, infeed_at)
