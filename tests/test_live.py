@@ -180,3 +180,17 @@ def test_progress_prints_the_events_above_the_bar() -> None:
 def test_speed_factor() -> None:
     assert speed_factor(deque([(0.0, 0)])) is None
     assert speed_factor(deque([(10.0, 0), (12.0, 30_000_000_000)])) == 15.0
+
+
+def test_both_views_queue_what_they_are_given_by_one_take() -> None:
+    """The view in ``up``'s process and the one in its child queue recorded messages the same
+    way: one implementation, in order, emptied by whoever hands them on."""
+    from adnmesh.results.live import RecordQueue
+    from adnmesh.runtime.liveview import ViewProcess
+
+    assert LiveView.take is ViewProcess.take is RecordQueue.take
+    queue = RecordQueue()
+    queue.take("a", "p_ip", [(b"{}", 2, 1)])
+    queue.take("b", "p_y", [(b"{}", 4, 3)])
+    assert queue.taken() == [("a", "p_ip", [(b"{}", 2, 1)]), ("b", "p_y", [(b"{}", 4, 3)])]
+    assert queue.taken() == []

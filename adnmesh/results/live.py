@@ -17,15 +17,35 @@ from collections.abc import Callable
 
 import numpy as np
 
-from adnmesh.results.rerun_export import (blueprint, events_path, held, log_style,
-                                            send_events, send_series)
+from adnmesh.results.rerun_export import blueprint, held, log_style, send_events, send_series
 from adnmesh.results.rules import Event
 from adnmesh.results.series import LiveCollector, RunData, Series
 
-__all__ = ["LiveView", "VIEW_PERIOD_S"]
+__all__ = ["LiveView", "RecordQueue", "VIEW_PERIOD_S"]
 
 VIEW_PERIOD_S = 0.5
 """How often the view is sent what came, wall s."""
+
+
+class RecordQueue:
+    """Recorded messages queued for another thread: what a view is given by the recorder tap
+    (:meth:`take`, cheap and thread-safe, so that the recorder is never held up) and hands on
+    from another thread (:meth:`taken`)."""
+
+    def __init__(self) -> None:
+        self._pending: list[tuple[str, str, list]] = []
+        self._lock = threading.Lock()
+
+    def take(self, topic: str, schema_name: str, records: list[tuple[bytes, int, int]]) -> None:
+        """Queue recorded messages: ``(payload, log_time_ns, publish_time_ns)`` each."""
+        with self._lock:
+            self._pending.append((topic, schema_name, records))
+
+    def taken(self) -> list[tuple[str, str, list]]:
+        """What was queued since the last call, ``(topic, schema_name, records)`` in order."""
+        with self._lock:
+            pending, self._pending = self._pending, []
+        return pending
 
 
 @dataclasses.dataclass(frozen=True)
@@ -38,7 +58,7 @@ class _Last:
     sent_ns: int
 
 
-class LiveView:
+class LiveView(RecordQueue):
     """Streams the series and events of a running run to the Rerun stream ``rec``.
 
     Parameters
@@ -60,14 +80,13 @@ class LiveView:
     def __init__(self, rec, *, t0_ns: int = 0, period_s: float = VIEW_PERIOD_S,
                  on_events: Callable[[list[Event]], None] | None = None,
                  viewer_pid: int | None = None) -> None:
+        super().__init__()
         self.rec, self.t0_ns, self.period_s, self.on_events = rec, t0_ns, period_s, on_events
         self.viewer_pid = viewer_pid
         self.collector = LiveCollector()
         self.now_ns = 0                          # newest send time seen, ns
         self.sends = 0                           # how many times something was sent
         self.error: str | None = None            # why the view stopped, if it failed
-        self._pending: list[tuple[str, str, list]] = []
-        self._lock = threading.Lock()
         self._stop = threading.Event()
         self._known: dict[str, Series] = {}      # every series seen (samples not kept)
         self._last: dict[str, _Last] = {}        # step series: last sample, sent up to
@@ -79,11 +98,6 @@ class LiveView:
         """Start the background thread; return self."""
         self._thread.start()
         return self
-
-    def take(self, topic: str, schema_name: str, records: list[tuple[bytes, int, int]]) -> None:
-        """Queue recorded messages: ``(payload, log_time_ns, publish_time_ns)`` each."""
-        with self._lock:
-            self._pending.append((topic, schema_name, records))
 
     def close(self) -> None:
         """Send what is left, flush and disconnect the stream."""
@@ -104,8 +118,7 @@ class LiveView:
     def send_pending(self) -> None:
         """Turn what was queued into series and events and send them (the view's thread does
         this every ``period_s``; callable directly when it is not started)."""
-        with self._lock:
-            pending, self._pending = self._pending, []
+        pending = self.taken()
         if self.error is not None:
             return
         try:

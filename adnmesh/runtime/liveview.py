@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from adnmesh.errors import UsageError
-from adnmesh.results.live import VIEW_PERIOD_S, LiveView
+from adnmesh.results.live import VIEW_PERIOD_S, LiveView, RecordQueue
 from adnmesh.results.rerun_export import APPLICATION_ID, rerun_executable
 from adnmesh.runtime.bus import DEFAULT_HOST, free_port
 
@@ -69,8 +69,9 @@ def _has_display() -> bool:
     return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
 
 
-class ViewProcess:
-    """The live view in a child process; :meth:`take` as :meth:`LiveView.take` (thread-safe).
+class ViewProcess(RecordQueue):
+    """The live view in a child process; :meth:`take` queues as :class:`LiveView` does
+    (:class:`~adnmesh.results.live.RecordQueue`, thread-safe).
 
     Parameters
     ----------
@@ -87,11 +88,10 @@ class ViewProcess:
 
     def __init__(self, sink: tuple, run_id: str, on_events=None,
                  viewer_pid: int | None = None, period_s: float = VIEW_PERIOD_S) -> None:
+        super().__init__()
         self.viewer_pid, self.on_events, self.period_s = viewer_pid, on_events, period_s
         self.error: str | None = None
         self.cpu_s = 0.0            # CPU time of the view's process, s (once closed)
-        self._pending: list = []
-        self._lock = threading.Lock()
         self._stop = threading.Event()
         context = multiprocessing.get_context("spawn")
         self._conn, child = context.Pipe()
@@ -104,11 +104,6 @@ class ViewProcess:
         self._receiver = threading.Thread(target=self._receive_loop, daemon=True)
         self._sender.start()
         self._receiver.start()
-
-    def take(self, topic: str, schema_name: str, records: list[tuple[bytes, int, int]]) -> None:
-        """Queue recorded messages: ``(payload, log_time_ns, publish_time_ns)`` each."""
-        with self._lock:
-            self._pending.append((topic, schema_name, records))
 
     def close(self, timeout_s: float = 120.0) -> None:
         """Hand over what is left, let the child send it and end; wait for it (bounded)."""
@@ -125,8 +120,7 @@ class ViewProcess:
         self._conn.close()
 
     def _hand_over(self) -> None:
-        with self._lock:
-            pending, self._pending = self._pending, []
+        pending = self.taken()
         if pending:
             self._send(pending)
 
