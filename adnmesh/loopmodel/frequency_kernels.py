@@ -17,7 +17,7 @@ import math
 import numba
 import numpy as np
 
-__all__ = ["grid_pass", "first_above", "last_at_least", "refine_peaks"]
+__all__ = ["grid_pass", "first_above", "last_at_least", "refine_peaks", "GOLDEN_STEP"]
 
 
 @numba.njit(cache=True)
@@ -209,7 +209,9 @@ def last_at_least(kp, ki, gains, rho, lo, level, monotone):  # pragma: no cover 
     return out
 
 
-_GOLDEN_STEP = 1.0 - (math.sqrt(5.0) - 1.0) / 2.0     # 0.382: a golden step into an interval
+#: a golden step into an interval (0.382): of :func:`refine_peaks` and of the uncompiled rule
+#: it follows, :func:`adnmesh.loopmodel.margins.peak`
+GOLDEN_STEP = 1.0 - (math.sqrt(5.0) - 1.0) / 2.0
 
 
 @numba.njit(cache=True, inline="always")
@@ -260,8 +262,8 @@ def refine_peaks(kp, ki, gains, num, den, delays, x0, x1, x2, f0, f1, f2, xtol,
                     v = b + nudge
                 parabola = parabola and (v > a) and (v < c)
                 if not parabola:
-                    v = b + _GOLDEN_STEP * (c - b) if (c - b) > (b - a) \
-                        else b - _GOLDEN_STEP * (b - a)
+                    v = b + GOLDEN_STEP * (c - b) if (c - b) > (b - a) \
+                        else b - GOLDEN_STEP * (b - a)
                 fv = _q_at(v, kp[m], ki[m], gains[m], num, den, delays)
                 width_before = c - a
                 if fv > fb:                     # v is the new middle

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from adnmesh.loopmodel.frequency_kernels import refine_peaks
+from adnmesh.loopmodel.frequency_kernels import GOLDEN_STEP, refine_peaks
 from adnmesh.loopmodel.frequency_response import as_candidates, loop_points
 from adnmesh.loopmodel.plant import Plant
 from adnmesh.loopmodel.stability import NyquistData
@@ -31,7 +31,6 @@ __all__ = ["DiskMargin", "ClassicalMargins", "disk_margin", "disk_margin_at",
            "classical_margins", "crossing", "peak"]
 
 _GOLDEN = (np.sqrt(5.0) - 1.0) / 2.0
-_GOLDEN_STEP = 1.0 - _GOLDEN                 # 0.382: a golden step into an interval
 
 
 @dataclass(frozen=True)
@@ -207,7 +206,7 @@ def peak(fun, x0, x1, x2, f0, f1, f2, xtol: float = PEAK_XTOL, iterations: int =
         v = np.where(np.abs(v - b) < xtol, b + nudge, v)
         parabola &= (v > a) & (v < c)
         wide_right = (c - b) > (b - a)
-        golden = np.where(wide_right, b + _GOLDEN_STEP * (c - b), b - _GOLDEN_STEP * (b - a))
+        golden = np.where(wide_right, b + GOLDEN_STEP * (c - b), b - GOLDEN_STEP * (b - a))
         v = np.where(parabola, v, golden)
         fv = fun(v, open_)
         up = fv > fb                   # v is the new middle; the old middle bounds its side
