@@ -189,3 +189,105 @@ def test_messages_out_of_send_order_across_chunks_are_read_whole(tmp_path: Path)
     found, _ = read_run(path)
     assert found.run.one("p_ip").values.tolist() == [1.0, 2.0, 3.0, 5.0, 6.0, 7.0]
     assert_same_run(found.run, extract(read_recording(path)))
+
+
+def _damaged(chunked: Path) -> dict[str, tuple[bytes, str | None]]:
+    """Damaged copies of ``chunked``: name -> (content, the error both readers give; None:
+    a truncated file both read as far as it goes)."""
+    import struct
+
+    from mcap.reader import make_reader
+
+    with open(chunked, "rb") as stream:
+        chunk = make_reader(stream).get_summary().chunk_indexes[3]
+    data, at = chunked.read_bytes(), chunk.chunk_start_offset
+    head = at + 9 + 8 + 8 + 8          # a chunk: start, end and size, then crc, compression
+
+    def patched(offset: int, new: bytes) -> bytes:
+        return data[:offset] + new + data[offset + len(new):]
+
+    inside = f"corrupt MCAP file: chunk record at byte {at}: "
+    metadata = 8 + 9 + struct.unpack_from("<Q", data, 9)[0]        # the record after the header
+    assert data[metadata] == 0x0C
+    cases = {
+        "zero bytes": (b"", "empty file, not an MCAP recording"),
+        "garbage": (b"hello, world\n" * 8, "not an MCAP file (it does not start with the "
+                                          "MCAP magic)"),
+        "wrong magic": (b"\x89MCAP1\r\n" + data[8:], "not an MCAP file (it does not start "
+                                                      "with the MCAP magic)"),
+        "magic alone": (data[:8], "corrupt MCAP file: no header record after the magic"),
+        "first record no header": (data[:8] + b"\x03" + data[9:], "corrupt MCAP file: no "
+                                                                  "header record after the "
+                                                                  "magic"),
+        "truncated mid-chunk": (data[:at + chunk.chunk_length // 2], None),
+        "truncated in zeros": (data[:at] + bytes(5000), None),     # a crash left zeros
+        "truncated in the closing magic": (data[:-3], None),
+        "invalid opcode": (patched(at, b"\x42"), f"corrupt MCAP file: invalid record opcode "
+                                                 f"0x42 at byte {at}"),
+        "broken crc": (patched(head, struct.pack("<I", 12345)),
+                       inside + "the checksum of its content does not match"),
+        "unknown compression": (patched(head + 8, b"abcd"), inside + "unknown compression "
+                                                                     "'abcd'"),
+        "damaged compressed data": (patched(at + chunk.chunk_length - 20,
+                                            bytes([data[at + chunk.chunk_length - 20] ^ 0xFF])),
+                                    inside + "decompression error: Data corruption detected"),
+        "chunk length too short": (patched(at + 1, struct.pack("<Q", 10)),
+                                   inside + "unpack requires a buffer of 8 bytes"),
+        "bytes after the footer": (data + b"xyz", "corrupt MCAP file: 11 unexpected bytes "
+                                                  "after the footer"),
+        "malformed metadata record": (patched(metadata + 9, struct.pack("<I", 10**6)),
+                                      f"corrupt MCAP file: metadata record at byte {metadata}: "),
+    }
+    assert data[head + 8:head + 12] == b"zstd"
+    return cases
+
+
+@pytest.mark.parametrize("case", ["zero bytes", "garbage", "wrong magic", "magic alone",
+                                  "first record no header", "truncated mid-chunk",
+                                  "truncated in zeros", "truncated in the closing magic",
+                                  "invalid opcode", "broken crc", "unknown compression",
+                                  "damaged compressed data", "chunk length too short",
+                                  "bytes after the footer", "malformed metadata record"])
+def test_both_readers_say_the_same_of_a_damaged_file(chunked: Path, tmp_path: Path,
+                                                     case: str) -> None:
+    """read_recording (and recover, through it) and scan give one error text for one
+    problem (a malformed record: the parser's own words after the same head), and read a
+    truncated file to the same end."""
+    from adnmesh.recording import recover
+
+    content, problem = _damaged(chunked)[case]
+    path = tmp_path / "damaged.mcap"
+    path.write_bytes(content)
+    if problem is None:
+        whole, scanned = read_recording(path), scan(path, lambda info: None)
+        assert not whole.complete and not scanned.complete
+        assert scanned.message_count == len(whole.messages) > 0
+        assert scanned.dropped_bytes == whole.dropped_bytes > 0
+        assert recover(path, tmp_path / "out.mcap") == len(whole.messages)
+        return
+    said = []
+    for read in (read_recording, lambda p: scan(p, lambda info: None),
+                 lambda p: recover(p, tmp_path / "out.mcap")):
+        with pytest.raises(RecordingError) as info:
+            read(path)
+        said.append(str(info.value))
+    assert said == [said[0]] * 3 and said[0].startswith(f"{path}: {problem}")
+    assert problem.endswith(": ") or said[0] == f"{path}: {problem}"
+
+
+def test_messages_outside_chunks_are_read_by_both_readers(tmp_path: Path) -> None:
+    from mcap.writer import Writer
+
+    path = tmp_path / "unchunked.mcap"
+    with open(path, "wb") as stream:
+        writer = Writer(stream, use_chunking=False)
+        writer.start()
+        schema = writer.register_schema("p_ip", "jsonschema", b"{}")
+        channel = writer.register_channel("adn/x/measurement/p_ip", "json", schema)
+        for i in range(5):
+            writer.add_message(channel, log_time=i, publish_time=i,
+                               data=json.dumps({"p_ip_w": float(i)}).encode())
+        writer.finish()
+    found, _ = read_run(path)
+    assert found.recording.message_count == len(read_recording(path).messages) == 5
+    assert found.run.one("p_ip").values.tolist() == [0.0, 1.0, 2.0, 3.0, 4.0]

@@ -7,6 +7,8 @@
 - :func:`validate_recording` checks messages against their schemas; :func:`check_counts`
   compares what agents published with what was recorded.
 - :mod:`~adnmesh.recording.foxglove_log`: the ``foxglove.Log`` format of the events topic.
+- :mod:`~adnmesh.recording.mcap_records`: the file's records as both readers take them, and
+  the one set of words (:class:`RecordingError`) for a file that is no readable recording.
 
 This package is the file format only; what a run's messages mean (series, events, figures)
 is :mod:`adnmesh.results`, which reads recordings through it.

@@ -8,26 +8,29 @@ messages of its closed chunks come back. :func:`recover` writes them into a new,
 
 Anything that is neither a complete nor a truncated MCAP file (not MCAP at all, a chunk whose
 checksum does not match, a malformed record) raises :class:`RecordingError`, whose message is
-one line naming the file; the command line reports it with exit code 2.
+one line naming the file; the command line reports it with exit code 2. The file's framing and
+the words for what is wrong with it are :mod:`~adnmesh.recording.mcap_records`', the same for
+:func:`~adnmesh.recording.stream.scan`.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import struct
 from dataclasses import dataclass, field
-from io import BytesIO
 from pathlib import Path
 from typing import Any
 
-from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
-from mcap.records import Channel, Chunk, Footer, Header, Message, Metadata, Schema
-from mcap.stream_reader import breakup_chunk
+from mcap.records import Channel, Chunk, Header, Message, Metadata, Schema
 from mcap.writer import CompressionType, Writer
 
-from adnmesh.errors import UsageError
 from adnmesh.files import write_atomic
+from adnmesh.recording.mcap_records import (MCAP_MAGIC, MESSAGE_HEAD, RECORD_HEAD,
+                                            RecordingError, TopLevelRecords, chunk_content,
+                                            chunk_records, open_recording, parse_inner,
+                                            parse_record, schema_not_json, unknown_channel)
 from adnmesh.recording.writer import RECOVERY_METADATA, RUN_METADATA, SCHEMA_ENCODING
 
 __all__ = [
@@ -40,15 +43,7 @@ __all__ = [
     "recover",
 ]
 
-MCAP_MAGIC = b"\x89MCAP0\r\n"
-"""The 8 bytes at the start and the end of every MCAP file."""
-
-_RECORD_HEAD = struct.Struct("<BQ")  # opcode, length of the record body
-_KNOWN_OPCODES = frozenset(int(op) for op in Opcode)
-
-
-class RecordingError(UsageError):
-    """A file is not a readable recording; the message is one line naming the file."""
+_MESSAGE_FIELDS = struct.Struct("<HIQQ")  # a message record's channel, sequence and two times
 
 
 @dataclass(frozen=True)
@@ -158,55 +153,6 @@ class Recording:
         return start, end
 
 
-def _read_bytes(path: Path) -> bytes:
-    try:
-        return path.read_bytes()
-    except FileNotFoundError:
-        raise RecordingError(f"{path}: no such file") from None
-    except IsADirectoryError:
-        raise RecordingError(f"{path}: is a directory, not a recording") from None
-    except OSError as exc:
-        raise RecordingError(f"{path}: cannot read: {exc.strerror or exc}") from None
-
-
-def _frame(path: Path, data: bytes) -> tuple[list[tuple[int, int, int]], bool, int]:
-    """Split ``data`` into top-level records.
-
-    Returns the records as (opcode, body start, body end), whether the file is complete
-    (footer and closing magic present) and the number of bytes after the last whole record.
-    """
-    if not data:
-        raise RecordingError(f"{path}: empty file, not an MCAP recording")
-    if not data.startswith(MCAP_MAGIC):
-        raise RecordingError(f"{path}: not an MCAP file (it does not start with the MCAP magic)")
-    records: list[tuple[int, int, int]] = []
-    pos, size = len(MCAP_MAGIC), len(data)
-    while pos < size:
-        if size - pos < _RECORD_HEAD.size:
-            break
-        opcode, length = _RECORD_HEAD.unpack_from(data, pos)
-        start, end = pos + _RECORD_HEAD.size, pos + _RECORD_HEAD.size + length
-        if opcode not in _KNOWN_OPCODES and opcode < 0x80:
-            if data.count(0, pos) == size - pos:  # zeros after a crash: end of what was written
-                break
-            raise RecordingError(f"{path}: corrupt MCAP file: invalid record opcode 0x{opcode:02x} "
-                                 f"at byte {pos}")
-        if end > size:
-            break
-        records.append((opcode, start, end))
-        pos = end
-        if opcode == Opcode.FOOTER:
-            if data[pos:] == MCAP_MAGIC:
-                return records, True, 0
-            if data[pos:] and not MCAP_MAGIC.startswith(data[pos:]):
-                raise RecordingError(f"{path}: corrupt MCAP file: {size - pos} unexpected bytes "
-                                     f"after the footer")
-            break
-    if not records or records[0][0] != Opcode.HEADER:
-        raise RecordingError(f"{path}: corrupt MCAP file: no header record after the magic")
-    return records, False, size - pos
-
-
 def read_recording(path: str | Path) -> Recording:
     """Read a recording, recovering a truncated one.
 
@@ -223,61 +169,54 @@ def read_recording(path: str | Path) -> Recording:
     Raises
     ------
     RecordingError
-        If the file is missing, not MCAP, or corrupt (e.g. a chunk's checksum does not match).
+        If the file is missing, not MCAP, or corrupt (e.g. a chunk's checksum does not match),
+        in the words :func:`~adnmesh.recording.stream.scan` uses too
+        (:mod:`~adnmesh.recording.mcap_records`).
     """
     path = Path(path)
-    data = _read_bytes(path)
-    frames, complete, dropped = _frame(path, data)
-
     schemas_by_id: dict[int, Schema] = {}
     channels_by_id: dict[int, Channel] = {}
     messages: list[RecordedMessage] = []
     metadata: list[tuple[str, dict[str, str]]] = []
     library = ""
 
-    def take(record: object, offset: int) -> None:
-        if isinstance(record, Message):
-            channel = channels_by_id.get(record.channel_id)
-            if channel is None:
-                raise RecordingError(f"{path}: corrupt MCAP file: message on unknown channel "
-                                     f"{record.channel_id} at byte {offset}")
-            schema = schemas_by_id.get(channel.schema_id)
-            messages.append(RecordedMessage(
-                topic=channel.topic, schema_name=schema.name if schema else "",
-                sequence=record.sequence, log_time_ns=record.log_time,
-                publish_time_ns=record.publish_time, data=record.data))
-        elif isinstance(record, Schema):
+    def message(channel_id: int, sequence: int, log_time: int, publish_time: int, data: bytes,
+                offset: int) -> None:
+        channel = channels_by_id.get(channel_id)
+        if channel is None:
+            raise unknown_channel(path, channel_id, offset)
+        schema = schemas_by_id.get(channel.schema_id)
+        messages.append(RecordedMessage(
+            topic=channel.topic, schema_name=schema.name if schema else "", sequence=sequence,
+            log_time_ns=log_time, publish_time_ns=publish_time, data=data))
+
+    def register(record: Schema | Channel) -> None:
+        if isinstance(record, Schema):
             schemas_by_id[record.id] = record
-        elif isinstance(record, Channel):
+        else:
             channels_by_id[record.id] = record
 
-    for opcode, start, end in frames:
-        offset = start - _RECORD_HEAD.size
-        stream = ReadDataStream(BytesIO(data[start:end]))
-        try:
-            if opcode == Opcode.HEADER:
-                library = Header.read(stream).library
-            elif opcode == Opcode.METADATA:
-                record = Metadata.read(stream)
+    with open_recording(path) as stream:
+        frames = TopLevelRecords(path, stream, os.fstat(stream.fileno()).st_size)
+        for opcode, offset, body in frames:
+            record = parse_record(path, opcode, offset, body)
+            if isinstance(record, Header):
+                library = record.library
+            elif isinstance(record, Metadata):
                 metadata.append((record.name, dict(record.metadata)))
-            elif opcode == Opcode.SCHEMA:
-                take(Schema.read(stream), offset)
-            elif opcode == Opcode.CHANNEL:
-                take(Channel.read(stream), offset)
-            elif opcode == Opcode.MESSAGE:
-                take(Message.read(stream, end - start), offset)
-            elif opcode == Opcode.CHUNK:
-                for record in breakup_chunk(Chunk.read(stream), validate_crc=True):
-                    take(record, offset)
-            elif opcode == Opcode.FOOTER:
-                Footer.read(stream)
-        except RecordingError:
-            raise
-        except Exception as exc:  # noqa: BLE001 -- any failure to parse a whole record
-            name = Opcode(opcode).name.lower() if opcode in _KNOWN_OPCODES else f"0x{opcode:02x}"
-            problem = " ".join(str(exc).split()) or type(exc).__name__
-            raise RecordingError(f"{path}: corrupt MCAP file: {name} record at byte {offset}: "
-                                 f"{problem}") from None
+            elif isinstance(record, (Schema, Channel)):
+                register(record)
+            elif isinstance(record, Message):
+                message(record.channel_id, record.sequence, record.log_time,
+                        record.publish_time, record.data, offset)
+            elif isinstance(record, Chunk):
+                data = chunk_content(path, record, offset)
+                for inner, start, end in chunk_records(path, data, offset):
+                    if inner == Opcode.MESSAGE:
+                        message(*_MESSAGE_FIELDS.unpack_from(data, start + RECORD_HEAD.size),
+                                data[start + MESSAGE_HEAD:end], offset)
+                    elif inner in (Opcode.SCHEMA, Opcode.CHANNEL):
+                        register(parse_inner(path, offset, inner, data, start, end))
 
     channels: dict[str, ChannelInfo] = {}
     for channel in channels_by_id.values():
@@ -291,10 +230,10 @@ def read_recording(path: str | Path) -> Recording:
             try:
                 schemas[schema.name] = json.loads(schema.data)
             except ValueError:
-                raise RecordingError(f"{path}: schema {schema.name!r} is not valid JSON") from None
+                raise schema_not_json(path, schema.name) from None
     return Recording(path=path, messages=tuple(messages), channels=channels, schemas=schemas,
-                     metadata_records=tuple(metadata), library=library, complete=complete,
-                     dropped_bytes=dropped)
+                     metadata_records=tuple(metadata), library=library,
+                     complete=frames.complete, dropped_bytes=frames.dropped_bytes)
 
 
 def write_recording(recording: Recording, out_path: str | Path,

@@ -1,44 +1,42 @@
 """Reading a recording in one streaming pass, as NumPy columns (``inspect``, ``plot``, ``replay``).
 
-:func:`scan` goes through an MCAP file front to back with the ``mcap`` library's non-seeking
-:class:`~mcap.stream_reader.StreamReader`, one chunk in memory at a time, so an unfinished
-file of a killed run reads as far as its last whole record, as :func:`~adnmesh.recording.
-read_recording` reads it. Message records are located through the message indexes that
-follow each chunk (the stretches of a chunk they do not cover, and a chunk without indexes,
-are walked record by record) and their heads (channel, times) are read as NumPy columns:
+:func:`scan` goes through an MCAP file front to back, one record and one chunk in memory at a
+time (:class:`~adnmesh.recording.mcap_records.TopLevelRecords`, as
+:func:`~adnmesh.recording.read_recording` goes through it), so an unfinished file of a killed
+run reads as far as its last whole record. Message records are located through the message
+indexes that follow each chunk (the stretches of a chunk they do not cover, a chunk without
+indexes and one whose indexes do not fit it are walked record by record) and their heads (channel, times) are read as NumPy columns:
 there is no Python object per message. Payloads are handed on, a chunk at a time, only for
 the channels a caller asks for; every channel's count and time range is kept.
 
 :func:`decode_fields` decodes a batch of JSON payloads into columns of a few named fields with
 ``msgspec`` (one call per batch, unknown fields skipped).
 
-Errors are those of :func:`~adnmesh.recording.read_recording`: a :class:`RecordingError` of
-one line naming the file for anything that is neither a complete nor a truncated MCAP file.
+Errors are those of :func:`~adnmesh.recording.read_recording`, in the same words (both read
+through :mod:`~adnmesh.recording.mcap_records`): a :class:`RecordingError` of one line naming
+the file for anything that is neither a complete nor a truncated MCAP file.
 """
 
 from __future__ import annotations
 
 import json
 import os
-import struct
-import zlib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from io import BytesIO
 from operator import attrgetter
 from pathlib import Path
 from typing import Any
 
 import msgspec
 import numpy as np
-import zstandard
-from mcap.data_stream import ReadDataStream
-from mcap.exceptions import McapError
 from mcap.opcode import Opcode
-from mcap.records import Channel, Chunk, DataEnd, Footer, Header, Metadata, Schema
-from mcap.stream_reader import StreamReader
+from mcap.records import Channel, Chunk, Header, Message, Metadata, Schema
 
-from adnmesh.recording.reader import MCAP_MAGIC, ChannelInfo, RecordingError
+from adnmesh.recording.mcap_records import (MESSAGE_HEAD, RECORD_HEAD, TopLevelRecords,
+                                            chunk_content, chunk_records, open_recording,
+                                            parse_inner, parse_record, schema_not_json,
+                                            unknown_channel)
+from adnmesh.recording.reader import ChannelInfo
 from adnmesh.recording.writer import RUN_METADATA, SCHEMA_ENCODING
 
 __all__ = [
@@ -51,8 +49,6 @@ __all__ = [
     "scan",
 ]
 
-_KNOWN_OPCODES = frozenset(int(op) for op in Opcode)
-_MESSAGE_HEAD = 31  # opcode 1, length 8, channel 2, sequence 4, log time 8, publish time 8
 
 
 class MessageBatch:
@@ -207,34 +203,14 @@ class ScannedRecording:
         return min(s.earliest_ns for s in seen), max(s.latest_ns for s in seen)
 
 
-class _Corrupt(Exception):
-    """An unknown record opcode at ``position``."""
-
-    def __init__(self, opcode: int, position: int) -> None:
-        super().__init__(opcode, position)
-        self.opcode, self.position = opcode, position
-
-
-@dataclass(frozen=True)
-class _Index:
-    """A message index record, its entries left as NumPy (log time, offset) columns."""
-
-    channel_id: int
-    offsets: np.ndarray
-
-
-class _Records(StreamReader):
-    """The library's stream reader, with message indexes read as NumPy arrays (not a tuple
-    per message) and unknown record opcodes below 0x80 refused (MCAP reserves them)."""
-
-    def _read_record(self, opcode: int, length: int):
-        if opcode == Opcode.MESSAGE_INDEX:
-            body = self._stream.read(length)
-            entries = np.frombuffer(body, dtype="<u8", offset=6, count=(len(body) - 6) // 8)
-            return _Index(int.from_bytes(body[:2], "little"), entries[1::2].astype(np.int64))
-        if opcode not in _KNOWN_OPCODES and opcode < 0x80:
-            raise _Corrupt(opcode, self._stream.count - 9)
-        return super()._read_record(opcode, length)
+def _index_offsets(body: bytes) -> np.ndarray | None:
+    """The message offsets of a message index record's ``body`` (channel 2, entries' bytes 4,
+    then (log time, offset) pairs of 8 bytes), as a NumPy column; None if it is malformed."""
+    if len(body) < 6 or int.from_bytes(body[2:6], "little") != len(body) - 6 \
+            or (len(body) - 6) % 16:
+        return None
+    entries = np.frombuffer(body, dtype="<u8", offset=6)
+    return entries[1::2].astype(np.int64)
 
 
 class _Scanner:
@@ -246,15 +222,20 @@ class _Scanner:
         self.schemas: dict[int, Schema] = {}
         self.channels: dict[int, tuple[ChannelStats, Sink | None]] = {}
         self.pending: tuple[Chunk, int] | None = None
-        self.indexes: list[np.ndarray] = []
+        self.indexes: list[np.ndarray] | None = []   # None: an index was malformed
         self.ordinal = 0
 
-    def take(self, record: object, offset: int) -> None:
+    def take(self, opcode: int, offset: int, body: bytes) -> None:
         """Take one top-level record that starts at byte ``offset``."""
-        if isinstance(record, _Index):
-            self.indexes.append(record.offsets)
+        if opcode == Opcode.MESSAGE_INDEX:
+            offsets = _index_offsets(body)
+            if offsets is None:
+                self.indexes = None        # walk the chunk instead
+            elif self.indexes is not None:
+                self.indexes.append(offsets)
             return
         self.flush()
+        record = parse_record(self.result.path, opcode, offset, body)
         if isinstance(record, Chunk):
             self.pending = (record, offset)
         elif isinstance(record, Header):
@@ -263,8 +244,10 @@ class _Scanner:
             self.result.metadata_records.append((record.name, dict(record.metadata)))
         elif isinstance(record, (Schema, Channel)):
             self.register(record)
-        elif isinstance(record, Footer):
-            self.result.complete = True
+        elif isinstance(record, Message):       # outside any chunk: a chunk of its own
+            head = RECORD_HEAD.pack(opcode, len(body))
+            self.dispatch(head + body, np.zeros(1, np.int64),
+                          np.asarray([RECORD_HEAD.size + len(body)], np.int64), offset)
 
     def register(self, record: Schema | Channel) -> None:
         if isinstance(record, Schema):
@@ -273,8 +256,7 @@ class _Scanner:
                 try:
                     self.result.schemas[record.name] = json.loads(record.data)
                 except ValueError:
-                    raise RecordingError(f"{self.result.path}: schema {record.name!r} is not "
-                                         "valid JSON") from None
+                    raise schema_not_json(self.result.path, record.name) from None
             return
         if record.id in self.channels:
             return
@@ -291,7 +273,7 @@ class _Scanner:
             return
         (chunk, offset), indexes = self.pending, self.indexes
         self.pending, self.indexes = None, []
-        data = _decompress(self.result.path, chunk, offset)
+        data = chunk_content(self.result.path, chunk, offset)
         starts, ends = _message_records(self.result.path, data, indexes, offset, self.register)
         self.dispatch(data, starts, ends, offset)
 
@@ -312,8 +294,7 @@ class _Scanner:
         for channel_id, mine in zip(present.tolist(),
                                     np.split(by_channel, np.cumsum(counts[present])[:-1])):
             if channel_id not in self.channels:
-                raise RecordingError(f"{self.result.path}: corrupt MCAP file: message on "
-                                     f"unknown channel {channel_id} at byte {offset}")
+                raise unknown_channel(self.result.path, channel_id, offset)
             stats, sink = self.channels[channel_id]
             stats.take(publish[mine], log[mine])
             if sink is not None:
@@ -321,7 +302,7 @@ class _Scanner:
         decoded = _decode_chunk(data, starts, ends, groups)
         for mine, sink in groups:
             batch = MessageBatch(publish[mine], log[mine], ordinal[mine], data=raw,
-                                 starts=starts[mine] + _MESSAGE_HEAD, ends=ends[mine])
+                                 starts=starts[mine] + MESSAGE_HEAD, ends=ends[mine])
             if decoded is not None and getattr(sink, "fields", None) is not None:
                 batch.columns = decoded.select(mine, sink.fields)
             sink(batch)
@@ -339,7 +320,7 @@ def _decode_chunk(data: bytes, starts: np.ndarray, ends: np.ndarray,
     text = bytearray(data)
     text += b"]"
     blank = np.frombuffer(text, dtype=np.uint8)
-    blank[(starts[:, None] + np.arange(_MESSAGE_HEAD)).reshape(-1)] = ord(" ")
+    blank[(starts[:, None] + np.arange(MESSAGE_HEAD)).reshape(-1)] = ord(" ")
     blank[starts[1:]] = ord(",")
     blank[starts[0]] = ord("[")
     previous_ends = np.concatenate([[0], ends[:-1]])
@@ -353,10 +334,10 @@ def _decode_chunk(data: bytes, starts: np.ndarray, ends: np.ndarray,
         rows = msgspec.json.decode(text, type=list[row])
     except (msgspec.DecodeError, msgspec.ValidationError):
         return None
-    lengths = ends - starts - _MESSAGE_HEAD
+    lengths = ends - starts - MESSAGE_HEAD
     valid = np.ones(len(rows), dtype=bool)
     for i in np.flatnonzero(lengths < 16).tolist():
-        if b"".join(data[starts[i] + _MESSAGE_HEAD:ends[i]].split()) == b"{}":
+        if b"".join(data[starts[i] + MESSAGE_HEAD:ends[i]].split()) == b"{}":
             valid[i] = False
     return _ChunkRows(rows, valid, names, _BODY in text)
 
@@ -395,51 +376,35 @@ def _column(raw: np.ndarray, at: np.ndarray, width: int, dtype: str) -> np.ndarr
     return raw[at[:, None] + np.arange(width)].view(dtype).reshape(-1)
 
 
-def _decompress(path: Path, chunk: Chunk, offset: int) -> bytes:
-    try:
-        if chunk.compression == "zstd":
-            data = zstandard.decompress(chunk.data, chunk.uncompressed_size)
-        elif chunk.compression == "":
-            data = chunk.data
-        elif chunk.compression == "lz4":
-            import lz4.frame
-
-            data = lz4.frame.decompress(chunk.data)
-        else:
-            raise ValueError(f"unknown compression {chunk.compression!r}")
-    except (ValueError, zstandard.ZstdError, ImportError) as exc:
-        problem = " ".join(str(exc).split()) or type(exc).__name__
-        raise RecordingError(f"{path}: corrupt MCAP file: chunk record at byte {offset}: "
-                             f"{problem}") from None
-    if chunk.uncompressed_crc and zlib.crc32(data) != chunk.uncompressed_crc:
-        raise RecordingError(f"{path}: corrupt MCAP file: chunk record at byte {offset}: "
-                             "the checksum of its content does not match")
-    return data
-
-
-def _message_records(path: Path, data: bytes, indexes: list[np.ndarray], offset: int,
+def _message_records(path: Path, data: bytes, indexes: list[np.ndarray] | None, offset: int,
                      register: Callable[[Any], None]) -> tuple[np.ndarray, np.ndarray]:
     """Start and end offsets of the message records in a chunk's ``data``, in file order.
 
     Messages named by the ``indexes`` are located by them; the rest of the chunk (schema and
     channel records, messages no index names) is walked record by record, and its schema and
-    channel records are given to ``register``.
+    channel records are given to ``register``. Indexes that do not fit the chunk (or None: a
+    malformed index record) are not used: the whole chunk is walked, as
+    :func:`~adnmesh.recording.read_recording` walks every chunk, so that both read the same.
     """
-    def corrupt(why: str) -> RecordingError:
-        return RecordingError(f"{path}: corrupt MCAP file: chunk record at byte {offset}: {why}")
-
     raw = np.frombuffer(data, dtype=np.uint8)
     starts = np.sort(np.concatenate(indexes)) if indexes else np.zeros(0, np.int64)
-    if starts.size and (starts[-1] + _MESSAGE_HEAD > len(data)
-                        or np.any(raw[starts] != Opcode.MESSAGE)):
-        raise corrupt("a message index points at no message")
-    ends = starts + 9 + _column(raw, starts + 1, 8, "<u8").astype(np.int64)
-    if starts.size and (np.any(starts[1:] < ends[:-1]) or ends[-1] > len(data)):  # or twice
-        raise corrupt("message records overlap or run past the chunk")
+    ends = starts
+    if starts.size:
+        fits = starts[0] >= 0 and starts[-1] + MESSAGE_HEAD <= len(data) \
+            and not np.any(raw[starts] != Opcode.MESSAGE)
+        if fits:
+            ends = starts + RECORD_HEAD.size + _column(raw, starts + 1, 8, "<u8").astype(np.int64)
+            fits = not (np.any(starts[1:] < ends[:-1]) or ends[-1] > len(data))  # or twice
+        if not fits:
+            starts = ends = np.zeros(0, np.int64)
     found_starts, found_ends, at = [], [], 0
     for start, end in zip([*starts.tolist(), len(data)], [*ends.tolist(), len(data)]):
-        if at < start:
-            _walk(data, at, start, register, found_starts, found_ends, corrupt)
+        for opcode, inner, stop in chunk_records(path, data, offset, at, start):
+            if opcode == Opcode.MESSAGE:
+                found_starts.append(inner)
+                found_ends.append(stop)
+            elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL):
+                register(parse_inner(path, offset, opcode, data, inner, stop))
         at = end
     if found_starts:
         starts = np.concatenate([starts, np.asarray(found_starts, dtype=np.int64)])
@@ -447,30 +412,6 @@ def _message_records(path: Path, data: bytes, indexes: list[np.ndarray], offset:
         order = np.argsort(starts, kind="stable")
         starts, ends = starts[order], ends[order]
     return starts, ends
-
-
-def _walk(data: bytes, at: int, stop: int, register, starts: list, ends: list, corrupt) -> None:
-    """Go through the records in ``data[at:stop]``: register schemas and channels, note
-    messages."""
-    while at < stop:
-        if stop - at < 9:
-            raise corrupt(f"{stop - at} bytes that are no record")
-        opcode, length = data[at], int.from_bytes(data[at + 1:at + 9], "little")
-        end = at + 9 + length
-        if end > stop:
-            raise corrupt("a record runs past the chunk")
-        if opcode == Opcode.MESSAGE:
-            if length < _MESSAGE_HEAD - 9:
-                raise corrupt("a message record too short for its head")
-            starts.append(at)
-            ends.append(end)
-        elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL):
-            stream = ReadDataStream(BytesIO(data[at + 9:end]))
-            try:
-                register((Schema if opcode == Opcode.SCHEMA else Channel).read(stream))
-            except (McapError, ValueError, UnicodeDecodeError) as exc:
-                raise corrupt(f"a malformed record inside: {exc}") from None
-        at = end
 
 
 def scan(path: str | Path, sink_for: Callable[[ChannelInfo], Sink | None]) -> ScannedRecording:
@@ -492,68 +433,20 @@ def scan(path: str | Path, sink_for: Callable[[ChannelInfo], Sink | None]) -> Sc
     Raises
     ------
     RecordingError
-        If the file is missing, not MCAP, or corrupt (e.g. a chunk's checksum does not match).
+        If the file is missing, not MCAP, or corrupt (e.g. a chunk's checksum does not match),
+        in the words of :func:`~adnmesh.recording.read_recording`
+        (:mod:`~adnmesh.recording.mcap_records`).
     """
     path = Path(path)
-    try:
-        stream = open(path, "rb")  # noqa: SIM115 -- closed below
-    except FileNotFoundError:
-        raise RecordingError(f"{path}: no such file") from None
-    except IsADirectoryError:
-        raise RecordingError(f"{path}: is a directory, not a recording") from None
-    except OSError as exc:
-        raise RecordingError(f"{path}: cannot read: {exc.strerror or exc}") from None
-    with stream:
-        size = os.fstat(stream.fileno()).st_size
-        head = stream.read(len(MCAP_MAGIC))
-        if not head:
-            raise RecordingError(f"{path}: empty file, not an MCAP recording")
-        if head != MCAP_MAGIC:
-            raise RecordingError(f"{path}: not an MCAP file (it does not start with the MCAP "
-                                 "magic)")
-        scanner = _Scanner(path, sink_for)
-        _read_all(path, stream, size, scanner)
+    scanner = _Scanner(path, sink_for)
+    with open_recording(path) as stream:
+        records = TopLevelRecords(path, stream, os.fstat(stream.fileno()).st_size)
+        for opcode, offset, body in records:
+            scanner.take(opcode, offset, body)
+        scanner.flush()
+    scanner.result.complete, scanner.result.dropped_bytes = records.complete, \
+        records.dropped_bytes
     return scanner.result
-
-
-def _read_all(path: Path, stream, size: int, scanner: _Scanner) -> None:
-    """Take every whole record of ``stream`` (after the magic); note where a truncated file
-    ends."""
-    reader = _Records(stream, skip_magic=True, emit_chunks=True)
-    whole, first = len(MCAP_MAGIC), True
-    records = reader.records
-    while True:
-        try:
-            record = next(records)
-        except StopIteration:
-            break
-        except _Corrupt as bad:
-            position = len(MCAP_MAGIC) + bad.position
-            stream.seek(position)
-            if stream.read().count(0) == size - position:
-                break            # zeros after a crash: the end of what was written
-            raise RecordingError(f"{path}: corrupt MCAP file: invalid record opcode "
-                                 f"0x{bad.opcode:02x} at byte {position}") from None
-        except (McapError, ValueError, OverflowError, UnicodeDecodeError, struct.error) as exc:
-            if first:
-                break            # not even a header
-            if len(MCAP_MAGIC) + reader._stream.count >= size:
-                break            # the file ends inside this record: a truncated file
-            problem = " ".join(str(exc).split()) or type(exc).__name__
-            raise RecordingError(f"{path}: corrupt MCAP file at byte {whole}: {problem}") \
-                from None
-        if first and not isinstance(record, Header):
-            raise RecordingError(f"{path}: corrupt MCAP file: no header record after the magic")
-        first = False
-        if not isinstance(record, DataEnd):
-            scanner.take(record, whole)
-        whole = len(MCAP_MAGIC) + reader._stream.count
-        if isinstance(record, Footer):
-            break
-    if first:
-        raise RecordingError(f"{path}: corrupt MCAP file: no header record after the magic")
-    scanner.flush()
-    scanner.result.dropped_bytes = 0 if scanner.result.complete else size - whole
 
 
 @dataclass(frozen=True)
