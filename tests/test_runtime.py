@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from adnmesh.results.summary import RunSeries, summarize
+from adnmesh.wire.envelope import encode
 
 
 # --- summary ------------------------------------------------------------------------------------
@@ -31,6 +32,35 @@ def synthetic_series() -> RunSeries:
     series.add("p_y", {"t_send_ns": int(25e9), "p_y": 0.5, "w": {"A": 1.0},
                        "switch": {"p_y_before": 0.5, "kp_before": 1.0, "ki_before": 1.0}})
     return series
+
+
+def test_the_taps_structs_and_recorded_dicts_make_the_same_series() -> None:
+    """RunSeries.take (the tap's structs, P_IP and P_ref read by field) and RunSeries.add (the
+    dicts of a recording) give the same summary."""
+    from payloads import message
+
+    from adnmesh.wire.keys import Keys
+
+    keys = Keys("g")
+    messages = [message(keys.of("p_ip"), t, {"p_ip_w": 1e6 * (t > 5e9)}, seq=i)
+                for i, t in enumerate(range(0, 20_000_000_000, 10_000_000))]
+    messages += [message(keys.of("p_ref"), 0, {"p_ref_w": 0.0}),
+                 message(keys.of("p_ref"), 5_000_000_000, {"p_ref_w": 1e6}, seq=1),
+                 message(keys.of("p_y"), 9_000_000_000, {
+                     "p_y": 0.5, "p_ref_w": 1e6, "kp": 1e-8, "ki": 1e-8, "entry": 1,
+                     "w": {"A": 1.0}, "switch": {"p_y_before": 0.4, "p_y_limited": 0.4,
+                                                 "kp_before": 2e-8, "ki_before": 2e-8}}),
+                 message(keys.of("p_y"), 9_100_000_000, {
+                     "p_y": 0.5, "p_ref_w": 1e6, "kp": 1e-8, "ki": 1e-8, "entry": 1}, seq=1)]
+    by_struct, by_dict = RunSeries(), RunSeries()
+    for m in messages:
+        by_struct.take(m)
+        if m.type != "p_y" or "switch" in json.loads(encode(m)):
+            by_dict.add(m.type, json.loads(encode(m)))
+    assert by_struct.p_ip_w == by_dict.p_ip_w and by_struct.p_ref_t_ns == by_dict.p_ref_t_ns
+    assert by_struct.switches == by_dict.switches and len(by_struct.switches) == 1
+    one = summarize(by_struct, end_ns=20_000_000_000, wall_time_s=1.0).to_json()
+    assert one == summarize(by_dict, end_ns=20_000_000_000, wall_time_s=1.0).to_json()
 
 
 def test_summary_of_synthetic_series() -> None:

@@ -27,6 +27,8 @@ from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from functools import lru_cache
 
+from adnmesh.wire.protocol import KINDS, PROTOCOL
+
 __all__ = [
     "AVAILABILITY_KEYS",
     "ENVELOPE_FIELDS",
@@ -78,42 +80,29 @@ class Field:
     color: tuple[int, int, int] | None = None
 
 
-SERIES: dict[str, tuple[Field, ...]] = {
-    "adn/{grid}/scenario/p_ref": (Field("p_ref_w", "P_ref", "p_ref", step=True,
-                                        color=(255, 160, 0)),),
-    "adn/{grid}/measurement/p_ip": (Field("p_ip_w", "P_IP", "p_ip", color=(60, 150, 255)),),
-    "adn/{grid}/cpfc/p_y": (
-        Field("p_y", "P_Y", "p_y", unit="1", color=(40, 180, 80)),
-        Field("kp", "K_P", "kp", unit="1/W", step=True, color=(170, 100, 220)),
-        Field("ki", "K_I", "ki", unit="1/(W s)", step=True, color=(255, 130, 40)),
-        Field("entry", "table entry", "entry", unit="1", step=True),
-    ),
-    "adn/{grid}/der/{der}/state": (
-        Field("p_w", "{der} infeed", "der_infeed"),
-        Field("setpoint_w", "{der} setpoint", "der_setpoint", step=True),
-    ),
-    "adn/{grid}/measurement/grid": (
-        Field("v_min_pu", "lowest bus voltage", "grid_v_min", unit="p.u.", step=True,
-              color=(200, 60, 60)),
-        Field("v_max_pu", "highest bus voltage", "grid_v_max", unit="p.u.", step=True,
-              color=(60, 60, 200)),
-        Field("line_loading_max_pct", "highest line loading", "grid_line_loading", unit="%",
-              step=True),
-        Field("trafo_loading_max_pct", "highest transformer loading", "grid_trafo_loading",
-              unit="%", step=True),
-        Field("q_ip_var", "Q_IP", "q_ip", unit="var", step=True),
-    ),
+COLORS: dict[str, tuple[int, int, int]] = {
+    "p_ref": (255, 160, 0), "p_ip": (60, 150, 255), "p_y": (40, 180, 80),
+    "kp": (170, 100, 220), "ki": (255, 130, 40), "grid_v_min": (200, 60, 60),
+    "grid_v_max": (60, 60, 200),
 }
-"""Key pattern -> the series taken from each message on a matching key."""
+"""Role -> the RGB colour of its line in Rerun (the others: Rerun's choice)."""
 
-AVAILABILITY_KEYS = ("adn/{grid}/availability/si",)
+SERIES: dict[str, tuple[Field, ...]] = {
+    kind.pattern: tuple(Field(f.field, f.name, f.role, f.unit, f.step, COLORS.get(f.role))
+                        for f in kind.series)
+    for kind in PROTOCOL if kind.series}
+"""Key pattern -> the series taken from each message on a matching key: the plotted fields of
+the protocol table (:mod:`adnmesh.wire.protocol`)."""
+
+AVAILABILITY_KEYS = (KINDS["si"].pattern,)
 """Keys whose messages carry the availability vector SI (see :func:`available_ders`): each
 gives a 0/1 step series per DER (role ``availability``), the count of available DERs (role
 ``available_count``) and an event whenever the set of available DERs changes."""
 
-QUIET_KEYS = ("adn/{grid}/clock/**", "adn/{grid}/alive/**", "adn/{grid}/der/{der}/heartbeat")
-"""Keys whose numbers are not kept as series of role ``other`` (sim-clock traffic,
-liveliness, heartbeats); they are still counted by ``adnmesh inspect``."""
+QUIET_KEYS = (*(kind.pattern for kind in PROTOCOL if kind.quiet), "adn/{grid}/alive/**")
+"""Keys whose numbers are not kept as series of role ``other`` (the quiet kinds of the protocol
+table: sim-clock traffic, heartbeats; and liveliness); they are still counted by ``adnmesh
+inspect``."""
 
 
 @dataclass(frozen=True)
@@ -246,19 +235,18 @@ class EventRule:
     present: tuple[str, ...] = ()
 
 
-EVENTS: dict[str, EventRule] = {
-    "adn/{grid}/cpfc/p_y": EventRule("gain_switch", _gain_switch,
-                                     ("kp", "ki", "p_y", "entry", "switch", "w"),
-                                     watch=("kp", "ki"), present=("switch",)),
-    "adn/{grid}/der/{der}/state": EventRule("der_mode", _der_mode, ("mode",), watch=("mode",)),
-    "adn/{grid}/der/{der}/heartbeat": EventRule("der_available", _der_available,
-                                                ("available",), watch=("available",)),
-    "adn/{grid}/faults": EventRule("fault", _fault),
-    "adn/{grid}/event/**": EventRule("event", _agent_event),
-    "adn/{grid}/clock/start": EventRule("run_start", _run_start, ("end_ns", "clock")),
-}
-"""Key pattern -> its :class:`EventRule`. Availability changes come from
-:data:`AVAILABILITY_KEYS`."""
+EVENTS: dict[str, EventRule] = {KINDS[kind].pattern: rule for kind, rule in (
+    ("p_y", EventRule("gain_switch", _gain_switch, ("kp", "ki", "p_y", "entry", "switch", "w"),
+                      watch=("kp", "ki"), present=("switch",))),
+    ("der_state", EventRule("der_mode", _der_mode, ("mode",), watch=("mode",))),
+    ("heartbeat", EventRule("der_available", _der_available, ("available",),
+                            watch=("available",))),
+    ("fault", EventRule("fault", _fault)),
+    ("event", EventRule("event", _agent_event)),
+    ("clock_start", EventRule("run_start", _run_start, ("end_ns", "clock"))),
+)}
+"""Key pattern (of a kind of the protocol table) -> its :class:`EventRule`. Availability changes
+come from :data:`AVAILABILITY_KEYS`."""
 
 
 def available_ders(body: Mapping) -> tuple[set[str], set[str]]:

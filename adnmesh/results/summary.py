@@ -36,6 +36,7 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass, field
 
+import msgspec
 import numpy as np
 
 from adnmesh.loopmodel.step_figures import ReferenceStep, reference_step_figures
@@ -111,6 +112,21 @@ class RunSeries:
     windows: StepWindowEnds = field(default_factory=StepWindowEnds, repr=False)
     _previous: dict = field(default_factory=dict, repr=False)   # (type, sender) -> last body
     _si: frozenset | None = field(default=None, repr=False)
+
+    def take(self, message) -> None:
+        """Take one genuine message as the recorder's tap has it (a struct of
+        :mod:`adnmesh.wire.messages`, made once from its payload): P_IP and P_ref by their
+        fields; the few messages the summary reads more of as the dict the rules of
+        :mod:`adnmesh.results.rules` read in recordings too (:meth:`add`)."""
+        kind = message.type
+        if kind == "p_ip":
+            self.p_ip_t_ns.append(message.t_send_ns)
+            self.p_ip_w.append(message.p_ip_w)
+        elif kind == "p_ref":
+            self.p_ref_t_ns.append(message.t_send_ns)
+            self.p_ref_w.append(message.p_ref_w)
+        elif kind in SUMMARY_TYPES and (kind != "p_y" or message.switch is not msgspec.UNSET):
+            self.add(kind, msgspec.to_builtins(message))
 
     def add(self, message_type: str, body: dict) -> None:
         """Take one decoded message (envelope and body) if the summary needs it."""

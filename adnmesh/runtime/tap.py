@@ -24,7 +24,7 @@ from typing import Annotated
 import msgspec
 from msgspec import Meta, Struct
 
-from adnmesh.results.summary import SUMMARY_TYPES, RunSeries
+from adnmesh.results.summary import RunSeries
 from adnmesh.names import LAUNCHER
 from adnmesh.sim.topology import Topology
 from adnmesh.wire.envelope import MessageError, encode, envelope_times, split_frame
@@ -41,7 +41,6 @@ REJECTED_TYPE = "rejected"
 REJECTED_PREFIX_BYTES = 4096
 """How much of a rejected payload is kept in its record."""
 
-_SUMMARY_TYPES = SUMMARY_TYPES - {"p_y"}     # and the p_y messages of a gain switch
 
 
 class Rejected(Struct, forbid_unknown_fields=True):
@@ -153,9 +152,7 @@ class RecorderTap:
         return encode(record), max(t_send, t_deliver), t_send
 
     def _feed(self, message: Envelope) -> None:
-        kind = message.type
-        if kind in _SUMMARY_TYPES or (kind == "p_y" and message.switch is not msgspec.UNSET):
-            self.series.add(kind, msgspec.to_builtins(message))
+        self.series.take(message)
 
     def _write(self, key: str, type_name: str, records: list) -> bool:
         try:
