@@ -1,7 +1,7 @@
 """The secure profile and agents on other hosts, with real processes: a rogue session against a
-running secure system achieves nothing; the same attacks against the open profile do what the
-README says; two linked routers record what one router records; a missing external agent is
-named. Every run is the small runtime case (tests/up_runs.py) in its own temporary directory,
+running secure system achieves nothing; the same attacks against the open profile do what
+docs/deployment.md says; two linked routers record what one router records; a missing external
+agent is named. Every run is the small runtime case (tests/up_runs.py) in its own temporary directory,
 every wait is bounded, every process started here is ended by PID.
 """
 

@@ -207,7 +207,8 @@ def test_a_realtime_run_at_speed_1_gives_the_sim_runs_figures(reference_run) -> 
     same times as the sim run unless a message arrives after its delivery time. With no late
     arrival the figures are equal; with some (a loaded machine), each late message acts as a
     longer delay once, which moves a crossing of P_IP by at most the largest delivery error plus
-    one PI period, twice for a rise time (two crossings). README "Real time" has the derivation."""
+    one PI period, twice for a rise time (two crossings); the derivation is in
+    docs/runtime.md#realtime-the-scaled-wall-clock."""
     tmp_path, config, table, _, _, sim = reference_run          # the sim run of the same case
     result, recording, real = run_up(tmp_path, config, table, "rt", "--clock", "realtime",
                                      "--speed", "1")

@@ -133,7 +133,7 @@ class UpOptions:
     stall_timeout_s : float
         Sim clock: stop the run when no grant was issued for this long, wall s (0: never).
         Nothing legitimate stalls the clock for long (a restarted process rejoins in seconds);
-        in the open profile a forged message can (see the README's security section).
+        in the open profile a forged message can (docs/deployment.md#a-rogue-session-tried).
     rt_priority : str
         Realtime: the scheduling priority of ``up`` and its agents
         (:data:`adnmesh.runtime.os_scheduling.PRIORITIES`: ``off``, ``nice``, ``fifo``); if the

@@ -65,7 +65,8 @@ SWITCH_INTERVAL_S = 2e-4
 """The GIL switch interval of a realtime agent, s (Python's default: 5 ms)."""
 
 SPIN_NS = 0
-"""The default spin before an event, wall ns (see :class:`SpinPlan`; measured in the README)."""
+"""The default spin before an event, wall ns (see :class:`SpinPlan`; measured in
+docs/performance.md#realtime-clock)."""
 
 _PR_SET_TIMERSLACK = 29
 

@@ -7,7 +7,7 @@ parser (:mod:`adnmesh.wire.keys`), the JSON Schemas of a recording (:mod:`adnmes
 the run's routes, lookahead and subscriptions (:mod:`adnmesh.sim.topology`), the access control of
 the secure profile (:mod:`adnmesh.runtime.acl`), which keys the recorder accepts
 (:mod:`adnmesh.runtime.tap`) and the key patterns of the series tools read
-(:mod:`adnmesh.results.series`).
+(:mod:`adnmesh.results.rules`).
 
 Key templates hold at most one placeholder: ``{der}`` a DER id, ``{agent}`` an agent id
 (``cpfc``, ``der/SGen1``, ...; :mod:`adnmesh.names`), ``{party}`` an agent id or ``up``. In
