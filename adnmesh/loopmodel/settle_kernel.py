@@ -98,8 +98,7 @@ def coarsen_buffer(buf, k_old, old_ring, ring):  # pragma: no cover - compiled
 
 @numba.njit(cache=True)
 def settle_lanes(kp, ki, gains, t_min, t_max, bands, stop_above, until_rise, chunk,
-                 hs, phi, gl, gr, c, n_in, f_in, n_meas, f_meas, ring,
-                 exact):  # pragma: no cover - compiled
+                 levels):  # pragma: no cover - compiled
     """Simulate M first-order loops until each has settled; their step figures.
 
     Parameters
@@ -118,18 +117,22 @@ def settle_lanes(kp, ki, gains, t_min, t_max, bands, stop_above, until_rise, chu
         A candidate is finished once it has reached 90 %.
     chunk : int
         Samples of the first block.
-    hs : (L,) float
-        The steps the loop may use, s: ``hs[0]`` first, each the double of the one before.
-    phi, gl, gr, c : (L, G) float
-        Per step, each group's FOH discretisation (one state).
-    n_in, f_in : (L, G) int, float
-        Per step, each forward path delay in whole steps and the fraction left.
-    n_meas, f_meas : (L,) int, float
-        Per step, the measurement delay likewise.
-    ring : (L,) int
-        Per step, the delay buffers' ring length.
-    exact : (L,) bool
-        Per step, whether every delay is a whole number of steps.
+    levels : tuple of arrays
+        The discretisations per step the loop may use (``step_response._levels``), in this
+        order:
+
+        hs : (L,) float
+            The steps, s: ``hs[0]`` first, each the double of the one before.
+        phi, gl, gr, c : (L, G) float
+            Per step, each group's FOH discretisation (one state).
+        n_in, f_in : (L, G) int, float
+            Per step, each forward path delay in whole steps and the fraction left.
+        n_meas, f_meas : (L,) int, float
+            Per step, the measurement delay likewise.
+        ring : (L,) int
+            Per step, the delay buffers' ring length.
+        exact : (L,) bool
+            Per step, whether every delay is a whole number of steps.
 
     Returns
     -------
@@ -137,6 +140,7 @@ def settle_lanes(kp, ki, gains, t_min, t_max, bands, stop_above, until_rise, chu
     horizon_s : (M,) float
         As :func:`adnmesh.loopmodel.step_response._simulate_until_settled` returns them.
     """
+    hs, phi, gl, gr, c, n_in, f_in, n_meas, f_meas, ring, exact = levels
     m0 = kp.size
     g_count = gains.shape[1]
     r_os = np.full(m0, np.nan)

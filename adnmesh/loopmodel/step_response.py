@@ -407,15 +407,15 @@ def _simulate_until_settled(plant, kp, ki, gains, h, t_min, band_pct, t_max, sto
                        np.array(np.broadcast_to(np.asarray(t_max, float), (m,))),
                        np.array([band_pct / 100.0, 0.02, _SETTLED_BAND]),
                        np.inf if stop_above is None else float(stop_above), bool(until_rise),
-                       _first_block(t_min, h, m), *levels)
+                       _first_block(t_min, h, m), levels)
     return dict(zip(_OUTPUTS, res))
 
 
 @functools.lru_cache(maxsize=1024)
 def _levels(actuators: tuple, path_delays_s: tuple, t_meas_s: float, h: float, limit: float):
     """The discretisations of first-order groups at every step the settle loop may double
-    to: ``h, 2h, 4h, ...`` while ``2h <= limit + 1e-12`` (s): the arguments of
-    :func:`adnmesh.loopmodel.settle_kernel.settle_lanes` after its ``chunk`` (steps (L,); phi, gamma
+    to: ``h, 2h, 4h, ...`` while ``2h <= limit + 1e-12`` (s): the ``levels`` argument of
+    :func:`adnmesh.loopmodel.settle_kernel.settle_lanes`, a tuple (steps (L,); phi, gamma
     left and right, C (L, G); forward delays in steps and fractions (L, G); measurement
     delay (L,) twice; ring lengths (L,); whole-step delays (L,))."""
     hs = [h]
