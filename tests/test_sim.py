@@ -265,18 +265,39 @@ def test_node_rejects_before_counting_per_key_and_reason(config: Config) -> None
     node.receive(k1, b"garbage")
     node.receive(k1, state("SGen1", 10, 4, src="der/SGen2"))       # another DER's name
     node.receive(k1, state("SGen1", 10, 3, p_w=9.0))                # replay of (10, 3)
-    node.receive(k1, state("SGen1", 9, 9))                          # older send time
-    node.receive(keys.of("p_y"), state("SGen1", 10, 5))                   # not subscribed
+    node.receive(keys.of("p_y"), state("SGen1", 10, 5))             # not subscribed
     node.receive(k1, state("SGen1", 10, 2 ** 70))                   # seq out of range
+    node.receive(k1, state("SGen1", 10, 4, p_w=3e6))                # beyond its 2 MW
     assert node.counts.received == 1
     assert node.counts.rejected == {
-        k1: {"malformed": 1, "wrong_sender": 1, "replayed": 2, "invalid": 1},
+        k1: {"malformed": 1, "wrong_sender": 1, "replayed": 1, "invalid": 1, "implausible": 1},
         keys.of("p_y"): {"not_subscribed": 1}}
     node.advance(21)
     assert agent.seen[1:] == [("SGen1", 10, 1.0), ("timer", 10), ("timer", 20)]
+    node.receive(k1, state("SGen1", 9, 9))                  # sent before one it processed
     node.receive(k1, state("SGen1", 15, 0))                         # genuine but in the past
     assert node.counts.received == 2 and node.counts.rejected[k1]["past"] == 1
-    assert node.counts.rejected_total == 7
+    assert node.counts.rejected[k1]["replayed"] == 2
+    assert node.counts.rejected_total == 8
+
+
+def test_a_forged_future_message_cannot_shut_out_the_genuine_sender(config: Config) -> None:
+    """A message with a far-future send time and a huge seq (someone holding the DER's key)
+    is held until its time, not taken as the key's latest: the DER's genuine messages that
+    follow are still taken (the gate compares with what the node processed)."""
+    topo = Topology.from_config(config)
+    agent = Ticker(topo.keys.of("p_ip"))
+    node = Node(agent, topo, seed=0)
+    k1 = topo.keys.of("der_state", "SGen1")
+    node.receive(k1, state("SGen1", ns(300), 10 ** 9))              # the forged one
+    for i in range(3):
+        node.receive(k1, state("SGen1", 10 + 10 * i, i))            # the DER's own
+    assert node.counts.received == 4 and node.counts.rejected == {}
+    node.advance(31)
+    assert [s for s in agent.seen if s[0] == "SGen1"] == [("SGen1", 10, 1.0), ("SGen1", 20, 1.0),
+                                                           ("SGen1", 30, 1.0)]
+    node.receive(k1, state("SGen1", 30, 2))                         # a replay of one done
+    assert node.counts.rejected == {k1: {"replayed": 1}}
 
 
 def test_node_counts_at_most_256_rejecting_keys_apart(config: Config) -> None:
@@ -424,3 +445,24 @@ def test_local_run_switches_gains_without_a_bump(config: Config, schedule: GainS
     assert run.nodes["cpfc"].agent.pi.x_i != 0
 
 
+
+
+def test_a_quarantine_cuts_the_agent_off_also_from_what_the_node_holds(config: Config) -> None:
+    """``up`` quarantines der/SGen1 (a kill with origin ``quarantine``) at 50 ns: what SGen1
+    sent before stays, what it sent from then on is dropped, also if it was already held."""
+    topo = Topology.from_config(config)
+    agent = Ticker(topo.keys.of("p_ip"))
+    node = Node(agent, topo, seed=0)
+    k1 = topo.keys.of("der_state", "SGen1")
+    node.receive(k1, state("SGen1", 10, 0))
+    node.receive(k1, state("SGen1", 60, 1))                  # held when the quarantine comes
+    from payloads import payload
+    faults = topo.keys.of("fault")
+    node.receive(faults, payload(faults, {"fault_id": 1, "kind": "kill", "start_ns": 50,
+                                          "end_ns": None, "agent": "der/SGen1",
+                                          "origin": "quarantine"}, t_deliver_ns=50))
+    node.receive(k1, state("SGen1", 70, 2))                  # after it: cut off at once
+    node.advance(100)
+    assert [s for s in agent.seen if s[0] == "SGen1"] == [("SGen1", 10, 1.0)]
+    assert node.counts.rejected == {k1: {"quarantined": 2}}
+    assert not node.killed                                   # it was not the node's own agent

@@ -260,3 +260,24 @@ def test_ns_rounds_seconds_to_integer_nanoseconds() -> None:
 def test_msgspec_is_the_decoder() -> None:
     """The structs are msgspec structs (the schemas and decoding come from them)."""
     assert all(issubclass(cls, msgspec.Struct) for cls in STRUCTS.values())
+
+
+def test_a_sample_of_junk_fragments_counts_once_per_reason() -> None:
+    """512 KiB of newlines are 524,289 empty envelopes but one rejected sample: counts are of
+    what the bus carried, not of fragments an attacker cut a payload into."""
+    from payloads import payload
+
+    from adnmesh.wire.gate import Gate
+
+    key = KEYS.of("p_ip")
+    gate = Gate({key}, frozenset(), outside_reason="unknown_key")
+    sample = b"\n".join([payload(key, EXAMPLES[key], seq=0), b"", b"junk", b"",
+                         payload(key, EXAMPLES[key], seq=1)])
+    accepted, rejects = gate.admit_sample(key, sample)
+    assert [m.seq for _, m in accepted] == [0, 1]
+    assert [(r.reason, r.envelopes) for r in rejects] == [("malformed", 3)]
+    assert gate.rejected == {key: {"malformed": 1}}
+    accepted, rejects = gate.admit_sample(key, b"\n" * (512 * 1024))
+    assert not accepted
+    assert [(r.reason, r.envelopes) for r in rejects] == [("malformed", 512 * 1024 + 1)]
+    assert gate.rejected == {key: {"malformed": 2}}

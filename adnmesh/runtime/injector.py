@@ -69,6 +69,23 @@ class FaultInjector:
         why not."""
         self._request(request)
 
+    def quarantine(self, agent: str, why: str) -> None:
+        """Someone else sends with ``agent``'s identity (the recorder found traffic of its that
+        no genuine agent sends: :data:`~adnmesh.wire.gate.SUSPICIOUS`): cut it off in every
+        receiver and end it at the earliest instant no agent has reached, as a kill without
+        restart (origin ``quarantine``); its DER counts as unavailable from then on and the
+        run goes on without it."""
+        with self.launch.clock_lock():
+            at = self._earliest_ns()
+            planned = self.plan.add("kill", at, None, earliest_ns=at, origin="quarantine",
+                                    agent=agent)
+            self.launch.tap.cut_off(agent, at)
+            self._send(planned, at)
+        text = (f"{agent} quarantined at {at / 1e9:g} s: {why}; nothing it sends from then on "
+                "is taken, the run goes on without it")
+        self.launch.options.log(text)
+        self._event(at, "ERROR", "quarantined", text[:500], subject=agent)
+
     def on_killed(self, message) -> None:
         """An agent's last report before its injected kill."""
         agent = message.src

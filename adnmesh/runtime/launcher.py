@@ -63,7 +63,7 @@ from adnmesh.runtime.os_scheduling import PRIORITY_ENV, freeze_heap, raise_prior
 from adnmesh.runtime.sessions import SessionReport, SessionWatch
 from adnmesh.results.eventlog import EventLog
 from adnmesh.results.summary import RunSeries
-from adnmesh.runtime.tap import RecorderTap, recording_schemas
+from adnmesh.runtime.tap import REJECTED_RECORDS_KEPT, RecorderTap, recording_schemas
 from adnmesh.sim.clock import Coordinator
 from adnmesh.sim.topology import Topology
 from adnmesh.names import LAUNCHER, der_id_of
@@ -240,7 +240,9 @@ class _Launch:
         self.clock: SimClockDriver | None = None
         self.tap = RecorderTap(self.recorder, self.topology, self.result.series,
                                lambda: self.clock.now_ns() if self.clock else 0,
-                               view=options.view)
+                               view=options.view, clock_reach_ns=self._clock_reach_ns,
+                               on_suspect=lambda agent, why: self.injector.quarantine(agent,
+                                                                                      why))
         self.outbox: LauncherOutbox | None = None
         self.injector = FaultInjector(self)
         self.epoch_ns = 0
@@ -377,6 +379,12 @@ class _Launch:
         if resume_ns:
             words += ["--resume-at-ns", str(resume_ns)]
         return "'" + " ".join(words) + "'"
+
+    def _clock_reach_ns(self, agent: str) -> int | None:
+        """How far the sim clock granted ``agent``, ns (None on the realtime clock). Read
+        without the clock's lock (the tap asks under its own, and the clock records its grants
+        under the tap's): a grant is issued before the messages it lets an agent send."""
+        return None if self.clock is None else self.clock.coordinator.granted_ns(agent)
 
     def announce_start(self) -> None:
         """Publish ``clock/start`` (again, for an agent that restarted)."""
@@ -715,6 +723,10 @@ def run(options: UpOptions) -> UpResult:
     result.sessions = launch.sessions.report()
     result.problems = launch.tap.problems + result.problems + [
         f"security: {line}" for line in result.sessions.unexpected]
+    if launch.tap.rejected_unrecorded:
+        result.problems.append(
+            f"recording: {launch.tap.rejected_unrecorded} rejected payloads counted, not "
+            f"recorded (a run keeps {REJECTED_RECORDS_KEPT} rejected-payload records)")
     if launch.clock is not None:
         result.grants = launch.clock.grants_issued
     return result

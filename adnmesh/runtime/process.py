@@ -362,17 +362,15 @@ class AgentProcess:
                         self.lock.notify()
             return
         with self.lock:
-            for payload in split_frame(data):
-                self.node.receive(key, payload)
+            self.node.receive_sample(key, data)
             if self.mode == "sim" and self.grants:
                 self._run_granted()
 
     def _take_arrivals(self) -> None:   # with the lock held
-        arrivals, receive = self._arrivals, self.node.receive
+        arrivals, receive = self._arrivals, self.node.receive_sample
         while arrivals:
             key, data = arrivals.popleft()
-            for payload in split_frame(data):
-                receive(key, payload)
+            receive(key, data)
 
     def _due_sooner(self) -> bool:
         """Realtime: the node's next event is due before the main thread means to wake (a

@@ -25,21 +25,27 @@ import msgspec
 from msgspec import Meta, Struct
 
 from adnmesh.results.summary import RunSeries
-from adnmesh.names import LAUNCHER
+from adnmesh.names import LAUNCHER, der_id_of
 from adnmesh.sim.topology import Topology
-from adnmesh.wire.envelope import MessageError, encode, envelope_times, split_frame
-from adnmesh.wire.gate import Gate
+from adnmesh.wire.envelope import encode, envelope_times
+from adnmesh.wire.gate import SUSPICIOUS, Gate, SampleReject
+from adnmesh.wire.keys import route
 from adnmesh.wire.messages import Envelope
 from adnmesh.wire.schemas import SCHEMA_DIALECT, message_schemas
 
-__all__ = ["REJECTED_PREFIX_BYTES", "REJECTED_TYPE", "RecorderTap", "Rejected",
-           "recording_schemas"]
+__all__ = ["REJECTED_PREFIX_BYTES", "REJECTED_RECORDS_KEPT", "REJECTED_TYPE", "RecorderTap",
+           "Rejected", "recording_schemas"]
 
 REJECTED_TYPE = "rejected"
 """Message type (schema name) of the rejected-payload records."""
 
 REJECTED_PREFIX_BYTES = 4096
 """How much of a rejected payload is kept in its record."""
+
+REJECTED_RECORDS_KEPT = 1000
+"""Most rejected-payload records a run keeps (one per sample and reason; ~4 MiB at most); the
+rest are counted only (:attr:`RecorderTap.rejected_unrecorded`), so no sender can grow the
+recording without bound."""
 
 
 
@@ -80,40 +86,45 @@ class RecorderTap:
     """
 
     def __init__(self, recorder, topology: Topology, series: RunSeries,
-                 now_ns: Callable[[], int], view=None) -> None:
+                 now_ns: Callable[[], int], view=None,
+                 clock_reach_ns: Callable[[str], int | None] | None = None,
+                 on_suspect: Callable[[str, str, str], None] | None = None) -> None:
         self.recorder = recorder
         self.view = view
         self.series = series
         self._now_ns = now_ns
+        self._on_suspect = on_suspect
         self.rejected_key = f"{topology.keys.root}/rejected"
         # every key a party of the run sends, but up's own (recorded as it sends them)
         self._gate = Gate({r.key for r in topology.routes if r.sender != LAUNCHER},
                           topology.der_ids, outside_reason="unknown_key",
-                          outside_detail="not a key of this run's agents")
+                          outside_detail="not a key of this run's agents",
+                          capacity_w=topology.capacity_w, clock_reach_ns=clock_reach_ns)
         self.rejected = self._gate.rejected
+        self.suspects: dict[str, str] = {}      # DER agent -> why it is suspected
+        self.rejected_unrecorded = 0            # beyond REJECTED_RECORDS_KEPT
+        self._records_kept = 0
         self._lock = threading.Lock()
         self.record_errors = 0
         self.problems: list[str] = []
 
     def take(self, key: str, sample: bytes) -> list[Envelope]:
         """Record the envelopes of one sample from an agent; return the genuine messages."""
-        accepted, records, rejects = [], [], []
         # the clock's time before the lock: the clock driver records its grants (the tap's
         # lock) while it holds its own, so asking it under the tap's lock deadlocked ``up``
         # (a junk payload without times arriving while grants went out)
         now_ns = self._now_ns()
         with self._lock:
-            for payload in split_frame(sample):
-                message = self._check(key, payload, rejects, now_ns)
-                if message is not None:
-                    accepted.append(message)
-                    records.append((payload, message.t_deliver_ns, message.t_send_ns))
-            if records and self._write(key, accepted[0].type, records):
-                for message in accepted:
+            accepted, rejects = self._gate.admit_sample(key, sample)
+            records = [(payload, m.t_deliver_ns, m.t_send_ns) for payload, m in accepted]
+            if records and self._write(key, accepted[0][1].type, records):
+                for _, message in accepted:
                     self._feed(message)
-            if rejects:
-                self._write(self.rejected_key, REJECTED_TYPE, rejects)
-        return accepted
+            suspects = self._note_rejects(key, rejects, now_ns)
+        if self._on_suspect is not None:
+            for agent, why in suspects:
+                self._on_suspect(agent, why)
+        return [message for _, message in accepted]
 
     def record_own(self, key: str, message: Envelope, payload: bytes) -> None:
         """Record a message ``up`` sent itself."""
@@ -134,15 +145,38 @@ class RecorderTap:
 
     # -- internals (with the lock held) ----------------------------------------------------------
 
-    def _check(self, key: str, payload: bytes, rejects: list, now_ns: int) -> Envelope | None:
-        try:
-            return self._gate.admit(key, payload)
-        except MessageError as exc:
-            rejects.append(self._rejected_record(key, payload, exc, now_ns))
-            return None
+    def _note_rejects(self, key: str, rejects, now_ns: int) -> list[tuple[str, str]]:
+        """Record the rejects of one sample (one record per reason, at most
+        :data:`REJECTED_RECORDS_KEPT` in a run) and return the DER agents newly suspected of
+        having a second sender (a reason of :data:`~adnmesh.wire.gate.SUSPICIOUS` on a data
+        key of theirs)."""
+        records, suspects = [], []
+        for reject in rejects:
+            if self._records_kept < REJECTED_RECORDS_KEPT:
+                self._records_kept += 1
+                records.append(self._rejected_record(key, reject, now_ns))
+            else:
+                self.rejected_unrecorded += 1
+            found = route(key)
+            if reject.reason in SUSPICIOUS and found is not None and not found.kind.clock:
+                agent = found.sender
+                if der_id_of(agent) is not None and agent not in self.suspects:
+                    self.suspects[agent] = f"{reject.reason} on {key}: {reject.detail}"
+                    suspects.append((agent, self.suspects[agent]))
+        if records:
+            self._write(self.rejected_key, REJECTED_TYPE, records)
+        return suspects
 
-    def _rejected_record(self, key: str, payload: bytes, exc: MessageError, now_ns: int):
-        record = Rejected(key=key[:512], reason=exc.reason, detail=exc.detail[:1000],
+    def cut_off(self, agent: str, from_ns: int) -> None:
+        """Accept nothing more from ``agent`` sent at or after ``from_ns`` (quarantined)."""
+        with self._lock:
+            self._gate.cut_off(agent, from_ns)
+
+    def _rejected_record(self, key: str, reject: SampleReject, now_ns: int):
+        payload = reject.payload
+        detail = reject.detail if reject.envelopes == 1 else \
+            f"{reject.detail} (and {reject.envelopes - 1} more envelopes of the sample)"
+        record = Rejected(key=key[:512], reason=reject.reason, detail=detail[:1000],
                           size_bytes=len(payload),
                           sha256=hashlib.sha256(payload).hexdigest(),
                           payload_prefix_b64=base64.b64encode(

@@ -21,7 +21,9 @@ are applied by the node, never seen by the agent: a link fault impairs the node'
 side of that link (:class:`~adnmesh.sim.links.Impairment`), ``ict_outage`` every ICT link it
 sends on, ``der_offline`` of its own DER every ICT link it sends on *and* every ICT message
 delivered to it in the window; ``kill`` of its own agent stops :meth:`Node.advance` at the
-kill time for good (:attr:`Node.killed`; the process then dies). A node started late
+kill time for good (:attr:`Node.killed`; the process then dies); a kill that is a quarantine
+(``origin`` ``quarantine``: ``up`` found someone sending with that agent's identity) of
+another agent cuts that agent off in the node's gate from the kill on. A node started late
 (``start_ns``, a restarted agent) begins at that time and rejects messages sent before it (it
 did not exist then).
 """
@@ -120,7 +122,7 @@ class Node:
                          for key in topology.publishes(agent.agent_id)}
         self.outbox = Outbox(agent.agent_id)
         self.gate = Gate(self.subscriptions, topology.der_ids, outside_reason="not_subscribed",
-                         start_ns=start_ns)
+                         start_ns=start_ns, capacity_w=topology.capacity_w)
         self.counts = NodeCounts(rejected=self.gate.rejected)
         self._window_keys: list[str] = []   # keys sent on in this window, in first-send order
         # held messages (t_deliver, key, seq, receive count, message); sorted latest first
@@ -159,22 +161,33 @@ class Node:
     # -- input ---------------------------------------------------------------------------------
 
     def receive(self, key: str, payload: bytes) -> None:
-        """Take one payload from the bus; what the gate rejects (:mod:`adnmesh.wire.gate`: a
-        key not subscribed, an invalid message, one from the wrong sender, naming an unknown
-        DER, repeating one already accepted on the key, sent before the node began) is counted
-        and dropped."""
+        """Take one envelope from the bus; what the gate rejects (:mod:`adnmesh.wire.gate`) is
+        counted and dropped."""
         try:
-            message = self.gate.admit(key, payload)
+            message = self.gate.admit(key, payload, hold=True)
         except MessageError:
             return
+        self._take(key, message)
+
+    def receive_sample(self, key: str, sample: bytes) -> None:
+        """Take one sample from the bus (one or more envelopes of ``key``,
+        :func:`~adnmesh.wire.envelope.frames`); its rejects count once per reason."""
+        accepted, _ = self.gate.admit_sample(key, sample, hold=True)
+        for _, message in accepted:
+            self._take(key, message)
+
+    def _take(self, key: str, message) -> None:
+        """Hold a genuine message until its delivery time (apply a fault at once)."""
         counts = self.counts
         counts.received += 1
         if message.type == "fault":
+            self.gate.consumed(key, message)
             self._apply(message)
             return
         t = message.t_deliver_ns
         if self.strict:
             if t < self.now_ns:
+                self.gate.consumed(key, message)
                 self.gate.reject(key, "past")
                 return
         elif t < self.granted_ns:   # realtime: its instant was already processed
@@ -194,6 +207,8 @@ class Node:
         if kind == "kill":
             if fault.agent == me and (self.kill_ns is None or fault.start_ns < self.kill_ns):
                 self.kill_ns = max(fault.start_ns, self.now_ns)
+            elif fault.origin == "quarantine":
+                self.gate.cut_off(fault.agent, fault.start_ns)
             return
         if kind == "der_offline":
             if me != der_agent_id(fault.der):
@@ -251,11 +266,15 @@ class Node:
                 if t >= stop_ns:
                     break
                 _, key, _, _, message = inbox.pop()
+                self.gate.consumed(key, message)
                 self.now_ns = t
                 if clock is not None:   # against the delivery time, also for a late arrival
                     self._late(self._link_of[key], clock() - message.t_deliver_ns)
                 if self._offline and self._is_offline(key, t):
                     self.counts.dropped_offline += 1
+                    continue
+                if self.gate.is_cut_off(message):     # held from before a quarantine
+                    self.gate.reject(key, "quarantined")
                     continue
                 outgoing = on_message(t, message)
             elif timer is not None and timer < stop_ns:

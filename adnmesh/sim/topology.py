@@ -64,6 +64,8 @@ class Topology:
         nobody consumes).
     subscriptions : dict
         ``agent -> tuple of keys`` it receives through its node.
+    capacity_w : dict
+        DER id -> its installed power P_inst, W (what its messages may say it feeds in).
     lookahead_ns : dict
         ``(a, b) -> ns``: least total link delay of any message chain from ``a`` to ``b``
         (``(a, a)``: around the shortest cycle through ``a``); missing if ``b`` is unreachable.
@@ -75,6 +77,7 @@ class Topology:
     links: dict = field(repr=False)
     receivers: dict = field(repr=False)
     subscriptions: dict = field(repr=False)
+    capacity_w: dict = field(repr=False)
     lookahead_ns: dict = field(repr=False)
 
     @property
@@ -101,7 +104,7 @@ class Topology:
                 receivers[r.key] = r.receivers
         subscriptions = {a: tuple(k for k, to in receivers.items() if a in to) for a in agents}
         return cls(keys, agents, routes, links, receivers, subscriptions,
-                   _lookahead(agents, links, receivers))
+                   {d.id: d.p_inst_w for d in config.ders}, _lookahead(agents, links, receivers))
 
     def link(self, sender: str, key: str) -> LinkParams:
         """The link that carries ``key`` from ``sender``.

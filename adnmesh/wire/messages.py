@@ -185,6 +185,8 @@ class Fault(Envelope):
     ``der_offline`` (DER ``der`` neither receives nor sends over ICT), ``ict_outage`` (every ICT
     link out), ``kill`` (``agent`` is SIGKILLed at ``start_ns``; restarted at ``end_ns`` if set).
     The window is ``[start_ns, end_ns)``; ``fault_id`` numbers the faults of a run from 1.
+    ``origin``: the config, a command (``adnmesh fault``), or ``up`` itself quarantining an
+    agent whose identity someone else sends with (a kill; every receiver cuts it off).
     """
 
     type: Literal["fault"]
@@ -197,7 +199,7 @@ class Fault(Envelope):
     agent: Agent | UnsetType = UNSET
     probability: Annotated[float, Meta(ge=0.0, le=1.0)] | UnsetType = UNSET
     delay_ns: Annotated[int, Meta(ge=0, le=3_600 * 10**9)] | UnsetType = UNSET
-    origin: Literal["config", "command"] = "config"
+    origin: Literal["config", "command", "quarantine"] = "config"
 
 
 class FaultRequest(Envelope):
