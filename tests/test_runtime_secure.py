@@ -32,6 +32,7 @@ from adnmesh.sim.local import run_local
 from adnmesh.sim.topology import Topology
 from adnmesh.tuning.table import load_table
 from adnmesh.wire.units import ns
+from payloads import payload
 from rogue import attack, forged_attacks, junk_on_own_keys, rogue_config
 from up_runs import (
     REPO,
@@ -168,9 +169,10 @@ def test_a_rogue_session_against_a_running_secure_system_achieves_nothing(attack
 
 @pytest.mark.slow
 def test_the_same_attacks_against_the_open_profile_are_taken_for_genuine(tmp_path) -> None:
-    """Open profile: a forged measurement of 50 MW is recorded as a genuine one (and every
-    genuine one after it is taken for a replay: its stamp is newer); a forged clock stop makes
-    every agent say goodbye: the run ends at once, every agent lost."""
+    """Open profile: anyone may send with any identity. A forged measurement of 50 MW sent
+    at 150 s is not recorded (the recorder knows the measurement was not granted that far:
+    ``ahead_of_clock``) and shuts out none of the genuine ones; a forged clock stop makes every
+    agent say goodbye: the run ends at once, every agent lost."""
     proc, agents, config = start_long_run(tmp_path, "open", "--summary-json",
                                           str(tmp_path / "open.json"), **CHANGES)
     endpoint = json.loads((tmp_path / "open.run.json").read_text())["endpoint"]
@@ -183,16 +185,13 @@ def test_the_same_attacks_against_the_open_profile_are_taken_for_genuine(tmp_pat
     assert "agent(s) lost during the run: availability, cpfc, der/SGen1, der/SGen2, " \
         "measurement" in err
     run = read_recording(tmp_path / "open.mcap")
-    taken = [m for m in run.messages if m.topic == measurement.key
-             and bytes(m.data) == measurement.payload]
-    assert len(taken) == 1                                  # recorded as a genuine P_IP
-    assert json.loads(taken[0].data)["p_ip_w"] == 5e7
+    assert not [m for m in run.messages if bytes(m.data) == measurement.payload]
     genuine = [m for m in data_messages(run) if m[1] != measurement.payload]
     last = max((json.loads(p)["t_send_ns"] for _, p in genuine), default=0)
     assert last < AT_S * 1e9 < ns(CHANGES["scenario"]["duration_s"])   # it stopped early
-    replays = {json.loads(m.data)["reason"] for m in run.messages if m.topic.endswith(
-        "/rejected") and json.loads(m.data)["key"] == measurement.key}
-    assert replays <= {"replayed"}     # genuine P_IP after the forged one: taken for replays
+    reasons = [json.loads(m.data)["reason"] for m in run.messages if m.topic.endswith(
+        "/rejected") and json.loads(m.data)["key"] == measurement.key]
+    assert reasons == ["ahead_of_clock"]         # and no genuine P_IP taken for a replay
 
 
 def start_split(tmp: Path, config: Path, table: Path, out: Path, *router_flags: str):
@@ -337,3 +336,82 @@ def test_multi_host_and_secure_usage_errors_are_one_line(argv, code, message, ca
     assert adnmesh_main([str(config) if a == "CONFIG" else a for a in argv]) == code
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1, err
+
+
+def steal_and_send(config, keys) -> int:
+    """With der/SGen2's certificate: wait (bounded) until the run is 20 s in (the P_Y that
+    SGen2 may receive says how far), then send 16 states of 10 MW and 16 heartbeats on SGen2's
+    own keys, with sequence numbers from 10^9 and send times 5 s ahead; return how many."""
+    import threading
+
+    import zenoh
+
+    seen_ns, running = [0], threading.Event()
+
+    def on_p_y(sample) -> None:
+        seen_ns[0] = max(seen_ns[0], json.loads(sample.payload.to_bytes().split(b"\n")[-1])[
+            "t_send_ns"])
+        if seen_ns[0] >= 20 * 10 ** 9:
+            running.set()
+
+    sent = 0
+    with zenoh.open(config) as session:
+        subscriber = session.declare_subscriber(keys.of("p_y"), on_p_y)
+        assert running.wait(60), "the run did not reach 20 s"
+        at_ns = seen_ns[0] + 5 * 10 ** 9
+        for i in range(16):
+            for kind, body in (("der_state", {"p_w": 1e7, "setpoint_w": 1e7, "mode": "control"}),
+                               ("heartbeat", {"available": True, "mode": "control"})):
+                key = keys.of(kind, "SGen2")
+                session.put(key, payload(key, body, seq=10 ** 9 + i, t_send_ns=at_ns + i),
+                            congestion_control=zenoh.CongestionControl.BLOCK)
+                sent += 1
+        subscriber.undeclare()
+    return sent
+
+
+@pytest.mark.slow
+def test_a_stolen_der_key_costs_that_der_and_nothing_else(tmp_path) -> None:
+    """Someone with der/SGen2's certificate sends 32 valid messages on SGen2's own keys (the
+    access control lets them through: the keys are that DER's), with high sequence numbers,
+    send times in the future and 10 MW on a 2 MW plant. The run completes; SGen2 is
+    quarantined (a fault in the summary, an event), its DER counts as unavailable, the CPFC
+    switches to SGen1's gains, and the step after it is followed by SGen1 alone."""
+    changes = {"scenario": {"duration_s": 300, "p_ref_steps": [{"t_s": 200, "delta_w": 5e5}],
+                            "availability": []}}
+    config, _ = write_case(tmp_path, "stolen", **changes)
+    loaded = load_config(config)
+    issue(tmp_path / "certs", identities(loaded))
+    proc, agents, run_config = start_long_run(
+        tmp_path, "stolen", "--secure", "--certs", str(tmp_path / "certs"), "--summary-json",
+        str(tmp_path / "stolen.json"), **changes)
+    try:
+        endpoint = json.loads((tmp_path / "stolen.run.json").read_text())["endpoint"]
+        keys = Topology.from_config(loaded).keys
+        sent = steal_and_send(rogue_config(endpoint, tmp_path / "certs", "der/SGen2"), keys)
+    finally:
+        returncode, err = finish(proc, agents, run_config)
+    assert sent == 32, err
+    assert returncode == 0, err
+    assert "der/SGen2 quarantined" in err
+    run = read_recording(tmp_path / "stolen.mcap")
+    faults = [json.loads(m.data) for m in run.messages if m.topic == keys.of("fault")]
+    assert [(f["kind"], f["agent"], f["origin"]) for f in faults] == [
+        ("kill", "der/SGen2", "quarantine")]
+    quarantined_ns = faults[0]["start_ns"]
+    assert 20 * 10 ** 9 <= quarantined_ns < 200 * 10 ** 9   # mid-run, before the step
+    # nothing SGen2 "sent" after its quarantine was taken; the CPFC switched to SGen1 alone
+    late = [m for m in run.messages if m.topic.startswith(f"{keys.root}/der/SGen2/")
+            and json.loads(m.data)["t_send_ns"] >= quarantined_ns]
+    assert late == []
+    weights = [json.loads(m.data).get("w") for m in run.messages if m.topic == keys.of("p_y")]
+    assert {"SGen1": 1.0} in [w for w in weights if w]
+    rejected = [json.loads(m.data) for m in run.messages if m.topic.endswith("/rejected")]
+    assert {r["reason"] for r in rejected} <= {"ahead_of_clock", "implausible", "quarantined",
+                                               "replayed"}
+    assert len(rejected) <= 32
+    summary = json.loads((tmp_path / "stolen.json").read_text())
+    (step,) = summary["steps"]
+    figures = step["figures"]
+    assert step["t_s"] == 200.0 and figures["settling_time_s"] is not None
+    assert figures["overshoot_pct"] < 5.0 and abs(step["steady_error_w"]) < 0.01 * 5e5

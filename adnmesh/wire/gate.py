@@ -11,7 +11,8 @@ accept rules are one set, in this order:
    ``malformed``, ``invalid``, ``wrong_sender``, ``time_order``);
 3. it names no DER the run does not have (SI, the CPFC's weights) — else ``unknown_der``;
 4. its sender is not cut off: an agent ``up`` quarantined sends nothing genuine from the
-   quarantine on — else ``quarantined``;
+   quarantine on (but the clock protocol of its process, which ends it) — else
+   ``quarantined``;
 5. it was sent within the clock's reach: the recorder knows how far the sim clock granted each
    agent, and no agent sends beyond its grant — else ``ahead_of_clock``;
 6. what it says is physically possible: a DER's infeed and setpoint within ``[0, P_inst]`` of
@@ -208,10 +209,11 @@ class Gate:
         if not names_known_ders(message, self.der_ids):
             raise MessageError("unknown_der", "names a DER this run does not have")
         sender, t_send = message.src, message.t_send_ns
-        cut = self._cut_off.get(sender)
+        data = route(key).kind.link is not None    # what an agent's node sends (not the clock)
+        cut = self._cut_off.get(sender) if data else None
         if cut is not None and t_send >= cut:
             raise MessageError("quarantined", f"{sender} is quarantined from {cut} ns")
-        if self.clock_reach_ns is not None and route(key).kind.link is not None:
+        if self.clock_reach_ns is not None and data:
             reach = self.clock_reach_ns(sender)
             if reach is not None and t_send > reach:
                 raise MessageError("ahead_of_clock", f"sent at {t_send} ns, but {sender} "
