@@ -270,11 +270,9 @@ def test_interrupt_leaves_no_process(tmp_path: Path, signum: int, code: int) -> 
 # --- user errors ---------------------------------------------------------------------------------
 
 
-def test_up_without_a_table_says_to_tune(tmp_path: Path, monkeypatch, capsys) -> None:
+def test_up_with_a_table_that_is_not_there_says_to_tune(tmp_path: Path, capsys) -> None:
     from adnmesh.cli import main
-    from adnmesh.commands import up
 
-    monkeypatch.setattr(up, "_tuner", lambda: None)
     config, _ = write_case(tmp_path, "untuned")
     code = main(["up", str(config), "--table", str(tmp_path / "missing.json")])
     err = capsys.readouterr().err

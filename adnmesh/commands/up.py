@@ -126,11 +126,9 @@ def scenario_subsets(config: Config) -> list[frozenset[str]]:
 def _tuner():
     """``tune(config, der_ids)`` for the subsets a missing table lacks: on-demand tuning
     (:class:`adnmesh.tuning.ondemand.OnDemandTuner`, each entry a starting point for the next;
-    a subset too large is a one-line error), or None without the tuning package."""
-    try:
-        from adnmesh.tuning.ondemand import OnDemandTuner
-    except ImportError:
-        return None
+    a subset too large is a one-line error)."""
+    from adnmesh.tuning.ondemand import OnDemandTuner   # numba: only when there is no table
+
     tuners: dict[str, OnDemandTuner] = {}
 
     def tune(config: Config, der_ids):
@@ -145,17 +143,13 @@ def _table(args, config: Config, run_dir: Path, run_id: str, log) -> Path:
     path = Path(args.table) if args.table else default_table_path(config)
     subsets = scenario_subsets(config)
     if path.exists():
-        table = load_table(path, config)
-        missing = [s for s in subsets if table.lookup(s) is None]
-        if missing and _tuner() is None:
-            fallback = "its static controller" if table.static else "the gains in use"
-            log(f"warning: {path} lacks {len(missing)} subset(s) the scenario needs; the CPFC "
-                f"will use {fallback} for them")
-        return path
+        load_table(path, config)        # a bad table: one line now, not in the CPFC later
+        return path                     # subsets it lacks: the CPFC tunes them on demand
+    if args.table:
+        raise UsageError(f"no gain table {path}; run 'adnmesh tune {config.path} --out "
+                         f"{path}' first, or leave out --table to have the scenario's "
+                         "subsets tuned now")
     tune = _tuner()
-    if tune is None:
-        raise UsageError(f"no gain table {path} for {config.path}; run 'adnmesh tune "
-                         f"{config.path}' first (or give --table PATH)")
     log(f"no gain table at {path}: tuning the {len(subsets)} subset(s) the scenario needs")
     table = SchedulingTable(config.sha256, config.constraints.model_dump(), "on-demand",
                             config.der_ids())

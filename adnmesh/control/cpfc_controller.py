@@ -225,11 +225,9 @@ class GainSchedule:
 
 
 def _tuner(config: Config, table: SchedulingTable | None):
-    """The on-demand tuner, warm-started from ``table``'s nearest plant (cached), or None."""
-    try:
-        from adnmesh.tuning.ondemand import OnDemandTuner
-    except ImportError:
-        return None
+    """The on-demand tuner, warm-started from ``table``'s nearest plant (cached)."""
+    from adnmesh.tuning.ondemand import OnDemandTuner   # numba: only when a subset is missing
+
     return OnDemandTuner(config, table)
 
 
