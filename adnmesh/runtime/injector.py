@@ -51,6 +51,7 @@ class FaultInjector:
         self._spawned: set[str] = set()        # restarted, start not yet re-announced
         self._attempts: dict[str, int] = {}    # unplanned deaths per agent
         self.lost: list[str] = []
+        self.quarantined: set[str] = set()     # agents someone else sent as
 
     # -- before the start ----------------------------------------------------------------------
 
@@ -75,6 +76,11 @@ class FaultInjector:
         receiver and end it at the earliest instant no agent has reached, as a kill without
         restart (origin ``quarantine``); its DER counts as unavailable from then on and the
         run goes on without it."""
+        with self._lock:
+            if agent in self.quarantined:
+                return
+            self.quarantined.add(agent)
+            self.killed.add(agent)              # its counts cannot be verified
         with self.launch.clock_lock():
             at = self._earliest_ns()
             planned = self.plan.add("kill", at, None, earliest_ns=at, origin="quarantine",

@@ -266,7 +266,8 @@ class _Launch:
             coordinator = Coordinator(self.topology, self.result.end_ns,
                                       on_rejoin=self.injector.on_rejoin)
             self.clock = SimClockDriver(coordinator, self.keys, self.outbox,
-                                        self.roster.changed.set)
+                                        self.roster.changed.set,
+                                        on_violation=self.injector.quarantine)
         self._handles = [
             session.declare_subscriber(self.keys.all, self.on_sample,
                                        allowed_origin=zenoh.Locality.REMOTE),

@@ -16,7 +16,7 @@ from msgspec import UNSET
 
 from adnmesh.runtime.tap import RecorderTap
 from adnmesh.sim.clock import ClockError, Coordinator, Report
-from adnmesh.names import LAUNCHER
+from adnmesh.names import LAUNCHER, der_id_of
 from adnmesh.wire.envelope import encode
 from adnmesh.wire.keys import Keys
 from adnmesh.wire.outbox import Outbox
@@ -65,14 +65,19 @@ class SimClockDriver:
         Where grants go.
     on_change : callable
         Called when the run finished or the clock failed.
+    on_violation : callable, optional
+        ``(agent, what)``: a DER's report broke the clock protocol (a second report without a
+        grant: someone else reports with its identity). Without it, or for another agent, the
+        clock fails.
     """
 
     def __init__(self, coordinator: Coordinator, keys: Keys, outbox: LauncherOutbox,
-                 on_change) -> None:
+                 on_change, on_violation=None) -> None:
         self.coordinator = coordinator
         self._keys = keys
         self._outbox = outbox
         self._on_change = on_change
+        self._on_violation = on_violation
         self.lock = threading.RLock()
         self._started = False
         self.finished = False
@@ -93,6 +98,9 @@ class SimClockDriver:
                 if self._started:
                     self._send(grants)
             except ClockError as exc:
+                if self._on_violation is not None and der_id_of(message.src) is not None:
+                    self._on_violation(message.src, f"clock report out of protocol: {exc}")
+                    return
                 self.error = str(exc)
                 self._on_change()
 

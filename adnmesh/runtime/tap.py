@@ -28,7 +28,7 @@ from adnmesh.results.summary import RunSeries
 from adnmesh.names import LAUNCHER, der_id_of
 from adnmesh.sim.topology import Topology
 from adnmesh.wire.envelope import encode, envelope_times
-from adnmesh.wire.gate import SUSPICIOUS, Gate, SampleReject
+from adnmesh.wire.gate import SUSPICIOUS, Gate, SampleReject, count_reject
 from adnmesh.wire.keys import route
 from adnmesh.wire.messages import Envelope
 from adnmesh.wire.schemas import SCHEMA_DIALECT, message_schemas
@@ -102,6 +102,7 @@ class RecorderTap:
                           capacity_w=topology.capacity_w, clock_reach_ns=clock_reach_ns)
         self.rejected = self._gate.rejected
         self.suspects: dict[str, str] = {}      # DER agent -> why it is suspected
+        self._unreported: dict[str, dict[str, int]] = {}   # agent -> key -> since its report
         self.rejected_unrecorded = 0            # beyond REJECTED_RECORDS_KEPT
         self._records_kept = 0
         self._lock = threading.Lock()
@@ -116,6 +117,7 @@ class RecorderTap:
         now_ns = self._now_ns()
         with self._lock:
             accepted, rejects = self._gate.admit_sample(key, sample)
+            accepted, rejects = self._tally(key, accepted, rejects)
             records = [(payload, m.t_deliver_ns, m.t_send_ns) for payload, m in accepted]
             if records and self._write(key, accepted[0][1].type, records):
                 for _, message in accepted:
@@ -145,11 +147,36 @@ class RecorderTap:
 
     # -- internals (with the lock held) ----------------------------------------------------------
 
+    def _tally(self, key: str, accepted: list, rejects: list) -> tuple[list, list]:
+        """Count each agent's messages per key since its last clock report, and take a report
+        only if it claims no more than that (a report that claims messages nobody sent would
+        make their receivers wait for them for ever): else it is ``implausible``."""
+        kept = []
+        for payload, message in accepted:
+            sender = message.src
+            if message.type != "clock_report":
+                if sender != LAUNCHER:
+                    tally = self._unreported.setdefault(sender, {})
+                    tally[key] = tally.get(key, 0) + 1
+                kept.append((payload, message))
+                continue
+            tally = self._unreported.setdefault(sender, {})
+            over = [k for k, (count, _) in message.sent.items() if count > tally.get(k, 0)]
+            if over:
+                count_reject(self._gate.rejected, key, "implausible")
+                rejects.append(SampleReject("implausible", f"reports messages on {over[0]} "
+                                            "that the recorder never saw", payload, 1))
+                continue
+            for k, (count, _) in message.sent.items():
+                tally[k] -= count
+            kept.append((payload, message))
+        return kept, rejects
+
     def _note_rejects(self, key: str, rejects, now_ns: int) -> list[tuple[str, str]]:
         """Record the rejects of one sample (one record per reason, at most
         :data:`REJECTED_RECORDS_KEPT` in a run) and return the DER agents newly suspected of
-        having a second sender (a reason of :data:`~adnmesh.wire.gate.SUSPICIOUS` on a data
-        key of theirs)."""
+        having a second sender (a reason of :data:`~adnmesh.wire.gate.SUSPICIOUS` on a key of
+        theirs)."""
         records, suspects = [], []
         for reject in rejects:
             if self._records_kept < REJECTED_RECORDS_KEPT:
@@ -158,7 +185,7 @@ class RecorderTap:
             else:
                 self.rejected_unrecorded += 1
             found = route(key)
-            if reject.reason in SUSPICIOUS and found is not None and not found.kind.clock:
+            if reject.reason in SUSPICIOUS and found is not None:
                 agent = found.sender
                 if der_id_of(agent) is not None and agent not in self.suspects:
                     self.suspects[agent] = f"{reject.reason} on {key}: {reject.detail}"
