@@ -12,6 +12,16 @@ the CPFC on ``measurement/p_ip`` over the ``measurement_to_cpfc`` link (delay ``
   grid's extremes over the period on ``measurement/grid`` (lowest and highest bus voltage,
   highest line and transformer loading, the samples outside ``grid_model.limits``);
 - without it: ``P_IP = runtime.rest_of_grid_w + Σ_d P_d``.
+
+**A DER that stops reporting** (its process died, or ``up`` quarantined it) is taken at its
+schedule ``P_sched,d`` once its state has been missing for ``watchdog_timeout_s``: a plant that
+lost its controller falls back to its schedule as its watchdog does when commands stop, and a
+restarted DER begins there too. Until then its last reported infeed stands. Holding the last
+infeed for good would leave the dead DER's share of the last ``P_Y`` in ``P_IP`` for the rest of
+the run, an offset the remaining DERs may be unable to take back (the reference scenario with
+SGen1 dead from 60 s: the 420 s step ended 165 kW short). The DER also leaves the limit states
+(``held``) the CPFC's anti-windup reads. The measurement says so with an event
+(``der_silent``; ``der_reporting`` when its states return, a restarted DER).
 """
 
 from __future__ import annotations
@@ -23,7 +33,7 @@ from msgspec import UNSET
 from adnmesh.config import Config
 from adnmesh.control.base import Agent, Outgoing
 from adnmesh.control.operating_point import grid_solver, initial_p_ip_w
-from adnmesh.names import der_agent_id
+from adnmesh.names import der_agent_id, der_id_of
 from adnmesh.wire.keys import Keys
 from adnmesh.wire.messages import Envelope
 from adnmesh.wire.units import ns
@@ -72,11 +82,19 @@ class Measurement(Agent):
     def __init__(self, config: Config) -> None:
         keys = Keys(config.grid)
         self._p_ip_key, self._grid_key = keys.of("p_ip"), keys.of("grid_state")
+        self._event_key = keys.of("event", self.agent_id)
         self.period_ns = ns(config.runtime.measurement_period_s)
         self.rest_of_grid_w = config.runtime.rest_of_grid_w
         # infeed per DER agent, in config order (fixed summation order: reproducible sums)
         self.infeed_w = {der_agent_id(d.id): d.p_sched_w for d in config.ders}
         self.held: dict[str, int] = {}          # DERs that follow P_Y: their limit state
+        self.p_sched_w = {der_agent_id(d.id): d.p_sched_w for d in config.ders}
+        self.silent_after_ns = ns(config.runtime.watchdog_timeout_s)
+        self.last_state_ns = dict.fromkeys(self.infeed_w, 0)   # when each DER last reported
+        self.silent: set[str] = set()           # DERs taken at their schedule (not reporting)
+        self._back: set[str] = set()            # silent DERs that reported again
+        self._order = {der: i for i, der in enumerate(self.infeed_w)}
+        self._next_check_ns = self.silent_after_ns   # no DER can fall silent before this
         self.next_sample_ns = 0
         self.solver = grid_solver(config)
         self.p_ip_w = self.q_ip_var = 0.0
@@ -94,12 +112,18 @@ class Measurement(Agent):
     def resume(self, t_ns: int) -> None:
         """A restarted measurement at ``t_ns``: samples from the next sampling instant on."""
         self.next_sample_ns = -(-t_ns // self.period_ns) * self.period_ns
+        self.last_state_ns = dict.fromkeys(self.infeed_w, t_ns)
+        self._next_check_ns = t_ns + self.silent_after_ns
         if self.solver is not None:
             self.next_report_ns = -(-t_ns // self.report_period_ns) * self.report_period_ns
 
     def on_message(self, t_ns: int, message: Envelope) -> list[Outgoing]:
         if message.src in self.infeed_w:
             self.infeed_w[message.src] = message.p_w
+            self.last_state_ns[message.src] = t_ns
+            if message.src in self.silent:
+                self._back.add(message.src)
+                self._next_check_ns = min(self._next_check_ns, t_ns + self.silent_after_ns)
             if message.held is UNSET:
                 self.held.pop(message.src, None)
             else:
@@ -115,14 +139,44 @@ class Measurement(Agent):
             return {"held": "down"}
         return {}
 
+    def _silent(self, t_ns: int) -> list[Outgoing]:
+        """DERs whose state has been missing for ``watchdog_timeout_s`` go to their schedule;
+        one that reports again is back (see the module docstring)."""
+        out = []
+        for der in sorted(self._back, key=self._order.__getitem__):
+            self.silent.discard(der)
+            out.append(Outgoing(self._event_key, {
+                "level": "INFO", "kind": "der_reporting", "subject": der,
+                "text": f"{der_id_of(der)} reports its state again"}))
+        self._back.clear()
+        if t_ns < self._next_check_ns:
+            return out
+        earliest = None
+        for der, last in self.last_state_ns.items():
+            if der in self.silent:
+                continue
+            if t_ns - last < self.silent_after_ns:
+                earliest = last if earliest is None else min(earliest, last)
+                continue
+            self.silent.add(der)
+            self.infeed_w[der] = self.p_sched_w[der]
+            self.held.pop(der, None)
+            text = (f"{der_id_of(der)} sent no state for {self.silent_after_ns / 1e9:g} s: its "
+                    f"infeed is taken at its schedule, {self.p_sched_w[der] / 1e3:.6g} kW")
+            out.append(Outgoing(self._event_key, {"level": "WARNING", "kind": "der_silent",
+                                                  "subject": der, "text": text}))
+        self._next_check_ns = math.inf if earliest is None else earliest + self.silent_after_ns
+        return out
+
     def on_timer(self, t_ns: int) -> list[Outgoing]:
         self.next_sample_ns += self.period_ns
         self.counts["samples"] += 1
+        events = self._silent(t_ns)
         if self.solver is None:
             p_ip = self.rest_of_grid_w
             for p_w in self.infeed_w.values():
                 p_ip += p_w
-            return [Outgoing(self._p_ip_key, {"p_ip_w": p_ip, **self._held()})]
+            return [Outgoing(self._p_ip_key, {"p_ip_w": p_ip, **self._held()}), *events]
         sample = self.solver.solve(list(self.infeed_w.values()))
         self.report.add(sample)
         if sample.converged:
@@ -130,7 +184,7 @@ class Measurement(Agent):
         else:
             self.counts["not_converged"] += 1
         out = [Outgoing(self._p_ip_key, {"p_ip_w": self.p_ip_w, "q_ip_var": self.q_ip_var,
-                                         **self._held()})]
+                                         **self._held()}), *events]
         if t_ns >= self.next_report_ns:
             out.append(Outgoing(self._grid_key, self.report.body(self.q_ip_var)))
             self.report.reset()

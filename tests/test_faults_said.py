@@ -1,0 +1,120 @@
+"""Every fault is said, and handled where it is said (issue 39): in-process runs of the small
+runtime case (two WTs, tests/up_runs.py's table), the same nodes and clock as ``adnmesh up``.
+
+- a DER that dies is taken at its schedule by the measurement, so the steps after its death are
+  as good as with the DER gone by the scenario (it no longer leaves its last share of P_Y in
+  P_IP for good).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from adnmesh.config import Config, load_config
+from adnmesh.control.cpfc_controller import GainSchedule
+from adnmesh.control.measurement_point import Measurement
+from adnmesh.results.summary import RunSeries, summarize
+from adnmesh.sim.local import _LocalRunner
+from adnmesh.tuning.table import SchedulingTable, TableEntry
+from adnmesh.wire.keys import Keys
+from adnmesh.wire.units import ns
+from payloads import message
+
+KP2, KI2 = 5e-8, 1.92e-7      # both WTs (tests/test_sim.py: stable, disk margin 1.51, 0 %)
+KP1, KI1 = 1e-7, 3.84e-7      # SGen1 alone: the same loop
+
+
+@pytest.fixture(scope="module")
+def config(configs_dir: Path) -> Config:
+    return load_config(configs_dir / "examples" / "runtime-step.yaml")
+
+
+def schedule(config: Config) -> GainSchedule:
+    table = SchedulingTable(config.sha256, {}, "test", config.der_ids())
+    table.add(TableEntry(("SGen1", "SGen2"), KP2, KI2, {"SGen1": 1.0, "SGen2": 1.0}))
+    table.add(TableEntry(("SGen1",), KP1, KI1, {"SGen1": 1.0}))
+    table.add(TableEntry(("SGen2",), KP1, KI1, {"SGen2": 1.0}))
+    return GainSchedule(config, table, on_demand=False)
+
+
+def with_scenario(config: Config, **changes) -> Config:
+    return config.model_copy(update={"scenario": config.scenario.model_copy(update=changes)})
+
+
+def run(config: Config, faults=()) -> list[dict]:
+    """The in-process run with ``faults`` (kind, at s, for s or None, target): its messages
+    as dicts, in delivery order."""
+    runner = _LocalRunner(config, schedule(config), ns(config.scenario.duration_s))
+    for kind, at, duration, target in faults:
+        runner.plan.add(kind, ns(at), None if duration is None else ns(duration), **target)
+    grants = runner.start()
+    while grants:
+        grants.extend(runner.step(grants.popleft()))
+    bodies = [json.loads(p) for _, p in runner.run.messages]
+    return sorted(bodies, key=lambda b: (b["t_deliver_ns"], b["src"], b["type"], b["seq"]))
+
+
+def steps_of(config: Config, bodies: list[dict]) -> dict[float, object]:
+    series = RunSeries()
+    for body in bodies:
+        series.add(body["type"], body)
+    summary = summarize(series, end_ns=ns(config.scenario.duration_s),
+                        band_pct=config.constraints.settling_band_pct)
+    return {s.t_s: s for s in summary.steps}
+
+
+# --- a dead DER goes to its schedule ----------------------------------------------------------
+
+
+def test_a_silent_der_is_taken_at_its_schedule_and_back_when_it_reports(config: Config) -> None:
+    """SGen2 (schedule 0.5 MW) reports 1.2 MW until 2 s, then nothing: from 2 s plus the
+    watchdog timeout its infeed is its schedule, said once; its first state after that is
+    taken as it is, said once."""
+    meas, keys = Measurement(config), Keys(config.grid)
+    timeout = ns(config.runtime.watchdog_timeout_s)
+    events, p_ip = [], {}
+
+    def state(t, der, p_w):
+        meas.on_message(t, message(keys.of("der_state", der), t, {
+            "p_w": p_w, "setpoint_w": p_w, "mode": "control", "held": 0}, src=f"der/{der}"))
+
+    for t in range(0, ns(6), ns(0.01)):
+        state(t, "SGen1", 1e5)
+        if t <= ns(2) or t >= ns(5):
+            state(t, "SGen2", 1.2e6 if t <= ns(2) else 7e5)
+        for out in meas.on_timer(t):
+            if out.key == keys.of("p_ip"):
+                p_ip[t] = out.body["p_ip_w"]
+            else:
+                events.append((t, out.body["kind"], out.body["subject"]))
+    rest = config.runtime.rest_of_grid_w
+    assert p_ip[ns(2) + timeout - ns(0.01)] == rest + 1e5 + 1.2e6     # still its last infeed
+    assert p_ip[ns(2) + timeout] == rest + 1e5 + 0.5e6                # its schedule
+    assert p_ip[ns(5)] == rest + 1e5 + 7e5
+    assert events == [(ns(2) + timeout, "der_silent", "der/SGen2"),
+                      (ns(5), "der_reporting", "der/SGen2")]
+
+
+def test_the_steps_after_a_ders_death_are_those_after_its_leaving(config: Config) -> None:
+    """SGen2 (schedule 0.5 MW, carrying half of the +1 MW step of 1 s) dies at 5 s; -1 MW at
+    10 s, +1 MW at 20 s. Before the fix its last infeed stayed in P_IP for good: the -1 MW step
+    ended 489 kW short (SGen1 at its lower limit), not settled. Now every step after the death
+    is within 0.05 s (settling) of the run in which SGen2 leaves by the scenario at 5 s."""
+    scenario = {"duration_s": 30, "availability": (),
+                "p_ref_steps": tuple(config.scenario.p_ref_steps[0].model_copy(
+                    update={"t_s": t, "delta_w": d}) for t, d in ((1, 1e6), (10, -1e6),
+                                                                    (20, 1e6)))}
+    dead_config = with_scenario(config, **scenario)
+    dead = steps_of(dead_config, run(dead_config, [("kill", 5, None, {"agent": "der/SGen2"})]))
+    availability = (config.scenario.availability[0].model_copy(
+        update={"t_s": 5.0, "ders": ("SGen2",)}),)
+    gone_config = with_scenario(config, **{**scenario, "availability": availability})
+    gone = steps_of(gone_config, run(gone_config))
+    for t in (10.0, 20.0):
+        d, g = dead[t], gone[t]
+        assert abs(d.steady_error_w) < 0.01 * abs(d.step_w), (t, d)
+        assert d.figures.settling_time_s == pytest.approx(g.figures.settling_time_s, abs=0.05)
+        assert d.figures.overshoot_pct <= g.figures.overshoot_pct + 0.05
