@@ -418,11 +418,16 @@ def heartbeat(cpfc: CPFC, der_id: str, t_ns: int, mode: str, p_y: float = 0.0,
 
 def drive(cpfc: CPFC, until_ns: int, p_meas, on_sample=lambda t: None) -> list:
     """Run the CPFC's samples to ``until_ns`` with the measurement ``p_meas(t)`` (None: no
-    measurement at that sample); return ``(t, body)`` of its P_Y messages."""
+    measurement at that sample); return ``(t, body)`` of its P_Y messages. SI is repeated every
+    second, as a live availability monitor does (the last SI the CPFC took: ``on_sample`` may
+    deliver a new one)."""
     keys = Keys(cpfc.config.grid)
     out = []
     while cpfc.next_timer_ns() < until_ns:
         t = cpfc.next_timer_ns()
+        if t % (1000 * MS) == 0:
+            cpfc.on_message(t, message(keys.of("si"), t, {"si": {
+                d: d in cpfc.si_available for d in cpfc.config.der_ids()}}))
         on_sample(t)
         value = p_meas(t)
         if value is not None:

@@ -3,7 +3,11 @@ runtime case (two WTs, tests/up_runs.py's table), the same nodes and clock as ``
 
 - a DER that dies is taken at its schedule by the measurement, so the steps after its death are
   as good as with the DER gone by the scenario (it no longer leaves its last share of P_Y in
-  P_IP for good).
+  P_IP for good);
+- the CPFC notices a stale availability vector (the monitor dead) and follows the DERs'
+  heartbeats instead;
+- the summary lists the unplanned deaths as faults, every step of the scenario (and why one was
+  not executed), and ``up`` refuses a table whose gains are unstable.
 """
 
 from __future__ import annotations
@@ -118,3 +122,62 @@ def test_the_steps_after_a_ders_death_are_those_after_its_leaving(config: Config
         assert abs(d.steady_error_w) < 0.01 * abs(d.step_w), (t, d)
         assert d.figures.settling_time_s == pytest.approx(g.figures.settling_time_s, abs=0.05)
         assert d.figures.overshoot_pct <= g.figures.overshoot_pct + 0.05
+
+
+# --- a stale availability vector --------------------------------------------------------------
+
+
+def test_the_cpfc_follows_the_heartbeats_when_si_stops(config: Config) -> None:
+    """The availability monitor dies at 3 s; SGen2 leaves (scenario) at 8 s. Before, the CPFC
+    kept the gains of both WTs to the end and said nothing. Now it says that SI is stale one SI
+    timeout after the last SI, and switches to SGen1's entry when SGen2's heartbeat says it
+    left (8.1 s, one PI period later), bumplessly."""
+    bodies = run(config, [("kill", 3, None, {"agent": "availability"})])
+    cpfc = [b for b in bodies if b["src"] == "cpfc"]
+    stale = [b for b in cpfc if b["type"] == "event" and b["kind"] == "si_stale"]
+    last_si = max(b["t_deliver_ns"] for b in bodies if b["type"] == "si")
+    timeout = ns(config.runtime.heartbeat_timeout_s)
+    assert len(stale) == 1 and last_si + timeout < stale[0]["t_send_ns"] <= \
+        last_si + timeout + ns(config.runtime.pi_period_s)
+    (switch,) = [b for b in cpfc if b["type"] == "p_y" and "switch" in b]
+    assert ns(8.1) <= switch["t_send_ns"] <= ns(8.1) + ns(config.runtime.pi_period_s)
+    assert sorted(switch["w"]) == ["SGen1"] and (switch["kp"], switch["ki"]) == (KP1, KI1)
+    assert switch["p_y"] == switch["switch"]["p_y_before"] * switch["switch"]["scale"]
+
+
+def test_si_rules_again_when_it_returns(config: Config) -> None:
+    """An outage of the availability_to_cpfc link from 2 to 6 s: stale from 2 s + the timeout,
+    back with the first SI after 6 s; the same gain switch (SI's) at 8.2 s as without it."""
+    bodies = run(config, [("link_outage", 2, 4, {"link": "availability_to_cpfc"})])
+    kinds = [(b["kind"], b["t_send_ns"]) for b in bodies
+             if b["type"] == "event" and b["src"] == "cpfc"]
+    assert [k for k, _ in kinds] == ["si_stale", "si_back"]
+    assert ns(6) < kinds[1][1] < ns(7.2)
+    (switch,) = [b for b in bodies if b["type"] == "p_y" and "switch" in b]
+    assert switch["t_send_ns"] == ns(8.2)
+
+
+def test_a_restarted_cpfc_without_si_starts_from_the_heartbeats(config: Config) -> None:
+    """A CPFC restarted at 20 s while the monitor is dead: no SI comes; SGen1's heartbeats say
+    it follows, SGen2's that it left. Before, the CPFC resumed after the heartbeat timeout with
+    the gains of every DER (its state at t = 0); now with SGen1's, and says why."""
+    from adnmesh.control.cpfc_controller import CPFC
+
+    cpfc, keys = CPFC(config, schedule(config)), Keys(config.grid)
+    start = ns(20)
+    cpfc.resume(start)
+    out = []
+    while cpfc.next_timer_ns() < start + ns(3):
+        t = cpfc.next_timer_ns()
+        if (t - start) % ns(1) == ns(0.5):
+            for der, available in (("SGen1", True), ("SGen2", False)):
+                cpfc.on_message(t, message(keys.of("heartbeat", der), t - ns(0.1), {
+                    "available": available, "mode": "control" if available else "schedule",
+                    "p_y": 0.1, "entry": 0}, src=f"der/{der}"))
+        cpfc.on_message(t, message(keys.of("p_ip"), t, {"p_ip_w": -2.5e6}, src="measurement"))
+        out += [(t, o.body) for o in cpfc.on_timer(t)]
+    p_y = [(t, b) for t, b in out if "p_y" in b]
+    events = [b["kind"] for _, b in out if "kind" in b]
+    assert p_y and p_y[0][0] == start + ns(config.runtime.heartbeat_timeout_s)
+    assert sorted(p_y[0][1]["w"]) == ["SGen1"] and p_y[0][1]["kp"] == KP1
+    assert events[:2] == ["si_stale", "resume"]

@@ -17,6 +17,18 @@ the integrator beyond it.
 heartbeat, which the CPFC receives too) says they are in their watchdog fallback — so the CPFC
 learns a fallback 0.1 s after it happened, before the availability monitor's SI follows.
 
+**A stale SI** (docs/faults.md#what-the-system-does). The monitor repeats SI every
+``heartbeat_period_s``. When no SI has arrived for ``heartbeat_timeout_s`` (plus the jitter of
+``availability_to_cpfc``) — the monitor is dead, or its link is cut — the CPFC no longer trusts
+the SI it has and derives availability from the heartbeats it receives itself, by the monitor's
+own rule: a DER is available while its last heartbeat said ``available`` in a mode other than
+``watchdog`` and is younger than ``heartbeat_timeout_s``. So the gains follow the DERs that
+leave (or come back) while the monitor is gone, with the same switches the monitor's SI would
+have caused, one heartbeat link delay earlier. It says so with a ``si_stale`` warning event and
+``si_back`` when SI arrives again (SI then rules again). A restarted CPFC that hears no SI while
+it waits to resume starts from the heartbeats the same way. The alternative, the table's static
+controller on every DER, would keep commanding DERs that have left.
+
 **Bumpless switching** keeps the DERs' total commanded power ``P_Y Σ w_d P_inst,d`` continuous
 over the DERs that carry the output: before the switch those of the old entry that are still
 available (a DER that left has already stopped following), after it those of the new entry.
@@ -267,12 +279,16 @@ class CPFC(Agent):
         self.p_meas_w = self.p_ref_w          # the run starts in the operating point
         self.meas_timeout_ns = ns(rt.measurement_timeout_s)
         self.ack_timeout_ns = ns(rt.heartbeat_timeout_s)
+        self.si_timeout_ns = ns(rt.heartbeat_timeout_s + rt.links.availability_to_cpfc.jitter_s)
+        self.last_si_ns = 0                    # when the last SI was delivered
+        self.si_stale = False                  # availability from the heartbeats (no SI)
         self.last_meas_ns = 0
         self.actuators_held = 0                  # +1 / -1: every following DER held back
         self.hold: str | None = None          # measurement, actuators, resuming
         self._resume_ns: int | None = None
         self._si_seen = False
-        self.acks: dict[str, tuple[int, str, float]] = {}   # DER -> (t, mode, p_y applied)
+        # DER -> (t, mode, p_y applied, available) of its last heartbeat
+        self.acks: dict[str, tuple[int, str, float, bool]] = {}
         self.si_available = frozenset(self._ids)            # as SI last said
         self._t_meas_ns = ns(config.t_meas_s)
         self._history: deque = deque(maxlen=max(2, int(5 * ns(1.0) // self.period_ns)))
@@ -315,7 +331,7 @@ class CPFC(Agent):
     def resume(self, t_ns: int) -> None:
         """A restarted CPFC at ``t_ns``: hold until the DERs' acknowledgements are in."""
         self.next_sample_ns = self._next_weights_ns = -(-t_ns // self.period_ns) * self.period_ns
-        self.last_meas_ns = self._resume_ns = t_ns
+        self.last_meas_ns = self._resume_ns = self.last_si_ns = t_ns
         self.hold = "resuming"
 
     def on_message(self, t_ns: int, message: Envelope) -> list[Outgoing]:
@@ -332,25 +348,51 @@ class CPFC(Agent):
                 self.counts["rejected_si"] += 1
                 return []
             self._si_seen = True
+            self.last_si_ns = t_ns
             self.si_available = frozenset(d for d in self._ids if si.get(d, False))
-            self._update_available()
+            out = []
+            if self.si_stale:
+                self.si_stale = False
+                out.append(self._event("INFO", "si_back", "SI from the availability monitor "
+                                       "arrives again: availability from SI"))
+            self._update_available(t_ns)
+            return out
         return []
 
     def _ack(self, t_ns: int, message) -> None:
         """A DER's acknowledgement; a new fallback undoes the samples it disturbed."""
         der = der_id_of(message.src)
         before = self.acks.get(der)
-        self.acks[der] = (t_ns, message.mode, message.p_y)
+        self.acks[der] = (t_ns, message.mode, message.p_y, message.available)
         fell_back = message.mode == "watchdog" and (before is None or before[1] != "watchdog")
         if fell_back and der in self.weights and self.hold is None:
             self._undo_after(message.t_send_ns + self._t_meas_ns)
-        self._update_available()
+        self._update_available(t_ns)
 
-    def _update_available(self) -> None:
-        """The available set: SI less the DERs whose own acknowledgement says fallback."""
-        available = frozenset(d for d in self.si_available
+    def _update_available(self, t_ns: int) -> None:
+        """The available set: SI (while stale: the heartbeats, see the module docstring) less
+        the DERs whose own acknowledgement says fallback."""
+        base = self._heard(t_ns) if self.si_stale else self.si_available
+        available = frozenset(d for d in base
                               if self.acks.get(d, (0, "control"))[1] != "watchdog")
         self._pending = None if available == self.available else available
+
+    def _heard(self, t_ns: int) -> frozenset[str]:
+        """The DERs the heartbeats say are available at ``t_ns``: the monitor's rule."""
+        timeout = self.ack_timeout_ns
+        return frozenset(d for d, (t, mode, _, available) in self.acks.items()
+                         if available and mode != "watchdog" and t_ns < t + timeout)
+
+    def _watch_si(self, t_ns: int, out: list) -> None:
+        """No SI for the SI timeout: availability from the heartbeats, said once; while
+        stale, follow them (a heartbeat's age changes the set with time)."""
+        if not self.si_stale and t_ns - self.last_si_ns > self.si_timeout_ns:
+            self.si_stale = True
+            out.append(self._event("WARNING", "si_stale", "no SI from the availability monitor "
+                                   f"for {self.si_timeout_ns / 1e9:g} s: availability taken "
+                                   "from the DERs' heartbeats"))
+        if self.si_stale:
+            self._update_available(t_ns)
 
     def _undo_after(self, t_ns: int) -> None:
         """Ask the next sample to take the PI back to its state at ``t_ns`` (see above)."""
@@ -360,6 +402,7 @@ class CPFC(Agent):
     def on_timer(self, t_ns: int) -> list[Outgoing]:
         out = self._reference()
         self.next_sample_ns += self.period_ns
+        self._watch_si(t_ns, out)
         if self.hold == "resuming" and not self._try_resume(t_ns, out):
             return out
         error_w = self.p_ref_w - self.p_meas_w
@@ -454,6 +497,10 @@ class CPFC(Agent):
         if waiting and t_ns - since < self.ack_timeout_ns:
             return False
         acked = max(fresh.values())[2] if fresh else 0.0     # the most recent acknowledgement
+        if not self._si_seen and not self.si_stale:      # no SI: start from the heartbeats
+            self.last_si_ns = t_ns - self.si_timeout_ns - 1
+            self._watch_si(t_ns, out)
+            available = self._pending if self._pending is not None else self.available
         self._pending = None
         self.available = frozenset()      # the switch below sets gains, weights and limits
         self.pi.output = acked
