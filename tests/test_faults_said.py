@@ -181,3 +181,41 @@ def test_a_restarted_cpfc_without_si_starts_from_the_heartbeats(config: Config) 
     assert p_y and p_y[0][0] == start + ns(config.runtime.heartbeat_timeout_s)
     assert sorted(p_y[0][1]["w"]) == ["SGen1"] and p_y[0][1]["kp"] == KP1
     assert events[:2] == ["si_stale", "resume"]
+
+
+# --- the summary: unplanned deaths, every step of the scenario ---------------------------------
+
+
+def _event(t_ns: int, src: str, kind: str, subject: str, seq: int) -> dict:
+    return {"v": 1, "type": "event", "src": src, "seq": seq, "t_send_ns": t_ns,
+            "t_deliver_ns": t_ns, "level": "WARNING", "kind": kind, "text": kind,
+            "subject": subject}
+
+
+def test_an_agent_up_lost_is_a_fault_of_the_summary_with_its_detection() -> None:
+    """``up`` lost der/SGen2 at 5 s (its process died: an ``agent_lost`` event, no fault
+    message); the measurement took it at its schedule at 6 s, the monitor marked it unavailable
+    at 7.5 s. Before, the summary's fault list was empty; now the death is fault 2 (after the
+    injected one), detected by the measurement 1 s after, open to the end; and it ends the
+    window of the step before it."""
+    series = RunSeries()
+    series.add("fault", {"v": 1, "type": "fault", "src": "up", "seq": 0, "t_send_ns": 0,
+                         "t_deliver_ns": ns(1), "fault_id": 1, "kind": "link_outage",
+                         "link": "cpfc_to_der", "start_ns": ns(1), "end_ns": ns(2)})
+    for t, w in ((0, 0.0), (ns(3), 1e6)):
+        series.add("p_ref", {"src": "cpfc", "t_send_ns": t, "p_ref_w": w})
+    for k in range(1000):
+        series.add("p_ip", {"src": "measurement", "t_send_ns": k * ns(0.01),
+                            "p_ip_w": 0.0 if k < 300 else 1e6})
+    for seq, (t, src, kind, subject) in enumerate((
+            (ns(5), "up", "agent_lost", "der/SGen2"),
+            (ns(6), "measurement", "der_silent", "der/SGen2"),
+            (ns(7.5), "availability", "unavailable", "der/SGen2"))):
+        series.add("event", _event(t, src, kind, subject, seq))
+    summary = summarize(series, end_ns=ns(10))
+    lost = summary.faults[-1]
+    assert (lost.fault_id, lost.kind, lost.target) == (2, "lost", "der/SGen2")
+    assert (lost.start_s, lost.end_s) == (5.0, None)
+    assert (lost.detected_by, lost.detection_delay_s) == ("measurement", 1.0)
+    assert [s.window_s for s in summary.steps] == [2.0]           # 3 s to the death at 5 s
+    assert summary.to_json()["faults"][-1]["kind"] == "lost"

@@ -100,8 +100,16 @@ def test_faults_injected_into_a_running_sim_run_take_effect_at_their_instant(
 
 def test_a_dead_agent_does_not_end_the_run(tmp_path: Path) -> None:
     """A DER's process killed from outside: the run goes on to its end without it, prints
-    its summary and says who was lost (exit code 1: an agent died unplanned)."""
-    proc, agents, config = start_long_run(tmp_path, "victim", scenario={"duration_s": 120})
+    its summary and says who was lost (exit code 1: an agent died unplanned). The death is a
+    fault of the summary (kind ``lost``, from ``up``'s event on), detected by the measurement
+    (the DER's state stopped: taken at its schedule) one watchdog timeout after its last
+    state; ``inspect`` finds the same fault in the recording."""
+    from adnmesh.commands.inspect import _summary, _SummaryMessages
+    from adnmesh.results.series import read_run
+
+    proc, agents, config = start_long_run(tmp_path, "victim", "--summary-json",
+                                          str(tmp_path / "victim.json"),
+                                          scenario={"duration_s": 120})
     victim = max(agents)
     os.kill(victim, signal.SIGKILL)
     returncode, err = finish(proc, agents, config)
@@ -113,6 +121,17 @@ def test_a_dead_agent_does_not_end_the_run(tmp_path: Path) -> None:
     last_p_ip = max(m.publish_time_ns for m in run.messages if m.topic.endswith("/p_ip"))
     assert last_p_ip == ns(120)                              # the run reached its end
     assert events(run, "unavailable")                        # the monitor noticed
+    (silent,) = events(run, "der_silent")                    # and the measurement before
+    assert silent["subject"] == lost["subject"]
+    (fault,) = json.loads((tmp_path / "victim.json").read_text())["faults"]
+    assert (fault["kind"], fault["target"], fault["end_s"]) == ("lost", lost["subject"], None)
+    assert fault["start_s"] == lost["t_send_ns"] * 1e-9
+    assert fault["detected_by"] == "measurement"
+    assert fault["detected_s"] == silent["t_send_ns"] * 1e-9
+    assert 0 < fault["detection_delay_s"] <= 1.5
+    found, messages = read_run(tmp_path / "victim.mcap", also=_SummaryMessages)
+    inspected = _summary(found.recording, messages, 5.0).to_json()["faults"]
+    assert inspected == [fault]
 
 
 def test_up_killed_leaves_no_agent_behind(tmp_path: Path) -> None:

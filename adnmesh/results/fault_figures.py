@@ -4,7 +4,8 @@ For every injected fault (its window ``[start, end)``, from the run's ``fault`` 
 run's events (what agents noticed, :mod:`adnmesh.wire.messages`):
 
 - **detected**: the first event of an agent that reacted to a fault — a DER's watchdog
-  fallback, the availability monitor marking a DER unavailable, the CPFC holding — at or after
+  fallback, the availability monitor marking a DER unavailable, the CPFC holding or finding SI
+  stale, the measurement taking a silent DER at its schedule — at or after
   the start and before the end (a fault nobody noticed while it lasted is "not detected"); by
   whom and how long after the start;
 - **largest deviation during** and **after**: ``max |P_IP - P_ref|`` over the P_IP samples in
@@ -29,7 +30,8 @@ from adnmesh.names import der_agent_id
 
 __all__ = ["DETECTION_KINDS", "FaultFigures", "fault_figures"]
 
-DETECTION_KINDS = frozenset({"watchdog_fallback", "unavailable", "hold"})
+DETECTION_KINDS = frozenset({"watchdog_fallback", "unavailable", "hold", "der_silent",
+                             "si_stale"})
 """Event kinds that show an agent reacting to a fault."""
 
 AFTER_WINDOW_S = 60.0

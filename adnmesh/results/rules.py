@@ -312,7 +312,9 @@ class StepWindowEnds:
     - a change of the availability vector SI (``availability``; not the first SI, which is the
       initial state),
     - an injected fault: its start and, if it has one, its end (``fault``; a fault sent again
-      to a restarted agent counts once).
+      to a restarted agent counts once);
+    - an agent lost (``up``'s event of kind ``agent_lost``: a process that died or stopped
+      unplanned).
     """
 
     def __init__(self) -> None:
@@ -328,6 +330,8 @@ class StepWindowEnds:
                 self.instants.append(event.t_ns)
             self._initial_si = False
         elif kind == "der_available" or (kind == "gain_switch" and event.data.get("switch")):
+            self.instants.append(event.t_ns)
+        elif kind == "event" and event.data.get("kind") == "agent_lost":
             self.instants.append(event.t_ns)
         elif kind == "fault" and event.data["fault_id"] not in self._faults:
             self._faults.add(event.data["fault_id"])

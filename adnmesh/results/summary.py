@@ -23,7 +23,9 @@ A scaled output outside the new DERs' range (where every one of them is saturate
 to that range first; the jump is counted from the limited value and the limiting reported
 apart (``p_y_limited_by``).
 
-For every injected fault (``fault`` messages) its detection, deviation and recovery
+For every injected fault (``fault`` messages) and every agent ``up`` lost (an ``agent_lost``
+event of ``up``: a process that died or stopped unplanned, fault kind ``lost`` from that event
+to the agent's ``rejoined`` event, if any) its detection, deviation and recovery
 (:func:`adnmesh.results.fault_figures.fault_figures`, from the run's ``event`` messages); with a grid
 model the extremes of the grid over the run and the report periods with samples outside the
 band (``grid_state`` messages); of a realtime run its timing: delivery errors per link,
@@ -42,6 +44,7 @@ import numpy as np
 from adnmesh.loopmodel.step_figures import ReferenceStep, reference_step_figures
 from adnmesh.results.fault_figures import FaultFigures, fault_figures
 from adnmesh.results.realtime_report import ALARM_TIMEOUTS, RealtimeFigures, realtime_lines
+from adnmesh.names import LAUNCHER
 from adnmesh.results.rules import (EVENTS, Event, StepWindowEnds, availability_change,
                                    available_ders)
 
@@ -63,7 +66,7 @@ the few the summary reads, not every message type of the wire."""
 _ALARM_KINDS = frozenset({"overrun", *ALARM_TIMEOUTS})
 
 WINDOW_EVENTS = {"p_y": "gain_switch", "heartbeat": "der_available", "fault": "fault",
-                 "si": "availability"}
+                 "si": "availability", "event": "event"}
 """The types of :data:`SUMMARY_TYPES` whose messages may be an event that ends a step's
 window, and the kind of that event (:class:`~adnmesh.results.rules.EventRule` kinds of
 :data:`~adnmesh.results.rules.EVENTS`; ``availability``: SI changes)."""
@@ -98,6 +101,8 @@ class RunSeries:
         (:mod:`adnmesh.results.realtime_report`).
     grid : list of dict
         The ``grid_state`` bodies, in time order.
+    lost, rejoined : list of (int, str)
+        ``(t_ns, agent)`` of ``up``'s ``agent_lost`` and ``rejoined`` events.
     """
 
     p_ip_t_ns: list = field(default_factory=list)
@@ -109,6 +114,8 @@ class RunSeries:
     events: list = field(default_factory=list)
     alarms: list = field(default_factory=list)
     grid: list = field(default_factory=list)
+    lost: list = field(default_factory=list)
+    rejoined: list = field(default_factory=list)
     windows: StepWindowEnds = field(default_factory=StepWindowEnds, repr=False)
     _previous: dict = field(default_factory=dict, repr=False)   # (type, sender) -> last body
     _si: frozenset | None = field(default=None, repr=False)
@@ -153,6 +160,9 @@ class RunSeries:
             if body["kind"] in _ALARM_KINDS:
                 self.alarms.append((body["t_send_ns"] * 1e-9, body["src"], body["kind"],
                                     body.get("subject") or body["src"], body["text"]))
+            if body["src"] == LAUNCHER and body["kind"] in ("agent_lost", "rejoined"):
+                (self.lost if body["kind"] == "agent_lost" else self.rejoined).append(
+                    (body["t_send_ns"], body.get("subject") or "?"))
         elif message_type == "grid_state":
             self.grid.append(body)
 
@@ -285,13 +295,29 @@ def summarize(series: RunSeries, *, end_ns: int, band_pct: float = 5.0,
                       realtime)
 
 
+def lost_faults(series: RunSeries) -> list[dict]:
+    """The agents ``up`` lost, as fault bodies of kind ``lost`` (numbered after the injected
+    faults, in time order): from the ``agent_lost`` event to the agent's next ``rejoined``
+    event (a restart planned for it), else open."""
+    number = max((f["fault_id"] for f in series.faults.values()), default=0)
+    out = []
+    for t_ns, agent in sorted(series.lost):
+        number += 1
+        end = min((t for t, a in series.rejoined if a == agent and t > t_ns), default=None)
+        out.append({"fault_id": number, "kind": "lost", "agent": agent, "start_ns": t_ns,
+                    "end_ns": end, "origin": "unplanned"})
+    return out
+
+
 def _faults(series: RunSeries, end_s: float, band_pct: float) -> tuple[FaultFigures, ...]:
-    """Per-fault figures; recovery band: ``band_pct`` % of the largest P_ref step (1 MW
-    without steps); a step of P_ref ends a fault's after window (what follows is the step's)."""
+    """Per-fault figures (injected faults and the agents lost); recovery band: ``band_pct`` %
+    of the largest P_ref step (1 MW without steps); a step of P_ref ends a fault's after window
+    (what follows is the step's)."""
     steps = np.abs(np.diff(np.asarray(series.p_ref_w, dtype=float)))
     band_w = band_pct / 100 * (float(steps.max()) if steps.size and steps.max() > 0 else 1e6)
     scenario = [t * 1e-9 for t in series.p_ref_t_ns[1:]]     # the steps end an after window
-    return tuple(fault_figures(list(series.faults.values()), series.events,
+    faults = [*series.faults.values(), *lost_faults(series)]
+    return tuple(fault_figures(faults, series.events,
                                np.asarray(series.p_ip_t_ns) * 1e-9, series.p_ip_w,
                                np.asarray(series.p_ref_t_ns) * 1e-9, series.p_ref_w,
                                end_s=end_s, band_w=band_w, events_s=scenario))
