@@ -219,3 +219,43 @@ def test_an_agent_up_lost_is_a_fault_of_the_summary_with_its_detection() -> None
     assert (lost.detected_by, lost.detection_delay_s) == ("measurement", 1.0)
     assert [s.window_s for s in summary.steps] == [2.0]           # 3 s to the death at 5 s
     assert summary.to_json()["faults"][-1]["kind"] == "lost"
+
+
+def test_every_step_of_the_scenario_is_said_also_those_its_dead_source_never_sent(
+        config: Config) -> None:
+    """Steps at 1, 10 and 20 s. The CPFC (which sends P_ref) killed at 5 s without restart:
+    before, the steps at 10 and 20 s vanished from the summary without a word; now each is
+    listed as not executed, with why. Killed at 8 s and restarted at 12 s: the step at 10 s was
+    executed late, at 12 s, when the restarted CPFC applied it."""
+    scenario = {"duration_s": 25, "availability": (),
+                "p_ref_steps": tuple(config.scenario.p_ref_steps[0].model_copy(
+                    update={"t_s": t, "delta_w": d}) for t, d in ((1, 1e6), (10, -1e6),
+                                                                    (20, 1e6)))}
+    case = with_scenario(config, **scenario)
+    planned = [(s.t_s, s.delta_w) for s in case.scenario.p_ref_steps]
+
+    def summary_of(faults):
+        series = RunSeries()
+        for body in run(case, faults):
+            series.add(body["type"], body)
+        return summarize(series, end_ns=ns(25), planned_steps=planned,
+                         sample_s=case.runtime.pi_period_s)
+
+    dead = summary_of([("kill", 5, None, {"agent": "cpfc"})])
+    assert [s.t_s for s in dead.steps] == [1.0]
+    assert [(s.t_s, s.status) for s in dead.scenario_steps] == [
+        (1, "executed"), (10, "not executed"), (20, "not executed")]
+    assert dead.scenario_steps[1].reason == \
+        "the CPFC, which sends P_ref, was killed at 5 s (fault 1)"
+    from adnmesh.results.summary import format_summary
+    lines = [x for x in format_summary(dead) if isinstance(x, str)]
+    assert "  scenario step at 20 s (+1.000 MW): NOT EXECUTED: the CPFC, which sends P_ref, " \
+        "was killed at 5 s (fault 1)" in lines
+    late = summary_of([("kill", 8, 4, {"agent": "cpfc"})]).scenario_steps
+    assert (late[1].status, late[1].executed_s) == ("late", 12.0)
+    assert late[1].reason == \
+        "the CPFC, which sends P_ref, was killed at 8 s (fault 1) and restarted at 12 s"
+    assert late[2].status == "executed"
+    ended = summarize(RunSeries(), end_ns=ns(15), planned_steps=planned,
+                      extra={"ended": "SIGINT"}).scenario_steps
+    assert ended[2].reason == "the run ended at 15 s (SIGINT)"

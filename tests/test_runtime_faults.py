@@ -134,6 +134,41 @@ def test_a_dead_agent_does_not_end_the_run(tmp_path: Path) -> None:
     assert inspected == [fault]
 
 
+def test_the_steps_a_dead_cpfc_never_sent_are_said(tmp_path: Path) -> None:
+    """The CPFC's process killed from outside right after the start: the scenario's steps
+    (1 s, 60 s, 100 s here) are never sent (the CPFC sends P_ref). Before, they vanished from
+    the summary without a word; now every one is listed as not executed because the CPFC was
+    lost, and the death is a fault detected by the DERs' watchdogs."""
+    scenario = {"duration_s": 120, "p_ref_steps": [{"t_s": 1, "delta_w": 1.0e6},
+                                                   {"t_s": 60, "delta_w": -1.0e6},
+                                                   {"t_s": 100, "delta_w": 1.0e6}]}
+    proc, agents, config = start_long_run(tmp_path, "headless", "--summary-json",
+                                          str(tmp_path / "headless.json"), scenario=scenario)
+    (cpfc,) = [pid for pid in agents
+               if b"adnmesh.agents.cpfc" in Path(f"/proc/{pid}/cmdline").read_bytes()]
+    os.kill(cpfc, signal.SIGKILL)
+    returncode, err = finish(proc, agents, config)
+    assert returncode == 1, err
+    summary = json.loads((tmp_path / "headless.json").read_text())
+    planned = summary["scenario_steps"]
+    assert [s["t_s"] for s in planned] == [1, 60, 100]
+    executed = {s["t_s"] for s in summary["steps"]}
+    for step in planned:
+        if step["t_s"] in executed:
+            assert step["status"] == "executed"
+        else:
+            assert step["status"] == "not executed", step
+            assert step["reason"].startswith("the CPFC, which sends P_ref, was lost at ")
+    assert [s["status"] for s in planned][1:] == ["not executed"] * 2
+    (fault,) = summary["faults"]
+    assert (fault["kind"], fault["target"]) == ("lost", "cpfc")
+    assert fault["detected_by"].startswith("der/")
+    inspected = subprocess.run([sys.executable, "-m", "adnmesh", "inspect",
+                                str(tmp_path / "headless.mcap"), "--json"], capture_output=True,
+                               text=True, timeout=120, check=False)
+    assert json.loads(inspected.stdout)["figures"]["scenario_steps"] == planned
+
+
 def test_up_killed_leaves_no_agent_behind(tmp_path: Path) -> None:
     proc, agents, config = start_long_run(tmp_path, "orphans")
     proc.kill()

@@ -93,6 +93,19 @@ def settling_band_pct(recording: Recording) -> float:
     return float(band) if valid else Constraints().settling_band_pct
 
 
+def planned_steps(recording: Recording) -> tuple[list[tuple[float, float]], float]:
+    """The recorded run's scenario steps ``(t_s, delta_w)`` and the CPFC's sampling period, s
+    (``adnmesh up``'s summary says what became of each); none if the config is unreadable."""
+    try:
+        document = yaml.safe_load(recording.run.get("config", "")) or {}
+        steps = [(float(s["t_s"]), float(s["delta_w"]))
+                 for s in document.get("scenario", {}).get("p_ref_steps", ())]
+        period = float((document.get("runtime") or {}).get("pi_period_s", 0.01))
+    except (yaml.YAMLError, AttributeError, KeyError, TypeError, ValueError):
+        return [], 0.0
+    return steps, period
+
+
 class _SummaryMessages:
     """The messages ``adnmesh up``'s summary reads (:class:`~adnmesh.results.summary.RunSeries`),
     taken in the same pass as the series: ``P_IP`` as columns, ``p_y`` only where it carries a
@@ -169,14 +182,18 @@ def _summary(recording: ScannedRecording, messages: _SummaryMessages, band_pct: 
     from adnmesh.results.summary import summarize
 
     ends = [s.last_publish_ns for s in recording.channel_stats.values() if s.count]
-    return summarize(messages.series(), end_ns=max(ends, default=0), band_pct=band_pct)
+    planned, sample_s = planned_steps(recording)
+    return summarize(messages.series(), end_ns=max(ends, default=0), band_pct=band_pct,
+                     planned_steps=planned, sample_s=sample_s)
 
 
 def _print_figures(console: Console, run_data: RunData, figures: RunFigures, summary) -> None:
-    from adnmesh.results.summary import fault_table, grid_line
+    from adnmesh.results.summary import fault_table, grid_line, scenario_lines
 
     if figures.steps:
         console.print(step_table(figures.steps, figures.band_pct))
+    for line in scenario_lines(summary.scenario_steps):
+        console.print(line)
     if figures.rms_error_w is not None:
         console.print(f"tracking error P_IP - P_ref: RMS {figures.rms_error_w / 1e6:.4f} MW, "
                       f"max {figures.max_error_w / 1e6:.4f} MW")
@@ -340,7 +357,8 @@ def _json_report(path: Path, recording: ScannedRecording, run_data: RunData,
                     "availability_changes": figures.availability_changes,
                     "faults": figures.faults, "mode_changes": figures.mode_changes,
                     "switches": summary_json["switches"],
-                    "fault_figures": summary_json["faults"], "grid": summary_json["grid"]},
+                    "fault_figures": summary_json["faults"], "grid": summary_json["grid"],
+                    "scenario_steps": summary_json["scenario_steps"]},
         "events": [{"t_s": seconds(e.t_ns), "kind": e.kind, "level": e.level, "text": e.text,
                     "topic": e.topic} for e in _shown_events(run_data)],
         "schema_check": None if problems is None else [str(p) for p in problems],

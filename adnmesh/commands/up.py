@@ -372,7 +372,9 @@ def _print_summary(args: argparse.Namespace, config: Config, run_id: str, result
                                     tolerance_ns=result.tolerance_ns)
     summary = summarize(result.series, end_ns=result.reached_ns,
                         band_pct=config.constraints.settling_band_pct,
-                        wall_time_s=result.wall_time_s, extra=extra, realtime=realtime)
+                        wall_time_s=result.wall_time_s, extra=extra, realtime=realtime,
+                        planned_steps=[(s.t_s, s.delta_w) for s in config.scenario.p_ref_steps],
+                        sample_s=config.runtime.pi_period_s)
     # piped into a file or another program: wide enough that no table cell is cut
     console = Console(highlight=False, markup=False, soft_wrap=True,
                       width=None if sys.stdout.isatty() else 200)

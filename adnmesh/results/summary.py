@@ -15,6 +15,13 @@ a DER heartbeat whose ``available`` flag differs from the DER's previous one (ev
 counts as available before its first heartbeat), an SI message whose set of available DERs
 differs from the previous SI's (the first SI is the initial state), a fault's start and end.
 
+**Every step of the scenario** (``planned_steps``, the config's): whether and when it was
+executed (a ``p_ref`` record at or after it: within one sample, ``sample_s``, it is on time;
+later, a restarted CPFC applied it with the steps it missed) and, if not on time, why: the
+CPFC, which sends ``P_ref``, was dead then (an injected kill or an agent ``up`` lost, until it
+rejoined), or the run ended before it. A step that left no record is otherwise missing from the
+step figures without a word.
+
 For every gain switch (``cpfc/p_y`` messages with a ``switch`` record): the largest
 ``|P_IP - P_ref|`` in the ``window_s`` (10 s) after it, the factor the switch scaled ``P_Y``
 by (so that the DERs' commanded power stayed continuous; 1 when no DER returned) and the jump of
@@ -53,6 +60,7 @@ __all__ = [
     "RunSeries",
     "RunSummary",
     "SUMMARY_TYPES",
+    "ScenarioStep",
     "SwitchFigures",
     "WINDOW_EVENTS",
     "summarize",
@@ -211,6 +219,22 @@ class GridFigures:
 
 
 @dataclass(frozen=True)
+class ScenarioStep:
+    """One step of the config's scenario and what became of it.
+
+    ``status``: ``executed`` (at its time, within one sample), ``late`` (executed at
+    ``executed_s``, later: the CPFC was down at its time and applied it when it restarted) or
+    ``not executed``; ``reason`` says why when it is not ``executed`` (else empty).
+    """
+
+    t_s: float
+    step_w: float
+    status: str
+    executed_s: float | None = None
+    reason: str = ""
+
+
+@dataclass(frozen=True)
 class RunSummary:
     """Everything ``adnmesh up`` prints at the end (and writes with ``--summary-json``)."""
 
@@ -224,6 +248,7 @@ class RunSummary:
     faults: tuple[FaultFigures, ...] = ()
     grid: GridFigures | None = None
     realtime: RealtimeFigures | None = None
+    scenario_steps: tuple[ScenarioStep, ...] = ()
 
     def to_json(self) -> dict:
         """Plain data for ``json.dump`` (NaN and infinities become null)."""
@@ -255,7 +280,8 @@ def _p_ref_at(series: RunSeries, t_ns: np.ndarray) -> np.ndarray:
 def summarize(series: RunSeries, *, end_ns: int, band_pct: float = 5.0,
               wall_time_s: float | None = None, window_s: float = 10.0,
               extra: dict | None = None,
-              realtime: RealtimeFigures | None = None) -> RunSummary:
+              realtime: RealtimeFigures | None = None,
+              planned_steps=(), sample_s: float = 0.0) -> RunSummary:
     """Compute the summary of a run from its series (see the module docstring).
 
     Parameters
@@ -273,6 +299,10 @@ def summarize(series: RunSeries, *, end_ns: int, band_pct: float = 5.0,
         Further figures to carry along (message counts, clock grants, ...).
     realtime : RealtimeFigures, optional
         The timing of a realtime run.
+    planned_steps : sequence of (float, float)
+        The scenario's steps of P_ref, ``(t_s, delta_w)`` in the config's order.
+    sample_s : float
+        The CPFC's sampling period, s: a step recorded within it of its time is on time.
     """
     steps = reference_step_figures(
         series.p_ip_t_ns, series.p_ip_w, series.p_ref_t_ns, series.p_ref_w,
@@ -292,7 +322,54 @@ def summarize(series: RunSeries, *, end_ns: int, band_pct: float = 5.0,
     speed = sim_s / wall_time_s if wall_time_s else None
     return RunSummary(steps, tuple(switches), band_pct, sim_s, wall_time_s, speed,
                       dict(extra or {}), _faults(series, sim_s, band_pct), _grid(series),
-                      realtime)
+                      realtime, scenario_steps(series, planned_steps, end_ns, sample_s,
+                                               (extra or {}).get("ended")))
+
+
+def _cpfc_down(series: RunSeries) -> list[tuple[int, float, str]]:
+    """``(from_ns, to_ns or inf, how)`` of every span the CPFC was dead: injected kills and
+    the agents ``up`` lost."""
+    spans = []
+    for f in [*series.faults.values(), *lost_faults(series)]:
+        if f.get("kind") not in ("kill", "lost") or f.get("agent") != "cpfc":
+            continue
+        end = math.inf if f.get("end_ns") is None else f["end_ns"]
+        how = (f"killed at {f['start_ns'] / 1e9:g} s (fault {f['fault_id']})"
+               if f["kind"] == "kill" else f"lost at {f['start_ns'] / 1e9:g} s (it died "
+               "unplanned)")
+        how += "" if end == math.inf else f" and restarted at {end / 1e9:g} s"
+        spans.append((f["start_ns"], end, how))
+    return spans
+
+
+def scenario_steps(series: RunSeries, planned, end_ns: int, sample_s: float = 0.0,
+                   ended: str | None = None) -> tuple[ScenarioStep, ...]:
+    """What became of every step of the scenario (see the module docstring)."""
+    records = series.p_ref_t_ns[1:]          # the first record is the initial P_ref
+    down = _cpfc_down(series)
+    sample_ns = int(round(sample_s * 1e9))
+    out = []
+    for t_s, delta_w in planned:
+        t_ns = int(round(t_s * 1e9))
+        at = next((t for t in records if t >= t_ns), None)
+        dead = next((how for start, stop, how in down if start <= t_ns < stop), None)
+        if at is not None and at - t_ns <= sample_ns:
+            out.append(ScenarioStep(t_s, delta_w, "executed", at * 1e-9))
+            continue
+        source = f"the CPFC, which sends P_ref, was {dead}" if dead is not None else None
+        if at is not None:
+            reason = source or "its P_ref was recorded later than one sample after it"
+            out.append(ScenarioStep(t_s, delta_w, "late", at * 1e-9, reason))
+            continue
+        if source is not None:
+            reason = source
+        elif t_ns > end_ns:
+            reason = f"the run ended at {end_ns / 1e9:g} s" + (f" ({ended})" if ended and
+                                                            ended != "finished" else "")
+        else:
+            reason = "no P_ref was recorded at or after it"
+        out.append(ScenarioStep(t_s, delta_w, "not executed", None, reason))
+    return tuple(out)
 
 
 def lost_faults(series: RunSeries) -> list[dict]:
@@ -344,6 +421,7 @@ def format_summary(summary: RunSummary):
         return "-" if value is None else format(value, fmt)
 
     out = [step_table(summary.steps, summary.band_pct, "P_ref steps: P_IP")]
+    out += scenario_lines(summary.scenario_steps)
     switches = Table(title="gain switches", title_justify="left")
     for column in ("t [s]", "available DERs", "max |P_IP - P_ref| in 10 s [W]", "P_Y jump"):
         switches.add_column(column, justify="right" if column != "available DERs" else "left",
@@ -378,6 +456,19 @@ def format_summary(summary: RunSummary):
     out.append(line)
     if summary.extra:
         out.append(", ".join(f"{k} {_fmt(v)}" for k, v in summary.extra.items()))
+    return out
+
+
+def scenario_lines(planned) -> list[str]:
+    """One line per step of the scenario that was not executed at its time, with why."""
+    out = []
+    for s in planned:
+        if s.status == "executed":
+            continue
+        what = "NOT EXECUTED" if s.executed_s is None else \
+            f"executed late, at {s.executed_s:.2f} s"
+        out.append(f"  scenario step at {s.t_s:g} s ({s.step_w / 1e6:+.3f} MW): {what}: "
+                   f"{s.reason}")
     return out
 
 
