@@ -184,6 +184,10 @@ def test_the_same_attacks_against_the_open_profile_are_taken_for_genuine(tmp_pat
     assert "said goodbye before the end of the run" in err
     assert "agent(s) lost during the run: availability, cpfc, der/SGen1, der/SGen2, " \
         "measurement" in err
+    ended = json.loads((tmp_path / "open.json").read_text())["extra"]["ended"]
+    assert ended.startswith("stopped early: 5 agent(s) stopped at ")     # never "finished"
+    assert "but up sent no stop" in ended
+    assert f"run stopped: {ended}" in err
     run = read_recording(tmp_path / "open.mcap")
     assert not [m for m in run.messages if bytes(m.data) == measurement.payload]
     genuine = [m for m in data_messages(run) if m[1] != measurement.payload]

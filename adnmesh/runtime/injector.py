@@ -51,6 +51,8 @@ class FaultInjector:
         self._spawned: set[str] = set()        # restarted, start not yet re-announced
         self._attempts: dict[str, int] = {}    # unplanned deaths per agent
         self.lost: list[str] = []
+        self.left_early: set[str] = set()      # lost by a goodbye up did not ask for
+        self.gone_at: dict[str, int] = {}      # agent -> when it died or stopped for good, ns
         self.quarantined: set[str] = set()     # agents someone else sent as
 
     # -- before the start ----------------------------------------------------------------------
@@ -100,6 +102,8 @@ class FaultInjector:
             self.killed.add(agent)
             restart = self._restart_at.get(agent)
         launch = self.launch
+        if restart is None:
+            self.gone_at[agent] = message.killed_ns
         launch.outbox.send(self.keys.of("clock_kill", agent), message.killed_ns, reason="killed")
         self._event(message.killed_ns, "WARNING", "killed", f"{agent} killed at "
                     f"{message.killed_ns / 1e9:g} s (injected fault)", subject=agent)
@@ -220,14 +224,33 @@ class FaultInjector:
         launch.options.log(f"{agent} restarting at {at_ns / 1e9:g} s "
                            f"({launch.children.describe(agent)})")
 
-    def left_early(self, agent: str) -> None:
+    def said_bye_early(self, agent: str) -> None:
         """``agent`` said goodbye while the run goes on (it was told to stop: SIGTERM on its
         host, or a clock stop or a withdrawn liveliness of ``up`` that ``up`` did not send):
         it is lost, the run goes on without it."""
         if agent not in self.lost:
+            self.left_early.add(agent)
             self._lost(agent, None, f"agent {agent} said goodbye before the end of the run "
                        f"({self.launch.children.describe(agent)}; it was told to stop, but "
                        "not by up)")
+
+    def early_end(self) -> str | None:
+        """Why the run ends before its end although nobody stopped it, or None: every agent
+        is gone for good (died, killed without restart, or said goodbye to a stop ``up`` did
+        not send). Such a run is not finished, whatever the clock says: its clock runs out
+        because nobody is left."""
+        with self._lock:
+            gone = set(self.gone_at) - set(self._restart_at)
+            early = sorted(self.left_early & gone)
+            at = max(self.gone_at.values(), default=0)
+        if not gone >= set(self.launch.topology.agents):
+            return None
+        end = self.launch.result.end_ns
+        if early:
+            return (f"stopped early: {len(early)} agent(s) stopped at {at / 1e9:g} s of "
+                    f"{end / 1e9:g} s, told to stop (a clock stop or a withdrawn liveliness of "
+                    "up from someone else) but up sent no stop")
+        return f"stopped early: every agent died by {at / 1e9:g} s of {end / 1e9:g} s"
 
     def _lost(self, agent: str, code: int | None, description: str | None = None) -> None:
         """A process ended without an injected kill (or its last report never came)."""
@@ -240,6 +263,8 @@ class FaultInjector:
             restart = self._restart_at.get(agent)
             self._attempts[agent] = self._attempts.get(agent, 0) + 1
             again = restart is not None and self._attempts[agent] <= 2
+            if not again:
+                self.gone_at[agent] = now
         if launch.clock is not None:
             launch.clock.kill(agent)
             if restart is not None and not again:

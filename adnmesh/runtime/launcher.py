@@ -529,17 +529,21 @@ def run_clock(launch: _Launch) -> str:
         done = launch.clock.finished if launch.clock is not None else \
             time.time_ns() >= end_wall_ns
         reason = "finished" if done else launch.failure()
+        if reason in (None, "finished"):     # nobody left: not finished, whatever the clock
+            reason = launch.injector.early_end() or reason
         if reason is None:
             if options.progress is not None:
                 options.progress(launch.clock.now_ns() if launch.clock is not None else
                                  min(result.end_ns, launch.injector.realtime_ns()))
             launch.injector.supervise()
             for agent in sorted(launch.roster.byes):   # gone before up said stop
-                launch.injector.left_early(agent)
+                launch.injector.said_bye_early(agent)
             launch.roster.wait(_POLL_S)
     result.wall_time_s = time.perf_counter() - t_start
     if reason == "finished":
         result.reached_ns = result.end_ns
+    elif launch.injector.early_end() is not None:
+        result.reached_ns = min(result.end_ns, max(launch.injector.gone_at.values()))
     elif launch.clock is not None:
         result.reached_ns = launch.clock.now_ns()
     else:
@@ -635,8 +639,9 @@ def verify(launch: _Launch) -> None:
     if launch.tap.record_errors and result.exit_code == EXIT_OK:
         result.exit_code = EXIT_FAILED
     lost = sorted(set(launch.injector.lost) - excused)
-    if lost and result.exit_code == EXIT_OK:
-        result.exit_code = EXIT_FAILED     # the run went on, but an agent died unplanned
+    if lost:
+        if result.exit_code == EXIT_OK:
+            result.exit_code = EXIT_FAILED     # the run went on, but an agent died unplanned
         result.problems.append(f"agent(s) lost during the run: {', '.join(lost)}")
     launch.recorder.add_metadata(PUBLISHED_METADATA,
                                  {k: str(v) for k, v in result.published.items()})
