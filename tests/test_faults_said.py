@@ -13,6 +13,7 @@ runtime case (two WTs, tests/up_runs.py's table), the same nodes and clock as ``
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import pytest
@@ -259,3 +260,56 @@ def test_every_step_of_the_scenario_is_said_also_those_its_dead_source_never_sen
     ended = summarize(RunSeries(), end_ns=ns(15), planned_steps=planned,
                       extra={"ended": "SIGINT"}).scenario_steps
     assert ended[2].reason == "the run ended at 15 s (SIGINT)"
+
+
+# --- a table with unstable gains ----------------------------------------------------------------
+
+
+def test_the_unstable_loops_of_a_table_are_found(config: Config) -> None:
+    """The test table is stable; with SGen1's entry at 30 times its gains it is not, nor is a
+    static pair that large on any subset; NaN gains are not certifiable either."""
+    import dataclasses
+
+    from adnmesh.tuning.table_check import unstable_gains
+
+    table = schedule(config).table
+    subsets = [("SGen1", "SGen2"), ("SGen1",)]
+    assert unstable_gains(config, table, subsets) == []
+    entry = table.lookup(["SGen1"])
+    table.add(dataclasses.replace(entry, kp=30 * entry.kp, ki=30 * entry.ki))
+    table.static = dataclasses.replace(entry, ders=("SGen1", "SGen2"), kp=60 * KP2,
+                                       ki=60 * KI2, w={"SGen1": 1.0, "SGen2": 1.0})
+    found = unstable_gains(config, table, subsets)
+    assert [(u.what, u.ders) for u in found] == [
+        ("entry", ("SGen1",)), ("static", ("SGen1",)), ("static", ("SGen2",)),
+        ("static", ("SGen1", "SGen2"))]
+    assert all(u.poles > 0 for u in found)
+    assert found[0].describe().startswith(
+        f"entry SGen1 (K_P {30 * entry.kp:.4g} 1/W, K_I {30 * entry.ki:.4g} 1/(W s)): ")
+    table.static = dataclasses.replace(table.static, kp=math.nan)
+    assert "gains not finite and positive" in unstable_gains(config, table, [])[-1].describe()
+
+
+def test_up_refuses_a_table_with_unstable_gains_before_starting_anything(
+        tmp_path: Path) -> None:
+    """Before, ``up`` ran a table whose gains were unstable without a word (the probe: 151.7 %
+    overshoot). Now it says which loop in one line and exits 2; no agent, no recording."""
+    import subprocess
+    import sys
+
+    from adnmesh.tuning.table import load_table, save_table
+    from up_runs import up_argv, write_case
+
+    config_path, table_path = write_case(tmp_path)
+    table = load_table(table_path)
+    entry = table.lookup(["SGen1", "SGen2"])
+    table.add(entry.__class__(entry.ders, 30 * entry.kp, 30 * entry.ki, entry.w))
+    save_table(table, table_path)
+    out = tmp_path / "refused.mcap"
+    result = subprocess.run(up_argv(config_path, table_path, out), cwd=tmp_path,
+                            capture_output=True, text=True, timeout=120, check=False)
+    assert result.returncode == 2, result.stderr
+    (line,) = result.stderr.strip().splitlines()
+    assert "gains not certified stable, refusing to run them: entry SGen1, SGen2 " in line
+    assert "closed-loop pole(s) in the right half-plane; retune with 'adnmesh tune " in line
+    assert not out.exists() and "Traceback" not in result.stderr

@@ -143,7 +143,8 @@ def _table(args, config: Config, run_dir: Path, run_id: str, log) -> Path:
     path = Path(args.table) if args.table else default_table_path(config)
     subsets = scenario_subsets(config)
     if path.exists():
-        load_table(path, config)        # a bad table: one line now, not in the CPFC later
+        table = load_table(path, config)  # a bad table: one line now, not in the CPFC later
+        _check_gains(config, table, subsets, path)
         return path                     # subsets it lacks: the CPFC tunes them on demand
     if args.table:
         raise UsageError(f"no gain table {path}; run 'adnmesh tune {config.path} --out "
@@ -161,6 +162,19 @@ def _table(args, config: Config, run_dir: Path, run_id: str, log) -> Path:
     save_table(table, path)
     log(f"tuned table written to {path}")
     return path
+
+
+def _check_gains(config: Config, table: SchedulingTable, subsets, path: Path) -> None:
+    """Refuse a table with gains the CPFC could use that are not certified stable, in one
+    line, before anything starts (:mod:`adnmesh.tuning.table_check`)."""
+    from adnmesh.tuning.table_check import unstable_gains
+
+    bad = unstable_gains(config, table, subsets)
+    if bad:
+        more = f" (and {len(bad) - 1} more)" if len(bad) > 1 else ""
+        raise UsageError(f"{path}: gains not certified stable, refusing to run them: "
+                         f"{bad[0].describe()}{more}; retune with 'adnmesh tune {config.path} "
+                         f"--out {path}'")
 
 
 def _static(config: Config, subsets, log):
