@@ -28,6 +28,8 @@ from adnmesh.wire.envelope import decode, encode
 from adnmesh.wire.messages import DERState
 from adnmesh.wire.units import ns
 
+from lookahead_reference import coordinator_sources_reference, lookahead_reference
+
 KP2, KI2 = 5e-8, 1.92e-7      # two WTs: stable, disk margin 1.51, overshoot 0 % (checked below)
 KP1, KI1 = 1e-7, 3.84e-7      # one WT: the same loop (gains scale with 1 / P_inst)
 
@@ -112,6 +114,68 @@ def test_topology_routes_and_lookahead(config: Config) -> None:
     assert look[("cpfc", "cpfc")] == ns(0.2)                            # the control loop
     assert look[("der/SGen1", "der/SGen2")] == ns(0.2)
     assert look[("measurement", "availability")] == ns(0.3)         # via CPFC and a DER
+
+
+def _every_config(configs_dir: Path) -> list[Path]:
+    return sorted(configs_dir.glob("*.yaml")) + sorted(configs_dir.glob("examples/*.yaml"))
+
+
+def test_lookahead_is_the_floyd_warshall_dict_on_every_config(configs_dir: Path) -> None:
+    for path in _every_config(configs_dir):
+        topo = Topology.from_config(load_config(path))
+        want = lookahead_reference(topo.agents, topo.links, topo.receivers)
+        assert list(topo.lookahead_ns.items()) == list(want.items()), path  # order too
+        assert all(type(d) is int for d in topo.lookahead_ns.values())
+        assert Coordinator(topo, ns(1.0))._sources == \
+            coordinator_sources_reference(topo.agents, topo.lookahead_ns), path
+        assert topo.subscriptions == {a: tuple(k for k, to in topo.receivers.items() if a in to)
+                                      for a in topo.agents}, path
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_lookahead_is_the_floyd_warshall_dict_on_random_graphs(seed: int) -> None:
+    """Random message graphs: zero delays, parallel keys of different delays, self-loops,
+    unreachable agents, broadcast keys; delays up to an hour in ns."""
+    from adnmesh.sim import topology
+
+    rng = np.random.default_rng(seed)
+    agents = tuple(f"a{i}" for i in range(int(rng.integers(1, 25))))
+    links, receivers = {}, {}
+    for k in range(int(rng.integers(0, 3 * len(agents) + 1))):
+        key = f"k{k}"
+        delay = int(rng.choice([0, 1, 10**8, int(rng.integers(0, 36 * 10**11))]))
+        links[(str(rng.choice(agents)), key)] = LinkParams("l", delay_ns=delay)
+        size = int(rng.integers(0, len(agents) + 1))
+        receivers[key] = tuple(str(a) for a in rng.choice(agents, size, replace=False))
+    got = topology._lookahead(agents, links, receivers)
+    want = lookahead_reference(agents, links, receivers)
+    assert list(got.items()) == list(want.items())
+    assert all(type(d) is int for d in got.values())
+
+
+def test_topology_of_1000_ders_takes_seconds(tmp_path: Path, configs_dir: Path) -> None:
+    """The documented maximum, 1,000 DERs: the topology (every agent computes it, and up
+    before it starts any) and the coordinator in seconds (the Floyd-Warshall loop and the
+    coordinator's per-receiver pass took minutes, cubic)."""
+    import subprocess
+    import sys
+    import yaml
+
+    doc = yaml.safe_load((configs_dir / "examples" / "runtime-step.yaml").read_text())
+    der = doc["ders"][0]
+    doc["ders"] = [{**der, "id": f"D{i:04d}", "sgen": f"sgen {i}"} for i in range(1000)]
+    doc["scenario"]["availability"] = []
+    path = tmp_path / "adn-1000.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    code = ("import sys, time; from adnmesh.config import load_config; "
+            "from adnmesh.sim.topology import Topology; from adnmesh.sim.clock import Coordinator; "
+            "t = time.perf_counter(); top = Topology.from_config(load_config(sys.argv[1])); "
+            "Coordinator(top, 10**9); print(len(top.agents), len(top.lookahead_ns), "
+            "time.perf_counter() - t)")
+    done = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True,
+                          text=True, timeout=60, check=True)
+    agents, pairs, _ = done.stdout.split()
+    assert (int(agents), int(pairs)) == (1003, 1003 ** 2)
 
 
 def test_coordinator_starts_one_stage_and_rejects_protocol_errors(config: Config) -> None:
