@@ -3,8 +3,11 @@
 Each subcommand lives in its own module under :mod:`adnmesh.commands` (see there for the
 interface); :data:`COMMANDS` lists them. :func:`main` turns user errors
 (:class:`~adnmesh.errors.ConfigError`, :class:`~adnmesh.errors.UsageError`) into one line on
-stderr and exit code 2, and Ctrl-C into exit code 130; anything else is a bug and keeps its
-traceback.
+stderr and exit code 2, and Ctrl-C into exit code 130. A file the system refuses to open,
+create or read (an :class:`OSError` that names its file: permissions, a folder where a file
+should be, a read-only place) is one line with exit code 2 as well: commands check their
+outputs before any work (:func:`adnmesh.commands.output_path`), and this catches what changes
+while they run. Anything else is a bug and keeps its traceback.
 """
 
 from __future__ import annotations
@@ -83,6 +86,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         return args.run(args)
     except (ConfigError, UsageError) as exc:
         return _error(str(exc))
+    except OSError as exc:
+        if exc.filename is None:        # not about a file the user named: a bug, traced
+            raise
+        also = f" -> {exc.filename2}" if exc.filename2 else ""
+        return _error(f"{exc.filename}{also}: {exc.strerror or exc}")
     except KeyboardInterrupt:
         print("adnmesh: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED

@@ -30,13 +30,14 @@ from pydantic import ValidationError, model_validator
 from pydantic_core import ErrorDetails, PydanticCustomError
 
 from adnmesh.errors import ConfigError
+from adnmesh.files import FileRefused, read_regular
 from adnmesh.names import (AGENT_PATTERN, FAULT_KINDS, ICT_LINKS, ID_PATTERN, PER_DER_KIND,
                            SINGLE_AGENT_KINDS, der_id_of)
 
 __all__ = [
     "DER_TYPES", "PT1_RISE_TIME_FACTOR", "AvailabilityChange", "Config", "ConfigFile",
     "Constraints", "DER", "Fault", "GridLimits", "GridModel", "LinkSettings", "Links", "Outage",
-    "PRefStep", "Runtime",
+    "MAX_CONFIG_BYTES", "MAX_DELAY_PER_LAG", "MAX_SPAN_PER_DELAY", "PRefStep", "Runtime",
     "Scenario", "Section", "json_schema", "load_config",
 ]
 
@@ -53,6 +54,27 @@ The paper writes ``T_d = T_rise,d / 2.197``: this number rounded (docs/method.md
 # --- value types: bounds a user would expect (sim time is int64 ns: 1e6 s is far inside) --------
 
 _MAX_W, _MAX_DELAY_S, _MAX_TIME_S, _MAX_DERS, _MAX_EVENTS = 1e10, 3600.0, 1e6, 1000, 100_000
+
+MAX_DELAY_PER_LAG = 500
+"""The loop's longest delay (``t_com_s`` with the sampled PI's hold plus the largest
+``t_delay_s``, or ``t_meas_s``) may be at most this many times the fastest DER's time constant.
+
+The step responses of tuning and analysis (:mod:`adnmesh.loopmodel.step_response`) step at
+half the fastest time constant (or finer) and hold every delay in a ring of samples: at the
+limit a ring of 1,000 samples per candidate, and a SimBench table takes ~7x as long to tune as
+the reference case (measured: a 22 s CHP reaction time, 111 s; a PV rise time of 5 ms, 88 s;
+1.3x the limit (a 60 s reaction time) 189 s; 5x (a 1 ms rise time) over 240 s; ``t_rise_s:
+1e-12`` ran out of memory)."""
+
+MAX_SPAN_PER_DELAY = 2500
+"""The slowest DER's time constant plus the loop delay (``t_com_s`` with the hold, the largest
+``t_delay_s`` and ``t_meas_s``) may be at most this many times the shortest forward delay
+(``t_com_s`` with the hold plus the smallest ``t_delay_s``).
+
+A step response is simulated for at least 4 x the slowest time constant plus delay, with steps
+that grow at most to the shortest forward delay: at the limit ~10,000 steps per candidate
+(measured: a CHP rise time of 600 s, 1.0x the limit, tunes SimBench in 61 s; 1,260 s, 2x, in
+335 s; 3,600 s, 6x, over 240 s)."""
 _IDENTIFIER = rf"^{ID_PATTERN}$"
 _AGENT = rf"^{AGENT_PATTERN}$"
 _PATTERNS = {
@@ -165,6 +187,13 @@ class GridLimits(Section):
     """Highest bus voltage, p.u."""
     loading_max_pct: Annotated[float, Field(gt=0, le=1000)] = 100.0
     """Highest line and transformer loading, %."""
+
+    @model_validator(mode="after")
+    def _a_band(self) -> GridLimits:
+        if self.v_min_pu >= self.v_max_pu:
+            raise _problem(("v_min_pu",), f"must be less than v_max_pu ({self.v_max_pu:g}), "
+                                          f"got {self.v_min_pu:g}")
+        return self
 
 
 class GridModel(Section):
@@ -460,6 +489,48 @@ class ConfigFile(Section):
         return tuple(known[der_id] for der_id in ids)
 
     @model_validator(mode="after")
+    def _numerics(self) -> ConfigFile:
+        """The two relations of delays and time constants the loop numerics need (see
+        :data:`MAX_DELAY_PER_LAG` and :data:`MAX_SPAN_PER_DELAY`)."""
+        lags = [self.t_lag_s(d) for d in self.ders]
+        delays = [d.t_delay_s for d in self.ders]
+        fast, slow = lags.index(min(lags)), lags.index(max(lags))
+        late, early = delays.index(max(delays)), delays.index(min(delays))
+        t_com = self.design_t_com_s
+        com = "t_com_s" + (" + runtime.pi_period_s / 2" if t_com != self.t_com_s else "")
+        forward = t_com + delays[late]
+        longest, what = ((forward, f"{com} + ders[{late}].t_delay_s")
+                         if forward >= self.t_meas_s else (self.t_meas_s, "t_meas_s"))
+        unit = "t_rise_s / ln 9" if self.t_rise_is == "rise_time" else "t_rise_s"
+        if longest > MAX_DELAY_PER_LAG * lags[fast]:
+            least = longest / MAX_DELAY_PER_LAG * self.rise_per_lag
+            raise _problem(("ders", fast, "t_rise_s"),
+                           f"too fast for the loop's delays: its time constant ({unit}) "
+                           f"{lags[fast]:.4g} s is less than 1/{MAX_DELAY_PER_LAG} of the "
+                           f"longest delay, {what} = {longest:.4g} s, more than the step "
+                           f"responses of tuning and analysis can hold; at least {least:.4g} "
+                           f"(or shorter delays), got {self.ders[fast].t_rise_s:g}")
+        shortest = t_com + delays[early]
+        loop = forward + self.t_meas_s
+        if lags[slow] + loop > MAX_SPAN_PER_DELAY * shortest:
+            room = MAX_SPAN_PER_DELAY * shortest - loop
+            where = f"{com} + ders[{early}].t_delay_s = {shortest:.4g} s"
+            if room <= 0:
+                raise _problem(("t_com_s",),
+                               f"too short for the loop's other delays: the shortest forward "
+                               f"delay, {where}, is less than 1/{MAX_SPAN_PER_DELAY} of the "
+                               f"loop delay {loop:.4g} s, too many steps for the step responses "
+                               f"of tuning and analysis, got {self.t_com_s:g}")
+            raise _problem(("ders", slow, "t_rise_s"),
+                           f"too slow for the shortest forward delay: its time constant "
+                           f"({unit}) {lags[slow]:.4g} s plus the loop delay {loop:.4g} s is "
+                           f"more than {MAX_SPAN_PER_DELAY} times {where}, too many steps for "
+                           f"the step responses of tuning and analysis; at most "
+                           f"{room * self.rise_per_lag:.4g} (or longer delays), got "
+                           f"{self.ders[slow].t_rise_s:g}")
+        return self
+
+    @model_validator(mode="after")
     def _relations(self) -> ConfigFile:
         _unique([d.id for d in self.ders], lambda i: ("ders", i, "id"), "DER id")
         _unique([d.sgen for d in self.ders], lambda i: ("ders", i, "sgen"), "sgen")
@@ -621,9 +692,17 @@ def _parse_yaml(path: Path, text: str) -> object:
         raise ConfigError(f"{path}: invalid YAML: {_one_line(exc)}") from None
 
 
+MAX_CONFIG_BYTES = 16 * 2**20
+"""The largest config file read, bytes (16 MiB: the 1,000-DER example is 0.2 MiB; every event
+list at its 100,000 entries, a few MiB each)."""
+
+
 def _read(path: Path) -> bytes:
     try:
-        return path.read_bytes()
+        return read_regular(path, MAX_CONFIG_BYTES)
+    except FileRefused as exc:
+        raise ConfigError(f"{path}: {exc.strerror}; a config must be a regular file of at most "
+                          f"{MAX_CONFIG_BYTES // 2**20} MiB") from None
     except FileNotFoundError:
         raise ConfigError(f"{path}: no such file") from None
     except IsADirectoryError:

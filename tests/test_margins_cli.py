@@ -54,8 +54,8 @@ def test_unstable_loop_has_no_margins(capsys):
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--kp=-1e-8", "--ki", "1e-8"], "--kp and --ki must be positive"),
-    (["--kp", "1e-8", "--ki", "0"], "--kp and --ki must be positive"),
+    (["--kp=-1e-8", "--ki", "1e-8"], "--kp/--ki: K_P must be a finite positive gain"),
+    (["--kp", "1e-8", "--ki", "0"], "--kp/--ki: K_I must be a finite positive gain"),
     (["--kp", "1e-8", "--ki", "1e-8", "--ders", "SGen1,SGen99"], "unknown DER id 'SGen99'"),
     (["--kp", "1e-8", "--ki", "1e-8", "--ders", "SGen1,SGen1"], "duplicate DER id"),
 ])

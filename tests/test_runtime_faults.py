@@ -84,10 +84,10 @@ def test_faults_injected_into_a_running_sim_run_take_effect_at_their_instant(
     refused = adnmesh_fault(recording, "kill", "grid", "--at", "360")
     returncode, err = finish(proc, agents, config)
     assert (outage.returncode, kill.returncode, refused.returncode) == (0, 0, 2), \
-        outage.stdout + kill.stdout + refused.stdout + err
+        outage.stdout + kill.stdout + refused.stderr + err
     assert "link_outage of cpfc_to_der from 300 s for 5 s" in outage.stdout
     assert "kill of cpfc at 350 s, restarted at 353 s" in kill.stdout
-    assert "unknown agent 'grid'" in refused.stdout
+    assert "unknown agent 'grid'" in refused.stderr and refused.stdout == ""
     assert returncode == 0, err
     run = read_recording(recording)
     kinds = [(e["src"], e["kind"]) for e in events(run)]

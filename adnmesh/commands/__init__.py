@@ -13,8 +13,12 @@ To add a command, write ``adnmesh/commands/<name>.py`` and list it in ``adnmesh.
 """
 
 import argparse
+from pathlib import Path
 
-__all__ = ["add_config_argument"]
+from adnmesh.errors import UsageError
+from adnmesh.files import check_writable
+
+__all__ = ["add_config_argument", "output_path"]
 
 
 def add_config_argument(parser: argparse.ArgumentParser) -> None:
@@ -22,3 +26,16 @@ def add_config_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "config", metavar="CONFIG", help="configuration file (YAML), e.g. configs/simbench.yaml"
     )
+
+
+def output_path(path: str | Path, flag: str, directory: bool = False) -> Path:
+    """``path`` of the output ``flag`` asks for, checked before any work
+    (:func:`adnmesh.files.check_writable`: parent folders made, a test file written and
+    removed); a one-line :class:`~adnmesh.errors.UsageError` if it cannot be written there."""
+    try:
+        return check_writable(path, directory)
+    except OSError as exc:
+        where = "" if exc.filename in (None, str(path)) else f" ({exc.filename})"
+        what = "folder" if directory else "file"
+        raise UsageError(f"{flag} {path}: cannot write the {what} there: "
+                         f"{exc.strerror or exc}{where}") from None

@@ -28,7 +28,7 @@ from adnmesh.analysis.robustness import METRICS, analyze_robustness
 from adnmesh.analysis.solution_space import paper_path, solution_space
 from adnmesh.analysis.subset_loops import subset_name
 from adnmesh.analysis.uncertainty import MODELS, analyze_uncertainty
-from adnmesh.commands import add_config_argument
+from adnmesh.commands import add_config_argument, output_path
 from adnmesh.config import load_config
 from adnmesh.errors import ConfigError, UsageError
 from adnmesh.tuning.table import default_table_path, load_table
@@ -365,10 +365,8 @@ def run(args: argparse.Namespace) -> int:
         table = load_table(table_path, config)
         if not table.entries:
             raise ConfigError(f"{table_path}: the table has no entries")
-    out = Path(args.out) if args.out else default_out_dir(config)
-    if out.exists() and not out.is_dir():
-        raise UsageError(f"--out: {out} exists and is not a folder")
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_path(Path(args.out) if args.out else default_out_dir(config), "--out",
+                      directory=True)
     # wide tables when the output is a file or pipe (rich assumes 80 columns there)
     console = Console(highlight=False, width=None if sys.stdout.isatty() else 160)
     err = Console(stderr=True, highlight=False)

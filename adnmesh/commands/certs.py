@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from adnmesh.commands import output_path
 from adnmesh.errors import UsageError
 
 __all__ = ["add_parser", "run"]
@@ -59,6 +60,7 @@ def run(args: argparse.Namespace) -> int:
     directory = Path(args.directory)
     if directory.exists() and not directory.is_dir():
         raise UsageError(f"{directory}: not a directory")
+    output_path(directory, "DIR", directory=True)
     result = issue(directory, names, hosts=args.host or DEFAULT_HOSTS, days=args.days,
                    force=args.force, renew=renew)
     ca = "created" if result.ca_created else "kept"

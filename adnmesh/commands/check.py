@@ -9,6 +9,7 @@ from rich.console import Console
 from rich.table import Table
 
 from adnmesh.commands import add_config_argument
+from adnmesh.commands.up import operating_point
 from adnmesh.config import DER_TYPES, Config, load_config
 
 __all__ = ["add_parser", "run", "summary_tables"]
@@ -20,21 +21,34 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "check",
         help="validate a config and summarise it",
         description="Validate CONFIG and print its grid, DERs, delays, constraints and scenario. "
-        "Exit code 0 if valid, 2 with a one-line error otherwise.",
+        "With a grid_model, also the checks 'adnmesh up' makes of the grid before it starts "
+        "(SimBench code, study case, every sgen in the net, schedules the DERs can deliver, "
+        "the power flow at the schedules). Exit code 0 if valid, 2 with a one-line error "
+        "otherwise.",
     )
     add_config_argument(parser)
     return parser
 
 
 def run(args: argparse.Namespace) -> int:
-    """Load ``args.config``; print the summary to stdout."""
+    """Load ``args.config`` and check it as ``up`` does before it starts (the grid model,
+    the DERs' model parameters: :func:`adnmesh.commands.up.operating_point`); print the
+    summary to stdout."""
     config = load_config(args.config)
+    available = operating_point(config, log=lambda line: None)
     # no markup: "[s]" is a unit, not a style; soft wrap: long paths stay on one line
     console = Console(highlight=False, markup=False, soft_wrap=True)
     c = config.constraints
     console.print(f"{config.path}: valid (sha256 {config.sha256[:12]})")
     console.print(f"grid: {config.grid} (SimBench {config.simbench_code})")
     console.print(f"delays: T_com {config.t_com_s:g} s, T_meas {config.t_meas_s:g} s")
+    if config.grid_model is not None:
+        from adnmesh.control.operating_point import initial_p_ip_w
+
+        model = config.grid_model
+        console.print(f"grid model: study case {model.study_case}, {model.load_model} loads: "
+                      f"P_IP {initial_p_ip_w(config) / 1e6:.4f} MW at the schedules, the DERs "
+                      f"can deliver {sum(available.values()) / 1e6:.3f} MW")
     console.print(
         f"constraints: disk margin >= {c.disk_margin_min:g}, "
         f"overshoot < {c.overshoot_max_pct:g} %, settling band {c.settling_band_pct:g} %"

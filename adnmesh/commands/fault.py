@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import threading
 import time
 from pathlib import Path
@@ -52,7 +53,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "the run has passed it, at the earliest instant it can still change), in real time at "
         "once. KIND and TARGET: link_outage|link_loss|link_delay LINK (" + ", ".join(ICT_LINKS)
         + "); der_offline DER; ict_outage; kill AGENT (cpfc, measurement, availability, "
-        "der/<id>). Exit code 0 when the fault was injected, 2 when refused, 1 without answer.")
+        "der/<id>). Exit code 0 when the fault was injected (its line on stdout), 2 when "
+        "refused (why, on stderr; a start after the end of the scenario is refused), 1 "
+        "without answer.")
     parser.add_argument("run_ref", metavar="RUN",
                         help="run id, its .run.json or .mcap, or the router's endpoint")
     parser.add_argument("kind", choices=FAULT_KINDS, metavar="KIND")
@@ -135,7 +138,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         session = zenoh.open(client_config([endpoint], args.certs or certs, OPERATOR))
     except zenoh.ZError:
-        print(f"adnmesh fault: cannot connect to the run at {endpoint}")
+        print(f"adnmesh fault: error: cannot connect to the run at {endpoint}", file=sys.stderr)
         return EXIT_NO_ANSWER
     with session:
         keys = Keys(grid or _grid_of(session, args.timeout))
@@ -159,8 +162,10 @@ def run(args: argparse.Namespace) -> int:
         got.wait(args.timeout)
         subscriber.undeclare()
     if not answer:
-        print(f"adnmesh fault: no answer from the run at {endpoint} within {args.timeout:g} s")
+        print(f"adnmesh fault: error: no answer from the run at {endpoint} within "
+              f"{args.timeout:g} s", file=sys.stderr)
         return EXIT_NO_ANSWER
     event = answer[0]
-    print(f"adnmesh fault: {event.text}")
-    return 0 if event.kind == "fault_injected" else 2
+    injected = event.kind == "fault_injected"       # else refused: an error, on stderr
+    print(f"adnmesh fault: {event.text}", file=sys.stdout if injected else sys.stderr)
+    return 0 if injected else 2

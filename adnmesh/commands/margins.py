@@ -10,6 +10,7 @@ from adnmesh.commands import add_config_argument
 from adnmesh.config import load_config
 from adnmesh.errors import UsageError
 from adnmesh.loopmodel.evaluation import evaluate
+from adnmesh.loopmodel.gains import gain_problem
 from adnmesh.loopmodel.plant import plant_from_ders
 
 __all__ = ["add_parser", "run", "loop_report", "parse_der_list"]
@@ -86,10 +87,14 @@ def _fmt(value, unit: str = "", digits: int = 4) -> str:
 
 def run(args: argparse.Namespace) -> int:
     """Print the figures of one loop."""
-    if not (args.kp > 0 and args.ki > 0):
-        raise UsageError(f"--kp and --ki must be positive gains (1/W), got {args.kp:g}, {args.ki:g}")
+    problem = gain_problem(args.kp, args.ki)
+    if problem is not None:
+        raise UsageError(f"--kp/--ki: {problem}")
     config = load_config(args.config)
     ids = parse_der_list(config, args.ders)
+    problem = gain_problem(args.kp, args.ki, sum(d.p_inst_w for d in config.ders_by_id(ids)))
+    if problem is not None:
+        raise UsageError(f"--kp/--ki: {problem}")
     r = loop_report(config, ids, args.kp, args.ki)
     if args.json:
         print(json.dumps(r, allow_nan=False))

@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+from adnmesh.commands import output_path
 from adnmesh.errors import UsageError
 from adnmesh.results.series import read_run
 
@@ -53,10 +54,10 @@ def run(args: argparse.Namespace) -> int:
 
     if not 0 < args.web_port < 65536:
         raise UsageError(f"--web-port must be a port number (1-65535), got {args.web_port}")
+    out = output_path(args.rrd or Path(args.recording).with_suffix(".rrd"), "--rrd")
     found, _ = read_run(args.recording)
     recording, run_data = found.recording, found.run
     note_if_truncated(recording)
-    out = args.rrd or Path(args.recording).with_suffix(".rrd")
     series = len(run_data.series)
     export_rrd(recording, out, run=run_data, release=True)
     print(f"{out}: {series} series, {len(run_data.events)} events from "

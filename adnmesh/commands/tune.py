@@ -9,7 +9,7 @@ from pathlib import Path
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-from adnmesh.commands import add_config_argument
+from adnmesh.commands import add_config_argument, output_path
 from adnmesh.config import load_config
 from adnmesh.errors import UsageError
 from adnmesh.tuning.table import default_table_path
@@ -61,6 +61,8 @@ def run(args: argparse.Namespace) -> int:
     out = args.out or default_table_path(config)
     if args.resume and not out.exists():
         raise UsageError(f"--resume: no partial table at {out}")
+    output_path(out, "--out")
+    output_path(out.with_suffix(".csv"), "--out (its CSV)")
     constraints = {k: v for k, v in (("disk_margin_min", args.disk_margin_min),
                                      ("overshoot_max_pct", args.overshoot_max_pct)) if v is not None}
     console = Console(stderr=True, highlight=False)

@@ -19,12 +19,17 @@ from pathlib import Path
 
 from rich.console import Console
 
-from adnmesh.commands import add_config_argument
+from adnmesh.commands import add_config_argument, output_path
 from adnmesh.config import Config, load_config
-from adnmesh.errors import UsageError
+from adnmesh.errors import ConfigError, GridError, UsageError
 from adnmesh.tuning.table import SchedulingTable, default_table_path, load_table, save_table
 
-__all__ = ["add_parser", "run", "scenario_subsets"]
+__all__ = ["MAX_SPEED", "MIN_SPEED", "add_parser", "operating_point", "run",
+           "scenario_subsets"]
+
+MIN_SPEED, MAX_SPEED = 1e-3, 1e6
+"""The range of ``--speed``, simulated s per wall s: slower than 1e-3 a second of sim time
+takes 17 minutes, and sim-to-wall times overflow (``--speed 1e-300`` killed an agent)."""
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
@@ -43,7 +48,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         help="sim (default): deterministic simulated time, as fast as the agents "
                         "allow; realtime: the wall clock")
     parser.add_argument("--speed", type=float, metavar="X",
-                        help="realtime only: X simulated seconds per wall second (default 1)")
+                        help="realtime only: X simulated seconds per wall second, 0.001 to "
+                        "1e6 (default 1)")
     parser.add_argument("--strict", action="store_true",
                         help="realtime only: stop the run (exit code 3) as soon as an agent "
                         "falls behind the scaled wall clock by more than the tolerance "
@@ -118,9 +124,10 @@ def external_agents(text: str | None, config: Config) -> frozenset[str]:
 def scenario_subsets(config: Config) -> list[frozenset[str]]:
     """The sets of available DERs the scenario goes through, in order (all DERs first): those
     ``adnmesh tune --subsets scenario`` tunes."""
+    from adnmesh.control.operating_point import available_power_w
     from adnmesh.tuning.subset_selection import scenario_subsets as in_config_order
 
-    return [frozenset(s) for s in in_config_order(config)]
+    return [frozenset(s) for s in in_config_order(config, available_power_w(config))]
 
 
 def _tuner():
@@ -156,7 +163,13 @@ def _table(args, config: Config, run_dir: Path, run_id: str, log) -> Path:
                             config.der_ids())
     ordered = [tuple(d for d in config.der_ids() if d in subset) for subset in subsets]
     for subset in ordered:
-        table.add(tune(config, list(subset)))
+        entry = tune(config, list(subset))
+        if not entry.feasible:      # the CPFC would have no gains for it: refused now
+            names = ", ".join(subset) if len(subset) <= 6 else f"{len(subset)} DERs"
+            raise ConfigError(f"{config.path}: constraints: no PI pair meets them for the "
+                              f"scenario's DERs {names} ({entry.reason}); relax them or "
+                              "change the DERs")
+        table.add(entry)
     table.static = _static(config, ordered, log)
     path = run_dir / f"{run_id}.table.json"
     save_table(table, path)
@@ -206,20 +219,36 @@ def _static(config: Config, subsets, log):
     return entry
 
 
-def _operating_point(config: Config, log) -> dict[str, float]:
+def operating_point(config: Config, log) -> dict[str, float]:
     """The DERs' available power (loading the grid model once, before any agent starts: the
     first time it builds its disk cache, which takes tens of seconds); checks every DER's
-    model parameters."""
+    model parameters and that the power flow at the schedules converges. ``adnmesh check``
+    runs the same checks.
+
+    Raises
+    ------
+    ConfigError
+        An unknown SimBench code or study case, an sgen the net does not have, a schedule
+        above what the DER can deliver, a bad model override, a power flow that does not
+        converge.
+    """
     from adnmesh.control.der_model import check_der_models
     from adnmesh.control.operating_point import available_power_w, initial_p_ip_w
 
     if config.grid_model is not None:
         log(f"grid model: SimBench {config.simbench_code}, study case "
             f"{config.grid_model.study_case} (the first time: tens of seconds to build its cache)")
-    available = available_power_w(config)
+    try:
+        available = available_power_w(config)
+    except GridError as exc:
+        raise GridError(f"{config.path}: {exc}") from None
     check_der_models(config, available)
+    try:
+        p_ip_w = initial_p_ip_w(config)
+    except ValueError as exc:
+        raise ConfigError(f"{config.path}: grid_model: {exc}") from None
     if config.grid_model is not None:
-        log(f"grid model ready: P_IP {initial_p_ip_w(config) / 1e6:.4f} MW at the schedules")
+        log(f"grid model ready: P_IP {p_ip_w / 1e6:.4f} MW at the schedules")
     return available
 
 
@@ -230,8 +259,9 @@ def _check_arguments(args: argparse.Namespace) -> None:
         raise UsageError("--strict needs --clock realtime")
     if args.rt_priority is not None and args.clock != "realtime":
         raise UsageError("--rt-priority needs --clock realtime")
-    if args.speed is not None and not 0 < args.speed <= 1e6:
-        raise UsageError(f"--speed must be in (0, 1e6], got {args.speed:g}")
+    if args.speed is not None and not MIN_SPEED <= args.speed <= MAX_SPEED:
+        raise UsageError(f"--speed must be in [{MIN_SPEED:g}, {MAX_SPEED:g}], got "
+                         f"{args.speed:g}")
     if args.seed is not None and not 0 <= args.seed < 2**63:
         raise UsageError(f"--seed must be in [0, 2**63), got {args.seed}")
     if args.startup_timeout is not None and not 0 < args.startup_timeout <= 86400:
@@ -272,6 +302,7 @@ def run(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     _check_arguments(args)
     from adnmesh.commands.fault import run_file_path
+    from adnmesh.runtime.bus import check_listen
     from adnmesh.runtime.launcher import UpOptions
     from adnmesh.runtime.launcher import run as launch
 
@@ -285,9 +316,13 @@ def run(args: argparse.Namespace) -> int:
     routers = tuple(n.strip() for n in (args.routers or "").split(",") if n.strip())
     if args.print_zenoh_config:
         return _print_zenoh_config(args, config, certs, routers)
+    if args.listen:
+        check_listen(args.listen)
     run_id = f"{Path(config.path).stem}-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"
-    out = Path(args.out) if args.out else Path("logs") / f"{run_id}.mcap"
-    available = _operating_point(config, log)
+    out = output_path(Path(args.out) if args.out else Path("logs") / f"{run_id}.mcap", "--out")
+    if args.summary_json:
+        output_path(args.summary_json, "--summary-json")
+    available = operating_point(config, log)
     table_path = _table(args, config, out.parent, run_id, log)
     options = UpOptions(
         config=config, table_path=table_path, out=out, clock=args.clock,

@@ -19,8 +19,8 @@ import socket
 
 import zenoh
 
-__all__ = ["DEFAULT_ENDPOINT", "DEFAULT_HOST", "add_connection_arguments", "client_config",
-           "free_port", "router_config", "session_config"]
+__all__ = ["DEFAULT_ENDPOINT", "DEFAULT_HOST", "add_connection_arguments", "check_listen",
+           "client_config", "free_port", "router_config", "session_config"]
 
 DEFAULT_HOST = "127.0.0.1"
 """The only address adnmesh uses unless told otherwise."""
@@ -69,6 +69,7 @@ def session_config(args: argparse.Namespace, identity: str | None = None) -> zen
     connect = args.connect
     if not connect and args.mode == "client" and not args.zenoh_config:
         connect = [DEFAULT_ENDPOINT]
+    _check_forms(connect, args.listen)
     if connect:
         config.insert_json5("connect/endpoints", json.dumps(connect))
     if args.listen:
@@ -85,6 +86,7 @@ def session_config(args: argparse.Namespace, identity: str | None = None) -> zen
 def client_config(connect: list[str], certs=None, identity: str | None = None) -> zenoh.Config:
     """The Zenoh config of a client session connecting to ``connect`` (secure profile: with
     the certificate of ``identity`` from the directory ``certs``)."""
+    _check_forms(connect, ())
     config = zenoh.Config()
     config.insert_json5("mode", json.dumps("client"))
     config.insert_json5("connect/endpoints", json.dumps(connect))
@@ -99,6 +101,7 @@ def router_config(listen: list[str], connect=(), certs=None, identity: str | Non
     """The Zenoh config of a router listening on ``listen`` and linked to the routers at
     ``connect``; secure profile: with the certificate of ``identity`` from ``certs`` and the
     ``access_control`` section (:func:`adnmesh.runtime.acl.access_control`)."""
+    _check_forms(connect, listen)
     config = zenoh.Config()
     config.insert_json5("mode", json.dumps("router"))
     config.insert_json5("listen/endpoints", json.dumps(listen))
@@ -111,6 +114,50 @@ def router_config(listen: list[str], connect=(), certs=None, identity: str | Non
         from adnmesh.runtime.security import apply_access_control
         apply_access_control(config, access_control or {"enabled": True})
     return config
+
+
+def _check_forms(connect, listen) -> None:
+    """A one-line UsageError for an endpoint that is not one, before Zenoh reads it (its own
+    error is a multi-line exception)."""
+    from adnmesh.errors import UsageError
+    from adnmesh.runtime.security import endpoint_address
+
+    for flag, endpoints in (("--connect", connect), ("--listen", listen)):
+        for endpoint in endpoints or ():
+            try:
+                endpoint_address(endpoint)
+            except ValueError as exc:
+                raise UsageError(f"{flag} {endpoint}: {exc}") from None
+
+
+def check_listen(endpoint: str, flag: str = "--listen") -> None:
+    """A one-line UsageError if this host cannot listen on ``endpoint`` now: not an endpoint,
+    an address not of this host, a port in use or not allowed (a socket is bound there and
+    closed again, as Zenoh's listener will bind it: ``SO_REUSEADDR``)."""
+    from adnmesh.errors import UsageError
+    from adnmesh.runtime.security import endpoint_address
+
+    try:
+        found = endpoint_address(endpoint)
+    except ValueError as exc:
+        raise UsageError(f"{flag} {endpoint}: {exc}") from None
+    if found is None:
+        return
+    protocol, host, port = found
+    kind = socket.SOCK_DGRAM if protocol in ("udp", "quic") else socket.SOCK_STREAM
+    try:
+        infos = socket.getaddrinfo(host, port, type=kind)
+    except (socket.gaierror, UnicodeError) as exc:
+        raise UsageError(f"{flag} {endpoint}: unknown host {host!r} "
+                         f"({getattr(exc, 'strerror', None) or exc})") from None
+    family, kind, proto, _, address = infos[0]
+    with socket.socket(family, kind, proto) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind(address)
+        except OSError as exc:
+            raise UsageError(f"{flag} {endpoint}: cannot listen there: "
+                             f"{exc.strerror or exc}") from None
 
 
 def _lease(config: zenoh.Config) -> None:

@@ -23,7 +23,8 @@ import zenoh
 from adnmesh.errors import UsageError
 from adnmesh.runtime.identity import CertFiles
 
-__all__ = ["apply_access_control", "apply_tls", "check_endpoints", "tls_settings"]
+__all__ = ["apply_access_control", "apply_tls", "check_endpoints", "endpoint_address",
+           "tls_settings"]
 
 
 def tls_settings(files: CertFiles, listen: bool = False) -> dict:
@@ -58,10 +59,44 @@ def apply_access_control(config: zenoh.Config, access_control: dict) -> zenoh.Co
     return config
 
 
+_HOST_PORT = ("tcp", "tls", "udp", "quic")
+"""Protocols whose address is ``HOST:PORT`` (an IPv6 host in brackets)."""
+
+
+def endpoint_address(endpoint: str) -> tuple[str, str, int] | None:
+    """``(protocol, host, port)`` of a ``tcp``/``tls``/``udp``/``quic`` endpoint, None for
+    another protocol (Zenoh checks those itself).
+
+    Raises
+    ------
+    ValueError
+        Not of the form ``<protocol>/<address>[?<metadata>][#<config>]``, or a host or port
+        that is not one (a port is 0 to 65535).
+    """
+    protocol, slash, rest = str(endpoint).partition("/")
+    address = rest.split("#", 1)[0].split("?", 1)[0]
+    if not (slash and protocol and address) or not protocol.replace("-", "").isalnum():
+        raise ValueError("not an endpoint (PROTOCOL/HOST:PORT, e.g. tcp/127.0.0.1:7447)")
+    if protocol not in _HOST_PORT:
+        return None
+    host, colon, port = address.rpartition(":")
+    if host.startswith("[") and host.endswith("]"):
+        host = host[1:-1]
+    if not (colon and host and port.isdigit() and int(port) <= 65535) \
+            or any(c.isspace() or c in "[]/" for c in host):
+        raise ValueError(f"{protocol} endpoints are {protocol}/HOST:PORT with a port from 0 to "
+                         "65535")
+    return protocol, host, int(port)
+
+
 def check_endpoints(endpoints, secure: bool, flag: str = "--connect") -> None:
-    """A one-line :class:`UsageError` if an endpoint does not fit the profile: ``tls/`` with
-    certificates, anything but ``tls/`` without."""
+    """A one-line :class:`UsageError` if an endpoint is not one (:func:`endpoint_address`) or
+    does not fit the profile: ``tls/`` with certificates, anything but ``tls/`` without."""
     for endpoint in endpoints or ():
+        try:
+            endpoint_address(endpoint)
+        except ValueError as exc:
+            raise UsageError(f"{flag} {endpoint}: {exc}") from None
         tls = str(endpoint).startswith("tls/")
         if secure and not tls:
             raise UsageError(f"{flag} {endpoint}: the secure profile speaks only TLS; use "

@@ -3,7 +3,8 @@
 A fault is one ``fault`` message (:class:`adnmesh.wire.messages.Fault`): a number, a kind, a
 target, a window ``[start_ns, end_ns)`` and the kind's parameters. :class:`FaultPlan` numbers
 the faults of a run, turns the config's faults and ``adnmesh fault`` requests into such bodies,
-checks that their targets exist (a one-line :class:`FaultError` otherwise) and moves a start
+checks that their targets exist and that they start within the scenario (a one-line
+:class:`FaultError` otherwise) and moves a start
 that lies before what the run can still change to the earliest instant it can (and says so).
 Agents apply them in their nodes (:mod:`adnmesh.sim.node`); a kill with an end is a restart,
 which ``up`` (or the in-process runner) carries out.
@@ -71,6 +72,7 @@ class FaultPlan:
 
     def __init__(self, config: Config, agents) -> None:
         self.der_ids = frozenset(config.der_ids())
+        self.end_ns = ns(config.scenario.duration_s)
         self.agents = frozenset(agents)
         self.faults: list[PlannedFault] = []
 
@@ -92,10 +94,16 @@ class FaultPlan:
         Raises
         ------
         FaultError
-            Unknown kind or target, a missing parameter.
+            Unknown kind or target, a missing parameter, a start after the scenario's end
+            (such a fault could never act: it is refused, not listed as one never detected).
         """
         body = {"kind": kind, **self._target(kind, target)}
         start = max(int(at_ns), int(earliest_ns))
+        if start > self.end_ns:
+            when = (f"at {start / 1e9:g} s" if start == int(at_ns)
+                    else f"at the earliest at {start / 1e9:g} s")
+            raise FaultError(f"{kind} {when}: after the end of the scenario "
+                             f"({self.end_ns / 1e9:g} s)")
         moved = int(at_ns) if start != int(at_ns) else None
         if for_ns is not None and for_ns <= 0:
             raise FaultError(f"{kind}: the duration must be positive")

@@ -23,10 +23,11 @@ from pathlib import Path
 from typing import Iterable
 
 from adnmesh.errors import ConfigError
-from adnmesh.files import write_atomic
+from adnmesh.files import read_regular, write_atomic
+from adnmesh.loopmodel.gains import gain_problem
 
 __all__ = ["TableEntry", "SchedulingTable", "default_table_path", "load_table", "save_table",
-           "FIGURE_KEYS"]
+           "check_table", "FIGURE_KEYS", "MAX_TABLE_BYTES"]
 
 FORMAT = 1
 
@@ -139,27 +140,146 @@ def save_table(table: SchedulingTable, path: str | Path) -> None:
     write_atomic(path, json.dumps(table.to_json(), indent=1, allow_nan=False))
 
 
+#: the largest table file read, bytes (every subset of 16 DERs, 65,535 entries, is ~70 MB)
+MAX_TABLE_BYTES = 256 * 2**20
+
+
 def load_table(path: str | Path, config=None) -> SchedulingTable:
     """Read a table; with ``config`` check that it was tuned for exactly that config.
+
+    Every value a runtime uses is checked (:func:`check_table`): a table is data that may
+    have been edited or damaged, and the CPFC must not meet a gain it cannot run.
 
     Raises
     ------
     ConfigError
-        Missing or malformed file, or a table made for another config.
+        Missing, unreadable or malformed file (not a regular file, more than
+        :data:`MAX_TABLE_BYTES`, JSON nested too deep), a value out of its range, or a table
+        made for another config.
     """
     path = Path(path)
     try:
-        table = SchedulingTable.from_json(json.loads(path.read_text()))
+        obj = json.loads(read_regular(path, MAX_TABLE_BYTES))
     except FileNotFoundError:
         raise ConfigError(f"{path}: no such table (run 'adnmesh tune CONFIG' first)") from None
-    except (ValueError, KeyError, TypeError) as exc:
-        raise ConfigError(f"{path}: not a valid adnmesh table ({exc.__class__.__name__}: {exc})") \
-            from None
+    except IsADirectoryError:
+        raise ConfigError(f"{path}: is a directory, not a table file") from None
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read the table: {exc.strerror or exc}") from None
+    except RecursionError:
+        raise ConfigError(f"{path}: not a valid adnmesh table (JSON nested too deep)") from None
+    except ValueError as exc:       # JSON (UnicodeDecodeError is one)
+        raise ConfigError(f"{path}: not a valid adnmesh table ({exc.__class__.__name__}: "
+                          f"{' '.join(str(exc).split())[:200]})") from None
+    try:
+        check_table(obj)
+    except ValueError as exc:
+        raise ConfigError(f"{path}: not a valid adnmesh table: {exc}") from None
+    table = SchedulingTable.from_json(obj)
     if config is not None and table.config_sha256 != config.sha256:
         raise ConfigError(f"{path}: table was tuned for another config "
                           f"(sha256 {table.config_sha256[:12]}, config has {config.sha256[:12]})")
+    if config is not None and table.der_ids != config.der_ids():
+        raise ConfigError(f"{path}: not a valid adnmesh table: der_ids: not the config's DERs "
+                          f"({_show(list(table.der_ids))}, the config has "
+                          f"{_show(list(config.der_ids()))})")
+    if config is not None:
+        power = {d.id: d.p_inst_w for d in config.ders}
+        rows = [(f"entries[{i}]", e) for i, e in enumerate(obj["entries"])]
+        for at, row in rows + ([("static", obj["static"])] if obj.get("static") else []):
+            if row["kp"] is not None:
+                problem = gain_problem(row["kp"], row["ki"],
+                                       sum(power[d] for d in row["ders"]))
+                if problem is not None:
+                    raise ConfigError(f"{path}: not a valid adnmesh table: {at}: {problem}")
     return table
 
+
+def _show(value) -> str:
+    text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _check_entry(row, at: str, known: set[str]) -> None:
+    if not isinstance(row, dict):
+        raise ValueError(f"{at}: must be a mapping, got {_show(row)}")
+    for key in ("ders", "kp", "ki", "w", "feasible"):
+        if key not in row:
+            raise ValueError(f"{at}: the key {key!r} is missing")
+    ders = row["ders"]
+    if not (isinstance(ders, list) and ders and all(isinstance(d, str) for d in ders)):
+        raise ValueError(f"{at}.ders: must be a non-empty list of DER ids, got {_show(ders)}")
+    if len(set(ders)) != len(ders):
+        raise ValueError(f"{at}.ders: a DER id appears twice")
+    unknown = [d for d in ders if d not in known]
+    if unknown:
+        raise ValueError(f"{at}.ders: unknown DER id {unknown[0]!r}")
+    if not isinstance(row["feasible"], bool):
+        raise ValueError(f"{at}.feasible: must be true or false, got {_show(row['feasible'])}")
+    if row["feasible"] or row["kp"] is not None or row["ki"] is not None:
+        problem = gain_problem(row["kp"], row["ki"])
+        if problem is not None:
+            raise ValueError(f"{at}: {problem}"
+                             + ("" if row["feasible"] else " (null: an infeasible entry's)"))
+    weights = row["w"]
+    if not isinstance(weights, dict):
+        raise ValueError(f"{at}.w: must be a mapping of DER id to weight, got {_show(weights)}")
+    for der_id, w in weights.items():
+        if der_id not in ders:
+            raise ValueError(f"{at}.w: {der_id!r} is not a DER of the entry")
+        if not (_number(w) and 0 <= w <= 1):
+            raise ValueError(f"{at}.w.{der_id}: must be a weight in [0, 1], got {_show(w)}")
+    if row["feasible"] and all(weights.get(d, 1.0) == 0 for d in ders):
+        raise ValueError(f"{at}.w: every weight is 0 in a feasible entry")
+    if row.get("reason") is not None and not isinstance(row["reason"], str):
+        raise ValueError(f"{at}.reason: must be a text or null, got {_show(row['reason'])}")
+
+
+def check_table(obj) -> None:
+    """Check a table document (parsed JSON) before it is used.
+
+    The rules: ``format`` 1; ``der_ids`` distinct ids;
+    every entry (and the static controller) names a non-empty set of distinct known DERs,
+    says whether it is ``feasible``, has gains ``kp`` (1/W) and ``ki`` (1/(W s)) the loop
+    numerics take (:func:`adnmesh.loopmodel.gains.gain_problem`: finite, positive, ``K_P /
+    K_I`` at most 1e9 s) where it is feasible (an infeasible entry may have none: null), and
+    weights ``w`` of its own DERs in [0, 1], not all 0 in a feasible entry (a missing weight
+    is 1; Find W gives 0 to a DER that can take no share).
+
+    Raises
+    ------
+    ValueError
+        The first problem, as one line naming its place (``entries[3].kp: ...``).
+    """
+    if not isinstance(obj, dict):
+        raise ValueError(f"must be a JSON object, got {_show(obj)}")
+    if obj.get("format", FORMAT) != FORMAT:
+        raise ValueError(f"format: must be {FORMAT}, got {_show(obj.get('format'))}")
+    for key in ("config_sha256", "constraints", "method", "der_ids", "entries"):
+        if key not in obj:
+            raise ValueError(f"the key {key!r} is missing")
+    if not isinstance(obj["config_sha256"], str):
+        raise ValueError(f"config_sha256: must be a text, got {_show(obj['config_sha256'])}")
+    if not isinstance(obj["constraints"], dict):
+        raise ValueError(f"constraints: must be a mapping, got {_show(obj['constraints'])}")
+    if not isinstance(obj["method"], str):
+        raise ValueError(f"method: must be a text, got {_show(obj['method'])}")
+    ids = obj["der_ids"]
+    if not (isinstance(ids, list) and all(isinstance(d, str) for d in ids)):
+        raise ValueError(f"der_ids: must be a list of DER ids, got {_show(ids)}")
+    if len(set(ids)) != len(ids):
+        raise ValueError("der_ids: a DER id appears twice")
+    known = set(ids)
+    if not isinstance(obj["entries"], list):
+        raise ValueError(f"entries: must be a list, got {_show(obj['entries'])}")
+    for i, row in enumerate(obj["entries"]):
+        _check_entry(row, f"entries[{i}]", known)
+    if obj.get("static") is not None:
+        _check_entry(obj["static"], "static", known)
 
 def entry_figures(figures, i: int) -> dict:
     """``FIGURE_KEYS`` of candidate ``i`` of a :class:`adnmesh.loopmodel.evaluation.LoopFigures`."""
