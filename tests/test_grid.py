@@ -7,6 +7,7 @@ switch, loads, shunt, generators); the slow ones the SimBench grid of docs/metho
 from __future__ import annotations
 
 import copy
+import json
 import math
 import warnings
 
@@ -259,6 +260,61 @@ def test_damaged_cache_file_is_rebuilt_with_a_warning(tmp_path, damage):
     p = [1.0e6, 1.0e6]
     assert GridSolver(again, SMALL_ACTUATORS).solve(p) == \
         GridSolver(data, SMALL_ACTUATORS).solve(p)
+
+
+def _rewrite_npz(path, change):
+    """The cache's ``.npz`` rewritten with ``change(arrays)`` applied, nothing else touched (the
+    key, the model's hash and, if present, the digest stay as they were)."""
+    with np.load(path, allow_pickle=False) as npz:
+        arrays = {name: npz[name] for name in npz.files}
+    change(arrays)
+    with open(path, "wb") as fh:
+        np.savez(fh, **arrays)
+
+
+@pytest.mark.parametrize("edit", ["line ratings / 10", "v_init", "trafo rating", "sgen power",
+                                  "meta", "extra entry", "no digest", "digest of other arrays"])
+def test_every_file_of_the_cache_is_covered_by_its_hash(tmp_path, edit):
+    """Issue 39: a cached ``.npz`` with line ratings divided by 10 was accepted (446 % loading
+    instead of 44.6 %): the hash covered the model file, not the arrays beside it."""
+    key = cache_key("small", "base", "impedance")
+    build, calls = _counting_builder()
+    good = cached(key, build, tmp_path)
+    path = cache_path(key, tmp_path)
+
+    def change(arrays):
+        if edit == "line ratings / 10":
+            arrays["line_i_max_ka"] = arrays["line_i_max_ka"] / 10
+        elif edit == "v_init":
+            arrays["v_init"] = arrays["v_init"] * 1.01
+        elif edit == "trafo rating":
+            arrays["trafo_rating_mva"] = arrays["trafo_rating_mva"] * 2
+        elif edit == "sgen power":
+            arrays["sgen_p_mw"] = arrays["sgen_p_mw"] + 0.5
+        elif edit == "meta":
+            meta = json.loads(str(arrays["meta"]))
+            meta["converter"] = "edited"
+            arrays["meta"] = np.array(json.dumps(meta, sort_keys=True))
+        elif edit == "extra entry":
+            arrays["extra"] = np.zeros(3)
+        elif edit == "no digest":
+            arrays.pop("digest", None)
+            arrays["line_i_max_ka"] = arrays["line_i_max_ka"] / 10
+        else:                                  # a digest, but of arrays other than these
+            from adnmesh.grid.cache import arrays_digest
+            arrays["line_i_max_ka"] = arrays["line_i_max_ka"] / 10
+            arrays["digest"] = np.array(arrays_digest({"line_i_max_ka": arrays["line_i_max_ka"]}))
+    _rewrite_npz(path, change)
+    with pytest.warns(RuntimeWarning, match="rebuilding it"):
+        data = cached(key, build, tmp_path)
+    assert len(calls) == 2
+    np.testing.assert_array_equal(data.line_i_max_ka, good.line_i_max_ka)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        again = cached(key, build, tmp_path)       # the rebuilt file is good again
+    assert len(calls) == 2
+    np.testing.assert_array_equal(again.line_i_max_ka, good.line_i_max_ka)
+    np.testing.assert_array_equal(again.v_init, good.v_init)
 
 
 def test_unwritable_cache_is_a_warning_not_an_error(tmp_path):

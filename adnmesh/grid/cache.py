@@ -14,11 +14,17 @@ with simbench and pandapower and then written to the cache.
 - **Format**: the grid model in lightsim2grid's own binary format (``LSGrid.save_binary``, which
   checks what it reads: a truncated or damaged file is an error, not garbage) and a ``.npz`` of
   plain arrays (:func:`adnmesh.grid.data.to_arrays`) read with ``allow_pickle=False``, which
-  holds the key and the model file's sha256. No pickle anywhere: nothing in the cache runs code.
+  holds the key, the model file's sha256 and ``digest``: the sha256 of every other entry of the
+  ``.npz`` (name, dtype, shape and bytes, :func:`arrays_digest`). So every byte the cache loads
+  is covered: the model by its hash, the arrays (line ratings, voltages, names, ...) and the
+  key and model hash themselves by the digest. No pickle anywhere: nothing in the cache runs
+  code. The hashes detect damage and edits, not an adversary who recomputes them: the cache
+  folder is the user's own (files written with mode 0600).
 - **Robustness**: each file is written to a temporary file and renamed into place (readers see
   an old file or a new one, never half of one), the model first, the arrays last; a pair that
-  cannot be read, whose key differs or whose model is not the one the arrays name is rebuilt
-  with a warning; a folder that cannot be written is a warning, not an error.
+  cannot be read, whose key differs, whose arrays do not match their digest (an entry changed,
+  added or removed) or whose model is not the one the arrays name is rebuilt with a one-line
+  warning; a folder that cannot be written is a warning, not an error.
 """
 
 from __future__ import annotations
@@ -38,9 +44,11 @@ from adnmesh.files import write_atomic
 from adnmesh.grid.data import GridData, from_arrays, to_arrays
 
 __all__ = ["FORMAT_VERSION", "default_cache_dir", "cache_key", "cache_path", "model_path",
-           "cached", "load_grid"]
+           "arrays_digest", "cached", "load_grid"]
 
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3          # 3: the arrays' digest (files of format 2 are not read, nor removed)
+
+_DIGEST = "digest"
 
 
 def default_cache_dir() -> Path:
@@ -80,15 +88,21 @@ def cached(key: dict, build: Callable[[], GridData], directory=None) -> GridData
         try:
             return _read(path, key)
         except Exception as exc:          # any damage to the file: rebuild, never crash
-            warnings.warn(f"grid cache {path} is unreadable ({type(exc).__name__}: {exc}); "
-                          "rebuilding it", RuntimeWarning, stacklevel=2)
+            _warn(f"grid cache {path} is unreadable or modified ({type(exc).__name__}: {exc}); "
+                  "rebuilding it")
     data = build()
     try:
         _write(path, key, data)
     except OSError as exc:
-        warnings.warn(f"grid cache {path} could not be written ({exc}); continuing without "
-                      "it", RuntimeWarning, stacklevel=2)
+        _warn(f"grid cache {path} could not be written ({exc}); continuing without it")
     return data
+
+
+def _warn(message: str) -> None:
+    """A ``RuntimeWarning`` that prints as one line (``adnmesh:0: RuntimeWarning: ...``): no
+    source line under it, whoever called."""
+    warnings.warn_explicit(message, RuntimeWarning, filename="adnmesh", lineno=0,
+                           module="adnmesh.grid.cache")
 
 
 def load_grid(code: str, case: str = "lW", load_model: str = "impedance",
@@ -129,13 +143,30 @@ def _read(path: Path, key: dict) -> GridData:
     from lightsim2grid.lightsim2grid_cpp import LSGrid      # not .network: it imports pandapower
 
     with np.load(path, allow_pickle=False) as npz:
-        stored = json.loads(str(npz["cache_key"]))
-        if stored != key:
-            raise ValueError(f"stored key {stored} is not {key}")
-        model = model_path(path)
-        if _sha256(model) != str(npz["model_sha256"]):
-            raise ValueError(f"{model.name} is not the model the arrays were written with")
-        return from_arrays(npz, LSGrid.load_binary(str(model)))
+        arrays = {name: npz[name] for name in npz.files}
+    if _DIGEST not in arrays:
+        raise ValueError("the arrays carry no digest")
+    if arrays_digest({n: a for n, a in arrays.items() if n != _DIGEST}) != str(arrays[_DIGEST]):
+        raise ValueError("the arrays do not match their digest (modified or damaged)")
+    stored = json.loads(str(arrays["cache_key"]))
+    if stored != key:
+        raise ValueError(f"stored key {stored} is not {key}")
+    model = model_path(path)
+    if _sha256(model) != str(arrays["model_sha256"]):
+        raise ValueError(f"{model.name} is not the model the arrays were written with")
+    return from_arrays(arrays, LSGrid.load_binary(str(model)))
+
+
+def arrays_digest(arrays: dict[str, np.ndarray]) -> str:
+    """sha256 over every array of ``arrays``: its name, dtype, shape and bytes, by name."""
+    h = hashlib.sha256()
+    for name in sorted(arrays):
+        a = np.ascontiguousarray(arrays[name])
+        head = json.dumps([name, a.dtype.str, list(a.shape)]).encode()
+        h.update(len(head).to_bytes(8, "little") + head)
+        body = a.tobytes()
+        h.update(len(body).to_bytes(8, "little") + body)
+    return h.hexdigest()
 
 
 def _sha256(path: Path) -> str:
@@ -150,4 +181,6 @@ def _write(path: Path, key: dict, data: GridData) -> None:
     arrays = to_arrays(data)
     arrays["cache_key"] = np.array(json.dumps(key, sort_keys=True))
     arrays["model_sha256"] = np.array(_sha256(model))
+    arrays = {name: np.asarray(a) for name, a in arrays.items()}
+    arrays[_DIGEST] = np.array(arrays_digest(arrays))
     write_atomic(path, lambda fh: np.savez(fh, **arrays), mode=0o600)
