@@ -230,6 +230,72 @@ def test_a_failing_disk_fails_the_recording_loudly(tmp_path: Path, monkeypatch) 
         recorder.close()
 
 
+@pytest.mark.parametrize("how", ["hook", "fsync"])
+def test_a_full_disk_leaves_the_file_cut_to_what_the_last_flush_wrote(
+        tmp_path: Path, monkeypatch, how: str) -> None:
+    """Issue 39: a write that fails ends the recording; close() cuts the file back to the
+    whole records of the last successful flush (no unfinished chunk at its end, its space
+    given back), which read_recording reads and recover() completes: exactly ``on_disk``."""
+    from adnmesh.recording.writer import DISK_FULL_ENV
+
+    if how == "hook":                       # the test hook: a file that fills after 40 kB
+        monkeypatch.setenv(DISK_FULL_ENV, "40000")
+    path = tmp_path / "full.mcap"
+    recorder = Recorder(path, metadata={"clock": "sim"}, schemas=FAKE_SCHEMAS,
+                        flush_interval_s=0.01)
+    assert recorder.failure is None
+    if how == "fsync":
+        recorder.write("adn/g/measurement/p_ip", "p_ip", _p_ip(1, 0, 1.0), log_time_ns=0,
+                       publish_time_ns=0)
+        recorder.flush()                      # one message on disk, then the disk fails
+
+        def disk_full(fd: int) -> None:
+            raise OSError(28, "No space left on device")
+        monkeypatch.setattr("adnmesh.recording.writer.os.fsync", disk_full)
+    deadline, i = time.monotonic() + 20, 1 if how == "fsync" else 0
+    with pytest.raises(RuntimeError, match="recording failed"):
+        while time.monotonic() < deadline:
+            i += 1
+            recorder.write("adn/g/measurement/p_ip", "p_ip", _p_ip(i, i * 10_000_000, 1.0),
+                           log_time_ns=i * 10_000_000, publish_time_ns=i * 10_000_000)
+            time.sleep(0.0005)
+    failure = recorder.failure
+    assert isinstance(failure, OSError) and failure.errno == 28
+    messages, last_ns = recorder.on_disk
+    assert messages >= 1
+    with pytest.raises(RuntimeError, match="recording failed"):
+        recorder.close()
+    monkeypatch.undo()                          # the disk works again (recover writes)
+    if how == "hook":
+        assert path.stat().st_size <= 40000
+    recording = read_recording(path)
+    assert not recording.complete and recording.dropped_bytes == 0
+    assert len(recording.messages) == messages
+    assert recording.messages[-1].log_time_ns == last_ns
+    assert [m.sequence for m in recording.messages] == list(range(1, messages + 1))
+    assert recover(path, tmp_path / "recovered.mcap") == messages
+    assert read_recording(tmp_path / "recovered.mcap").complete
+
+
+def test_the_disk_full_hook_fails_like_a_full_disk(tmp_path: Path, monkeypatch) -> None:
+    """The test hook writes what fits (a short write), then fails every write with ENOSPC."""
+    from adnmesh.recording.writer import DISK_FULL_ENV, _open_for_writing
+
+    monkeypatch.setenv(DISK_FULL_ENV, "10")
+    fh = _open_for_writing(tmp_path / "f")
+    fh.write(b"0123456")
+    with pytest.raises(OSError) as info:
+        fh.write(b"789abcdef")
+        fh.flush()
+    assert info.value.errno == 28
+    with pytest.raises(OSError):
+        fh.close()
+    assert (tmp_path / "f").read_bytes() == b"0123456789"
+    monkeypatch.delenv(DISK_FULL_ENV)
+    with _open_for_writing(tmp_path / "g") as fh:
+        assert type(fh).__name__ == "BufferedWriter" and fh.raw.name == str(tmp_path / "g")
+
+
 # A recorder in its own process, killed with SIGKILL. After each write it reports
 # "<message number> <time.monotonic()>" (CLOCK_MONOTONIC is system-wide on Linux).
 _WRITER = """

@@ -267,6 +267,78 @@ def test_interrupt_leaves_no_process(tmp_path: Path, signum: int, code: int) -> 
     assert "run stopped: SIG" in err
 
 
+# --- resources: a disk that fills while the run goes ----------------------------------------------
+
+
+def test_a_disk_that_fills_stops_the_run_with_one_line_and_writes_the_summary(
+        tmp_path: Path) -> None:
+    """Issue 39: the recording's disk fills (the writer's test hook: ENOSPC after 16 kB, as a
+    full disk does). Before, the run went on recording nothing and ended in a traceback, with
+    no summary and no summary JSON. Now it stops at once with exit code 1 and one line that
+    says why, prints its summary and writes the JSON (on another disk here), and the file keeps
+    what its last flush wrote, which ``adnmesh inspect`` recovers."""
+    import os
+
+    from adnmesh.recording import read_recording
+    from adnmesh.recording.writer import DISK_FULL_ENV
+    from up_runs import processes_mentioning
+
+    config, table = write_case(tmp_path, "full", scenario={"duration_s": 3600})
+    out, summary_path = tmp_path / "full.mcap", tmp_path / "full.summary.json"
+    env = {**os.environ, DISK_FULL_ENV: "16384"}
+    result = subprocess.run(up_argv(config, table, out, "--summary-json", str(summary_path)),
+                            cwd=tmp_path, capture_output=True, text=True, env=env,
+                            timeout=RUN_TIMEOUT_S, check=False)
+    err = result.stderr
+    assert result.returncode == 1, err
+    assert "Traceback" not in err and "Error" not in err, err
+    failed = [line for line in err.splitlines() if "recording failed" in line]
+    assert failed == [f"adnmesh up: run stopped: recording failed: {out}: No space left on "
+                      "device"], err
+    incomplete = [line for line in err.splitlines() if "INCOMPLETE" in line]
+    assert len(incomplete) == 1, err
+    kept = int(incomplete[0].split("it keeps the ")[1].split()[0])
+    assert "P_ref steps" in result.stdout and "ended recording failed" in result.stdout
+    summary = json.loads(summary_path.read_text())
+    assert summary["extra"]["ended"] == f"recording failed: {out}: No space left on device"
+    assert summary["extra"]["messages_on_disk"] == kept
+    assert 0 < summary["sim_time_s"] < 3600
+    assert out.stat().st_size <= 16384
+    recording = read_recording(out)           # whole chunks only: nothing unfinished at its end
+    assert not recording.complete and recording.dropped_bytes == 0
+    assert len(recording.messages) == kept
+    recovered = tmp_path / "recovered.mcap"
+    inspect = subprocess.run([*up_argv(config, table, out)[:3], "inspect", str(out),
+                              "--recover-to", str(recovered)], capture_output=True, text=True,
+                             timeout=RUN_TIMEOUT_S, check=False)
+    assert inspect.returncode == 0, inspect.stderr
+    assert f"recovered {kept} messages" in inspect.stdout
+    assert read_recording(recovered).complete
+    assert processes_mentioning(str(config)) == []
+
+
+def test_a_summary_json_that_cannot_be_written_is_one_line(tmp_path: Path, monkeypatch,
+                                                           capsys) -> None:
+    """The summary is printed first; a JSON the disk refuses is one line, no half file."""
+    import argparse
+
+    from adnmesh.commands import up
+    from adnmesh.runtime.launcher import UpResult
+
+    def disk_full(path, content, mode=0o644):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr("adnmesh.files.write_atomic", disk_full)
+    args = argparse.Namespace(summary_json=str(tmp_path / "s.json"), clock="sim", secure=False,
+                              certs=None, speed=None)
+    line = up._print_summary(args, load_config(CASE), "run", UpResult(end_ns=12 * 10**9,
+                                                                      reached_ns=12 * 10**9))
+    assert line == (f"--summary-json {tmp_path / 's.json'}: not written (No space left on "
+                    "device); the summary above is the whole of it")
+    assert "P_ref steps" in capsys.readouterr().out
+    assert not (tmp_path / "s.json").exists()
+
+
 # --- user errors ---------------------------------------------------------------------------------
 
 

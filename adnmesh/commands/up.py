@@ -339,8 +339,17 @@ def run(args: argparse.Namespace) -> int:
     result = _launch_with_view(args, options, launch, err, log)
     for problem in result.problems:
         log(problem)
-    log(f"recording: {out} ({sum(result.recorded.values())} messages)")
-    _print_summary(args, config, run_id, result)
+    if result.recording_failed:
+        messages, last_ns = result.on_disk
+        log(f"recording: {out} INCOMPLETE: it keeps the {messages} messages to "
+            f"{last_ns / 1e9:g} s of sim time written before it failed ('adnmesh inspect "
+            f"{out} --recover-to FILE' completes them into FILE)")
+    else:
+        log(f"recording: {out} ({sum(result.recorded.values())} messages)")
+    unwritten = _print_summary(args, config, run_id, result)
+    if unwritten:
+        log(unwritten)
+        return result.exit_code or 1
     return result.exit_code
 
 
@@ -389,8 +398,9 @@ def _print_zenoh_config(args: argparse.Namespace, config: Config, certs, routers
     return 0
 
 
-def _print_summary(args: argparse.Namespace, config: Config, run_id: str, result) -> None:
-    """The summary on stdout (and as JSON with ``--summary-json``)."""
+def _print_summary(args: argparse.Namespace, config: Config, run_id: str, result) -> str | None:
+    """The summary on stdout (and as JSON with ``--summary-json``); return the line that says
+    the JSON could not be written (a full disk, say), or None."""
     from adnmesh.results.realtime_report import realtime_figures
     from adnmesh.results.summary import format_summary, summarize
 
@@ -410,6 +420,9 @@ def _print_summary(args: argparse.Namespace, config: Config, run_id: str, result
         "links_accepted": sum(result.sessions.opened.values()),
         "unexpected_sessions": len(result.sessions.unexpected),
     }
+    if result.recording_failed:
+        extra["recording_failed"] = result.recording_failed
+        extra["messages_on_disk"] = result.on_disk[0]
     if args.clock == "sim":
         extra["clock_grants"] = result.grants
         extra["grants_per_s"] = round(result.grants / result.wall_time_s, 1) \
@@ -429,8 +442,13 @@ def _print_summary(args: argparse.Namespace, config: Config, run_id: str, result
                       width=None if sys.stdout.isatty() else 200)
     for item in format_summary(summary):
         console.print(item)
-    if args.summary_json:
-        path = Path(args.summary_json)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(summary.to_json(), indent=1) + "\n")
     sys.stdout.flush()
+    if args.summary_json:
+        from adnmesh.files import write_atomic
+
+        try:         # atomic: a full disk leaves no half file (and an earlier one as it was)
+            write_atomic(args.summary_json, json.dumps(summary.to_json(), indent=1) + "\n")
+        except OSError as exc:
+            return (f"--summary-json {args.summary_json}: not written ({exc.strerror or exc}); "
+                    "the summary above is the whole of it")
+    return None

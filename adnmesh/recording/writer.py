@@ -23,10 +23,27 @@ flushed and fsync'ed, so that a recorder killed at any moment (even by SIGKILL) 
 whose complete chunks
 :func:`adnmesh.recording.read_recording` recovers: all messages written more than about one
 flush interval before the kill.
+
+**A write that fails** (a full disk, an I/O error) ends the recording: nothing more is
+written, :attr:`Recorder.failure` holds the error, :meth:`Recorder.write` raises
+``RuntimeError`` from it, and :meth:`Recorder.close` cuts the file back to what the last
+successful flush put on disk (whole chunks and their indexes: a truncated recording that
+:func:`~adnmesh.recording.read_recording` reads and ``adnmesh inspect`` recovers, with no
+unfinished record at its end; on a full disk this also gives the space of the unfinished chunk
+back) before it raises. :attr:`Recorder.on_disk` says how much that is.
+
+**Test hook**: with the environment variable :data:`DISK_FULL_ENV`
+(``ADNMESH_TEST_DISK_FULL_AFTER_BYTES``) set to N, the recorder's file takes N bytes and then
+fails every write with ``ENOSPC`` as a full disk does (short writes, then the error): tests of
+a disk that fills during ``adnmesh up`` use it, since a small real filesystem needs a mount.
+Nothing else reads it.
 """
 
 from __future__ import annotations
 
+import contextlib
+import errno
+import io
 import json
 import os
 import struct
@@ -61,6 +78,7 @@ from adnmesh import __version__
 from adnmesh.recording.foxglove_log import FOXGLOVE_LOG, FOXGLOVE_LOG_SCHEMA
 
 __all__ = [
+    "DISK_FULL_ENV",
     "FORMAT_VERSION",
     "MESSAGE_ENCODING",
     "PUBLISHED_METADATA",
@@ -116,6 +134,10 @@ RUN_METADATA_KEYS = {
 """The keys of the :data:`RUN_METADATA` record and what they hold; all values are strings.
 The recorder requires none of them but fills in the ones marked *filled in*."""
 
+DISK_FULL_ENV = "ADNMESH_TEST_DISK_FULL_AFTER_BYTES"
+"""Test hook (module docstring): the recorder's file fails with ``ENOSPC`` after this many
+bytes."""
+
 _CHUNK_SIZE = 4 * 1024 * 1024  # bytes; chunks are normally closed by the flush timer first
 
 _MESSAGE_HEAD = struct.Struct("<BQHIQQ")  # opcode, record length, channel, sequence, 2 times
@@ -150,10 +172,12 @@ class _McapStream:
                                                 thread_name_prefix="adnmesh-recorder-chunks")
         self._written: Future | None = None         # the last sealed chunk's write
         self.failure: BaseException | None = None
+        self.written = (0, 0, 0)   # (file offset, messages, last log time ns) of whole records
         self._new_chunk()
         stream.write(MCAP0_MAGIC)
         Header(profile="", library=library).write(self._records)
         self._write_records()
+        self._mark_written()
 
     # -- data section ----------------------------------------------------------------------
 
@@ -205,13 +229,15 @@ class _McapStream:
                                                     name=name))
         self._metadata_count += 1
         self._write_records()
+        self._mark_written()
 
     def close_chunk(self) -> None:
         """Seal the chunk in progress (if it holds a message; schema and channel records alone
         wait for the next one): it is compressed and written in the background."""
         if not self._chunk_messages:
             return
-        sealed = (self._chunk, self._index, self._chunk_start_ns, self._chunk_end_ns)
+        sealed = (self._chunk, self._index, self._chunk_start_ns, self._chunk_end_ns,
+                  self._chunk_messages)
         if not self._message_count:
             self._start_ns = self._chunk_start_ns
         self._start_ns = min(self._start_ns, self._chunk_start_ns)
@@ -227,7 +253,7 @@ class _McapStream:
             written.result()   # one worker: it ran after every chunk sealed before
 
     def _write_chunk(self, data: bytearray, index: dict[int, list[int]], start: int,
-                     end: int) -> None:
+                     end: int, messages: int) -> None:
         """Compress and write one sealed chunk and its message indexes (background thread)."""
         if self.failure is not None:   # the file stops at the first failure
             raise self.failure
@@ -250,6 +276,14 @@ class _McapStream:
             chunk_length=chunk_length, message_index_offsets=offsets,
             message_index_length=len(indexes), compression="zstd",
             compressed_size=len(compressed), uncompressed_size=len(data)))
+        _, count, last = self.written
+        self._mark_written(count + messages, max(last, end))
+
+    def _mark_written(self, messages: int | None = None, last_ns: int | None = None) -> None:
+        """Note that the file's records are whole up to its current end (in the buffer)."""
+        _, count, last = self.written
+        self.written = (self._stream.tell(), count if messages is None else messages,
+                        last if last_ns is None else last_ns)
 
     # -- summary section -------------------------------------------------------------------
 
@@ -312,6 +346,53 @@ class _McapStream:
 
     def _write_records(self) -> None:
         self._stream.write(self._records.end())
+
+
+class _FullAfter(io.RawIOBase):
+    """A file that takes ``limit`` bytes and then fails as a full disk does: a short write up
+    to the limit, then ``OSError(ENOSPC)`` (the test hook :data:`DISK_FULL_ENV`)."""
+
+    def __init__(self, raw: io.FileIO, limit: int) -> None:
+        super().__init__()
+        self._raw, self._left = raw, limit
+
+    def writable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def write(self, data) -> int:
+        data = memoryview(data).cast("B")
+        if not data.nbytes:
+            return 0
+        if self._left <= 0:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        n = self._raw.write(data[:self._left])
+        self._left -= n
+        return n
+
+    def seek(self, offset: int, whence: int = io.SEEK_SET) -> int:
+        return self._raw.seek(offset, whence)
+
+    def tell(self) -> int:
+        return self._raw.tell()
+
+    def fileno(self) -> int:
+        return self._raw.fileno()
+
+    def close(self) -> None:
+        if not self.closed:
+            self._raw.close()
+        super().close()
+
+
+def _open_for_writing(path: Path) -> BinaryIO:
+    """``open(path, "wb")``, or with :data:`DISK_FULL_ENV` set, a file that fills up."""
+    limit = os.environ.get(DISK_FULL_ENV)
+    if not limit:
+        return open(path, "wb")  # noqa: SIM115 -- closed by the recorder
+    return io.BufferedWriter(_FullAfter(io.FileIO(path, "wb"), int(limit)))
 
 
 def _message_indexes(index: dict[int, list[int]], start: int) -> tuple[dict[int, int], bytes]:
@@ -406,16 +487,20 @@ class Recorder:
         self._dirty = False
         self._closed = False
         self._failure: BaseException | None = None
+        self._on_disk = (0, 0, 0)      # the writer's ``written`` at the last successful fsync
 
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._file = open(self.path, "wb")  # noqa: SIM115 -- closed in close()
+        self._file = _open_for_writing(self.path)
         try:
             self._writer = _McapStream(self._file, f"adnmesh {__version__}; {LIBRARY_IDENTIFIER}",
                                        _CHUNK_SIZE)
             self._writer.add_metadata(RUN_METADATA, run)
             self._sync()
-        except BaseException:
-            self._file.close()
+        except BaseException as exc:
+            with contextlib.suppress(OSError):
+                self._file.close()
+            if isinstance(exc, OSError) and exc.filename is None:   # the file, named
+                raise OSError(exc.errno, exc.strerror, str(self.path)) from exc
             raise
         self._stop = threading.Event()
         self._flusher = threading.Thread(target=self._flush_loop, name="adnmesh-recorder-flush",
@@ -502,8 +587,24 @@ class Recorder:
             raise TypeError(f"metadata {name!r}: keys and values must be str")
         with self._lock:
             self._check_open()
-            self._writer.add_metadata(name, dict(data))
-            self._sync()
+            try:
+                self._writer.add_metadata(name, dict(data))
+                self._sync()
+            except OSError as exc:
+                self._failure = self._failure or exc
+                raise RuntimeError(f"{self.path}: recording failed") from exc
+
+    @property
+    def failure(self) -> BaseException | None:
+        """The error that ended the recording (a write or flush that failed: a full disk, say),
+        or None while it goes well. Nothing is written after it."""
+        return self._failure or self._writer.failure
+
+    @property
+    def on_disk(self) -> tuple[int, int]:
+        """``(messages, last log time ns)`` on disk as of the last successful flush: what a
+        file cut at that moment holds (after a failure, what the file keeps)."""
+        return self._on_disk[1], self._on_disk[2]
 
     def counts(self) -> dict[str, int]:
         """Return the number of messages written so far, per topic."""
@@ -511,15 +612,22 @@ class Recorder:
             return dict(self._counts)
 
     def flush(self) -> None:
-        """Write everything recorded so far to disk now (the timer does this periodically)."""
+        """Write everything recorded so far to disk now (the timer does this periodically).
+        Raises RuntimeError as :meth:`write`."""
         with self._lock:
             self._check_open()
-            self._sync()
+            try:
+                self._sync()
+            except OSError as exc:
+                self._failure = self._failure or exc
+                raise RuntimeError(f"{self.path}: recording failed") from exc
 
     def close(self) -> None:
         """Stop the flush timer and finish the file (summary section, indexes, footer).
 
-        Calling it again does nothing. Raises RuntimeError if a periodic flush had failed.
+        Calling it again does nothing. Raises RuntimeError if a write or flush had failed (or
+        finishing the file fails); the file is then cut back to what the last successful flush
+        wrote (module docstring).
         """
         with self._lock:
             if self._closed:
@@ -538,9 +646,21 @@ class Recorder:
                 self._failure = exc
             finally:
                 self._writer.close()
-                self._file.close()
+                try:
+                    self._file.close()       # after a failure its buffer fails again: said
+                except OSError as exc:
+                    self._failure = self._failure or exc
             if self._failure is not None:
+                self._cut_to_disk()
                 raise RuntimeError(f"{self.path}: recording failed") from self._failure
+
+    def _cut_to_disk(self) -> None:
+        """After a failure: the file back to its length at the last successful flush (whole
+        records only), if it can be."""
+        try:
+            os.truncate(self.path, self._on_disk[0])
+        except OSError:
+            pass
 
     def __enter__(self) -> Recorder:
         return self
@@ -574,7 +694,9 @@ class Recorder:
     def _sync(self) -> None:
         """Close the chunk in progress and push the file to disk."""
         self._flush_file()
+        written = self._writer.written
         os.fsync(self._file.fileno())
+        self._on_disk = written
         self._dirty = False
 
     def _flush_loop(self) -> None:
@@ -589,8 +711,12 @@ class Recorder:
                 self._dirty = False
             try:
                 self._writer.wait()
+                written = self._writer.written   # whole records up to here, before the flush
                 self._file.flush()
                 os.fsync(self._file.fileno())
             except BaseException as exc:  # noqa: BLE001 -- reported by write()/close()
                 with self._lock:
-                    self._failure = exc
+                    self._failure = self._failure or exc
+                continue
+            with self._lock:
+                self._on_disk = max(self._on_disk, written)

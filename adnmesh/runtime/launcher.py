@@ -18,6 +18,13 @@
    not keep up, what the overload explains (:mod:`adnmesh.runtime.accounting`: agents without
    a goodbye, messages lost on sessions that dropped), said as faults.
 
+**A recording that fails** (a full disk: :attr:`adnmesh.recording.Recorder.failure`) stops the
+run at once, exit code 1, as a stop for any other reason does: a run that cannot be recorded is
+not a run. The reason is one line, ``recording failed: FILE: No space left on device``; the
+shutdown, the summary (``series``, up to the stop) and ``UpResult.recording_failed`` follow as
+usual, and the file keeps what its last successful flush wrote (``UpResult.on_disk``;
+``adnmesh inspect`` recovers it).
+
 Around them, the embedded router (a Zenoh session in mode ``router``, ``tcp/127.0.0.1:<free
 port>`` unless told otherwise) carries one subscriber on ``adn/<grid>/**`` whose samples go
 through the recorder tap (:class:`~adnmesh.runtime.tap.RecorderTap`: validated, then recorded;
@@ -69,12 +76,14 @@ from adnmesh.sim.topology import Topology
 from adnmesh.names import LAUNCHER, der_id_of
 from adnmesh.wire.units import ns
 
-__all__ = ["EXIT_FAILED", "EXIT_NOT_REALTIME", "EXIT_OK", "UpOptions", "UpResult",
-           "embedded_router_config", "run"]
+__all__ = ["EXIT_FAILED", "EXIT_NOT_REALTIME", "EXIT_OK", "RECORDING_FAILED", "UpOptions",
+           "UpResult", "embedded_router_config", "recording_failure", "run"]
 
 EXIT_OK, EXIT_FAILED, EXIT_NOT_REALTIME, EXIT_SIGINT, EXIT_SIGTERM = 0, 1, 3, 130, 143
 NOT_REALTIME = "not real time"
 """How the reason of a run stopped by ``--strict`` begins."""
+RECORDING_FAILED = "recording failed"
+"""How the reason of a run stopped by a recording that failed (a full disk) begins."""
 BEFORE_CONTACT_METADATA = "adnmesh.reports_before_contact"
 """Recording metadata: per report key, the ready reports an agent sent before ``up`` heard its
 first one (they had no route to the recorder yet; not in the published counts)."""
@@ -199,6 +208,11 @@ class UpResult:
         What went wrong, one line each.
     tolerance_ns : int
         The realtime overrun tolerance, ns of sim time.
+    recording_failed : str
+        Why the recording failed (``FILE: No space left on device``), or empty.
+    on_disk : tuple of int
+        ``(messages, last log time ns)`` the file holds when the recording failed (module
+        docstring).
     """
 
     exit_code: int = EXIT_OK
@@ -216,6 +230,8 @@ class UpResult:
     sessions: SessionReport = field(default_factory=SessionReport)
     problems: list = field(default_factory=list)
     tolerance_ns: int = 0
+    recording_failed: str = ""
+    on_disk: tuple = (0, 0)
 
 
 class _Launch:
@@ -402,6 +418,8 @@ class _Launch:
         not a reason: the injector notes it and the run goes on."""
         if self.interrupted:
             return "SIGINT" if self.interrupted[0] == signal.SIGINT else "SIGTERM"
+        if self.recorder.failure is not None:
+            return f"{RECORDING_FAILED}: {recording_failure(self.recorder)}"
         if self.clock is not None and self.clock.error:
             return f"clock: {self.clock.error}"
         if self.not_realtime is not None:
@@ -589,7 +607,7 @@ def shutdown(launch: _Launch, reason: str) -> None:
                     "and everything before them, are in)")
     # wait (bounded) until the recorder has everything the agents say they published
     deadline = time.monotonic() + 2.0
-    while time.monotonic() < deadline:
+    while time.monotonic() < deadline and launch.recorder.failure is None:
         expected = roster.published(launch.outbox.counts())
         recorded = launch.recorder.counts()
         if all(recorded.get(k, 0) >= v for k, v in expected.items()):
@@ -643,15 +661,21 @@ def verify(launch: _Launch) -> None:
         if result.exit_code == EXIT_OK:
             result.exit_code = EXIT_FAILED     # the run went on, but an agent died unplanned
         result.problems.append(f"agent(s) lost during the run: {', '.join(lost)}")
-    launch.recorder.add_metadata(PUBLISHED_METADATA,
-                                 {k: str(v) for k, v in result.published.items()})
     uncounted = {launch.tap.rejected_key: "payloads the recorder rejected",
                  launch.keys.of("fault_request"): "a person's fault requests",
                  **{k: "a process of its agent died" for k in unverified}}
-    launch.recorder.add_metadata(UNCOUNTED_METADATA, uncounted)
+    records = [(PUBLISHED_METADATA, {k: str(v) for k, v in result.published.items()}),
+               (UNCOUNTED_METADATA, uncounted)]
     if before_contact:      # per report key: ready reports sent before up heard the agent
-        launch.recorder.add_metadata(BEFORE_CONTACT_METADATA,
-                                     {k: str(n) for k, n in before_contact.items()})
+        records.append((BEFORE_CONTACT_METADATA, {k: str(n) for k, n in before_contact.items()}))
+    for name, data in records:
+        if launch.recorder.failure is not None:     # nothing more can be written: said at
+            return                                  # the close (_close_recording)
+        try:
+            launch.recorder.add_metadata(name, data)
+        except RuntimeError:
+            if launch.recorder.failure is None:
+                raise
 
 
 def _overloaded_agents(launch: _Launch) -> set[str]:
@@ -721,7 +745,7 @@ def run(options: UpOptions) -> UpResult:
         verify(launch)
     finally:
         launch.children.kill_all()
-        launch.recorder.close()
+        _close_recording(launch)
         for signum, handler in previous.items():
             signal.signal(signum, handler)
     result.byes = dict(launch.roster.byes)
@@ -736,6 +760,34 @@ def run(options: UpOptions) -> UpResult:
     if launch.clock is not None:
         result.grants = launch.clock.grants_issued
     return result
+
+
+def recording_failure(recorder: Recorder) -> str:
+    """``FILE: what failed`` of a recorder whose recording failed, in one line."""
+    failure = recorder.failure
+    what = (failure.strerror or str(failure)) if isinstance(failure, OSError) else \
+        f"{type(failure).__name__}: {failure}"
+    return " ".join(f"{recorder.path}: {what}".split())
+
+
+def _close_recording(launch: _Launch) -> None:
+    """Finish the recording; if it failed (during the run or now, finishing the file), say so
+    in the result: exit code 1, one line, what the file keeps."""
+    recorder, result = launch.recorder, launch.result
+    try:
+        recorder.close()
+    except RuntimeError:
+        if recorder.failure is None:
+            raise
+    if recorder.failure is None:
+        return
+    result.recording_failed = recording_failure(recorder)
+    result.on_disk = recorder.on_disk
+    if not result.reason.startswith(RECORDING_FAILED):     # it failed after the run ended
+        result.problems.append(f"{RECORDING_FAILED} while finishing the file: "
+                               f"{result.recording_failed}")
+    if result.exit_code == EXIT_OK:
+        result.exit_code = EXIT_FAILED
 
 
 def _stopped(result: UpResult, reason: str) -> None:

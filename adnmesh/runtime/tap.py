@@ -219,8 +219,8 @@ class RecorderTap:
         try:
             self.recorder.write_many(key, type_name, records)
         except (ValueError, RuntimeError) as exc:   # reported at the end of the run
-            if not self.record_errors:
-                self.problems.append(f"recording failed: {exc}")
+            if not self.record_errors and getattr(self.recorder, "failure", None) is None:
+                self.problems.append(f"recording failed: {exc}")   # (a failed file: by up)
             self.record_errors += len(records)
             return False
         if self.view is not None:
