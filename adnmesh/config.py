@@ -37,7 +37,8 @@ from adnmesh.names import (AGENT_PATTERN, FAULT_KINDS, ICT_LINKS, ID_PATTERN, PE
 __all__ = [
     "DER_TYPES", "PT1_RISE_TIME_FACTOR", "AvailabilityChange", "Config", "ConfigFile",
     "Constraints", "DER", "Fault", "GridLimits", "GridModel", "LinkSettings", "Links", "Outage",
-    "MAX_CONFIG_BYTES", "MAX_DELAY_PER_LAG", "MAX_SPAN_PER_DELAY", "PRefStep", "Runtime",
+    "MAX_CONFIG_BYTES", "MAX_DELAY_PER_LAG", "MAX_IN_FLIGHT", "MAX_SPAN_PER_DELAY", "PRefStep",
+    "Runtime",
     "Scenario", "Section", "json_schema", "load_config",
 ]
 
@@ -65,6 +66,15 @@ limit a ring of 1,000 samples per candidate, and a SimBench table takes ~7x as l
 the reference case (measured: a 22 s CHP reaction time, 111 s; a PV rise time of 5 ms, 88 s;
 1.3x the limit (a 60 s reaction time) 189 s; 5x (a 1 ms rise time) over 240 s; ``t_rise_s:
 1e-12`` ran out of memory)."""
+
+MAX_IN_FLIGHT = 1000
+"""At most this many messages of one key may be on their way on a link at once: its delay plus
+jitter (plus the largest ``link_delay`` fault on it) over the period of the messages (P_Y:
+``pi_period_s`` on ``cpfc_to_der``; P_IP: ``measurement_period_s`` on ``measurement_to_cpfc``;
+heartbeats: ``heartbeat_period_s`` on ``der_to_availability``). A receiver holds every message
+until its delivery time and takes at most 4,096 per key (:data:`adnmesh.wire.gate.HELD_MAX`,
+against a flood); the reference case holds 10. ``pi_period_s: 1e-6`` with ``t_com_s: 0.1``
+(100,000 on their way) stalled the run."""
 
 MAX_SPAN_PER_DELAY = 2500
 """The slowest DER's time constant plus the loop delay (``t_com_s`` with the hold, the largest
@@ -528,6 +538,28 @@ class ConfigFile(Section):
                            f"the step responses of tuning and analysis; at most "
                            f"{room * self.rise_per_lag:.4g} (or longer delays), got "
                            f"{self.ders[slow].t_rise_s:g}")
+        return self
+
+    @model_validator(mode="after")
+    def _in_flight(self) -> ConfigFile:
+        """At most :data:`MAX_IN_FLIGHT` messages of one key on their way on a link."""
+        links, rt = self.runtime.links, self.runtime
+        for period, link, delay in (("pi_period_s", "cpfc_to_der", self.t_com_s),
+                                    ("measurement_period_s", "measurement_to_cpfc",
+                                     self.t_meas_s),
+                                    ("heartbeat_period_s", "der_to_availability",
+                                     links.der_to_availability.delay_s)):
+            extra = max((f.delay_s for f in rt.faults
+                         if f.kind == "link_delay" and f.link == link), default=0.0)
+            span = delay + getattr(links, link).jitter_s + extra
+            if span > MAX_IN_FLIGHT * getattr(rt, period):
+                what = " + its largest link_delay fault" if extra else ""
+                raise _problem(("runtime", period),
+                               f"too short for {link}: {span:g} s of delay (with its jitter"
+                               f"{what}) would hold {span / getattr(rt, period):.4g} messages "
+                               f"of one key on their way, more than {MAX_IN_FLIGHT} (a "
+                               f"receiver holds at most 4,096); at least "
+                               f"{span / MAX_IN_FLIGHT:.4g}, got {getattr(rt, period):g}")
         return self
 
     @model_validator(mode="after")

@@ -92,7 +92,7 @@ def test_a_config_larger_than_16_mib_is_one_line(tmp_path: Path, capsys) -> None
     assert f"{path}: larger than 16 MiB; a config must be a regular file" in err
 
 
-# --- configs: bounds that follow from the numerics -------------------------------------------------
+# --- configs: bounds that follow from the numerics ------------------------------------------------
 
 
 def test_the_issues_configs_are_refused_naming_the_key(tmp_path: Path) -> None:
@@ -128,6 +128,20 @@ def test_the_numerics_bounds_hold_exactly_at_their_limits(tmp_path: Path) -> Non
     load_config(path)
 
 
+def test_periods_that_would_flood_a_receiver_are_refused(tmp_path: Path) -> None:
+    """Before: ``pi_period_s: 1e-6`` put 100,000 P_Y messages on their way to each DER, the
+    receivers' gate took 4,096 and the clock stalled for good."""
+    with pytest.raises(ConfigError, match=r"runtime\.pi_period_s: too short for cpfc_to_der: "
+                                          r"0\.1 s of delay .* at least 0\.0001, got 1e-06"):
+        load_config(write_config(tmp_path, runtime={"pi_period_s": 1e-6}))
+    load_config(write_config(tmp_path, runtime={"pi_period_s": 1e-4, "watchdog_timeout_s": 1}))
+    fault = {"kind": "link_delay", "t_s": 1, "link": "measurement_to_cpfc", "delay_s": 10.0}
+    with pytest.raises(ConfigError, match=r"runtime\.measurement_period_s: too short for "
+                                          r"measurement_to_cpfc: 10\.1 s of delay \(with its "
+                                          r"jitter \+ its largest link_delay fault\)"):
+        load_config(write_config(tmp_path, runtime={"faults": [fault]}))
+
+
 def test_every_shipped_config_keeps_to_the_numerics_bounds() -> None:
     for path in sorted(CONFIGS.glob("*.yaml")) + sorted(CONFIGS.glob("examples/*.yaml")):
         load_config(path)
@@ -154,7 +168,7 @@ def test_up_refuses_a_config_whose_scenario_it_cannot_tune(tmp_path: Path, monke
     assert "Traceback" not in err and not (tmp_path / "run.mcap").exists()
 
 
-# --- check makes the grid checks up makes ------------------------------------------------------------
+# --- check makes the grid checks up makes ---------------------------------------------------------
 
 
 def _simbench(tmp_path: Path, name: str, change) -> Path:
@@ -194,7 +208,7 @@ def test_check_reports_the_grid_model(configs_dir: Path, capsys) -> None:
             "the DERs can deliver ") in out
 
 
-# --- tables -------------------------------------------------------------------------------------------
+# --- tables ---------------------------------------------------------------------------------------
 
 
 def _table(tmp_path: Path, change) -> tuple[Path, Path]:
@@ -425,3 +439,54 @@ def test_adnmesh_fault_beyond_the_scenario_is_refused_by_the_run(tmp_path: Path)
     assert returncode == 0, err
     summary = json.loads((tmp_path / "late.summary.json").read_text())
     assert summary["faults"] == []
+
+
+# --- more of the probe's command lines (benchmarks/probe.py, its full sweep) ---------------------
+
+
+def test_more_bad_command_lines_are_one_line(tmp_path: Path, case, unwritable: Path, capsys,
+                                             monkeypatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    config, table = case
+    up = ["up", str(config), "--table", str(table)]
+    fifo = tmp_path / "run.fifo"
+    os.mkfifo(fifo)
+    for argv, message in [
+        ([*up, "--listen", ""], "--listen : not an endpoint"),
+        ([*up, "--external", ",,,"], "--external ',,,': names no agent"),
+        ([*up, "--view", str(unwritable / "v.rrd")], f"--view {unwritable / 'v.rrd'}: cannot"),
+        (["tune", str(config), "--workers", "1000000"], "--workers must be 1 to 1024"),
+        (["tune", str(config), "--overshoot-max-pct", "1e400"], "--overshoot-max-pct must be"),
+        (["analyze", str(config), "--table", str(table), "--solution-space", ""],
+         "--solution-space: give at least one DER id"),
+        (["fault", "tcp/127.0.0.1:1", "ict_outage", "--timeout", "-1"], "--timeout must be"),
+        (["fault", "tcp/127.0.0.1:1", "ict_outage", "--timeout", "nan"], "--timeout must be"),
+        (["agent", "der", str(config), "--id", "SGen1", "--connect", "tcp/127.0.0.1:1",
+          "--resume-at-ns", "-1"], "--resume-at-ns must be in [0, 2**63) ns"),
+        (["agent", "der", str(config), "--id", "SGen1", "--connect", "tcp/127.0.0.1:1",
+          "--connect-timeout", "nan"], "--connect-timeout must be in [0, 86400] s"),
+        (["replay", str(fifo)], f"{fifo}: not a regular file (a FIFO)"),
+        (["plot", str(fifo)], f"{fifo}: not a regular file (a FIFO)"),
+        (["inspect", str(fifo)], f"{fifo}: not a regular file (a FIFO)"),
+    ]:
+        err = one_line(capsys, main(argv))
+        assert err.startswith(f"adnmesh: error: {message}"), (argv, err)
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda doc: doc["entries"][-1]["w"].pop("SGen2"),
+     "entries[1].w: no weight for 'SGen2' (one per DER of the entry)"),
+    (_entry(kp=10**400), "entries[1]: K_P must be a finite positive gain (1/W), got 1000000"),
+])
+def test_more_bad_tables_are_refused(tmp_path: Path, change, message: str) -> None:
+    config, table = _table(tmp_path, change)
+    with pytest.raises(ConfigError) as info:
+        load_table(table, load_config(config))
+    assert message in str(info.value)
+
+
+def test_a_zero_weight_of_find_w_is_a_valid_table(tmp_path: Path) -> None:
+    """Find W gives a DER that can take no share the weight 0 (adnmesh/tuning/weights.py),
+    in a feasible entry: the table the tuning writes must load."""
+    config, table = _table(tmp_path, lambda doc: doc["entries"][-1]["w"].update(SGen2=0.0))
+    assert load_table(table, load_config(config)).lookup(["SGen1", "SGen2"]).w["SGen2"] == 0.0

@@ -13,12 +13,14 @@ To add a command, write ``adnmesh/commands/<name>.py`` and list it in ``adnmesh.
 """
 
 import argparse
+import os
+import stat
 from pathlib import Path
 
 from adnmesh.errors import UsageError
 from adnmesh.files import check_writable
 
-__all__ = ["add_config_argument", "output_path"]
+__all__ = ["add_config_argument", "input_file", "output_path"]
 
 
 def add_config_argument(parser: argparse.ArgumentParser) -> None:
@@ -26,6 +28,20 @@ def add_config_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "config", metavar="CONFIG", help="configuration file (YAML), e.g. configs/simbench.yaml"
     )
+
+
+def input_file(path: str | Path) -> Path:
+    """``path`` of an input file (a recording), refused in one line if it is there but not a
+    regular file or folder: a FIFO would block the reader until something writes to it, a
+    device such as ``/dev/zero`` never ends. A missing file is left to the reader to say."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return Path(path)
+    if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+        kind = "a FIFO" if stat.S_ISFIFO(mode) else "a device or socket"
+        raise UsageError(f"{path}: not a regular file ({kind})")
+    return Path(path)
 
 
 def output_path(path: str | Path, flag: str, directory: bool = False) -> Path:

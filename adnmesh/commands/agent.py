@@ -50,6 +50,11 @@ def _argv(args: argparse.Namespace) -> list[str]:
         raise UsageError(f"{args.kind} takes no --id")
     if args.table and args.kind != "cpfc":
         raise UsageError("--table is for cpfc only")
+    if not 0 <= args.connect_timeout <= 86400:
+        raise UsageError(f"--connect-timeout must be in [0, 86400] s, got "
+                         f"{args.connect_timeout:g}")
+    if args.resume_at_ns is not None and not 0 <= args.resume_at_ns < 2**63:
+        raise UsageError(f"--resume-at-ns must be in [0, 2**63) ns, got {args.resume_at_ns}")
     argv = [args.config]
     for endpoint in args.connect:
         argv += ["--connect", endpoint]

@@ -351,7 +351,7 @@ def run(args: argparse.Namespace) -> int:
     if args.der_models and "der-models" not in parts:
         parts += ("der-models",)
     config = load_config(args.config)
-    ids = parse_subset(config, args.solution_space) if args.solution_space else None
+    ids = parse_subset(config, args.solution_space) if args.solution_space is not None else None
     if ids is None:
         if args.only and "solution-space" in parts:
             raise UsageError("--only solution-space needs --solution-space IDS")

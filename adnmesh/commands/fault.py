@@ -86,6 +86,8 @@ def _request(args: argparse.Namespace) -> dict:
         if value is not None and not 0 <= value <= 1e6:
             raise UsageError(f"--{'for' if name == 'duration' else name} must be in [0, 1e6] s, "
                              f"got {value:g}")
+    if not 0 < args.timeout <= 3600:
+        raise UsageError(f"--timeout must be in (0, 3600] s, got {args.timeout:g}")
     if args.probability is not None and not 0 <= args.probability <= 1:
         raise UsageError(f"--probability must be in [0, 1], got {args.probability:g}")
     body = {"kind": args.kind, "at_ns": None if args.at is None else ns(args.at),

@@ -13,7 +13,7 @@ import yaml
 from rich.console import Console
 from rich.table import Table
 
-from adnmesh.commands import output_path
+from adnmesh.commands import input_file, output_path
 from adnmesh.config import Constraints
 from adnmesh.recording import (
     PUBLISHED_METADATA,
@@ -250,7 +250,7 @@ def _check_counts(console: Console, recording: ScannedRecording) -> bool:
 
 def run(args: argparse.Namespace) -> int:
     """Read ``args.recording`` and print its summary; recover it if it is truncated."""
-    path = Path(args.recording)
+    path = input_file(args.recording)
     if args.recover_to is not None:
         output_path(args.recover_to, "--recover-to")
     found, messages = read_run(path, also=_SummaryMessages)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from adnmesh.commands import output_path
+from adnmesh.commands import input_file, output_path
 from adnmesh.commands.replay import note_if_truncated
 from adnmesh.errors import UsageError
 from adnmesh.results.series import read_run
@@ -40,7 +40,7 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"{out}: unknown figure format {out.suffix or '(no suffix)'!r} "
                          f"(known: {', '.join(sorted(formats))})")
     output_path(out, "-o")
-    found, _ = read_run(args.recording)
+    found, _ = read_run(input_file(args.recording))
     recording = found.recording
     note_if_truncated(recording)
     title = recording.run.get("run_id") or Path(args.recording).stem

@@ -8,7 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from adnmesh.commands import output_path
+from adnmesh.commands import input_file, output_path
 from adnmesh.errors import UsageError
 from adnmesh.results.series import read_run
 
@@ -55,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
     if not 0 < args.web_port < 65536:
         raise UsageError(f"--web-port must be a port number (1-65535), got {args.web_port}")
     out = output_path(args.rrd or Path(args.recording).with_suffix(".rrd"), "--rrd")
-    found, _ = read_run(args.recording)
+    found, _ = read_run(input_file(args.recording))
     recording, run_data = found.recording, found.run
     note_if_truncated(recording)
     series = len(run_data.series)

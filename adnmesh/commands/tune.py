@@ -15,6 +15,8 @@ from adnmesh.errors import UsageError
 from adnmesh.tuning.table import default_table_path
 #: shown in --help; equals adnmesh.tuning.subset_selection.MAX_ALL_DERS (not imported: the CLI stays light)
 MAX_ALL_DERS = 16
+#: --workers at most (processes; more than the machine's CPUs only cost memory)
+MAX_WORKERS = 1024
 
 __all__ = ["add_parser", "run"]
 
@@ -50,12 +52,13 @@ def run(args: argparse.Namespace) -> int:
     from adnmesh.tuning import tune_table, write_csv
     from adnmesh.tuning.subset_selection import select_subsets
 
-    if args.workers < 1:
-        raise UsageError(f"--workers must be >= 1, got {args.workers}")
+    if not 1 <= args.workers <= MAX_WORKERS:
+        raise UsageError(f"--workers must be 1 to {MAX_WORKERS}, got {args.workers}")
     if args.disk_margin_min is not None and not 0 < args.disk_margin_min < 2:
         raise UsageError(f"--disk-margin-min must be in (0, 2), got {args.disk_margin_min:g}")
-    if args.overshoot_max_pct is not None and not args.overshoot_max_pct > 0:
-        raise UsageError(f"--overshoot-max-pct must be positive, got {args.overshoot_max_pct:g}")
+    if args.overshoot_max_pct is not None and not 0 < args.overshoot_max_pct <= 100:
+        raise UsageError(f"--overshoot-max-pct must be in (0, 100] (as the config's "
+                         f"overshoot_max_pct), got {args.overshoot_max_pct:g}")
     config = load_config(args.config)
     subsets = select_subsets(config, args.subsets)
     out = args.out or default_table_path(config)

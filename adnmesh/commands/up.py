@@ -109,6 +109,9 @@ def external_agents(text: str | None, config: Config) -> frozenset[str]:
     from adnmesh.sim.topology import Topology
 
     agents = Topology.from_config(config).agents
+    if text is not None and not text.replace(",", "").strip():
+        raise UsageError(f"--external {text!r}: names no agent (KIND[:ID],..., e.g. "
+                         "der:SGen2,measurement)")
     found = set()
     for item in (text or "").split(","):
         item = item.strip().replace(":", "/", 1)
@@ -272,7 +275,9 @@ def _check_arguments(args: argparse.Namespace) -> None:
     if args.view is not None:
         from adnmesh.runtime.liveview import parse_view
 
-        parse_view(args.view)
+        view = parse_view(args.view)
+        if view.path is not None:
+            output_path(view.path, "--view")
     if args.routers and not (args.secure or args.certs):
         raise UsageError("--routers is for the secure profile (--secure); in the open profile "
                          "any router may link")
@@ -316,7 +321,7 @@ def run(args: argparse.Namespace) -> int:
     routers = tuple(n.strip() for n in (args.routers or "").split(",") if n.strip())
     if args.print_zenoh_config:
         return _print_zenoh_config(args, config, certs, routers)
-    if args.listen:
+    if args.listen is not None:
         check_listen(args.listen)
     run_id = f"{Path(config.path).stem}-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"
     out = output_path(Path(args.out) if args.out else Path("logs") / f"{run_id}.mcap", "--out")

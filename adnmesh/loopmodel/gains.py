@@ -35,9 +35,10 @@ def gain_problem(kp: float, ki: float, power_w: float | None = None) -> str | No
     few words (None: it is inside); ``power_w``, the loop's installed power in W, enables the
     check of the normalised gains."""
     for name, value, unit in (("K_P", kp, "1/W"), ("K_I", ki, "1/(W s)")):
-        if isinstance(value, bool) or not isinstance(value, (int, float)) \
-                or not math.isfinite(value) or value <= 0:
-            return f"{name} must be a finite positive gain ({unit}), got {value!r}"
+        if not (math.isfinite(_float(value)) and _float(value) > 0):
+            text = repr(value) if len(repr(value)) <= 40 else repr(value)[:37] + "..."
+            return f"{name} must be a finite positive gain ({unit}), got {text}"
+    kp, ki = float(kp), float(ki)
     if power_w is not None:
         for name, value, unit in (("K_P", kp, ""), ("K_I", ki, " 1/s")):
             if value * power_w > MAX_NORMALISED_GAIN:
@@ -48,3 +49,14 @@ def gain_problem(kp: float, ki: float, power_w: float | None = None) -> str | No
         return (f"K_P / K_I is {kp / ki:.4g} s, more than the numerics take ({MAX_PI_ZERO_S:g} "
                 "s: the stability certificate needs the PI zero above 1e-9 rad/s)")
     return None
+
+
+def _float(value) -> float:
+    """``value`` as a float; NaN for what is no number (booleans included), inf for an integer
+    too large for a float (a table's JSON may hold 10**400)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return math.nan
+    try:
+        return float(value)
+    except OverflowError:
+        return math.inf

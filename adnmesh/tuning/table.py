@@ -233,7 +233,10 @@ def _check_entry(row, at: str, known: set[str]) -> None:
             raise ValueError(f"{at}.w: {der_id!r} is not a DER of the entry")
         if not (_number(w) and 0 <= w <= 1):
             raise ValueError(f"{at}.w.{der_id}: must be a weight in [0, 1], got {_show(w)}")
-    if row["feasible"] and all(weights.get(d, 1.0) == 0 for d in ders):
+    missing = [d for d in ders if d not in weights]
+    if missing:
+        raise ValueError(f"{at}.w: no weight for {missing[0]!r} (one per DER of the entry)")
+    if row["feasible"] and not any(weights.values()):
         raise ValueError(f"{at}.w: every weight is 0 in a feasible entry")
     if row.get("reason") is not None and not isinstance(row["reason"], str):
         raise ValueError(f"{at}.reason: must be a text or null, got {_show(row['reason'])}")
@@ -247,8 +250,8 @@ def check_table(obj) -> None:
     says whether it is ``feasible``, has gains ``kp`` (1/W) and ``ki`` (1/(W s)) the loop
     numerics take (:func:`adnmesh.loopmodel.gains.gain_problem`: finite, positive, ``K_P /
     K_I`` at most 1e9 s) where it is feasible (an infeasible entry may have none: null), and
-    weights ``w`` of its own DERs in [0, 1], not all 0 in a feasible entry (a missing weight
-    is 1; Find W gives 0 to a DER that can take no share).
+    weights ``w``, one per DER of the entry, in [0, 1] and not all 0 in a feasible entry (Find
+    W gives 0 to a DER that can take no share).
 
     Raises
     ------
