@@ -62,16 +62,17 @@ def small_data(load_model: str = "impedance"):
 
 
 def runpp_sample(net, names, p_w):
-    """pandapower's own result with the named sgens at ``p_w``: (P_IP, Q_IP, vm min, vm max,
-    line loading max, trafo loading max), MV -> HV positive."""
+    """pandapower's own result with the named sgens at ``p_w``: (P_IP, Q_IP, vm min, vm max
+    over the buses but the slack's, line loading max, trafo loading max), MV -> HV positive."""
     index = net.sgen.index[net.sgen.name.isin(names)]
     order = {n: i for i, n in enumerate(names)}
     for i in index:
         net.sgen.at[i, "p_mw"] = p_w[order[net.sgen.at[i, "name"]]] / 1e6
     pp.runpp(net)
     ext = net.res_ext_grid.iloc[0]
-    return (-ext.p_mw * 1e6, -ext.q_mvar * 1e6, net.res_bus.vm_pu.min(),
-            net.res_bus.vm_pu.max(), net.res_line.loading_percent.max(),
+    adn = net.res_bus.vm_pu[~net.bus.index.isin(net.ext_grid.bus)]   # not the slack's
+    return (-ext.p_mw * 1e6, -ext.q_mvar * 1e6, adn.min(), adn.max(),
+            net.res_line.loading_percent.max(),
             net.res_trafo.loading_percent.max())
 
 
@@ -129,6 +130,18 @@ def test_small_net_keeps_the_loop_switch_open():
     open_, closed_ = (GridSolver(d, SMALL_ACTUATORS).solve(p) for d in (data, closed_data))
     assert closed_.vm_min_pu - open_.vm_min_pu > 1e-3          # the loop supports the far end
     assert abs(closed_.line_loading_max_pct - open_.line_loading_max_pct) > 0.3
+
+
+def test_voltage_extremes_leave_out_the_slack():
+    """The slack's voltage is the upper grid's, a constant: the extremes are the ADN's buses'
+    (with little load and generation at the far end, the slack would be the lowest)."""
+    data = small_data()
+    solver = GridSolver(data, SMALL_ACTUATORS)
+    sample = solver.solve([4.0e6, 1.0e6])
+    vm = np.abs(solver.voltages_pu[data.report_bus])       # bus 0 of the net: the HV slack
+    assert vm[0] == pytest.approx(1.02)
+    assert (sample.vm_min_pu, sample.vm_max_pu) == (vm[1:].min(), vm[1:].max())
+    assert sample.vm_max_pu > 1.02
 
 
 def test_small_net_loads_are_constant_impedances():

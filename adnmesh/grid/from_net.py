@@ -138,13 +138,18 @@ def _differences(data: GridData, reference) -> list:
     if not sample.converged:
         return ["no convergence"]
     vm = np.abs(solver.voltages_pu[data.report_bus])
-    vm_ref = reference.res_bus.vm_pu[reference.bus.in_service.to_numpy(dtype=bool)].to_numpy()
-    ext = reference.res_ext_grid.loc[reference.ext_grid.index[reference.ext_grid.in_service]]
+    in_service = reference.bus.in_service.to_numpy(dtype=bool)
+    vm_ref = reference.res_bus.vm_pu[in_service].to_numpy()
+    slack = reference.ext_grid.index[reference.ext_grid.in_service]
+    ext = reference.res_ext_grid.loc[slack]
+    adn = reference.res_bus.vm_pu[in_service & ~reference.bus.index.isin(
+        reference.ext_grid.bus[slack])]              # the solver's extremes leave out the slack
+    adn = adn if len(adn) else reference.res_bus.vm_pu[in_service]
     pairs = [("p_w", sample.p_ip_w, -ext.p_mw.iloc[0] * 1e6),
              ("p_w", sample.q_ip_var, -ext.q_mvar.iloc[0] * 1e6),
              ("vm_pu", float(np.max(np.abs(vm - vm_ref))), 0.0),
-             ("vm_pu", sample.vm_min_pu, reference.res_bus.vm_pu.min()),
-             ("vm_pu", sample.vm_max_pu, reference.res_bus.vm_pu.max())]
+             ("vm_pu", sample.vm_min_pu, adn.min()),
+             ("vm_pu", sample.vm_max_pu, adn.max())]
     if len(reference.line):
         pairs.append(("loading_pct", sample.line_loading_max_pct,
                       reference.res_line.loading_percent.max()))

@@ -10,7 +10,9 @@ actuators' reactive power stays at its study-case value.
 
 Results (:class:`GridSample`) follow pandapower's definitions: ``P_IP``/``Q_IP`` are the external
 grid's injection with the sign turned, so that power flowing from the MV grid into the 110 kV
-grid is positive; voltage extremes over the net's buses (``res_bus.vm_pu``); loadings as
+grid is positive; voltage extremes over the net's buses (``res_bus.vm_pu``) except the external
+grid's (the slack's voltage is set by the upper grid, a constant: it is no voltage of the ADN,
+and at the reference case it would be the lowest, a flat line); loadings as
 ``res_line.loading_percent`` (the larger end current over ``max_i_ka · df · parallel``) and
 ``res_trafo.loading_percent`` (pandapower's default ``trafo_loading="current"``: the larger of
 ``i_hv · vn_hv_kv`` and ``i_lv · vn_lv_kv``, times √3, over ``sn_mva · parallel · df``).
@@ -44,7 +46,7 @@ class GridSample:
         Active and reactive power at the interconnection point (the slack, 110 kV side),
         positive from the MV grid to the HV grid, W and var.
     vm_min_pu, vm_max_pu : float
-        Lowest and highest bus voltage, p.u.
+        Lowest and highest bus voltage, p.u., over the net's buses but the slack's.
     line_loading_max_pct, trafo_loading_max_pct : float
         Highest line and transformer loading, % (pandapower's definitions; NaN if none).
     converged : bool
@@ -107,6 +109,7 @@ class GridSolver:
         _single_slack_nr(self._grid)
         self._max_iter, self._tol = int(max_iter), float(tol_pu)
         self._v = data.v_init.astype(complex).copy()
+        self._report_bus = _without_slack(data.report_bus, self._grid, data.slack_gen)
         self._line_factor = 100.0 / data.line_i_max_ka
         self._hv_factor = _SQRT3 * 100.0 * data.trafo_vn_hv_kv / data.trafo_rating_mva
         self._lv_factor = _SQRT3 * 100.0 * data.trafo_vn_lv_kv / data.trafo_rating_mva
@@ -152,7 +155,7 @@ class GridSolver:
     def _sample(self, iterations: int) -> GridSample:
         grid, d = self._grid, self.data
         p_gen, q_gen, _ = grid.get_gen_res()
-        vm = np.abs(self._v[d.report_bus])
+        vm = np.abs(self._v[self._report_bus])
         line = np.maximum(grid.get_line_res1()[3], grid.get_line_res2()[3]) * self._line_factor
         trafo = np.maximum(grid.get_trafo_res1()[3] * self._hv_factor,
                            grid.get_trafo_res2()[3] * self._lv_factor)
@@ -161,6 +164,14 @@ class GridSolver:
                           vm_min_pu=float(vm.min()), vm_max_pu=float(vm.max()),
                           line_loading_max_pct=_max(line), trafo_loading_max_pct=_max(trafo),
                           converged=True, iterations=iterations)
+
+
+def _without_slack(report_bus: np.ndarray, grid, slack_gen: int) -> np.ndarray:
+    """The model buses whose voltages are reported: ``report_bus`` but the slack's (all of
+    them if the slack's is the only one)."""
+    slack_bus = grid.get_generators()[slack_gen].bus_id
+    buses = report_bus[report_bus != slack_bus]
+    return buses if buses.size else report_bus
 
 
 def _max(values: np.ndarray) -> float:
