@@ -43,13 +43,22 @@ def test_events_are_foxglove_log_messages_beside_the_run(logged: Path) -> None:
         assert set(body) == {"timestamp", "level", "message", "name", "file", "line"}
         t = body["timestamp"]
         assert t["sec"] * 10**9 + t["nsec"] == m.publish_time_ns == m.log_time_ns
-    # the same texts replay and inspect show (DER mode changes come as agents' events)
-    shown = {(e.t_ns, e.text) for e in extract(recording).events if e.kind != "der_mode"}
-    assert {(m.publish_time_ns, m.payload()["message"]) for m in logs} == shown
+    # the same texts replay and inspect show (DER mode changes come as agents' events), the
+    # kind first; name: the agent the event is about or that sent it, as Foxglove defines it
+    about = {"gain_switch": lambda e: "cpfc", "availability": lambda e: "availability",
+             "fault": lambda e: f"der/{e.data['der']}",
+             "der_available": lambda e: f"der/{e.data['der']}"}
+    shown = {(e.t_ns, f"[{e.kind}] {e.text}", about[e.kind](e))
+             for e in extract(recording).events if e.kind != "der_mode"}
+    assert {(m.publish_time_ns, m.payload()["message"], m.payload()["name"])
+            for m in logs} == shown
+    assert {(m.payload()["file"], m.payload()["line"]) for m in logs} == {("", 0)}   # no file
+    assert {m.payload()["name"] for m in logs} == {"cpfc", "availability", "der/CHP1",
+                                                   "der/WT1", "der/WT2"}
     levels = {m.payload()["message"]: m.payload()["level"] for m in logs}
-    assert any(text.startswith("gain switch") and level == LOG_LEVELS["INFO"]
+    assert any(text.startswith("[gain_switch] gain switch") and level == LOG_LEVELS["INFO"]
                for text, level in levels.items())
-    assert any(text.startswith("fault ") and level == LOG_LEVELS["WARN"]
+    assert any(text.startswith("[fault] fault ") and level == LOG_LEVELS["WARN"]
                for text, level in levels.items())
 
 
@@ -91,3 +100,37 @@ def test_the_recorder_takes_its_events_from_outside(tmp_path: Path) -> None:
     assert log.payload()["message"] == "saw adn/fake/measurement/p_ip"
     with pytest.raises(ValueError, match="give both or neither"):
         Recorder(tmp_path / "half.mcap", metadata={}, schemas=FAKE_SCHEMAS, events_topic=EVENTS)
+
+
+def test_each_record_names_the_agent_it_is_about_or_that_sent_it() -> None:
+    """Foxglove's ``name`` is the process: the agent an event is about (a lost agent, a
+    fault's target, a DER's heartbeat) or that sent it; the kind leads the message."""
+    from adnmesh.wire.keys import Keys, route
+    from payloads import payload
+
+    keys = Keys("g")
+    log = EventLog()
+
+    def records(key: str, body: dict, src: str | None = None) -> list[tuple[str, str]]:
+        found = log.observe(key, route(key).type, payload(key, body, src=src), 5)
+        return [(json.loads(r)["name"], json.loads(r)["message"]) for r in found]
+
+    lost = {"level": "ERROR", "kind": "agent_lost", "text": "der/SGen3 died",
+            "subject": "der/SGen3"}
+    assert records(keys.of("event", "up"), lost) == [
+        ("der/SGen3", "[agent_lost] up: der/SGen3 died")]
+    stale = {"level": "WARNING", "kind": "si_stale", "text": "no SI for 2 s"}
+    assert records(keys.of("event", "cpfc"), stale) == [("cpfc", "[si_stale] cpfc: no SI for 2 s")]
+    kill = {"fault_id": 1, "kind": "kill", "agent": "measurement", "start_ns": 5, "end_ns": None}
+    outage = {"fault_id": 2, "kind": "link_outage", "link": "cpfc_to_der", "start_ns": 5,
+              "end_ns": 9}
+    assert [name for name, _ in records(keys.of("fault"), kill)] == ["measurement"]
+    assert [name for name, _ in records(keys.of("fault"), outage)] == ["up"]
+    start = {"clock": "sim", "epoch_ns": 0, "speed": 1.0, "end_ns": 10**10, "seed": 1}
+    (run_start,) = records(keys.of("clock_start"), start)
+    assert run_start[0] == "up" and run_start[1].startswith("[run_start] run starts: sim clock")
+    (record,) = log.observe("adn/g/rejected", "rejected", json.dumps(
+        {"key": "adn/g/cpfc/p_y", "reason": "sender", "detail": "x"}).encode(), 7)
+    rejected = json.loads(record)
+    assert (rejected["name"], rejected["message"]) == (
+        "up", "[rejected] rejected a payload on adn/g/cpfc/p_y: sender (x)")

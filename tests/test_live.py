@@ -10,6 +10,7 @@ import os
 import signal
 import threading
 import time
+import urllib.parse
 from collections import deque
 from pathlib import Path
 
@@ -39,14 +40,15 @@ def texts(entity: dict[str, list]) -> list[tuple[int, str]]:
     return sorted(zip(entity[SIM_TIMELINE], entity["TextLog:text"]))
 
 
-def compare_with_replay(live_rrd: Path, replay_rrd: Path, run) -> None:
+def compare_with_replay(live_rrd: Path, replay_rrd: Path, run, limits=None) -> None:
     """Every series and event log of the replay is in the live file: dense series sample for
-    sample; step series with every real sample, held values equal to the value held."""
-    from adnmesh.results.rerun_export import rerun_entity_path
+    sample; step series with every real sample, held values equal to the value held (the
+    grid's band, ``limits``, is a step series too)."""
+    from adnmesh.results.rerun_export import limit_series, rerun_entity_path
 
     live, replay = rrd_columns(live_rrd), rrd_columns(replay_rrd)
     real = {rerun_entity_path(s.entity_path): set(s.t_ns.tolist())
-            for s in run.series.values() if s.step}
+            for s in [*run.series.values(), *limit_series(run, limits)] if s.step}
     compared = 0
     for path, entity in replay.items():
         if "Scalars:scalars" in entity:
@@ -138,15 +140,19 @@ def test_the_web_viewer_listens_on_127_0_0_1_only(tmp_path) -> None:
     view = open_view(ViewTarget("web"), "test", lines.append)
     try:
         pid = view.viewer_pid
-        url = next(line for line in lines if "web viewer at http://127.0.0.1:" in line)
-        web_port = int(url.split("http://127.0.0.1:")[1].split("/")[0])
+        line = next(line for line in lines if "web viewer: open http://127.0.0.1:" in line)
+        url = urllib.parse.urlsplit(line.split("open ")[1].split()[0])
+        web_port = url.port
+        (data,) = urllib.parse.parse_qs(url.query)["url"]    # opens the viewer on the data
+        grpc = urllib.parse.urlsplit(data)
+        assert (grpc.scheme, grpc.hostname, grpc.path) == ("rerun+http", "127.0.0.1", "/proxy")
         found: set[str] = set()
         deadline = time.monotonic() + 30
         while len(found) < 2 and time.monotonic() < deadline:   # poll the process's sockets
             found = _listening(pid)
             threading.Event().wait(0.05)
         assert view.error is None
-        assert f"127.0.0.1:{web_port}" in found
+        assert {f"127.0.0.1:{web_port}", f"127.0.0.1:{grpc.port}"} <= found
         assert found and all(a.startswith("127.0.0.1:") for a in found), found
     finally:
         view.close()
@@ -194,3 +200,45 @@ def test_both_views_queue_what_they_are_given_by_one_take() -> None:
     queue.take("b", "p_y", [(b"{}", 4, 3)])
     assert queue.taken() == [("a", "p_ip", [(b"{}", 2, 1)]), ("b", "p_y", [(b"{}", 4, 3)])]
     assert queue.taken() == []
+
+
+def test_the_live_view_draws_the_band_and_keeps_each_ders_colour(tmp_path) -> None:
+    """The band comes with the grid's first report and is held as the run goes; a DER seen
+    later moves the others' colours to those replay gives them (natural order of ids)."""
+    import rerun as rr
+
+    from adnmesh.config import GridLimits
+    from adnmesh.results.rules import der_colors
+    from adnmesh.wire.keys import Keys, route
+    from payloads import payload
+
+    keys = Keys("g")
+    rec = rr.RecordingStream(APPLICATION_ID, recording_id="band")
+    rec.save(tmp_path / "live.rrd")
+    view = LiveView(rec, limits=GridLimits(v_min_pu=0.95, v_max_pu=1.05, loading_max_pct=80))
+    grid = {"v_min_pu": 1.01, "v_max_pu": 1.04, "line_loading_max_pct": 40.0,
+            "trafo_loading_max_pct": 30.0, "q_ip_var": 3.5e5, "samples": 100,
+            "outside_band": 0, "not_converged": 0}
+    for i, der in enumerate(["SGen10", "SGen2"]):      # SGen2 comes 3 s later
+        for s in range(1, 4):
+            t_ns = (3 * i + s) * 1_000_000_000
+            for key, body in ((keys.of("der_state", der), {"p_w": 1e6, "setpoint_w": 1e6,
+                                                           "mode": "control"}),
+                              (keys.of("grid_state"), grid)):
+                data = payload(key, body, seq=3 * i + s, t_send_ns=t_ns)
+                view.take(key, route(key).type, [(data, t_ns, t_ns)])
+            view.send_pending()
+    view.close()
+    assert view.error is None
+    live = rrd_columns(tmp_path / "live.rrd")
+    band = live["/adn/g/measurement/grid/limits/v_min_pu"]
+    assert {v[0] for v in band["Scalars:scalars"]} == {0.95}
+    assert max(band[SIM_TIMELINE]) == 6_000_000_000                  # held to the newest time
+    assert {v[0] for v in live["/adn/g/measurement/grid/limits/loading_max_pct"][
+        "Scalars:scalars"]} == {80.0}
+    colors = der_colors(["SGen2", "SGen10"])
+    first = live["/adn/g/der/SGen10/state/p_w"]["SeriesLines:colors"][0][0]
+    assert first != live["/adn/g/der/SGen10/state/p_w"]["SeriesLines:colors"][-1][0]  # moved
+    for der in ("SGen2", "SGen10"):
+        rgba = live[f"/adn/g/der/{der}/state/p_w"]["SeriesLines:colors"][-1][0]   # the last
+        assert (rgba >> 24 & 255, rgba >> 16 & 255, rgba >> 8 & 255) == colors[der]

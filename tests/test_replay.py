@@ -42,9 +42,11 @@ def rrd(fake: Path) -> dict[str, dict[str, list]]:
     return rrd_columns(out, reader)
 
 
-def _mcap_values(recording, topic: str, field: str) -> list[tuple[int, int, float]]:
-    """(send time, delivery time, value) of ``field`` on ``topic``, read straight from MCAP."""
-    return sorted((m.publish_time_ns, m.log_time_ns, float(m.payload()[field]))
+def _mcap_values(recording, topic: str, field: str,
+                 factor: float = 1.0) -> list[tuple[int, int, float]]:
+    """(send time, delivery time, value times ``factor``) of ``field`` on ``topic``, read
+    straight from MCAP."""
+    return sorted((m.publish_time_ns, m.log_time_ns, float(m.payload()[field]) * factor)
                   for m in recording.messages if m.topic == topic)
 
 
@@ -54,15 +56,17 @@ def _rrd_values(rrd, path: str) -> list[tuple[int, int, float]]:
     return sorted(zip(entity[SIM_TIMELINE], entity[DELIVERY_TIMELINE], values))
 
 
-@pytest.mark.parametrize("topic, field", [
-    ("adn/fake/scenario/p_ref", "p_ref_w"),
-    ("adn/fake/measurement/p_ip", "p_ip_w"),
-    ("adn/fake/cpfc/p_y", "p_y"),
-    ("adn/fake/cpfc/p_y", "kp"),
-    *[(f"adn/fake/der/{d}/state", f) for d in FAKE_DERS for f in ("p_w", "setpoint_w")],
+@pytest.mark.parametrize("topic, field, factor", [
+    ("adn/fake/scenario/p_ref", "p_ref_w", 1e-6),          # MW
+    ("adn/fake/measurement/p_ip", "p_ip_w", 1e-6),
+    ("adn/fake/cpfc/p_y", "p_y", 1.0),                      # per unit
+    ("adn/fake/cpfc/p_y", "kp", 1e6),                       # 1/MW
+    ("adn/fake/cpfc/p_y", "ki", 1e6),                       # 1/(MW s)
+    *[(f"adn/fake/der/{d}/state", f, 1e-6) for d in FAKE_DERS for f in ("p_w", "setpoint_w")],
 ])
-def test_values_read_back_from_the_rrd_equal_the_mcap_values(fake, rrd, topic, field) -> None:
-    expected = _mcap_values(read_recording(fake), topic, field)
+def test_values_read_back_from_the_rrd_are_the_mcap_values_in_mw(fake, rrd, topic, field,
+                                                                  factor) -> None:
+    expected = _mcap_values(read_recording(fake), topic, field, factor)
     assert len(expected) > 1
     got = _rrd_values(rrd, f"/{topic}/{field}")
     sent = {t for t, _, _ in expected}
@@ -86,18 +90,55 @@ def test_step_series_hold_their_value_through_the_whole_run(fake) -> None:
     assert held(p_ip, 60_100_000_000) is p_ip                       # not a step series
 
 
-def test_named_series_and_step_interpolation_in_the_rrd(rrd) -> None:
+def _style(rrd, path: str) -> tuple[str, int, tuple[int, int, int]]:
+    """Name, interpolation mode and RGB colour of the series at ``path``."""
+    entity = rrd[rerun_entity_path(path)]
+    rgba = entity["SeriesLines:colors"][0][0]
+    return (entity["SeriesLines:names"][0][0], entity["SeriesLines:interpolation_mode"][0][0],
+            (rgba >> 24 & 255, rgba >> 16 & 255, rgba >> 8 & 255))
+
+
+def test_named_series_with_their_units_and_step_interpolation_in_the_rrd(rrd) -> None:
     def style(path: str) -> tuple[str, int]:
-        entity = rrd[rerun_entity_path(path)]
-        return entity["SeriesLines:names"][0][0], entity["SeriesLines:interpolation_mode"][0][0]
+        return _style(rrd, path)[:2]
 
     linear, step_after = 1, 2
-    assert style("/adn/fake/measurement/p_ip/p_ip_w") == ("P_IP", linear)
-    assert style("/adn/fake/scenario/p_ref/p_ref_w") == ("P_ref", step_after)
+    assert style("/adn/fake/measurement/p_ip/p_ip_w") == ("P_IP [MW]", linear)
+    assert style("/adn/fake/scenario/p_ref/p_ref_w") == ("P_ref [MW]", step_after)
     assert style("/adn/fake/cpfc/p_y/p_y") == ("P_Y", linear)
-    assert style("/adn/fake/der/WT1/state/p_w") == ("WT1 infeed", linear)
-    assert style("/adn/fake/der/CHP1/state/setpoint_w") == ("CHP1 setpoint", step_after)
+    assert style("/adn/fake/cpfc/p_y/kp") == ("K_P [1/MW]", step_after)
+    assert style("/adn/fake/cpfc/p_y/ki") == ("K_I [1/(MW s)]", step_after)
+    assert style("/adn/fake/der/WT1/state/p_w") == ("WT1 infeed [MW]", linear)
+    assert style("/adn/fake/der/CHP1/state/setpoint_w") == ("CHP1 setpoint [MW]", step_after)
     assert style("/adn/fake/availability/si/available/WT2") == ("WT2 available", step_after)
+    assert style("/adn/fake/availability/si/available_count") == ("DERs available", step_after)
+
+
+def test_every_der_has_its_own_colour_and_its_setpoint_a_lighter_one(rrd) -> None:
+    from adnmesh.results.rules import DER_COLORS, lighter
+
+    infeed = {d: _style(rrd, f"/adn/fake/der/{d}/state/p_w")[2] for d in FAKE_DERS}
+    setpoint = {d: _style(rrd, f"/adn/fake/der/{d}/state/setpoint_w")[2] for d in FAKE_DERS}
+    available = {d: _style(rrd, f"/adn/fake/availability/si/available/{d}")[2]
+                 for d in FAKE_DERS}
+    assert len(set(infeed.values())) == len(FAKE_DERS)               # one colour per DER
+    assert infeed["CHP1"] == DER_COLORS[0] and infeed["WT2"] == DER_COLORS[3]   # natural order
+    for d in FAKE_DERS:
+        assert setpoint[d] == lighter(infeed[d]) != infeed[d]        # related, told apart
+        assert sum(setpoint[d]) > sum(infeed[d])
+        assert available[d] == infeed[d]
+    assert not set(setpoint.values()) & set(infeed.values())
+
+
+def test_der_colours_are_distinct_for_many_ders() -> None:
+    from adnmesh.results.rules import DER_COLORS, der_colors, natural_key
+
+    ids = [f"SGen{i}" for i in range(1, 41)]
+    colors = der_colors(reversed(ids))
+    assert len(set(colors.values())) == 40
+    assert sorted(ids, key=natural_key)[:3] == ["SGen1", "SGen2", "SGen3"]
+    assert der_colors(["SGen10", "SGen2"])["SGen2"] == DER_COLORS[0]   # 2 before 10
+    assert colors["SGen2"] == DER_COLORS[1]
 
 
 def test_availability_is_a_step_series_per_der(rrd) -> None:
@@ -281,12 +322,193 @@ def test_the_time_plot_has_the_gains_on_their_own_panel_with_units(fake) -> None
     from adnmesh.results.time_plot import plot_run
     from adnmesh.results.series import read_run
 
-    fig = plot_run(read_run(fake)[0].run, title="fake run")
+    run = read_run(fake)[0].run
+    fig = plot_run(run, title="fake run")
     panels = [ax for ax in fig.axes if ax.get_ylabel()]
     gains = [ax for ax in panels if ax.get_ylabel().startswith("K_P, K_I")]
     assert len(gains) == 1 and gains[0].get_yscale() == "log"
     labels = {line.get_label() for line in gains[0].get_lines()}
-    assert {"K_P [1/W]", "K_I [1/(W s)]"} <= labels
+    assert {"K_P [1/MW]", "K_I [1/(MW s)]"} <= labels
     assert not any(line.get_label().startswith("K_") for ax in panels if ax is not gains[0]
                    for line in ax.get_lines())
     assert fig.get_suptitle().startswith(f"fake run: {len(FAKE_DERS)} DERs, sim time 0–")
+    # every gain lies between labelled ticks, with ticks enough to read it
+    shown = np.concatenate([run.one("kp").values, run.one("ki").values]) * 1e6   # per MW
+    ticks = [t for t in gains[0].get_yticks() if gains[0].get_ylim()[0] <= t
+             <= gains[0].get_ylim()[1]]
+    assert len(ticks) >= 4 and min(ticks) < shown.min() and max(ticks) > shown.max()
+    fig.canvas.draw()
+    assert all(t.get_text() for t in gains[0].get_yticklabels())
+
+
+def test_the_time_plot_is_in_mw_with_every_der_and_a_legend_per_axis(fake) -> None:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    from adnmesh.results.rules import der_colors, lighter
+    from adnmesh.results.series import read_run
+    from adnmesh.results.time_plot import plot_run
+
+    run = read_run(fake)[0].run
+    fig = plot_run(run)
+    FigureCanvasAgg(fig).draw()
+    by_label = {ax.get_ylabel(): ax for ax in fig.axes}
+    top = by_label["active power at the IP [MW]"]
+    p_ip = next(line for line in top.get_lines() if line.get_label() == "P_IP [MW]")
+    assert np.array_equal(p_ip.get_ydata(), run.one("p_ip").values * 1e-6)
+    ders = by_label["DER infeed, set-point [MW]"]
+    legend = [t.get_text() for t in ders.get_legend().get_texts()]
+    assert legend == ["CHP1", "PV1", "WT1", "WT2", "infeed", "set-point"]   # every DER
+    colors = {d: tuple(c / 255 for c in rgb) for d, rgb in der_colors(FAKE_DERS).items()}
+    drawn = {(line.get_color(), line.get_linestyle()) for line in ders.get_lines()}
+    for der, rgb in colors.items():          # its infeed solid, its set-point lighter, dashed
+        assert (rgb, "-") in drawn
+        assert (tuple(c / 255 for c in lighter(der_colors(FAKE_DERS)[der])), "--") in drawn
+    for ax in fig.axes:                      # a legend per axis, of that axis' lines only
+        if ax.get_legend() is not None and ax is not ders:
+            own = {line.get_label() for line in ax.get_lines()} | {
+                p.get_label() for p in ax.patches} | {c.get_label() for c in ax.collections}
+            assert {t.get_text() for t in ax.get_legend().get_texts()} <= own
+
+
+def _availability_run(changes: list[float], end_s: float = 100.0):
+    """A run of P_IP alone whose available DERs change at ``changes`` (s): 10 DERs, one fewer
+    each time."""
+    from adnmesh.results.rules import Event
+    from adnmesh.results.series import RunData, Series
+
+    ders = [f"D{i}" for i in range(10)]
+    events = [Event(int(t * 1e9), "availability", "INFO", "", "adn/g/availability/si",
+                    {"available": ders[:10 - k]}) for k, t in enumerate([0.0, *changes])]
+    t = np.arange(0, int(end_s * 1e9) + 1, 100_000_000, dtype=np.int64)
+    p_ip = Series("P_IP", "/adn/g/measurement/p_ip/p_ip_w", "p_ip", "W", False, None,
+                  "adn/g/measurement/p_ip", t, t, np.full(t.size, 1e6))
+    return RunData({p_ip.entity_path: p_ip}, events, ders, 0)
+
+
+@pytest.mark.parametrize("changes", [[10.0, 12.0, 14.0], [97.0], [50.0, 51.0, 99.5],
+                                     [30.0, 60.0, 90.0]])
+def test_availability_labels_stay_inside_the_axes_and_apart(changes) -> None:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    from adnmesh.results.time_plot import plot_run
+
+    fig = plot_run(_availability_run(changes))
+    canvas = FigureCanvasAgg(fig)
+    canvas.draw()
+    top = fig.axes[0]
+    box = top.get_window_extent()
+    labels = [t for t in top.texts if "DERs available" in t.get_text()]
+    assert [t.get_text() for t in labels] == [f"{9 - k} of 10 DERs available"
+                                              for k in range(len(changes))]
+    extents = [t.get_window_extent(canvas.get_renderer()) for t in labels]
+    for extent in extents:
+        assert box.x0 <= extent.x0 and extent.x1 <= box.x1 + 0.5
+        assert box.y0 <= extent.y0 and extent.y1 <= box.y1 + 0.5
+    for i, a in enumerate(extents):
+        for b in extents[i + 1:]:
+            assert not a.overlaps(b), (a, b)
+
+
+def test_the_grid_panels_draw_the_band_and_the_limit(tmp_path: Path) -> None:
+    from adnmesh.results.series import read_run, recorded_grid_limits
+    from adnmesh.results.time_plot import plot_run
+
+    path = _grid_recording(tmp_path / "grid.mcap",
+                           "grid_model:\n  limits: {v_min_pu: 0.95, loading_max_pct: 80}\n")
+    found, _ = read_run(path)
+    fig = plot_run(found.run, limits=recorded_grid_limits(found.recording.run))
+    by_label = {ax.get_ylabel(): ax for ax in fig.axes}
+    voltage, loading = by_label["bus voltage [p.u.]"], by_label["loading [%]"]
+    flat = {line.get_label(): set(line.get_ydata()) for line in voltage.get_lines()}
+    assert flat["band: lowest allowed (0.95 p.u.)"] == {0.95}
+    assert flat["band: highest allowed (1.1 p.u.)"] == {1.1}
+    assert {1.01} == flat["lowest bus voltage"]
+    assert any(line.get_label() == "loading limit (80 %)" and set(line.get_ydata()) == {80}
+               for line in loading.get_lines())
+    q_ip = by_label["Q_IP [Mvar]"]
+    assert q_ip.get_lines()[0].get_ydata()[0] == pytest.approx(0.350001)
+    without = plot_run(found.run)          # no band known: none drawn
+    assert not any("band" in line.get_label() for ax in without.axes for line in ax.get_lines())
+
+
+def _grid_recording(path: Path, config: str) -> Path:
+    """A short recording of the runtime's P_IP and grid messages with ``config`` embedded."""
+    from adnmesh.recording import Recorder
+    from adnmesh.wire.keys import Keys, route
+    from adnmesh.wire.schemas import message_schemas
+    from payloads import payload
+
+    keys = Keys("g")
+    grid = {"v_min_pu": 1.01, "v_max_pu": 1.04, "line_loading_max_pct": 40.0,
+            "trafo_loading_max_pct": 30.0, "q_ip_var": 3.5e5, "samples": 100,
+            "outside_band": 0, "not_converged": 0}
+    with Recorder(path, metadata={"run_id": "grid", "config": config},
+                  schemas=message_schemas()) as recorder:
+        for i in range(1, 6):
+            t_ns = i * 1_000_000_000
+            for key, body in ((keys.of("p_ip"), {"p_ip_w": 16.5e6 + i}),
+                              (keys.of("grid_state"), {**grid, "q_ip_var": 3.5e5 + i})):
+                recorder.write(key, route(key).type, payload(key, body, seq=i, t_send_ns=t_ns),
+                               log_time_ns=t_ns, publish_time_ns=t_ns)
+    return path
+
+
+def test_the_grid_is_drawn_with_the_configured_band_and_q_ip_in_mvar(tmp_path: Path) -> None:
+    from adnmesh.results.series import read_run
+
+    config = "grid_model:\n  limits: {v_min_pu: 0.95, v_max_pu: 1.05}\n"   # loading: default
+    path = _grid_recording(tmp_path / "grid.mcap", config)
+    rrd = rrd_columns(export_rrd(read_recording(path), tmp_path / "grid.rrd"))
+    limits = "/adn/g/measurement/grid/limits"
+    for field, name, value in (("v_min_pu", "band: lowest [p.u.]", 0.95),
+                               ("v_max_pu", "band: highest [p.u.]", 1.05),
+                               ("loading_max_pct", "loading limit [%]", 100.0)):
+        values = _rrd_values(rrd, f"{limits}/{field}")
+        assert {v for _, _, v in values} == {value}
+        assert values[0][0] == 1_000_000_000 and values[-1][0] == 5_000_000_000   # the whole run
+        assert _style(rrd, f"{limits}/{field}")[:2] == (name, 2)
+    q_ip = _rrd_values(rrd, "/adn/g/measurement/grid/q_ip_var")
+    assert [v for _, _, v in q_ip] == [(3.5e5 + i) * 1e-6 for i in range(1, 6)]
+    assert _style(rrd, "/adn/g/measurement/grid/q_ip_var")[0] == "Q_IP [Mvar]"
+    assert _style(rrd, "/adn/g/measurement/grid/v_min_pu")[0] == "lowest bus voltage [p.u.]"
+    # without a grid model in the config: no band (and none is made up)
+    bare = _grid_recording(tmp_path / "bare.mcap", "grid: g\n")
+    assert not any("/limits/" in p for p in rrd_columns(export_rrd(
+        read_recording(bare), tmp_path / "bare.rrd")))
+    assert read_run(path)[0].run.one("grid_v_min").label == "lowest bus voltage [p.u.]"
+
+
+def _view_contents(container) -> dict[str, list[str]]:
+    """View name -> its entity paths, of every view in a blueprint's container."""
+    found = {}
+    for item in container.contents:
+        if hasattr(item, "kind"):                      # a container
+            found.update(_view_contents(item))
+        else:
+            found[str(item.name)] = list(item.contents)
+    return found
+
+
+def test_the_layout_shows_every_der_and_the_grid_with_its_band(fake, tmp_path: Path) -> None:
+    from adnmesh.results.rerun_export import blueprint, limit_series
+    from adnmesh.results.series import read_run, recorded_grid_limits
+
+    views = _view_contents(blueprint(extract(read_recording(fake))).root_container)
+    for role, view in (("infeed", "DER infeed [MW]"), ("setpoint", "DER set-points [MW]")):
+        assert sorted(views[view]) == sorted(
+            f"/adn/fake/der/{d}/state/{'p_w' if role == 'infeed' else 'setpoint_w'}"
+            for d in FAKE_DERS)
+    assert views["P_IP and P_ref [MW]"] and views["gains: K_P [1/MW], K_I [1/(MW s)]"]
+    assert not any(name.startswith("grid") for name in views)        # no grid model
+    path = _grid_recording(tmp_path / "grid.mcap", "grid_model: {}\n")
+    found, _ = read_run(path)
+    run = found.run
+    for series in limit_series(run, recorded_grid_limits(found.recording.run)):
+        run.series[series.entity_path] = series
+    views = _view_contents(blueprint(run).root_container)
+    limits = "/adn/g/measurement/grid/limits"
+    assert views["grid: bus voltages and the band [p.u.]"] == [
+        "/adn/g/measurement/grid/v_min_pu", "/adn/g/measurement/grid/v_max_pu",
+        f"{limits}/v_max_pu", f"{limits}/v_min_pu"]
+    assert views["grid: highest loadings and the limit [%]"][-1] == f"{limits}/loading_max_pct"
+    assert views["Q_IP [Mvar]"] == ["/adn/g/measurement/grid/q_ip_var"]

@@ -156,14 +156,15 @@ def test_the_live_view_streamed_during_the_run_equals_its_replay(reference_run) 
     """``up --view FILE.rrd`` (a Rerun stream to a file, headless) during the run: the same
     series and events as ``adnmesh replay`` of its recording."""
     from adnmesh.results.rerun_export import export_rrd
-    from adnmesh.results.series import extract
+    from adnmesh.results.series import extract, recorded_grid_limits
     from test_live import compare_with_replay
 
     tmp_path, _, _, result, recording, _ = reference_run
     assert f"live view: streaming to {tmp_path / 'live.rrd'}" in result.stderr
     assert "live view stopped" not in result.stderr
     export_rrd(recording, tmp_path / "replay.rrd")
-    compare_with_replay(tmp_path / "live.rrd", tmp_path / "replay.rrd", extract(recording))
+    compare_with_replay(tmp_path / "live.rrd", tmp_path / "replay.rrd", extract(recording),
+                        recorded_grid_limits(recording.run))
 
 
 def test_gain_switch_is_bumpless_in_the_distributed_run(reference_run) -> None:

@@ -17,10 +17,13 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     """Add the ``plot`` subparser."""
     parser = subparsers.add_parser(
         "plot",
-        help="draw P_IP, P_ref, P_Y and the gains of a recording",
+        help="draw P_IP, P_ref, the DERs, P_Y, the gains and the grid of a recording",
         description="Draw the time plot of the recording RUN: P_IP and P_ref in MW, with "
-        "changes of the available DERs and faults shaded; below, P_Y and the active gains "
-        "K_P, K_I. The format follows the suffix of FIG (png, pdf, svg, ...).",
+        "changes of the available DERs and faults shaded; below, every DER's infeed and "
+        "set-point (MW), P_Y, the active gains K_P (1/MW) and K_I (1/(MW s)) and, with a grid "
+        "model, the bus voltage extremes and the loadings with the configured band, and Q_IP "
+        "(Mvar). The format follows the suffix of FIG (png, pdf, svg, ...). Exit code 0 when "
+        "written, 2 for a user error (no such file, not an MCAP file, an unknown format).",
     )
     parser.add_argument("recording", metavar="RUN", help="recording (.mcap), e.g. logs/<run>.mcap")
     parser.add_argument("-o", "--out", metavar="FIG", type=Path,
@@ -32,6 +35,7 @@ def run(args: argparse.Namespace) -> int:
     """Draw ``args.recording`` into ``args.out``."""
     from matplotlib.figure import Figure
 
+    from adnmesh.results.series import recorded_grid_limits
     from adnmesh.results.time_plot import save_plot
 
     out = args.out or Path(args.recording).with_suffix(".png")
@@ -45,6 +49,7 @@ def run(args: argparse.Namespace) -> int:
     note_if_truncated(recording)
     title = recording.run.get("run_id") or Path(args.recording).stem
     clock = recording.run.get("clock")
-    save_plot(found.run, out, title=f"{title} ({clock} clock)" if clock else title)
+    save_plot(found.run, out, title=f"{title} ({clock} clock)" if clock else title,
+              limits=recorded_grid_limits(recording.run))
     print(f"{out}: written")
     return 0

@@ -21,10 +21,14 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "replay",
         help="convert a recording to Rerun (.rrd file or a viewer)",
         description="Convert the MCAP recording RUN into Rerun data: scalars on a sim_time "
-        "timeline at entity paths named after the bus keys, named series (P_ref, P_IP, P_Y, "
-        "every DER's setpoint and infeed, availability), events as text logs, and a layout of "
-        "the main plots. By default writes RUN with the suffix .rrd (no display needed); "
-        "--spawn and --web write the same file and open it in a viewer bound to 127.0.0.1.",
+        "timeline at entity paths named after the bus keys, named series with their units "
+        "(P_ref, P_IP, every DER's set-point and infeed in MW, P_Y, K_P in 1/MW, K_I in "
+        "1/(MW s), availability, the grid with its band, Q_IP in Mvar), events as text logs, "
+        "and a layout of the main plots. By default writes RUN with the suffix .rrd (no "
+        "display needed); "
+        "--spawn and --web write the same file and open it in a viewer bound to 127.0.0.1. "
+        "Exit code 0 when written (with --web: the viewer's own when it ends; 130/143 after "
+        "Ctrl-C/SIGTERM), 2 for a user error (no such file, not an MCAP file, a bad port).",
     )
     parser.add_argument("recording", metavar="RUN", help="recording (.mcap), e.g. logs/<run>.mcap")
     target = parser.add_mutually_exclusive_group()
@@ -34,7 +38,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         help="also open it in the native Rerun viewer")
     target.add_argument("--web", action="store_true",
                         help="also serve the Rerun web viewer at http://127.0.0.1:WEB_PORT "
-                        "until Ctrl-C")
+                        "until Ctrl-C; prints the address that opens it on the data "
+                        "(http://127.0.0.1:WEB_PORT/?url=...)")
     parser.add_argument("--web-port", type=int, default=9090,
                         help="HTTP port of the web viewer (default 9090)")
     return parser
@@ -50,7 +55,7 @@ def note_if_truncated(recording) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Convert ``args.recording``; write the .rrd and, if asked, start a viewer on it."""
-    from adnmesh.results.rerun_export import export_rrd, viewer_command
+    from adnmesh.results.rerun_export import export_rrd, viewer_command, web_viewer_url
 
     if not 0 < args.web_port < 65536:
         raise UsageError(f"--web-port must be a port number (1-65535), got {args.web_port}")
@@ -67,9 +72,12 @@ def run(args: argparse.Namespace) -> int:
                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         print(f"opened {out} in the Rerun viewer")
     elif args.web:
-        print(f"serving the Rerun web viewer at http://127.0.0.1:{args.web_port} (Ctrl-C stops)",
-              flush=True)
-        return _serve(viewer_command(out, web=True, web_port=args.web_port))
+        from adnmesh.runtime.bus import free_port
+
+        grpc_port = free_port()
+        print(f"serving the Rerun web viewer: open {web_viewer_url(args.web_port, grpc_port)} "
+              f"(Ctrl-C stops)", flush=True)
+        return _serve(viewer_command(out, web=True, port=grpc_port, web_port=args.web_port))
     return 0
 
 

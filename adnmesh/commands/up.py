@@ -370,7 +370,9 @@ def _launch_with_view(args, options, launch, err: Console, log):
     on_events = bar.events if bar is not None else None
     view = None
     if target is not None or bar is not None:     # without a target: the bar's events only
-        view = open_view(target, options.run_id, log, on_events=on_events)
+        grid = options.config.grid_model
+        view = open_view(target, options.run_id, log, on_events=on_events,
+                         limits=grid.limits if grid is not None else None)
     options.view = view
     options.progress = bar.update if bar is not None else None
     try:

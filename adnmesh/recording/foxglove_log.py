@@ -47,9 +47,12 @@ FOXGLOVE_LOG_SCHEMA = {
 file, line)."""
 
 
-def log_record(t_ns: int, level: str, message: str, name: str, file: str = "") -> bytes:
+def log_record(t_ns: int, level: str, message: str, name: str, file: str = "",
+               line: int = 0) -> bytes:
     """One ``foxglove.Log`` message as JSON: ``t_ns`` (ns) as {sec, nsec}, ``level`` one of
-    :data:`LOG_LEVELS`."""
+    :data:`LOG_LEVELS`; ``name`` the process or node that logged it or that it is about (what
+    Foxglove's Log panel filters by), ``file`` and ``line`` its source file and line, if
+    there is one (else empty and 0)."""
     return json.dumps({"timestamp": {"sec": t_ns // 1_000_000_000, "nsec": t_ns % 1_000_000_000},
                        "level": LOG_LEVELS.get(level, 0), "message": message, "name": name,
-                       "file": file, "line": 0}, separators=(",", ":")).encode()
+                       "file": file, "line": line}, separators=(",", ":")).encode()

@@ -2,7 +2,7 @@
 
 The recording (:mod:`adnmesh.recording`) is the file format; this package reads meaning into
 it, with one rule for each thing a person looks at, used alike by ``adnmesh up``'s summary,
-``inspect``, ``plot``, ``replay`` and the live view:
+``inspect``, ``plot``, ``replay``, ``export`` and the live view:
 
 - :mod:`~adnmesh.results.rules`: the one table of what messages mean (series, events);
 - :mod:`~adnmesh.results.series`: recorded messages to named time series and events, by those
@@ -14,5 +14,7 @@ it, with one rule for each thing a person looks at, used alike by ``adnmesh up``
 - :mod:`~adnmesh.results.realtime_report`: what a realtime run says about its own timing;
 - :mod:`~adnmesh.results.time_plot`: the paper-style time plot (``adnmesh plot``);
 - :mod:`~adnmesh.results.rerun_export`, :mod:`~adnmesh.results.live`: Rerun, after and during a
-  run.
+  run;
+- :mod:`~adnmesh.results.csv_export`, :mod:`~adnmesh.results.foxglove_layout`: a run's series
+  as CSV files and a Foxglove layout for it (``adnmesh export``).
 """

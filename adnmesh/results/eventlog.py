@@ -10,6 +10,12 @@ message in Foxglove's ``foxglove.Log`` schema, in its JSON form, on the events t
 event's send time (sim time in sim mode, as every message's time). The format is
 :mod:`adnmesh.recording.foxglove_log`'s; the rules of what is an event are here.
 
+The record's fields are used as Foxglove defines them: ``name`` is the agent (process) the
+event is about or that sent it (``cpfc``, ``der/SGen1``, ``availability``, ``up``), which
+Foxglove's Log panel filters by; ``message`` starts with the event's kind in brackets
+(``[gain_switch] gain switch to entry 3: ...``); ``file`` is empty and ``line`` 0 (an event has
+no source file).
+
 Only the messages that can hold an event are decoded (a ``p_y`` message only if it carries a
 switch record); the 100 Hz state and measurement messages are not.
 """
@@ -17,7 +23,9 @@ switch record); the 100 Hz state and measurement messages are not.
 from __future__ import annotations
 
 import json
+import re
 
+from adnmesh.names import AGENT_PATTERN, LAUNCHER, der_agent_id
 from adnmesh.recording.foxglove_log import log_record
 from adnmesh.results.rules import (AVAILABILITY_KEYS, EVENTS, availability_change,
                                    available_ders, match_key, message_body)
@@ -26,6 +34,7 @@ __all__ = ["EventLog"]
 
 _REJECTED = "rejected"   # the recorder tap's type of rejected payloads
 _SKIPPED = {"der_mode"}  # 100 Hz states; a watchdog fallback is also an agent's event
+_AGENT = re.compile(AGENT_PATTERN)
 
 
 class EventLog:
@@ -58,8 +67,9 @@ class EventLog:
             event = rule(body, None if kind == "gain_switch" else self._previous.get(topic),
                          captures)
             if event is not None:
-                level, text, _ = event
-                found.append(log_record(t_ns, level, text, kind, topic))
+                level, text, data = event
+                found.append(_record(t_ns, level, text, data.get("kind", kind)
+                                     if kind == "event" else kind, _agent(kind, body, captures)))
         self._previous[topic] = body
         return found
 
@@ -79,7 +89,7 @@ class EventLog:
         if found is None:
             return []
         level, text, _ = found
-        return [log_record(t_ns, level, text, "availability")]
+        return [_record(t_ns, level, text, "availability", _agent("availability", body, {}))]
 
     def _rejected(self, payload: bytes, t_ns: int) -> bytes:
         try:
@@ -87,4 +97,30 @@ class EventLog:
             text = f"rejected a payload on {body['key']}: {body['reason']} ({body['detail']})"
         except (ValueError, KeyError, TypeError):
             text = "rejected a payload"
-        return log_record(t_ns, "WARNING", text, "rejected")
+        return _record(t_ns, "WARNING", text, "rejected", LAUNCHER)
+
+
+def _record(t_ns: int, level: str, text: str, kind: str, agent: str) -> bytes:
+    """One ``foxglove.Log`` record with its fields as Foxglove defines them: ``name`` the agent
+    (process) the event is about or that sent it (what Foxglove's Log panel filters by), the
+    event's kind first in ``message`` (``[gain_switch] gain switch to entry 3: ...``), no
+    source file (``file`` empty, ``line`` 0)."""
+    return log_record(t_ns, level, f"[{kind}] {text}", agent)
+
+
+def _agent(kind: str, body: dict, captures: dict) -> str:
+    """The agent an event is about or that sent it: the DER's (``der/<id>``) for a DER's key;
+    for a fault, the agent or DER it hits (else its sender, ``up``); for an event ``up`` or
+    an agent sent about an agent (``subject``), that agent; else the sender (``src``)."""
+    if captures.get("der"):
+        return der_agent_id(captures["der"])
+    if kind == "fault":
+        if isinstance(body.get("agent"), str) and body["agent"]:
+            return body["agent"]
+        if isinstance(body.get("der"), str) and body["der"]:
+            return der_agent_id(body["der"])
+    subject = body.get("subject")
+    if kind == "event" and isinstance(subject, str) and _AGENT.fullmatch(subject):
+        return subject
+    src = body.get("src")
+    return src if isinstance(src, str) else ""

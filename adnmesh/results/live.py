@@ -17,7 +17,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from adnmesh.results.rerun_export import blueprint, held, log_style, send_events, send_series
+from adnmesh.results.rerun_export import (blueprint, held, limit_series, log_style, send_events,
+                                          send_series)
 from adnmesh.results.rules import Event
 from adnmesh.results.series import LiveCollector, RunData, Series
 
@@ -75,14 +76,18 @@ class LiveView(RecordQueue):
         send, on the view's thread.
     viewer_pid : int, optional
         The viewer process the stream is connected to (it outlives the run).
+    limits : adnmesh.config.GridLimits, optional
+        The run's grid band, drawn beside the grid's extremes once they come
+        (:func:`~adnmesh.results.rerun_export.limit_series`, as ``replay`` draws it).
     """
 
     def __init__(self, rec, *, t0_ns: int = 0, period_s: float = VIEW_PERIOD_S,
                  on_events: Callable[[list[Event]], None] | None = None,
-                 viewer_pid: int | None = None) -> None:
+                 viewer_pid: int | None = None, limits=None) -> None:
         super().__init__()
         self.rec, self.t0_ns, self.period_s, self.on_events = rec, t0_ns, period_s, on_events
-        self.viewer_pid = viewer_pid
+        self.viewer_pid, self.limits = viewer_pid, limits
+        self._der_ids: list[str] = []            # the DERs seen: their colours
         self.collector = LiveCollector()
         self.now_ns = 0                          # newest send time seen, ns
         self.sends = 0                           # how many times something was sent
@@ -137,12 +142,22 @@ class LiveView(RecordQueue):
             self.error = f"live view stopped: {type(exc).__name__}: {exc}"
 
     def _send(self, run: RunData) -> None:
+        if self.limits is not None and not any(s.role == "grid_limit"
+                                               for s in self._known.values()):
+            for series in limit_series(run, self.limits):   # once the grid reports
+                run.series[series.entity_path] = series
         new_paths = [p for p in run.series if p not in self._known]
         new_topics = [e for e in run.events if e.topic not in self._event_topics]
+        restyle = run.der_ids != self._der_ids     # a new DER: the DERs' colours move
+        self._der_ids = list(run.der_ids)
         for path in new_paths:
             self._known[path] = dataclasses.replace(run.series[path], t_ns=_EMPTY_I,
                                                     log_time_ns=_EMPTY_I, values=_EMPTY_F)
-            log_style(self.rec, run.series[path])
+            log_style(self.rec, run.series[path], self._der_ids)
+        if restyle:
+            for path, known in self._known.items():
+                if known.der is not None and path not in new_paths:
+                    log_style(self.rec, known, self._der_ids)
         for event in new_topics:
             self._event_topics.setdefault(event.topic, event)
         if new_paths or new_topics:

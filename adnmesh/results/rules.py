@@ -22,6 +22,7 @@ role ``"other"`` (except on :data:`QUIET_KEYS`), so nothing numeric is invisible
 
 from __future__ import annotations
 
+import colorsys
 import re
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
@@ -31,6 +32,9 @@ from adnmesh.wire.protocol import KINDS, PROTOCOL
 
 __all__ = [
     "AVAILABILITY_KEYS",
+    "COLORS",
+    "DER_COLORS",
+    "DISPLAY_UNITS",
     "ENVELOPE_FIELDS",
     "EVENTS",
     "Event",
@@ -41,8 +45,13 @@ __all__ = [
     "StepWindowEnds",
     "availability_change",
     "available_ders",
+    "der_colors",
+    "display_unit",
+    "lighter",
     "match_key",
     "message_body",
+    "natural_key",
+    "series_color",
     "window_ends",
 ]
 
@@ -82,10 +91,75 @@ class Field:
 
 COLORS: dict[str, tuple[int, int, int]] = {
     "p_ref": (255, 160, 0), "p_ip": (60, 150, 255), "p_y": (40, 180, 80),
-    "kp": (170, 100, 220), "ki": (255, 130, 40), "grid_v_min": (200, 60, 60),
-    "grid_v_max": (60, 60, 200),
+    "kp": (170, 100, 220), "ki": (255, 130, 40), "grid_v_min": (230, 120, 0),
+    "grid_v_max": (60, 60, 200), "grid_line_loading": (90, 90, 90),
+    "grid_trafo_loading": (160, 110, 50), "q_ip": (200, 80, 160),
+    "available_count": (80, 80, 80), "grid_limit": (230, 30, 30),
 }
-"""Role -> the RGB colour of its line in Rerun (the others: Rerun's choice)."""
+"""Role -> the RGB colour of its line in Rerun (the others: Rerun's choice; a DER's series:
+:func:`series_color`). ``grid_limit`` is the configured band and loading limit drawn with the
+grid's extremes."""
+
+DISPLAY_UNITS: dict[str, tuple[str, float]] = {
+    "W": ("MW", 1e-6), "var": ("Mvar", 1e-6), "1/W": ("1/MW", 1e6), "1/(W s)": ("1/(MW s)", 1e6),
+}
+"""SI unit of a series -> (the unit viewers show it in, the factor from the SI value to it):
+powers in MW and Mvar, gains per MW, so that a controls engineer reads 17.55 MW and
+K_P 0.5 1/MW instead of 17550000 W and 5e-07 1/W. Every viewer and export uses it (``plot``,
+``replay`` and the live view, ``export``); other units are shown as they are."""
+
+
+def display_unit(unit: str) -> tuple[str, float]:
+    """The unit a value of SI ``unit`` is shown in and the factor to it (:data:`DISPLAY_UNITS`;
+    an other unit: itself, 1)."""
+    return DISPLAY_UNITS.get(unit, (unit, 1.0))
+
+
+DER_COLORS: tuple[tuple[int, int, int], ...] = (
+    (31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189),
+    (140, 86, 75), (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207),
+    (57, 59, 121), (99, 121, 57), (140, 109, 49), (132, 60, 57), (123, 65, 115))
+"""The colours of the DERs, in the natural order of their ids (matplotlib's tab10, then five
+darker ones of tab20b); beyond 15 DERs, hues spread by the golden angle."""
+
+SETPOINT_LIGHTER = 0.45
+"""A DER's set-point is drawn in its colour this much lighter (towards white) than its infeed:
+the two lines of one DER are related, and told apart."""
+
+
+def natural_key(text: str) -> tuple:
+    """Sort key that orders ``SGen2`` before ``SGen10``."""
+    return tuple(int(part) if part.isdigit() else part for part in re.split(r"(\d+)", text))
+
+
+def der_colors(der_ids: Iterable[str]) -> dict[str, tuple[int, int, int]]:
+    """DER id -> its RGB colour (:data:`DER_COLORS`, by the natural order of the ids): one per
+    DER, the same in every view (infeed, set-point, availability)."""
+    colors = {}
+    for i, der in enumerate(sorted(set(der_ids), key=natural_key)):
+        if i < len(DER_COLORS):
+            colors[der] = DER_COLORS[i]
+        else:
+            hue = (i * 0.381966) % 1.0
+            colors[der] = tuple(int(round(255 * c)) for c in colorsys.hsv_to_rgb(hue, 0.75, 0.7))
+    return colors
+
+
+def lighter(color: tuple[int, int, int], amount: float = SETPOINT_LIGHTER) -> tuple[int, int, int]:
+    """``color`` moved ``amount`` (0..1) of the way towards white."""
+    return tuple(int(round(c + (255 - c) * amount)) for c in color)
+
+
+def series_color(role: str, der: str | None, der_ids: Iterable[str],
+                 default: tuple[int, int, int] | None = None) -> tuple[int, int, int] | None:
+    """The colour of a series of ``role``: a DER's own (:func:`der_colors`; lighter for its
+    set-point) for its infeed, set-point and availability; else ``default`` (by role,
+    :data:`COLORS`)."""
+    if der is None or role not in ("der_infeed", "der_setpoint", "availability"):
+        return default
+    color = der_colors([*der_ids, der])[der]
+    return lighter(color) if role == "der_setpoint" else color
+
 
 SERIES: dict[str, tuple[Field, ...]] = {
     kind.pattern: tuple(Field(f.field, f.name, f.role, f.unit, f.step, COLORS.get(f.role))

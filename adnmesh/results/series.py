@@ -22,9 +22,10 @@ import numpy as np
 from adnmesh.recording.foxglove_log import FOXGLOVE_LOG
 from adnmesh.recording.reader import ChannelInfo, Recording
 from adnmesh.recording.stream import MessageBatch, ScannedRecording, Sink, decode_fields, scan
-from adnmesh.results.rules import (AVAILABILITY_KEYS, ENVELOPE_FIELDS, EVENTS, QUIET_KEYS, SERIES,
-                                   Event, EventRule, Field, availability_change, available_ders,
-                                   match_key, message_body)
+from adnmesh.results.rules import (AVAILABILITY_KEYS, COLORS, ENVELOPE_FIELDS, EVENTS,
+                                   QUIET_KEYS, SERIES, Event, EventRule, Field,
+                                   availability_change, available_ders, display_unit, match_key,
+                                   message_body)
 
 __all__ = [
     "LiveCollector",
@@ -34,6 +35,7 @@ __all__ = [
     "extract",
     "feed_recording",
     "read_run",
+    "recorded_grid_limits",
 ]
 
 @dataclass
@@ -55,6 +57,9 @@ class Series:
     log_time_ns : numpy.ndarray of int64
         Delivery times, ns.
     values : numpy.ndarray of float64
+        In the SI unit ``unit`` (:meth:`shown` gives them in the unit viewers show).
+    der : str or None
+        The DER the series is of (its infeed, set-point, availability), else None.
     """
 
     name: str
@@ -67,6 +72,25 @@ class Series:
     t_ns: np.ndarray
     log_time_ns: np.ndarray
     values: np.ndarray
+    der: str | None = None
+
+    @property
+    def display_unit(self) -> str:
+        """The unit viewers show the values in (:func:`~adnmesh.results.rules.display_unit`:
+        MW, Mvar, 1/MW, 1/(MW s); others as they are)."""
+        return display_unit(self.unit)[0]
+
+    def shown(self) -> np.ndarray:
+        """The values in :attr:`display_unit` (the array itself where that is the SI unit)."""
+        factor = display_unit(self.unit)[1]
+        return self.values if factor == 1.0 else self.values * factor
+
+    @property
+    def label(self) -> str:
+        """The name with the unit shown, e.g. ``P_IP [MW]``, ``K_I [1/(MW s)]`` (just the name
+        for a dimensionless series)."""
+        unit = self.display_unit
+        return self.name if unit in ("1", "") else f"{self.name} [{unit}]"
 
 
 @dataclass
@@ -206,7 +230,7 @@ class _Collector:
 
     def __init__(self, series_rules, event_rules) -> None:
         self.series_rules, self.event_rules = series_rules, event_rules
-        self.columns: dict[str, tuple[Field | None, str, str, list]] = {}
+        self.columns: dict[str, tuple[Field | None, str, str, _Samples, str | None]] = {}
         self.first: dict[str, tuple] = {}
         self.events: list[tuple[tuple, Event]] = []
         self.ders: set[str] = set()
@@ -224,13 +248,14 @@ class _Collector:
         return _FieldChannel(self, info.topic, plan)
 
     def add(self, path: str, spec: Field | None, name: str, topic: str, t_ns, log_ns, values,
-            first: tuple) -> None:
-        """Append samples (arrays, in send-time order) to the series at ``path``."""
+            first: tuple, der: str | None = None) -> None:
+        """Append samples (arrays, in send-time order) to the series at ``path`` (of DER
+        ``der``, if it is a DER's)."""
         if len(values) == 0:
             return
         entry = self.columns.get(path)
         if entry is None:
-            entry = self.columns[path] = (spec, name, topic, _Samples())
+            entry = self.columns[path] = (spec, name, topic, _Samples(), der)
             self.first[path] = first
         entry[3].append(t_ns, log_ns, values)
 
@@ -258,10 +283,10 @@ class _Collector:
                          Field("available", f"{der} available", "availability", unit="1",
                                step=True),
                          f"{der} available", topic, [t_ns], [log_ns], [float(der in available)],
-                         (1, number))
+                         (1, number), der=der)
         series, times = {}, {}
         for path in sorted(self.columns, key=self.first.__getitem__):
-            spec, name, topic, pieces = self.columns.pop(path)   # one series' copy at a time
+            spec, name, topic, pieces, der = self.columns.pop(path)   # one series' copy at a time
             spec = spec or Field(path.rsplit("/", 1)[-1], name, "other", unit="")
             t_ns, log_ns, values = pieces.arrays()
             shared = times.get(topic)          # series of one key mostly share their times
@@ -272,7 +297,7 @@ class _Collector:
                 times[topic] = (t_ns, log_ns)
             series[path] = Series(name=name, entity_path=path, role=spec.role, unit=spec.unit,
                                   step=spec.step, color=spec.color, topic=topic, t_ns=t_ns,
-                                  log_time_ns=log_ns, values=values)
+                                  log_time_ns=log_ns, values=values, der=der)
         self.events.sort(key=lambda item: item[0])
         return RunData(series=series, events=[e for _, e in self.events],
                        der_ids=sorted(self.ders), t0_ns=t0_ns)
@@ -360,7 +385,8 @@ class _FieldChannel(_Channel):
                 self.collector.add(f"/{self.topic}/{spec.field}", spec,
                                    spec.name.format(**captures), self.topic, t_ns[ok],
                                    log_ns[ok], values[ok],
-                                   (0, int(t_ns[first]), int(ordinal[first]), order))
+                                   (0, int(t_ns[first]), int(ordinal[first]), order),
+                                   der=captures.get("der"))
         for order, rule, captures in self.plan.rules:
             self.apply(rule, order, captures, columns, t_ns, ordinal)
         self.previous = self.body(columns, t_ns.size - 1)
@@ -408,9 +434,10 @@ class _WholeChannel(_Channel):
             if body:
                 self.found_bodies()
                 self.message(t, log, number, body, series)
+        der = next(iter(self.plan.ders)) if len(self.plan.ders) == 1 else None
         for path, (spec, name, samples, first) in series.items():
             t, log, values = zip(*samples)
-            self.collector.add(path, spec, name, self.topic, t, log, values, first)
+            self.collector.add(path, spec, name, self.topic, t, log, values, first, der=der)
 
     def message(self, t: int, log: int, number: int, body: dict, series: dict) -> None:
         def add(path, spec, name, value, order):
@@ -534,6 +561,28 @@ def read_run(path: str | Path, *, also: Callable[[], object] | None = None,
     return RunFile(scanned, collector.result(_t0(scanned))), other
 
 
+def recorded_grid_limits(metadata: Mapping[str, str]):
+    """The band of the recorded run's grid model (its config's ``grid_model.limits``, the
+    defaults where it gives none: :class:`adnmesh.config.GridLimits`), as ``up`` checked every
+    grid sample against; None if the config has no grid model or cannot be read.
+
+    ``metadata`` is the recording's run metadata (``Recording.run``: the config's text in
+    ``config``)."""
+    import yaml
+    from pydantic import ValidationError
+
+    from adnmesh.config import GridLimits
+
+    try:
+        document = yaml.safe_load(metadata.get("config", "")) or {}
+        grid_model = document.get("grid_model")
+        if not isinstance(grid_model, Mapping):
+            return None
+        return GridLimits(**(grid_model.get("limits") or {}))
+    except (yaml.YAMLError, AttributeError, TypeError, ValidationError):
+        return None
+
+
 class LiveCollector(_Collector):
     """The series and events of messages as they come (``adnmesh up --view``), by the rules of
     :func:`extract`, handed out in pieces: :meth:`drain` returns what came since the last call.
@@ -575,4 +624,5 @@ class LiveCollector(_Collector):
         return run
 
 
-_COUNT = Field("available_count", "DERs available", "available_count", unit="1", step=True)
+_COUNT = Field("available_count", "DERs available", "available_count", unit="1", step=True,
+               color=COLORS["available_count"])

@@ -17,14 +17,14 @@ import os
 import signal
 import subprocess
 import threading
-import urllib.parse
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 from adnmesh.errors import UsageError
 from adnmesh.results.live import VIEW_PERIOD_S, LiveView, RecordQueue
-from adnmesh.results.rerun_export import APPLICATION_ID, rerun_executable
+from adnmesh.results.rerun_export import (APPLICATION_ID, grpc_url, rerun_executable,
+                                          web_viewer_url)
 from adnmesh.runtime.bus import DEFAULT_HOST, free_port
 
 VIEW_NICE = 10
@@ -61,10 +61,6 @@ def viewer_argv(web: bool, grpc_port: int, web_port: int) -> list[str]:
     return argv
 
 
-def _grpc_url(port: int) -> str:
-    return f"rerun+http://{DEFAULT_HOST}:{port}/proxy"
-
-
 def _has_display() -> bool:
     return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
 
@@ -84,10 +80,13 @@ class ViewProcess(RecordQueue):
         of this process.
     viewer_pid : int, optional
         The viewer process the stream goes to (it outlives the run).
+    limits : adnmesh.config.GridLimits, optional
+        The run's grid band, drawn beside the grid's extremes.
     """
 
     def __init__(self, sink: tuple, run_id: str, on_events=None,
-                 viewer_pid: int | None = None, period_s: float = VIEW_PERIOD_S) -> None:
+                 viewer_pid: int | None = None, period_s: float = VIEW_PERIOD_S,
+                 limits=None) -> None:
         super().__init__()
         self.viewer_pid, self.on_events, self.period_s = viewer_pid, on_events, period_s
         self.error: str | None = None
@@ -96,7 +95,7 @@ class ViewProcess(RecordQueue):
         context = multiprocessing.get_context("spawn")
         self._conn, child = context.Pipe()
         self._process = context.Process(target=_serve, args=(child, sink, run_id,
-                                                             on_events is not None),
+                                                             on_events is not None, limits),
                                         name="adnmesh-live-view", daemon=True)
         self._process.start()
         child.close()
@@ -149,7 +148,7 @@ class ViewProcess(RecordQueue):
                 return
 
 
-def _serve(conn, sink: tuple, run_id: str, events: bool) -> None:
+def _serve(conn, sink: tuple, run_id: str, events: bool, limits=None) -> None:
     """The child process: messages from ``conn`` into a :class:`LiveView`, until None."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)     # up ends it, after the run
     try:
@@ -167,7 +166,7 @@ def _serve(conn, sink: tuple, run_id: str, events: bool) -> None:
             rec.connect_grpc(sink[1])
         rec.send_recording_name(run_id)
     view = LiveView(rec, on_events=(lambda found: conn.send(("events", found)))
-                    if events else None)
+                    if events else None, limits=limits)
     try:
         while (pending := conn.recv()) is not None:
             for topic, schema_name, records in pending:
@@ -180,9 +179,10 @@ def _serve(conn, sink: tuple, run_id: str, events: bool) -> None:
 
 
 def open_view(target: ViewTarget | None, run_id: str, log: Callable[[str], None],
-              on_events=None) -> ViewProcess | None:
+              on_events=None, limits=None) -> ViewProcess | None:
     """Open the view of ``target`` (None: events only, for ``on_events``) and return it
-    started (None: a native viewer without a display, said in one line through ``log``)."""
+    started (None: a native viewer without a display, said in one line through ``log``).
+    ``limits`` (the config's ``grid_model.limits``) is drawn beside the grid's extremes."""
     if target is None:
         return ViewProcess(("none", None), run_id, on_events)
     if target.kind == "native" and not _has_display():
@@ -192,15 +192,15 @@ def open_view(target: ViewTarget | None, run_id: str, log: Callable[[str], None]
     if target.kind == "file":
         target.path.parent.mkdir(parents=True, exist_ok=True)
         log(f"live view: streaming to {target.path}")
-        return ViewProcess(("file", str(target.path)), run_id, on_events)
+        return ViewProcess(("file", str(target.path)), run_id, on_events, limits=limits)
     grpc_port, web_port = free_port(), free_port()
     viewer = subprocess.Popen(viewer_argv(target.kind == "web", grpc_port, web_port),
                               stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                               stderr=subprocess.DEVNULL, start_new_session=True)
     where = "native Rerun viewer"
     if target.kind == "web":
-        query = urllib.parse.urlencode({"url": _grpc_url(grpc_port)})
-        where = f"web viewer at http://{DEFAULT_HOST}:{web_port}/?{query}"
+        where = f"web viewer: open {web_viewer_url(web_port, grpc_port, DEFAULT_HOST)}"
     log(f"live view: {where} (pid {viewer.pid}; it stays open after the run: "
         f"kill {viewer.pid} to close it)")
-    return ViewProcess(("grpc", _grpc_url(grpc_port)), run_id, on_events, viewer.pid)
+    return ViewProcess(("grpc", grpc_url(grpc_port, DEFAULT_HOST)), run_id, on_events,
+                       viewer.pid, limits=limits)
