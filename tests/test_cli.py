@@ -72,6 +72,14 @@ def test_every_command_module_has_the_interface() -> None:
     assert all(callable(m.add_parser) and callable(m.run) for m in COMMANDS)
 
 
+@pytest.mark.parametrize("name", [m.__name__.rsplit(".", 1)[1] for m in COMMANDS])
+def test_every_commands_help_says_its_exit_codes(name: str) -> None:
+    parser = build_parser(name)._subparsers._group_actions[0].choices[name]  # noqa: SLF001
+    text = " ".join(parser.format_help().split())
+    assert re.search(r"[Ee]xit code", text), name
+    assert re.search(r"\b0\b", text[text.lower().index("exit code"):]), name
+
+
 def test_usage_error_is_one_line_and_exit_2(monkeypatch, configs_dir: Path, capsys) -> None:
     def refuse(args):
         raise UsageError("--speed needs --clock realtime")

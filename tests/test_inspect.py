@@ -306,6 +306,11 @@ def test_inspect_json_is_one_object_with_topics_counts_figures_and_events(fake: 
     assert report["complete"] is True and report["messages"] == 3917
     assert report["run"]["run_id"] == "fake" and "config" not in report["run"]
     topics = {t["topic"]: t for t in report["topics"]}
+    from adnmesh.results.rules import natural_key
+
+    assert list(topics) == sorted(topics, key=natural_key)      # sorted, as the table is
+    assert sorted(["adn/g/der/SGen10/state", "adn/g/der/SGen2/state"], key=natural_key)[0] \
+        == "adn/g/der/SGen2/state"
     assert topics["adn/fake/measurement/p_ip"] == {
         "topic": "adn/fake/measurement/p_ip", "type": "p_ip", "messages": 601, "first_s": 0.0,
         "last_s": 60.0}

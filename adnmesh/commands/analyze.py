@@ -49,7 +49,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "subset, adaptive vs static (box plots, CSV); stability and doubling limits of the "
         "actuator time-constant factor b for the PT1, PT2 and RHPZ models (table, JSON, "
         "figure); optionally the (K_P, K_I) solution space of one subset. All outputs go to "
-        "one folder with an index.md.",
+        "one folder with an index.md. Exit code 0 when written, 2 for a user error (config, "
+        "table, options, an unwritable folder).",
     )
     add_config_argument(parser)
     parser.add_argument("--table", metavar="PATH",

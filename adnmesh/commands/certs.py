@@ -26,7 +26,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "certs", help="create the CA and certificates of the secure profile",
         description="Create a CA and one key and certificate per identity in DIR: the agents "
         "of CONFIG, up (router, recorder, clock) and operator (adnmesh fault). Existing keys "
-        "are never overwritten unless --renew or --force says so. Keys are mode 0600.")
+        "are never overwritten unless --renew or --force says so. Keys are mode 0600. Exit "
+        "code 0 when the certificates are there, 2 for a user error (config, names, DIR).")
     parser.add_argument("directory", metavar="DIR", help="certificate directory (created)")
     parser.add_argument("--config", metavar="CONFIG",
                         help="config whose agents get certificates (without it: cpfc, "

@@ -26,10 +26,12 @@ from adnmesh.recording import (
     validate_recording,
 )
 from adnmesh.results.figures import RunFigures, run_figures, step_table
+from adnmesh.results.rules import natural_key
 from adnmesh.results.series import RunData, read_run
 from adnmesh.recording.stream import ScannedRecording
 
-__all__ = ["EXIT_PROBLEMS", "add_parser", "run", "settling_band_pct", "topic_table"]
+__all__ = ["EXIT_PROBLEMS", "add_parser", "run", "settling_band_pct", "sorted_topics",
+           "topic_table"]
 
 EXIT_PROBLEMS = 1
 """Exit code when the recording is readable but wrong: counts differ from what the agents
@@ -50,7 +52,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "truncated recording (killed run) is recovered into a complete file, by default RUN "
         "with the suffix .recovered.mcap. Exit code 1 if the recorded counts differ from those "
         "the agents published (when the recording has them) or, with --validate, if a message "
-        "does not match its JSON Schema.",
+        "does not match its JSON Schema; 0 otherwise; 2 for a user error (no such file, not "
+        "an MCAP file, a damaged one).",
     )
     parser.add_argument("recording", metavar="RUN", help="recording (.mcap), e.g. logs/<run>.mcap")
     parser.add_argument("--recover-to", metavar="OUT", type=Path,
@@ -69,12 +72,19 @@ def _s(t_ns: int, t0_ns: int) -> str:
     return f"{(t_ns - t0_ns) / 1e9:.3f}"
 
 
+def sorted_topics(recording: ScannedRecording) -> list:
+    """The recording's ``(topic, stats)`` in the natural order of the topics (``der/SGen2``
+    before ``der/SGen10``), as ``inspect`` lists them."""
+    return sorted(recording.channel_stats.items(), key=lambda item: natural_key(item[0]))
+
+
 def topic_table(recording: ScannedRecording, t0_ns: int) -> Table:
-    """Return the per-topic table: type, count, first and last send time, s."""
+    """Return the per-topic table, sorted (:func:`sorted_topics`): type, count, first and last
+    send time, s."""
     table = Table(title=f"{len(recording.channel_stats)} topics", title_justify="left")
     for column in ("topic", "type", "messages", "first [s]", "last [s]"):
         table.add_column(column, justify="left" if column in ("topic", "type") else "right")
-    for topic, stats in recording.channel_stats.items():
+    for topic, stats in sorted_topics(recording):
         seen = stats.count > 0
         table.add_row(topic, stats.info.schema_name or "-", str(stats.count),
                       _s(stats.first_publish_ns, t0_ns) if seen else "-",
@@ -336,7 +346,7 @@ def _json_report(path: Path, recording: ScannedRecording, run_data: RunData,
     topics = [{"topic": topic, "type": stats.info.schema_name or None, "messages": stats.count,
                "first_s": seconds(stats.first_publish_ns),
                "last_s": seconds(stats.last_publish_ns)}
-              for topic, stats in recording.channel_stats.items()]
+              for topic, stats in sorted_topics(recording)]
     steps = [{"t_s": s.t_s, "step_w": s.step_w, "p_ref_w": s.p_ref_w, "window_s": s.window_s,
               "steady_error_w": s.steady_error_w,
               "settled": bool(s.figures is not None

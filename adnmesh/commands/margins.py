@@ -24,7 +24,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         description="Evaluate the reference loop (docs/method.md#reference-model, exact delays) of a "
         "DER subset with PI "
         "gains KP (1/W) and KI (1/(W s)): certified stability, disk margin, classical margins "
-        "at all crossovers, step info of P_ref -> P_DERs.",
+        "at all crossovers, step info of P_ref -> P_DERs. Exit code 0 with the figures (an "
+        "unstable loop too: it is a figure), 2 for a user error (config, gains, DER ids).",
     )
     add_config_argument(parser)
     parser.add_argument("--kp", type=float, required=True, help="proportional gain, 1/W")

@@ -36,7 +36,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         description="Print the JSON Schema (draft 2020-12) of NAME to stdout: 'config' is the "
         "format of a config file, with every key's meaning and unit "
         "(configs/config.schema.json is its output); 'messages' the bus messages, one schema "
-        "per message type (the schemas every recording carries).",
+        "per message type (the schemas every recording carries). Exit code 0, 2 for an "
+        "unknown NAME.",
     )
     parser.add_argument("name", metavar="NAME", choices=list(SCHEMAS),
                         help=f"which schema: {', '.join(SCHEMAS)}")
