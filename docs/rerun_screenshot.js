@@ -1,7 +1,8 @@
 // Screenshot of the Rerun web viewer, for docs/figures/rerun-web.png (docs/recordings.md).
 //
 //   .venv/bin/adnmesh up configs/simbench.yaml --out /tmp/ref.mcap
-//   .venv/bin/adnmesh replay /tmp/ref.mcap --web --web-port 9095 &   # prints the URL; kill -INT after
+//   .venv/bin/adnmesh replay /tmp/ref.mcap --web --web-port 9095 &   # prints the URL; kill %1 after
+//                                          # (SIGTERM: a background job of a script ignores SIGINT)
 //   npm install playwright-core            # in a scratch directory; Debian's chromium package
 //   NODE_PATH=<scratch>/node_modules node docs/rerun_screenshot.js \
 //        "http://127.0.0.1:9095/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A<grpc port>%2Fproxy" \
