@@ -100,7 +100,7 @@ def test_der_models_alone_need_no_table(tmp_path, monkeypatch, capsys):
     assert main(["analyze", str(EXAMPLES / "two-wt.yaml"), "--only", "der-models",
                  "--out", str(out)]) == 0
     assert {p.name for p in out.iterdir()} == {"index.md", "der-models.png", "der-models.csv",
-                                               "der-models.json"}
+                                               "der-models.json", "der-handover.png"}
     rows = list(csv.DictReader((out / "der-models.csv").open()))
     assert {r["der"] for r in rows} == {"SGen1", "SGen2"}
     first = rows[0]
@@ -110,6 +110,7 @@ def test_der_models_alone_need_no_table(tmp_path, monkeypatch, capsys):
     doc = json.loads((out / "der-models.json").read_text())
     assert doc["ders"][0]["model"] == "WT Type 4B-like"
     assert "der-models.png" in (out / "index.md").read_text()
+    assert "der-handover.png" in (out / "index.md").read_text()
     assert "DER models" in capsys.readouterr().out
 
 

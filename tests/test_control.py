@@ -12,7 +12,8 @@ import pytest
 from adnmesh.config import DER, Config, load_config
 from adnmesh.control.registry import build_agent
 from adnmesh.control.availability_monitor import AvailabilityMonitor
-from adnmesh.control.cpfc_controller import CPFC, GainSchedule, initial_p_ref_w, output_limits
+from adnmesh.control.cpfc_controller import (CPFC, HANDOVER_BOUND, HANDOVER_RESPONSE_TIMES,
+                                             GainSchedule, initial_p_ref_w, output_limits)
 from adnmesh.control.der_controller import DERController
 from adnmesh.dermodels.pt1 import PT1DelayParams, PT1DelayState, infeed_at, set_point
 from adnmesh.control.measurement_point import Measurement
@@ -20,6 +21,8 @@ from adnmesh.control.pi import SampledPI
 from adnmesh.sim.node import Node
 from adnmesh.sim.topology import Topology
 from adnmesh.wire.keys import Keys
+from adnmesh.wire.messages import Design, Switch
+from msgspec import UNSET
 from payloads import message, payload
 from adnmesh.tuning.table import SchedulingTable, TableEntry
 
@@ -499,6 +502,97 @@ def test_cpfc_hands_returning_ders_their_share_of_the_power(config, table) -> No
     before_w = together["switch"].p_y_before * 1.0 * 2e6
     after_w = together["p_y"] * (w["SGen1"] * 2e6 + w["SGen2"] * 2e6)
     assert after_w == pytest.approx(before_w, rel=1e-12)
+    # leaving moves no DER's power: no handover; returning hands SGen2 its share in the
+    # longer of 2 x its response (0.525 s) and 1 / (HANDOVER_BOUND K_I Σ w P_inst)
+    assert alone["switch"].handover_s is UNSET
+    ki_n = together["ki"] * (w["SGen1"] * 2e6 + w["SGen2"] * 2e6)
+    assert together["switch"].handover_s == pytest.approx(
+        max(HANDOVER_RESPONSE_TIMES * 0.525, 1 / (HANDOVER_BOUND * ki_n)))
+
+
+def test_cpfc_keeps_the_commanded_power_of_ders_at_a_limit(config, table) -> None:
+    """SGen1 alone at P_Y 1.2 is held at its 2 MW (Eq. 1 asks 2.4 MW): when SGen2 returns, the
+    new P_Y makes both command the 2 MW SGen1 delivered, not the 2.4 MW of Eq. 1 unlimited."""
+    cpfc = CPFC(config, GainSchedule(config, table))
+    cpfc.available = cpfc.in_use = frozenset({"SGen1"})
+    cpfc.weights = {"SGen1": 1.0}
+    cpfc.pi.set_limits(-10, 10)
+    cpfc.pi.output = cpfc._p_y_sent = 1.2                    # noqa: SLF001
+    record = cpfc._switch(0, frozenset({"SGen1", "SGen2"}))  # noqa: SLF001
+    w = table.lookup(["SGen1", "SGen2"]).w
+    commanded = min(record.p_y_after * w["SGen1"] * 2e6, 2e6) + \
+        record.p_y_after * w["SGen2"] * 2e6
+    assert commanded == pytest.approx(2e6, rel=1e-12)
+    assert record.scale == pytest.approx(2e6 / (w["SGen1"] * 2e6 + w["SGen2"] * 2e6) / 1.2)
+
+
+def test_der_takes_its_new_share_over_the_handover(config: Config) -> None:
+    """docs/method.md#returning-ders-handover: on a switch with a handover time the DER keeps
+    the setpoint it had, follows the change of P_Y of the switching sample with its new
+    weight, and moves to Eq. 1 linearly over the handover; without one it takes Eq. 1 at
+    once."""
+    der = DERController(config.ders[0], config)            # SGen1: P_inst 2 MW, P_sched 0
+    command(der, 100 * MS, 0.3, w={"SGen1": 1.0})
+    assert der.setpoint_w == pytest.approx(0.6e6)
+    keys = Keys(der_grid(der))
+    body = {"p_y": 0.16, "p_ref_w": 0.0, "kp": 1.0, "ki": 1.0, "entry": 1,
+            "w": {"SGen1": 1.0, "SGen2": 0.8},
+            "switch": Switch(0.3, 0.15, 1.0, 1.0, 0.5, 10.0)}       # P_Y scaled by 0.5
+    der.on_message(200 * MS, message(keys.of("p_y"), 200 * MS, body, seq=1))
+    # from 0.6 MW, plus the sample's change (0.16 - 0.5 x 0.3) x 2 MW; Eq. 1 says 0.32 MW
+    assert der.setpoint_w == pytest.approx(0.6e6 + 0.02e6)
+    command(der, 5200 * MS, 0.15, entry=1, seq=2)          # half way: half the offset
+    assert der.setpoint_w == pytest.approx(0.3e6 + 0.5 * 0.3e6)
+    command(der, 10200 * MS, 0.15, entry=1, seq=3)         # over: Eq. 1
+    assert der.setpoint_w == pytest.approx(0.3e6)
+    body.update(entry=2, switch=Switch(0.15, 0.15, 1.0, 1.0))          # no handover time
+    der.on_message(10300 * MS, message(keys.of("p_y"), 10300 * MS, {**body, "p_y": 0.2}, seq=4))
+    assert der.setpoint_w == pytest.approx(0.4e6)
+
+
+def test_cpfc_takes_the_entry_of_the_ders_that_can_move_one_sample_before_a_step(
+        config, table) -> None:
+    """docs/method.md#directional-availability: SGen1 (P_sched 0) cannot move down; one sample
+    before a -0.5 MW step the CPFC switches to SGen2's entry, bumplessly and saying why; the
+    switch does not end a step's window."""
+    from adnmesh.config import PRefStep
+    from adnmesh.results.rules import Event, StepWindowEnds, _gain_switch
+
+    down = config.model_copy(update={"scenario": config.scenario.model_copy(
+        update={"p_ref_steps": (PRefStep(t_s=1.0, delta_w=-0.5e6),)})})
+    table = SchedulingTable(config.sha256, {}, "test", config.der_ids(),
+                            entries=dict(table.entries))
+    table.add(TableEntry(("SGen2",), 1e-7, 3.84e-7, {"SGen2": 1.0}))
+    cpfc = CPFC(down, GainSchedule(down, table))
+    out = run_cpfc(cpfc, 1010 * MS, p_meas=lambda t: -2.5e6)
+    (t_switch, switched), = [(t, o.body) for t, o in out if "switch" in o.body]
+    assert t_switch == 990 * MS and switched["switch"].direction == "down"
+    assert switched["w"] == {"SGen2": 1.0} and switched["p_y"] == 0.0
+    after = [o.body for t, o in out if t == 1000 * MS and o.key.endswith("/p_y")][0]
+    assert (after["kp"], after["ki"]) == (1e-7, 3.84e-7)        # the step meets SGen2's gains
+    found = _gain_switch(json.loads(payload(Keys(down.grid).of("p_y"), switched)), None, {})
+    ends = StepWindowEnds()
+    ends.take(Event(t_switch, "gain_switch", *found[:2], "", found[2]))
+    assert found[2]["direction"] == "down" and ends.instants == []
+
+
+def test_cpfc_says_what_each_entry_was_certified_for(config) -> None:
+    """docs/method.md#said-when-over: the first P_Y of an entry with certified figures carries
+    them (and the constraints' overshoot limit); an entry without them (the static
+    controller's) carries none."""
+    figures = {"rise_time_s": 2.5, "settling_time_s": 3.5, "overshoot_pct": 0.4}
+    table = SchedulingTable(config.sha256, {}, "test", config.der_ids())
+    table.add(TableEntry(("SGen1", "SGen2"), 5e-8, 1.92e-7, {"SGen1": 1.0, "SGen2": 0.8},
+                         figures=figures))
+    table.static = TableEntry(("SGen1", "SGen2"), 4e-8, 1e-7, {})
+    cpfc = CPFC(config, GainSchedule(config, table, on_demand=False))
+    out = drive(cpfc, 2100 * MS, lambda t: -2.5e6,
+                lambda t: t == 2000 * MS and cpfc.on_message(t, message(
+                    Keys(config.grid).of("si"), t, {"si": {"SGen1": True, "SGen2": False}})))
+    designs = [(t, b["entry"], b.get("design")) for t, b in out if "design" in b]
+    assert designs == [(0, 0, Design(2.5, 3.5, 0.4, 1.0, 5.0))]
+    (static,) = [b for t, b in out if "switch" in b]
+    assert static["entry"] == 1 and "design" not in static
 
 
 def test_a_restarted_cpfc_resumes_from_the_acknowledged_p_y(config, table) -> None:

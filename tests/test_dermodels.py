@@ -354,3 +354,28 @@ def test_models_have_the_reference_models_two_functions():
         assert callable(module.set_point) and callable(module.infeed_at)
         assert dm.functions(defaults({wt: "WT", chp: "CHP", pv: "PV"}[module])) \
             is module.FUNCTIONS
+
+
+def test_the_re_entry_transient_shrinks_with_the_handover(simbench_config, tmp_path):
+    """adnmesh/dermodels/handover.py, open loop: a WT taking 10 % of a PV's P_inst from it
+    at once dips the two infeeds' sum by more than half the share (the WT ramps up, the PV
+    drops at once), over 1.05 s (twice the WT's response) by an eighth; from another WT (its
+    ramp limit acts only upward) by half at once, nothing over the handover."""
+    from adnmesh.dermodels.handover import handover_pair, handover_panels
+    from adnmesh.dermodels.response_plot import plot_handover
+
+    ders = {d.id: d for d in simbench_config.ders}
+    at_once = handover_pair(ders["SGen1"], ders["SGen9"], 0.1, 0.0, 3.0)
+    ramped = handover_pair(ders["SGen1"], ders["SGen9"], 0.1, 1.05, 3.0)
+    assert at_once.share_w == pytest.approx(19.5e3)
+    assert 0.5 < at_once.largest < 0.6 and at_once.deviation.min() < 0
+    assert 0.1 < ramped.largest < 0.15
+    assert abs(at_once.deviation[-1]) < 1e-4 and abs(ramped.deviation[-1]) < 1e-4
+    wts = handover_pair(ders["SGen1"], ders["SGen2"], 0.1, 0.0, 3.0)
+    assert wts.largest > 0.4 and handover_pair(ders["SGen1"], ders["SGen2"], 0.1, 1.05,
+                                               3.0).largest < 0.01
+    panels = handover_panels(simbench_config.ders, lambda d: d.t_delay_s + d.t_rise_s, 2.0)
+    assert [title for title, _ in panels] == ["WT SGen1 returns", "CHP SGen5 returns",
+                                              "PV SGen9 returns"]
+    path = plot_handover(panels, tmp_path / "der-handover.png")
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

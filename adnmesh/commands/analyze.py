@@ -257,6 +257,7 @@ def _der_models(config, out: Path, console: Console) -> str:
 
     reports = [der_model_report(der) for der in config.ders]
     plot_der_models(reports, out / "der-models.png")
+    _der_handover(config, out)
     rows = [[r.der_id, r.der_type, r.model_name, s.direction, f"{100 * s.step_fraction:g}",
              f"{s.rise_time_s:.6g}", f"{s.reaction_s:.6g}", f"{ref.rise_time_s:.6g}",
              f"{ref.reaction_s:.6g}"]
@@ -284,6 +285,20 @@ def _der_models(config, out: Path, console: Console) -> str:
                      + f" | {ref} |")
     console.print(t)
     return "\n".join(lines)
+
+
+def _der_handover(config, out: Path) -> None:
+    """The re-entry transient of the detailed models, open loop (der-handover.png;
+    docs/method.md#returning-ders-handover)."""
+    import math
+
+    from adnmesh.control.cpfc_controller import HANDOVER_RESPONSE_TIMES
+    from adnmesh.dermodels.handover import handover_panels
+    from adnmesh.dermodels.response_plot import plot_handover
+
+    panels = handover_panels(config.ders, lambda d: d.t_delay_s + config.t_lag_s(d)
+                             * math.log(9.0), HANDOVER_RESPONSE_TIMES)
+    plot_handover(panels, out / "der-handover.png")
 
 
 def _index(config, table_path: Path, table, out: Path, parts: dict, times: dict,
@@ -335,6 +350,8 @@ def _index(config, table_path: Path, table, out: Path, parts: dict, times: dict,
                   "defaults match the config's T_delay and T_rise for the 10 % step.", "",
                   "![DER models](der-models.png)", "",
                   "- [der-models.png](der-models.png) — step responses",
+                  "- [der-handover.png](der-handover.png) — re-entry transient (open loop: "
+                  "a returning DER takes a share from another, at once and over the handover)",
                   "- [der-models.csv](der-models.csv) — rise and reaction time per DER and step",
                   "- [der-models.json](der-models.json) — the same with every model parameter",
                   "", parts["der-models"], ""]

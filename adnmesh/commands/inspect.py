@@ -136,7 +136,7 @@ class _SummaryMessages:
         if kind == "p_ip":
             return _Fields(("t_send_ns", "p_ip_w"), self._p_ip)
         if kind == "p_y":
-            return _Fields(("switch",), self._p_y)
+            return _Fields(("switch", "design"), self._p_y)
         return lambda batch: self._keep(kind, batch, range(len(batch)))
 
     def _p_ip(self, batch, columns) -> None:
@@ -148,8 +148,9 @@ class _SummaryMessages:
                           np.asarray([p[i] for i in rows], dtype=np.float64)))
 
     def _p_y(self, batch, columns) -> None:
-        switch = columns.columns["switch"]
-        self._keep("p_y", batch, [i for i, s in enumerate(switch) if isinstance(s, dict)])
+        switch, design = columns.columns["switch"], columns.columns["design"]
+        self._keep("p_y", batch, [i for i, (s, d) in enumerate(zip(switch, design))
+                                  if isinstance(s, dict) or isinstance(d, dict)])
 
     def _keep(self, kind: str, batch, rows) -> None:
         payloads = batch.payloads
@@ -199,10 +200,13 @@ def _summary(recording: ScannedRecording, messages: _SummaryMessages, band_pct: 
 
 
 def _print_figures(console: Console, run_data: RunData, figures: RunFigures, summary) -> None:
+    from adnmesh.results.design_check import design_lines
     from adnmesh.results.summary import fault_table, grid_line, scenario_lines
 
     if figures.steps:
-        console.print(step_table(figures.steps, figures.band_pct))
+        console.print(step_table(figures.steps, figures.band_pct, checks=summary.design_checks))
+    for line in design_lines(summary.design_checks):
+        console.print(line)
     for line in scenario_lines(summary.scenario_steps):
         console.print(line)
     if figures.rms_error_w is not None:
@@ -371,7 +375,8 @@ def _json_report(path: Path, recording: ScannedRecording, run_data: RunData,
                     "faults": figures.faults, "mode_changes": figures.mode_changes,
                     "switches": summary_json["switches"],
                     "fault_figures": summary_json["faults"], "grid": summary_json["grid"],
-                    "scenario_steps": summary_json["scenario_steps"]},
+                    "scenario_steps": summary_json["scenario_steps"],
+                    "design_checks": summary_json["design_checks"]},
         "events": [{"t_s": seconds(e.t_ns), "kind": e.kind, "level": e.level, "text": e.text,
                     "topic": e.topic} for e in _shown_events(run_data)],
         "schema_check": None if problems is None else [str(p) for p in problems],

@@ -36,7 +36,22 @@ So ``P_Y' = P_Y · Σ_before / Σ_after`` (``scale`` in the switch record). When
 the weights stay, the scale is 1 and ``P_Y`` itself is continuous
 (docs/method.md#bumpless-switching); when DERs return,
 the others hand them their share instead of all of them adding it at once; after a hold without
-any DER (nothing carried the output), the held output continues unscaled.
+any DER (nothing carried the output), the held output continues unscaled. A DER whose setpoint
+is at a limit counts with what it is commanded, limited. How fast the DERs move to their new
+shares is the switch's **handover** time (``handover_s`` in the switch record; 0 when the switch
+moves no DER's commanded power, or after a hold without DERs; docs/method.md#returning-ders-
+handover): long enough for the slowest DER involved and for the loop to keep P_IP within
+``HANDOVER_BOUND`` of the power handed over.
+
+**Directional availability** (docs/method.md#directional-availability): of the available DERs
+the CPFC uses those that can move in the direction the DERs move (up or down from their
+schedules; a DER at ``p_sched_w: 0`` cannot go down). The direction is decided one sample before
+each step of P_ref, from where the DERs' commanded power will be after it; a change of the DERs
+in use is a switch then (``direction`` in its record), with the loop at rest.
+
+**Said when over**: the first P_Y of every entry with certified figures carries them
+(``design``: docs/method.md#said-when-over), so a recording knows what each step's entry was
+certified for.
 
 **Undoing wind-up.** The CPFC keeps its PI state of the last seconds. When a DER's
 acknowledgement says it fell back at ``t``, or measurements stop, the samples computed from
@@ -78,17 +93,22 @@ from msgspec import UNSET
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import numpy as np
+
 from adnmesh.config import Config
 from adnmesh.control.base import Agent, Outgoing
 from adnmesh.control.operating_point import available_power_w, initial_p_ip_w
 from adnmesh.control.pi import SampledPI, SwitchRecord
 from adnmesh.names import der_id_of
 from adnmesh.wire.keys import Keys
-from adnmesh.wire.messages import Envelope, Switch
+from adnmesh.wire.messages import Design, Envelope, Switch
 from adnmesh.wire.units import ns
+from adnmesh.tuning.subset_selection import able_to_move
 from adnmesh.tuning.table import SchedulingTable, TableEntry
 
-__all__ = ["CPFC", "GainSchedule", "TUNING_DELAY_S", "SwitchEvent", "initial_p_ref_w", "output_limits"]
+__all__ = ["CPFC", "DIRECTION_BAND", "GainSchedule", "HANDOVER_BOUND", "HANDOVER_MAX_S",
+           "HANDOVER_RESPONSE_TIMES", "HANDOVER_TOLERANCE", "TUNING_DELAY_S", "SwitchEvent",
+           "initial_p_ref_w", "output_limits"]
 
 
 def initial_p_ref_w(config: Config) -> float:
@@ -120,6 +140,27 @@ def output_limits(config: Config, weights: dict[str, float],
 
 #: sim time an on-demand tuning is taken to last on the sim clock (see :class:`GainSchedule`), s
 TUNING_DELAY_S = 1.0
+
+#: a switch's handover lasts at least this many times the reaction plus 10-90 % rise time
+#: (``t_delay_s + T_d ln 9``) of the slowest DER whose commanded power it moves, so that
+#: every DER can follow it (docs/method.md#returning-ders-handover)
+HANDOVER_RESPONSE_TIMES = 2.0
+
+#: and at least ``1 / (HANDOVER_BOUND K_I Σ w_d P_inst,d)`` (the new entry's normalised
+#: integral gain): then P_IP stays within about this fraction of the power handed over
+HANDOVER_BOUND = 0.05
+
+#: the longest handover, s
+HANDOVER_MAX_S = 3600.0
+
+#: a DER's commanded power moves at a switch if it changes by more than this fraction of
+#: its installed power
+HANDOVER_TOLERANCE = 1e-6
+
+#: a step changes the direction the DERs move in when it takes their total commanded power
+#: above their schedules beyond this fraction of the available DERs' installed power on the
+#: other side (docs/method.md#directional-availability)
+DIRECTION_BAND = 0.01
 
 
 class GainSchedule:
@@ -245,12 +286,16 @@ def _tuner(config: Config, table: SchedulingTable | None):
 
 @dataclass(frozen=True)
 class SwitchEvent:
-    """A gain switch: when, to which set, how, and the output before and after (equal)."""
+    """A gain switch: when, to which set (the DERs of the new entry), how, the output before
+    and after (equal), the DERs' handover time (s, 0: at once) and, for a switch of direction,
+    the direction (``up``, ``down``; else empty)."""
 
     t_ns: int
     available: tuple[str, ...]
     source: str
     record: SwitchRecord
+    handover_s: float = 0.0
+    direction: str = ""
 
 
 class CPFC(Agent):
@@ -272,7 +317,13 @@ class CPFC(Agent):
         self.schedule = schedule
         self._ids = config.der_ids()
         self._p_inst = {d.id: d.p_inst_w for d in config.ders}
+        self._p_sched = {d.id: d.p_sched_w for d in config.ders}
+        self._response_s = {d.id: d.t_delay_s + config.t_lag_s(d) * math.log(9.0)
+                            for d in config.ders}
         self._available = available_power_w(config)
+        self._able = able_to_move(config, self._available)   # directional availability
+        self.direction = 0                    # +1 up, -1 down, 0 not moved yet
+        self._redirected = False              # the pending switch is one of direction
         self.period_ns = ns(rt.pi_period_s)
         self.weights_period_ns = ns(rt.weights_period_s)
         self.p_ref_w = initial_p_ref_w(config)
@@ -295,7 +346,7 @@ class CPFC(Agent):
         self._rollback_to: int | None = None    # undo the samples after this time
         self._steps = [(ns(s.t_s), s.delta_w) for s in config.scenario.p_ref_steps]
         self._next_step = 0
-        self.available = frozenset(self._ids)
+        self.available = self.in_use = frozenset(self._ids)
         self._pending: frozenset[str] | None = None
         self._awaiting: frozenset[str] | None = None     # set whose tuning is running
         entry, source = schedule.lookup(self.available)
@@ -303,12 +354,14 @@ class CPFC(Agent):
             raise ValueError("no gains for the set of all DERs (table and tuning unavailable)")
         self.entry = entry
         self.entry_index = 0
-        self.weights = self._weights(entry, self.available)
+        self.weights = self._weights(entry, self.in_use)
         self.pi = SampledPI(entry.kp, entry.ki, rt.pi_period_s)
         self.pi.set_limits(*self._limits())
         self.next_sample_ns = 0
         self._next_weights_ns = 0
         self._p_ref_sent: float | None = None
+        self._p_y_sent = 0.0                    # the P_Y of the last p_y message (DERs hold it)
+        self._announced: int | None = None      # the entry whose design figures were sent
         self._event_key = self.keys.of("event", self.agent_id)
         self.switches: list[SwitchEvent] = []
         self.counts: dict[str, int] = {"samples": 0, "no_gains": 0, "rejected_si": 0,
@@ -410,22 +463,29 @@ class CPFC(Agent):
         rolled_back = self._rollback_to is not None and self._roll_back()
         if self.hold is None and not rolled_back:
             p_y = self.pi.update(error_w, freeze=self.actuators_held * error_w > 0)
+            self._watch_direction(t_ns, p_y)
         else:
             p_y = self.pi.output
             self.counts["held_samples"] += 1
         body = {"p_y": p_y, "p_ref_w": self.p_ref_w, "kp": self.pi.kp, "ki": self.pi.ki}
         if (self._pending is None and self._awaiting is not None
                 and self.schedule.ready(self._awaiting, t_ns)):
-            self._pending, self._awaiting = self._awaiting, None    # the tuned gains are in
+            self._pending, self._awaiting = self.available, None    # the tuned gains are in
         if self._pending is not None:
             self._apply_switch(t_ns, body, out)
         body["entry"] = self.entry_index
+        if self.entry_index != self._announced:
+            self._announced = self.entry_index
+            design = self._design(self.entry)
+            if design is not None:
+                body["design"] = design
         if t_ns >= self._next_weights_ns:
             body["w"] = dict(self.weights)
             self._next_weights_ns = t_ns + self.weights_period_ns
         if self.hold is not None:
             body["hold"] = self.hold
         out.append(Outgoing(self.keys.of("p_y"), body))
+        self._p_y_sent = body["p_y"]
         self.counts["samples"] += 1
         self._history.append((t_ns, self.pi.snapshot()))
         return out
@@ -455,6 +515,41 @@ class CPFC(Agent):
         self._p_ref_sent = self.p_ref_w
         return [Outgoing(self.keys.of("p_ref"), {"p_ref_w": self.p_ref_w})]
 
+    def _watch_direction(self, t_ns: int, p_y: float) -> None:
+        """Directional availability (docs/method.md#directional-availability): at the sample
+        before a step of P_ref, the direction the DERs will move in is where their total
+        commanded power above their schedules will be once the step is done, that of now plus
+        the step, when it is more than :data:`DIRECTION_BAND` of the available DERs'
+        installed power away from their schedules (else the direction stays). If the DERs
+        that can move in it are others than those in use, switch to their entry now
+        (bumplessly, with the loop at rest), so that the step meets the gains designed for
+        them."""
+        steps, upcoming = self._steps, self._next_step
+        step_w = 0.0
+        while upcoming < len(steps) and steps[upcoming][0] <= t_ns + self.period_ns:
+            step_w += steps[upcoming][1]
+            upcoming += 1
+        if step_w == 0.0:
+            return
+        commanded_w = sum(self._share_w(d, w, p_y) for d, w in self.weights.items()) + step_w
+        band_w = DIRECTION_BAND * sum(self._p_inst[d] for d in self.available)
+        direction = 1 if commanded_w > band_w else -1 if commanded_w < -band_w else \
+            self.direction
+        if direction == self.direction:
+            return
+        self.direction = direction
+        if self._pending is None and self._in_use(self.available) != self.in_use:
+            self._pending, self._redirected = self.available, True
+
+    def _in_use(self, available: frozenset[str]) -> frozenset[str]:
+        """The DERs whose entry the CPFC uses: the available ones that can move in the
+        direction the DERs move (all available ones before they first moved, or if none
+        can)."""
+        if self.direction == 0:
+            return available
+        able = available & self._able[self.direction]
+        return able or available
+
     def _watch_measurement(self, t_ns: int, error_w: float, out: list) -> None:
         """Hold while measurements are missing; re-enter without a jump when they return."""
         stale = t_ns - self.last_meas_ns > self.meas_timeout_ns
@@ -482,9 +577,13 @@ class CPFC(Agent):
         if self.hold == "actuators":
             self.hold = None
             out.append(self._event("INFO", "resume", "DERs available again: control resumed"))
+        handover_s = self.switches[-1].handover_s
+        direction = self.switches[-1].direction
         body.update(p_y=record.p_y_after, kp=self.pi.kp, ki=self.pi.ki,
                     switch=Switch(record.p_y_before, record.p_y_limited, record.kp_before,
-                                  record.ki_before, record.scale))
+                                  record.ki_before, record.scale,
+                                  handover_s if handover_s > 0 else UNSET,
+                                  direction or UNSET))
         self._next_weights_ns = t_ns
 
     def _try_resume(self, t_ns: int, out: list) -> bool:
@@ -503,7 +602,7 @@ class CPFC(Agent):
             available = self._pending if self._pending is not None else self.available
         self._pending = None
         self.available = frozenset()      # the switch below sets gains, weights and limits
-        self.pi.output = acked
+        self.pi.output = self._p_y_sent = acked
         record = self._switch(t_ns, available)
         self.hold = None if record is not None else "actuators"
         self.pi.reenter(self.p_ref_w - self.p_meas_w)
@@ -519,27 +618,126 @@ class CPFC(Agent):
     # -- internals -----------------------------------------------------------------------------
 
     def _switch(self, t_ns: int, available: frozenset[str]) -> SwitchRecord | None:
+        redirected, self._redirected = self._redirected, False
         self.available = available
-        entry, source = self.schedule.lookup(available, t_ns) if available else (None, "none")
-        self._awaiting = available if source == "static_tuning" else None
+        in_use = self.in_use = self._in_use(available)
+        entry, source = self.schedule.lookup(in_use, t_ns) if in_use else (None, "none")
+        self._awaiting = in_use if source == "static_tuning" else None
         if entry is None:
             # no actuators or no gains: keep the gains, hold the output where it is
             self.counts["no_gains"] += 1
-            self.weights = self._weights(self.entry, available)
+            self.weights = self._weights(self.entry, in_use)
             if not self.weights:
                 self.pi.set_limits(self.pi.output, self.pi.output)
             return None
         carried = self._commanded_gain(self.weights, available)
+        weights_before = self.weights
         self.entry = entry
         self.entry_index += 1
-        self.weights = self._weights(entry, available)
+        self.weights = self._weights(entry, in_use)
         self.pi.set_limits(*self._limits())
-        after = self._commanded_gain(self.weights, available)
+        after = self._commanded_gain(self.weights, in_use)
         scale = carried / after if carried > 0 and after > 0 else 1.0
+        scale = self._continuing_scale(weights_before, available, scale)
         record = self.pi.switch(entry.kp, entry.ki, scale)
-        self.switches.append(SwitchEvent(t_ns, tuple(d for d in self._ids if d in available),
-                                         source, record))
+        handover_s = self._handover_s(weights_before, scale)
+        direction = ("up" if self.direction > 0 else "down") if redirected else ""
+        self.switches.append(SwitchEvent(t_ns, tuple(d for d in self._ids if d in in_use),
+                                         source, record, handover_s, direction))
         return record
+
+    def _handover_s(self, weights_before: dict[str, float], scale: float) -> float:
+        """How long the DERs take to hand over the power the switch moves between them, s
+        (docs/method.md#returning-ders-handover): 0 after a hold without DERs (nothing
+        carried the output; the DERs take their shares at once) and if it moves none (every
+        DER's commanded power at the P_Y the DERs hold, by Eq. 1 and limited, is the same with
+        the old weights as with the new ones and the scaled P_Y); else the longer of
+        :data:`HANDOVER_RESPONSE_TIMES` times the response time of the slowest DER whose
+        commanded power it moves and ``1 / (HANDOVER_BOUND ki_n)``, ``ki_n = K_I Σ w_d
+        P_inst,d`` of the new entry (1/s), at most :data:`HANDOVER_MAX_S`."""
+        if not any(d in self.available for d in weights_before):
+            return 0.0          # nothing carried the output (a hold without DERs): at once
+        held = self._p_y_sent
+        slowest = None
+        for d in self.available & (set(weights_before) | set(self.weights)):
+            jump = (self._share_w(d, self.weights.get(d, 0.0), held * scale)
+                    - self._share_w(d, weights_before.get(d, 0.0), held))
+            if abs(jump) > HANDOVER_TOLERANCE * self._p_inst[d]:
+                slowest = max(slowest or 0.0, self._response_s[d])
+        if slowest is None:
+            return 0.0
+        ki_n = self.pi.ki * self._commanded_gain(self.weights, self.in_use)
+        return min(max(HANDOVER_RESPONSE_TIMES * slowest, 1.0 / (HANDOVER_BOUND * ki_n)),
+                   HANDOVER_MAX_S)
+
+    def _continuing_scale(self, weights_before: dict[str, float], available: frozenset[str],
+                          scale: float) -> float:
+        """The factor on P_Y that keeps the DERs' total commanded power above their schedules
+        continuous (docs/method.md#bumpless-switching), their limits included: ``scale``
+        (the ratio of ``Σ w_d P_inst,d`` before and after) unless a DER's setpoint is at a
+        limit (0 or its available power) before or after the switch; then the P_Y at which
+        the new weights command the total the old ones command (over the DERs still
+        available) at the output of this sample, found on the piecewise-linear sum."""
+        p_y = self.pi.output
+        if p_y == 0.0 or not self.weights or not any(d in available for d in weights_before):
+            return scale            # nothing carried the output (a hold without DERs)
+        total_w = sum(self._share_w(d, w, p_y) for d, w in weights_before.items()
+                      if d in available)
+        tolerance_w = HANDOVER_TOLERANCE * sum(self._p_inst[d] for d in available)
+        if abs(self._total_share_w(scale * p_y) - total_w) <= tolerance_w:
+            return scale
+        y = self._p_y_commanding(total_w)
+        return scale if y is None else max(y / p_y, 0.0)
+
+    def _total_share_w(self, p_y: float) -> float:
+        """``Σ`` of the DERs' commanded power above their schedules at ``p_y`` by the
+        current weights (Eq. 1, limited), W."""
+        return sum(self._share_w(d, w, p_y) for d, w in self.weights.items())
+
+    def _p_y_commanding(self, total_w: float) -> float | None:
+        """The P_Y at which the current weights command ``total_w`` in all (W above the
+        schedules), on the piecewise-linear, non-decreasing sum (bisection over its corners,
+        then the line between the two around it); None if no P_Y does."""
+        ids = [d for d, w in self.weights.items() if w > 0]
+        gain = np.array([self.weights[d] * self._p_inst[d] for d in ids])
+        sched = np.array([self._p_sched[d] for d in ids])
+        most = np.array([self._available[d] for d in ids])
+
+        def total(p_y: float) -> float:
+            return float(np.sum(np.clip(p_y * gain + sched, 0.0, most) - sched))
+
+        corners = np.unique(np.concatenate([-sched / gain, (most - sched) / gain]))
+        if corners.size < 2 or not total(corners[0]) <= total_w <= total(corners[-1]):
+            return None
+        lo, hi = 0, corners.size - 1
+        while hi - lo > 1:
+            mid = (lo + hi) // 2
+            if total(corners[mid]) <= total_w:
+                lo = mid
+            else:
+                hi = mid
+        f0, f1 = total(corners[lo]), total(corners[hi])
+        if f1 <= f0:
+            return float(corners[lo])
+        return float(corners[lo] + (total_w - f0) * (corners[hi] - corners[lo]) / (f1 - f0))
+
+    def _design(self, entry: TableEntry) -> Design | None:
+        """What ``entry`` was certified for (docs/method.md#said-when-over): the figures of
+        its as-deployed loop and the overshoot limit; None for an entry without them (the
+        static controller)."""
+        figures = entry.figures
+        values = [figures.get(k) for k in ("rise_time_s", "settling_time_s", "overshoot_pct")]
+        if not all(isinstance(v, int | float) and math.isfinite(v) and v >= 0 for v in values):
+            return None
+        constraints = self.config.constraints
+        return Design(*(float(v) for v in values), constraints.overshoot_max_pct,
+                      constraints.settling_band_pct)
+
+    def _share_w(self, der_id: str, weight: float, p_y: float) -> float:
+        """DER ``der_id``'s setpoint above its schedule by Eq. 1 with ``weight``, limited, W."""
+        p_sched = self._p_sched[der_id]
+        wanted = p_y * weight * self._p_inst[der_id] + p_sched
+        return min(max(wanted, 0.0), self._available[der_id]) - p_sched
 
     def _commanded_gain(self, weights: dict[str, float], available: frozenset[str]) -> float:
         """``Σ w_d P_inst,d`` over the weighted DERs in ``available``, W per unit P_Y."""

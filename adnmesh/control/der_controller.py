@@ -20,7 +20,10 @@ says where the setpoint comes from:
     no valid command for ``watchdog_timeout_s``: back to ``P_sched,d`` until commands return.
 
 A ``P_Y`` is valid if its ``entry`` matches the entry whose weights the DER holds (weights come
-with the switch and are repeated periodically). Every ``measurement_period_s`` the DER reports its
+with the switch and are repeated periodically). A switch that gives a handover time
+(``handover_s``, docs/method.md#returning-ders-handover) does not move the DER's setpoint at
+once: it keeps the power it was commanded and moves to its share of the new entry linearly in
+that time, following every change of P_Y with the new weight at once. Every ``measurement_period_s`` the DER reports its
 infeed and setpoint on ``der/<id>/state`` (exact at that instant); every ``heartbeat_period_s``,
 and at once when its availability or its mode changes, it sends a heartbeat with its
 availability flag, its mode and the last P_Y it applied with that command's entry: the
@@ -85,6 +88,7 @@ class DERController(Agent):
         self.mode = "control"
         self._inputs = (True, False)     # (available, watchdog expired) of the setpoint
         self._clamped = 0                # +1 / -1: the setpoint is at its upper / lower limit
+        self._handover: tuple[int, int, float] | None = None   # (start, duration ns, offset W)
         self.counts = {"commands": 0, "stale_commands": 0, "watchdog_trips": 0}
         self._plan()
 
@@ -118,6 +122,8 @@ class DERController(Agent):
             return []
         counts = self.counts
         if message.w is not UNSET:
+            if message.entry != self.entry:
+                self._hand_over(t_ns, message)
             self.weight = float(message.w.get(self.der.id, 0.0))
             self.entry = message.entry
         if message.entry != self.entry:
@@ -172,15 +178,49 @@ class DERController(Agent):
         return {"available": self.available, "mode": self.mode, "p_y": self.p_y,
                 "entry": self.entry}
 
+    def _hand_over(self, t_ns: int, message) -> None:
+        """A command of a new entry with a switch record that gives a handover time: the DER
+        keeps the power it was commanded and moves to its share of the new entry in that time
+        (docs/method.md#returning-ders-handover); else it takes its share at once.
+
+        The offset is the DER's setpoint above its schedule less its share by the new weight
+        of the P_Y it last applied, scaled as the switch scaled it (``switch.scale``), both
+        limited: what the switch moves between DERs. The change of P_Y of the switching
+        sample itself is followed with the new weight at once."""
+        switch = message.switch
+        self._handover = None
+        if switch is UNSET or switch.handover_s is UNSET or not self.available:
+            return
+        der = self.der
+        weight = float(message.w.get(der.id, 0.0))
+        share_w = min(max(self.p_y * switch.scale * weight * der.p_inst_w + der.p_sched_w, 0.0),
+                      self.p_avail_w)
+        offset_w = self.setpoint_w - share_w
+        if offset_w != 0.0:
+            self._handover = (t_ns, ns(switch.handover_s), offset_w)
+
+    def _handover_offset_w(self, t_ns: int) -> float:
+        """What the running handover adds to Eq. 1 at ``t_ns``, W (0 once it is over)."""
+        start_ns, duration_ns, offset_w = self._handover
+        left = 1.0 - (t_ns - start_ns) / duration_ns
+        if left <= 0.0:
+            self._handover = None
+            return 0.0
+        return offset_w * left
+
     def _update_setpoint(self, t_ns: int) -> None:
         der = self.der
         self._inputs = (self.available, self.watchdog_expired)
         if not self.available:
             setpoint, mode = der.p_sched_w, "schedule"
+            self._handover = None            # it belongs to the control it interrupts
         elif self.watchdog_expired:
             setpoint, mode = der.p_sched_w, "watchdog"
+            self._handover = None
         else:
             wanted = self.p_y * self.weight * der.p_inst_w + der.p_sched_w
+            if self._handover is not None:
+                wanted += self._handover_offset_w(t_ns)
             setpoint = min(max(wanted, 0.0), self.p_avail_w)
             self._clamped = (wanted > setpoint) - (wanted < setpoint)
             mode = "control"

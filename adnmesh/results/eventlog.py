@@ -5,7 +5,9 @@ passes :meth:`EventLog.observe` as its ``events``) gives each message to an :cla
 which says what happened in the words of
 :mod:`adnmesh.results.rules` (the same rules ``replay`` and ``inspect`` use): gain switches,
 availability changes (SI, a DER's heartbeat flag), injected faults, the agents' own events
-(watchdog fallbacks, overruns, alarms), rejected payloads and the run's start. Each becomes a
+(watchdog fallbacks, overruns, alarms), rejected payloads and the run's start; and, once
+a step's window has closed, a step over what its table entry was certified for
+(:class:`~adnmesh.results.design_watch.OverDesignWatch`, kind ``over_design``). Each becomes a
 message in Foxglove's ``foxglove.Log`` schema, in its JSON form, on the events topic, at the
 event's send time (sim time in sim mode, as every message's time). The format is
 :mod:`adnmesh.recording.foxglove_log`'s; the rules of what is an event are here.
@@ -27,6 +29,7 @@ import re
 
 from adnmesh.names import AGENT_PATTERN, LAUNCHER, der_agent_id
 from adnmesh.recording.foxglove_log import log_record
+from adnmesh.results.design_watch import OverDesignWatch
 from adnmesh.results.rules import (AVAILABILITY_KEYS, EVENTS, availability_change,
                                    available_ders, match_key, message_body)
 
@@ -44,21 +47,24 @@ class EventLog:
         self._rules: dict[str, list] = {}
         self._previous: dict[str, dict] = {}
         self._available: frozenset[str] | None = None
+        self._design = OverDesignWatch()
 
     def observe(self, topic: str, schema_name: str, payload: bytes,
                 t_ns: int) -> list[bytes]:
         """The ``foxglove.Log`` messages (JSON) of the events in one message sent at ``t_ns``."""
         if schema_name == _REJECTED:
             return [self._rejected(payload, t_ns)]
+        over = [_record(t_ns, "WARNING", text, "over_design", "cpfc")   # the CPFC's entry
+                for _, text in self._design.observe(schema_name, payload, t_ns)]
         rules = self._rules.get(topic)
         if rules is None:
             rules = self._rules[topic] = self._plan(topic)
         if not rules or (schema_name == "p_y" and b'"switch"' not in payload):
-            return []
+            return over
         try:
             body = message_body(json.loads(payload))
         except ValueError:
-            return []
+            return over
         found = []
         for kind, rule, captures in rules:
             if kind == "availability":
@@ -71,7 +77,7 @@ class EventLog:
                 found.append(_record(t_ns, level, text, data.get("kind", kind)
                                      if kind == "event" else kind, _agent(kind, body, captures)))
         self._previous[topic] = body
-        return found
+        return over + found
 
     @staticmethod
     def _plan(topic: str) -> list:

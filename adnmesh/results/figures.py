@@ -77,31 +77,52 @@ def run_figures(run: RunData, *, band_pct: float = 5.0) -> RunFigures:
                       faults=len(run.fault_spans()), mode_changes=kinds.count("der_mode"))
 
 
-def step_table(steps, band_pct: float, title: str = "P_IP after each P_ref step"):
+def step_table(steps, band_pct: float, title: str = "P_IP after each P_ref step",
+               checks=()):
     """Rich table of :class:`~adnmesh.loopmodel.step_figures.ReferenceStep` records (``adnmesh up``'s
     summary and ``adnmesh inspect`` print the same one).
 
     A dash is a figure that does not exist (no 90 % crossing, too few samples); a settling time
-    ``> w`` means not settled within the window of ``w`` s.
+    ``> w`` means not settled within the window of ``w`` s. With ``checks`` (one
+    :class:`~adnmesh.results.design_check.DesignCheck` per step), if any has certified
+    figures, two more columns: what the step's table entry was designed for (rise, settling,
+    overshoot) and which figures are over it (docs/method.md#said-when-over).
     """
     from rich.table import Table
 
     table = Table(title=f"{title} (rise 10-90 %, settling band {band_pct:g} %)",
                   title_justify="left")
-    for column in ("t [s]", "step [MW]", "rise [s]", "settling [s]", "overshoot [%]",
-                   "steady error [kW]", "window [s]"):
+    columns = ["t [s]", "step [MW]", "rise [s]", "settling [s]", "overshoot [%]",
+               "steady error [kW]", "window [s]"]
+    checks = checks if any(c.figures for c in checks) else ()   # none said: as before
+    if checks:
+        columns += ["designed: rise / settling / overshoot (entry)", "over the design"]
+    for column in columns:
         table.add_column(column, justify="right")
-    for s in steps:
+    for i, s in enumerate(steps):
         f = s.figures
-        table.add_row(f"{s.t_s:.2f}", f"{s.step_w / 1e6:+.3f}",
-                      _num(None if f is None else f.rise_time_s, ".3f"),
-                      _settling(f, s.window_s),
-                      _num(None if f is None else f.overshoot_pct, ".3f"),
-                      _num(None if s.steady_error_w is None else s.steady_error_w / 1e3, ".2f"),
-                      f"{s.window_s:.2f}")
+        row = [f"{s.t_s:.2f}", f"{s.step_w / 1e6:+.3f}",
+               _num(None if f is None else f.rise_time_s, ".3f"),
+               _settling(f, s.window_s),
+               _num(None if f is None else f.overshoot_pct, ".3f"),
+               _num(None if s.steady_error_w is None else s.steady_error_w / 1e3, ".2f"),
+               f"{s.window_s:.2f}"]
+        if checks:
+            row += _design_cells(checks[i] if i < len(checks) else None)
+        table.add_row(*row)
     if not steps:
-        table.add_row("", "no steps", "", "", "", "", "")
+        table.add_row("", "no steps", *[""] * (len(columns) - 2))
     return table
+
+
+def _design_cells(check) -> list[str]:
+    if check is None or not check.figures:
+        return ["-", "-" if check is None or check.entry is None else
+                f"no certified figures (entry {check.entry})"]
+    by_name = {f.name: f for f in check.figures}
+    designed = (f"{by_name['rise'].design:.3f} / {by_name['settling'].design:.3f} / "
+                f"{by_name['overshoot'].design:.3f} (e{check.entry})")
+    return [designed, "OVER: " + ", ".join(check.over) if check.over else "no"]
 
 
 def _num(value: float | None, fmt: str) -> str:

@@ -215,10 +215,15 @@ def _gain_switch(body: dict, previous: dict | None, captures: dict) -> tuple[str
             f"K_I {_g(before.get('ki_before'))} -> {_g(ki)} 1/(W s)")
     if isinstance(switch, Mapping):
         text += f", P_Y {_g(before.get('p_y_before'))} -> {_g(body.get('p_y'))}"
+    direction = switch.get("direction") if isinstance(switch, Mapping) else None
+    if direction:
+        text += f"; the DERs move {direction}"
     if active:
         text += f"; DERs: {', '.join(active)}"
+    if isinstance(switch, Mapping) and switch.get("handover_s"):
+        text += f"; handover in {_g(switch['handover_s'])} s"
     return "INFO", text, {"kp": kp, "ki": ki, "entry": body.get("entry"), "active": active,
-                          "switch": isinstance(switch, Mapping)}
+                          "switch": isinstance(switch, Mapping), "direction": direction}
 
 
 def _der_mode(body: dict, previous: dict | None, captures: dict) -> tuple[str, str, dict] | None:
@@ -381,7 +386,9 @@ class StepWindowEnds:
     of
 
     - a gain switch with the CPFC's switch record (``gain_switch`` with ``switch``; a change
-      of the gains without one is no switch of the table entry),
+      of the gains without one is no switch of the table entry), unless it was made because
+      the DERs move the other way (its record's ``direction``): that is the response to the
+      step itself (docs/method.md#directional-availability),
     - a DER's heartbeat flag that differs from its previous one (``der_available``),
     - a change of the availability vector SI (``availability``; not the first SI, which is the
       initial state),
@@ -403,7 +410,8 @@ class StepWindowEnds:
             if not self._initial_si:
                 self.instants.append(event.t_ns)
             self._initial_si = False
-        elif kind == "der_available" or (kind == "gain_switch" and event.data.get("switch")):
+        elif kind == "der_available" or (kind == "gain_switch" and event.data.get("switch")
+                                         and not event.data.get("direction")):
             self.instants.append(event.t_ns)
         elif kind == "event" and event.data.get("kind") == "agent_lost":
             self.instants.append(event.t_ns)

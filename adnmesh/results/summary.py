@@ -23,9 +23,12 @@ rejoined), or the run ended before it. A step that left no record is otherwise m
 step figures without a word.
 
 For every gain switch (``cpfc/p_y`` messages with a ``switch`` record): the largest
-``|P_IP - P_ref|`` in the ``window_s`` (10 s) after it, the factor the switch scaled ``P_Y``
+``|P_IP - P_ref|`` in the ``window_s`` (10 s) after it and the DERs' handover
+(docs/method.md#returning-ders-handover; until the next step of P_ref, whose response it is
+not), the factor the switch scaled ``P_Y``
 by (so that the DERs' commanded power stayed continuous; 1 when no DER returned) and the jump of
 ``P_Y`` (output with the new gains minus the scaled old output; 0 when the switch is bumpless).
+Each step against what its table entry was certified for: :mod:`adnmesh.results.design_check`.
 A scaled output outside the new DERs' range (where every one of them is saturated) is limited
 to that range first; the jump is counted from the limited value and the limiting reported
 apart (``p_y_limited_by``).
@@ -49,6 +52,7 @@ import msgspec
 import numpy as np
 
 from adnmesh.loopmodel.step_figures import ReferenceStep, reference_step_figures
+from adnmesh.results.design_check import DesignCheck, design_checks, design_lines
 from adnmesh.results.fault_figures import FaultFigures, fault_figures
 from adnmesh.results.realtime_report import ALARM_TIMEOUTS, RealtimeFigures, realtime_lines
 from adnmesh.names import LAUNCHER
@@ -111,6 +115,11 @@ class RunSeries:
         The ``grid_state`` bodies, in time order.
     lost, rejoined : list of (int, str)
         ``(t_ns, agent)`` of ``up``'s ``agent_lost`` and ``rejoined`` events.
+    entries : list of dict
+        The table entries the CPFC used, from its ``p_y`` messages with a switch record or
+        the design figures of a new entry: ``t_ns``, ``entry`` (number), ``design`` (what the
+        entry was certified for, :mod:`adnmesh.results.design_check`; None if not said) and
+        ``ders`` (the weighted DERs, when the message has the weights).
     """
 
     p_ip_t_ns: list = field(default_factory=list)
@@ -124,6 +133,7 @@ class RunSeries:
     grid: list = field(default_factory=list)
     lost: list = field(default_factory=list)
     rejoined: list = field(default_factory=list)
+    entries: list = field(default_factory=list)
     windows: StepWindowEnds = field(default_factory=StepWindowEnds, repr=False)
     _previous: dict = field(default_factory=dict, repr=False)   # (type, sender) -> last body
     _si: frozenset | None = field(default=None, repr=False)
@@ -140,7 +150,8 @@ class RunSeries:
         elif kind == "p_ref":
             self.p_ref_t_ns.append(message.t_send_ns)
             self.p_ref_w.append(message.p_ref_w)
-        elif kind in SUMMARY_TYPES and (kind != "p_y" or message.switch is not msgspec.UNSET):
+        elif kind in SUMMARY_TYPES and (kind != "p_y" or message.switch is not msgspec.UNSET
+                                        or message.design is not msgspec.UNSET):
             self.add(kind, msgspec.to_builtins(message))
 
     def add(self, message_type: str, body: dict) -> None:
@@ -153,14 +164,25 @@ class RunSeries:
         elif message_type == "p_ref":
             self.p_ref_t_ns.append(body["t_send_ns"])
             self.p_ref_w.append(body["p_ref_w"])
-        elif message_type == "p_y" and "switch" in body:
-            switch = body["switch"]
-            self.switches.append({"t_ns": body["t_send_ns"],
-                                  "p_y_before": switch["p_y_before"],
-                                  "p_y_limited": switch.get("p_y_limited", switch["p_y_before"]),
-                                  "p_y_after": body["p_y"],
-                                  "scale": switch.get("scale", 1.0),
-                                  "available": sorted(body.get("w", {}))})
+        elif message_type == "p_y" and ("switch" in body or "design" in body):
+            if ("switch" in body or not self.entries
+                    or self.entries[-1]["entry"] != body.get("entry")):
+                design = body.get("design")
+                self.entries.append({"t_ns": body["t_send_ns"], "entry": body.get("entry"),
+                                     "design": design if isinstance(design, dict) else None,
+                                     "ders": [d for d, w in body.get("w", {}).items()
+                                              if w]})
+            if "switch" in body:
+                switch = body["switch"]
+                self.switches.append({"t_ns": body["t_send_ns"],
+                                      "p_y_before": switch["p_y_before"],
+                                      "p_y_limited": switch.get("p_y_limited",
+                                                                switch["p_y_before"]),
+                                      "p_y_after": body["p_y"],
+                                      "scale": switch.get("scale", 1.0),
+                                      "handover_s": switch.get("handover_s", 0.0),
+                                      "direction": switch.get("direction"),
+                                      "available": sorted(body.get("w", {}))})
         elif message_type == "fault" and body["fault_id"] not in self.faults:
             self.faults[body["fault_id"]] = body
         elif message_type == "event":
@@ -194,7 +216,10 @@ class RunSeries:
 
 @dataclass(frozen=True)
 class SwitchFigures:
-    """Effect of one gain switch on ``P_IP`` and ``P_Y``."""
+    """Effect of one gain switch on ``P_IP`` and ``P_Y``: ``available`` are the DERs of the
+    new entry; ``handover_s`` how long the DERs took to move to their new shares (0: at once,
+    docs/method.md#returning-ders-handover); ``direction`` set on a switch made because the DERs
+    move the other way (docs/method.md#directional-availability)."""
 
     t_s: float
     available: tuple[str, ...]
@@ -202,6 +227,8 @@ class SwitchFigures:
     p_y_jump: float
     p_y_limited_by: float = 0.0
     scale: float = 1.0
+    handover_s: float = 0.0
+    direction: str | None = None
 
 
 @dataclass(frozen=True)
@@ -249,6 +276,7 @@ class RunSummary:
     grid: GridFigures | None = None
     realtime: RealtimeFigures | None = None
     scenario_steps: tuple[ScenarioStep, ...] = ()
+    design_checks: tuple[DesignCheck, ...] = ()
 
     def to_json(self) -> dict:
         """Plain data for ``json.dump`` (NaN and infinities become null)."""
@@ -311,19 +339,25 @@ def summarize(series: RunSeries, *, end_ns: int, band_pct: float = 5.0,
     p_ip = np.asarray(series.p_ip_w, dtype=float)
     switches = []
     for s in series.switches:
-        inside = (t_ip >= s["t_ns"]) & (t_ip <= s["t_ns"] + int(window_s * 1e9))
+        handover_s = float(s.get("handover_s") or 0.0)
+        inside = (t_ip >= s["t_ns"]) & (t_ip <= s["t_ns"] + int((window_s + handover_s) * 1e9))
+        next_step = min((t for t in series.p_ref_t_ns[1:] if t > s["t_ns"]), default=None)
+        if next_step is not None:                 # what follows is the step's response
+            inside &= t_ip < next_step
         deviation = np.abs(p_ip[inside] - _p_ref_at(series, t_ip[inside]))
         limited, scale = s["p_y_limited"], s.get("scale", 1.0)
         switches.append(SwitchFigures(s["t_ns"] * 1e-9, tuple(s["available"]),
                                       float(np.nanmax(deviation)) if deviation.size else None,
                                       float(s["p_y_after"] - limited),
-                                      float(limited - s["p_y_before"] * scale), float(scale)))
+                                      float(limited - s["p_y_before"] * scale), float(scale),
+                                      handover_s, s.get("direction")))
     sim_s = end_ns * 1e-9
     speed = sim_s / wall_time_s if wall_time_s else None
     return RunSummary(steps, tuple(switches), band_pct, sim_s, wall_time_s, speed,
                       dict(extra or {}), _faults(series, sim_s, band_pct), _grid(series),
                       realtime, scenario_steps(series, planned_steps, end_ns, sample_s,
-                                               (extra or {}).get("ended")))
+                                               (extra or {}).get("ended")),
+                      design_checks(steps, series.entries))
 
 
 def _cpfc_down(series: RunSeries) -> list[tuple[int, float, str]]:
@@ -420,7 +454,9 @@ def format_summary(summary: RunSummary):
     def num(value, fmt):
         return "-" if value is None else format(value, fmt)
 
-    out = [step_table(summary.steps, summary.band_pct, "P_ref steps: P_IP")]
+    out = [step_table(summary.steps, summary.band_pct, "P_ref steps: P_IP",
+                      summary.design_checks)]
+    out += design_lines(summary.design_checks)
     out += scenario_lines(summary.scenario_steps)
     switches = Table(title="gain switches", title_justify="left")
     for column in ("t [s]", "available DERs", "max |P_IP - P_ref| in 10 s [W]", "P_Y jump"):
@@ -436,9 +472,16 @@ def format_summary(summary: RunSummary):
         switches.add_row("", "no switches", "", "")
     out.append(switches)
     for s in summary.switches:
+        if s.direction:
+            out.append(f"  at {s.t_s:.2f} s the DERs were to move {s.direction}: the entry of "
+                       "those that can (directional availability)")
         if s.scale != 1.0:
             out.append(f"  at {s.t_s:.2f} s P_Y was scaled by {s.scale:.4g} so that the DERs' "
                        "commanded power stayed continuous")
+        if s.handover_s:
+            out.append(f"  at {s.t_s:.2f} s the DERs moved to their new shares in "
+                       f"{s.handover_s:.3g} s (handover); max |P_IP - P_ref| counted over it "
+                       "and 10 s more")
         if s.p_y_limited_by:
             out.append(f"  at {s.t_s:.2f} s P_Y lay outside the new DERs' output range (every "
                        f"one saturated) and was limited by {s.p_y_limited_by:.3g} first")

@@ -35,6 +35,7 @@ __all__ = [
     "ClockStart",
     "ClockStop",
     "DERState",
+    "Design",
     "Envelope",
     "Fault",
     "FaultRequest",
@@ -82,19 +83,44 @@ class Envelope(Struct, forbid_unknown_fields=True, omit_defaults=True):
 
 class Switch(Struct, forbid_unknown_fields=True, omit_defaults=True):
     """A bumpless gain switch: the output with the old gains, scaled (``scale``: so that the
-    DERs' total commanded power stays continuous) and limited to the new range."""
+    DERs' total commanded power stays continuous) and limited to the new range; ``handover_s``
+    (absent: 0) how long the DERs take to move from the setpoints they have to their shares
+    of the new entry (docs/method.md#returning-ders-handover), s; ``direction`` on a switch
+    made because the DERs move the other way now, the direction the new entry's DERs can move
+    in (absent: a switch for a change of availability or a tuned entry;
+    docs/method.md#directional-availability)."""
 
     p_y_before: Ratio
     p_y_limited: Ratio
     kp_before: Gain
     ki_before: Gain
     scale: Annotated[float, Meta(ge=0.0, le=1e9)] = 1.0
+    handover_s: Annotated[float, Meta(gt=0.0, le=1e6)] | UnsetType = UNSET
+    direction: Literal["up", "down"] | UnsetType = UNSET
+
+
+Seconds = Annotated[float, Meta(ge=0.0, le=1e9, description="s")]
+
+
+class Design(Struct, forbid_unknown_fields=True, omit_defaults=True):
+    """What a table entry was certified for (docs/method.md#said-when-over): the step
+    response of its as-deployed loop (reference model, weights applied) in the table, 10-90 %
+    rise time and settling time in ``settling_band_pct`` % (s), overshoot (%), and the
+    overshoot limit it was certified against (``constraints.overshoot_max_pct``, %)."""
+
+    rise_time_s: Seconds
+    settling_time_s: Seconds
+    overshoot_pct: Annotated[float, Meta(ge=0.0, le=1e6, description="%")]
+    overshoot_max_pct: Annotated[float, Meta(gt=0.0, le=1e6, description="%")]
+    settling_band_pct: Annotated[float, Meta(gt=0.0, le=100.0, description="%")]
 
 
 class PY(Envelope):
     """CPFC output P_Y (dimensionless) with the gains in use (K_P 1/W, K_I 1/(W s)) and the
     number of the table entry; the entry's weights W on a switch and periodically; ``hold``
-    while output and integrator are held (no measurement, no actuator, resuming)."""
+    while output and integrator are held (no measurement, no actuator, resuming); ``design``
+    with the first P_Y of an entry that has certified figures (the table's or an on-demand
+    tuned entry, not the static controller)."""
 
     type: Literal["p_y"]
     p_y: Ratio
@@ -105,6 +131,7 @@ class PY(Envelope):
     w: Annotated[dict[DERId, Weight], Meta(max_length=MAX_DERS)] | UnsetType = UNSET
     switch: Switch | UnsetType = UNSET
     hold: Literal["measurement", "actuators", "resuming"] | UnsetType = UNSET
+    design: Design | UnsetType = UNSET
 
 
 class PRef(Envelope):

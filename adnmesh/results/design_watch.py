@@ -1,0 +1,101 @@
+"""The steps over their design, found as a run is recorded: for the recorder's Foxglove log
+(:class:`adnmesh.results.eventlog.EventLog`), by the rule of
+:mod:`adnmesh.results.design_check` on the figures of ``adnmesh up``'s summary
+(docs/method.md#said-when-over)."""
+
+from __future__ import annotations
+
+import json
+
+from adnmesh.loopmodel.step_figures import reference_step_figures
+from adnmesh.results.design_check import design_checks, design_lines
+from adnmesh.results.summary import RunSeries
+
+__all__ = ["GRACE_NS", "OverDesignWatch"]
+
+#: sim time a step's window is left open after its end, so that every message before the end
+#: has been recorded (messages of one clock window arrive in any order), ns
+GRACE_NS = 1_000_000_000
+
+_WATCHED = frozenset({"p_ip", "p_ref", "p_y", "heartbeat", "si", "fault", "event", "clock_start",
+                      "clock_stop"})
+
+
+class OverDesignWatch:
+    """Says, as a run is recorded, which steps are over their design (for the recorder's
+    Foxglove log, :class:`adnmesh.results.eventlog.EventLog`).
+
+    It keeps the messages ``adnmesh up``'s summary reads (:class:`~adnmesh.results.summary.
+    RunSeries`) and, once a step's window has closed (the next step or window-ending event,
+    seen :data:`GRACE_NS` of P_IP samples later; the last one at the clock's stop), takes its
+    figures by the summary's rule and checks them (:func:`design_checks`). Each step over its
+    design gives one ``(t_ns, text)``: its window's end and the words of :func:`design_lines`
+    (the log records it at the message that closed the window, a grace later).
+    """
+
+    def __init__(self, band_pct: float | None = None) -> None:
+        self.series = RunSeries()
+        self._band_pct = band_pct
+        self._end_ns: int | None = None
+        self._checked = 0                  # steps (P_ref changes) already checked
+        self._due_ns = 0                   # no step can close before this P_IP sample
+        self._known = (0, 0)               # window ends and P_ref values seen at _due_ns
+
+    def observe(self, schema_name: str, payload: bytes, t_ns: int) -> list[tuple[int, str]]:
+        """The over-design findings a recorded message closes (usually none)."""
+        if schema_name not in _WATCHED or (schema_name == "p_y" and b'"switch"' not in payload
+                                           and b'"design"' not in payload):
+            return []
+        try:
+            body = json.loads(payload)
+        except ValueError:
+            return []
+        if not isinstance(body, dict):
+            return []
+        if schema_name == "clock_start":
+            if isinstance(body.get("end_ns"), int):
+                self._end_ns = body["end_ns"]
+            return []
+        if schema_name == "clock_stop":
+            return self._close(final=True)
+        try:
+            self.series.add(schema_name, body)
+        except (KeyError, TypeError):
+            return []
+        if schema_name == "p_y" and isinstance(body.get("design"), dict):
+            self._band_pct = float(body["design"].get("settling_band_pct", self._band_pct or 5))
+        return self._close(final=False) if schema_name == "p_ip" else []
+
+    def _close(self, final: bool) -> list[tuple[int, str]]:
+        series = self.series
+        if not series.p_ip_t_ns or self._checked >= len(series.p_ref_t_ns) - 1:
+            return []
+        now = series.p_ip_t_ns[-1]
+        known = (len(series.windows.instants), len(series.p_ref_t_ns))
+        if not final and now < self._due_ns and known == self._known:
+            return []
+        ends = sorted(set(series.windows.instants) | set(series.p_ref_t_ns[1:]))
+        starts = series.p_ref_t_ns[1:]
+        found = []
+        while self._checked < len(starts):
+            start = starts[self._checked]
+            later = [t for t in ends if t > start]
+            if later and now >= later[0] + GRACE_NS:
+                end_ns = now                   # the window ends at later[0], exclusive
+            elif final:
+                end_ns = self._end_ns if self._end_ns is not None and now >= self._end_ns else now
+            else:
+                self._due_ns = later[0] + GRACE_NS if later else 2**63
+                self._known = known
+                break
+            steps = reference_step_figures(series.p_ip_t_ns, series.p_ip_w, series.p_ref_t_ns,
+                                           series.p_ref_w, series.windows.instants, end_ns,
+                                           band_pct=self._band_pct or 5.0)
+            step = next((s for s in steps if int(round(s.t_s * 1e9)) == start), None)
+            self._checked += 1
+            if step is None:
+                continue
+            closed = start + int(round(step.window_s * 1e9))
+            for line in design_lines(design_checks([step], series.entries)):
+                found.append((closed, line.strip()))
+        return found
