@@ -43,8 +43,8 @@ def test_adn100_runs_with_on_demand_tuning_and_every_step_within_the_constraints
     config = load_config(config_path)
     summary = tmp_path / "summary.json"
     argv = [sys.executable, "-m", "adnmesh", "up", str(config_path), "--out",
-            str(tmp_path / "run.mcap"), "--summary-json", str(summary), "--table",
-            str(tmp_path / "absent.table.json"), "--startup-timeout", "1200",
+            str(tmp_path / "run.mcap"), "--summary-json", str(summary),   # no table in tmp_path
+            "--startup-timeout", "1200",
             "--stall-timeout", str(STALL_S)]
     # its 104 processes at the lowest priority (inherited by every agent), and no timed test
     # beside it (machine_alone): at the ordinary priority this run starved the suite's other
