@@ -152,7 +152,7 @@ def test_cli_writes_json_and_csv(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--workers", "0"], "--workers must be >= 1"),
+    (["--workers", "0"], "--workers must be 1 to 1024, got 0"),
     (["--resume", "--out", "/nonexistent/t.json"], "--resume: no partial table"),
     (["--disk-margin-min", "2.5"], "--disk-margin-min must be in (0, 2)"),
 ])

@@ -137,7 +137,8 @@ def test_a_loop_far_weaker_than_its_disk_margin_peak_settles_as_a_first_order_la
     assert chk.overshoot_pct[0] < 0.1
 
 
-def test_the_table_up_tunes_for_itself_has_a_static_pair(configs_dir: Path, tmp_path) -> None:
+def test_the_table_up_tunes_for_itself_has_a_static_pair(configs_dir: Path, tmp_path,
+                                                        monkeypatch) -> None:
     # up without a table tunes the scenario's subsets and, now, the static controller the
     # CPFC falls back to for a subset the table lacks; checked on every subset on the exact
     # loop by the independent evaluation
@@ -150,7 +151,8 @@ def test_the_table_up_tunes_for_itself_has_a_static_pair(configs_dir: Path, tmp_
 
     config = load_config(configs_dir / "examples" / "mixed-4.yaml")
     said: list[str] = []
-    args = argparse.Namespace(table=str(tmp_path / "absent.json"))
+    monkeypatch.chdir(tmp_path)         # no tables/<config>.json here: up tunes its own
+    args = argparse.Namespace(table=None)
     path = up._table(args, config, tmp_path, "run", said.append)
     static = load_table(path, config).static
     assert static is not None and static.feasible
