@@ -1,19 +1,21 @@
 """The one place that makes an agent state machine from an agent id.
 
 The sim layer, the agent processes and the tests build agents through :func:`build_agent`, so
-which class runs as which agent is decided once.
+which class runs as which agent is decided once. Each kind's module is imported when an agent
+of that kind is built: a DER process loads neither the CPFC's gain tables nor the measurement's
+grid solver.
 """
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from adnmesh.config import Config
-from adnmesh.control.availability_monitor import AvailabilityMonitor
-from adnmesh.control.base import Agent
-from adnmesh.control.cpfc_controller import CPFC, GainSchedule
-from adnmesh.control.der_controller import DERController
-from adnmesh.control.measurement_point import Measurement
-from adnmesh.control.operating_point import available_power_w
 from adnmesh.names import der_id_of
+
+if TYPE_CHECKING:
+    from adnmesh.control.base import Agent
+    from adnmesh.control.cpfc_controller import GainSchedule
 
 __all__ = ["build_agent"]
 
@@ -31,15 +33,20 @@ def build_agent(agent_id: str, config: Config, schedule: GainSchedule | None = N
     if agent_id == "cpfc":
         if schedule is None:
             raise ValueError("the CPFC needs a gain schedule")
+        from adnmesh.control.cpfc_controller import CPFC
         return CPFC(config, schedule)
     if agent_id == "measurement":
+        from adnmesh.control.measurement_point import Measurement
         return Measurement(config)
     if agent_id == "availability":
+        from adnmesh.control.availability_monitor import AvailabilityMonitor
         return AvailabilityMonitor(config)
     der_id = der_id_of(agent_id)
     if der_id is not None and der_id in config.der_ids():
+        from adnmesh.control.der_controller import DERController
         (der,) = config.ders_by_id([der_id])
         if p_avail_w is None:
+            from adnmesh.control.operating_point import available_power_w
             p_avail_w = available_power_w(config)[der_id]
         return DERController(der, config, p_avail_w)
     raise ValueError(f"unknown agent id {agent_id!r}")

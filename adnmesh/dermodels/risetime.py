@@ -12,7 +12,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import brentq
 
 __all__ = ["ModelFunctions", "step_value", "normalised", "first_crossing", "crossing_time",
            "rise_time"]
@@ -49,6 +48,8 @@ def first_crossing(f: Callable, t: np.ndarray, y: np.ndarray, level: float) -> f
     i = int(above[0])
     if i == 0:
         return float(t[0])
+    from scipy.optimize import brentq   # calibration only: a DER agent of a PV or PT1 needs none
+
     return float(brentq(lambda x: f(x) - level, t[i - 1], t[i], xtol=1e-10, rtol=1e-12))
 
 

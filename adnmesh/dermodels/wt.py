@@ -23,8 +23,6 @@ import math
 from dataclasses import dataclass
 from functools import lru_cache
 
-from scipy.optimize import brentq
-
 from adnmesh.dermodels.pieces import rate_limited_lag_end
 from adnmesh.dermodels.risetime import ModelFunctions, rise_time
 from adnmesh.dermodels.state import DeadTime, DerState, infeed_function, set_point
@@ -146,6 +144,8 @@ def _params(p_inst_w, t_delay_s, t_rise_s, t_lag, p_max_w) -> WTParams:
 @lru_cache(maxsize=64)
 def _lag_for(t_delay_s: float, t_rise_s: float) -> float:
     """The lag's time constant, s; every limit scales with P_inst, so P_inst = 1 W will do."""
+    from scipy.optimize import brentq   # calibration only (once per t_delay, t_rise)
+
     def excess(t_lag: float) -> float:
         return rise_time(FUNCTIONS, _params(1.0, t_delay_s, t_rise_s, t_lag, 1.0), 0.5,
                          0.5 + DESIGN_STEP, t_delay_s + 2 * t_rise_s) - t_rise_s

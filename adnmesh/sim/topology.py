@@ -24,7 +24,6 @@ from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import numpy as np
-from scipy.sparse.csgraph import csgraph_from_dense, shortest_path
 
 from adnmesh.config import Config, LinkSettings
 from adnmesh.names import (ICT_LINKS, LAUNCHER, OPERATOR, PER_DER_KIND, agent_ids, der_agent_id,
@@ -208,6 +207,8 @@ def _lookahead(agents, links, receivers) -> dict[tuple[str, str], int]:
     dict, pair for pair and in the same order (``(a, b)`` for ``a``, then ``b``, in agent
     order; an unreachable pair is missing), as the Floyd-Warshall loop's that
     ``tests/lookahead_reference.py`` keeps."""
+    from scipy.sparse.csgraph import csgraph_from_dense, shortest_path   # up's clock only
+
     index = {a: i for i, a in enumerate(agents)}
     n = len(agents)
     direct = np.full((n, n), np.inf)

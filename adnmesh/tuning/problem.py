@@ -10,7 +10,6 @@ shared, and ``K_P = kp_n / sum_A P_inst`` (1/W), ``K_I = ki_n / sum_A P_inst`` (
 from __future__ import annotations
 
 from dataclasses import dataclass
-from itertools import combinations
 from typing import Sequence
 
 import numpy as np
@@ -18,6 +17,7 @@ import numpy as np
 from adnmesh.loopmodel.evaluation import LoopFigures, disk_margin_bound, evaluate
 from adnmesh.loopmodel.plant import Actuator, Plant
 from adnmesh.loopmodel.step_response import integral_rate, step_info
+from adnmesh.tuning.subset_selection import all_subsets
 
 __all__ = ["TuningProblem", "Check", "all_subsets", "T_MAX_S", "horizon_s", "MAX_EXACT_CLASSES"]
 
@@ -70,11 +70,6 @@ class Check:
     rise_time_s: np.ndarray
     reason: np.ndarray            # "", "unstable", "disk margin", "overshoot", "slow"
     simulated_rise_s: np.ndarray
-
-
-def all_subsets(ids: Sequence[str]) -> list[tuple[str, ...]]:
-    """Every non-empty subset of ``ids`` (2^m - 1), by size then config order."""
-    return [c for k in range(1, len(ids) + 1) for c in combinations(ids, k)]
 
 
 def _nominal_by_type(config) -> dict:

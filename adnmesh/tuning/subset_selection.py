@@ -8,15 +8,16 @@ FILE one subset per line (DER ids separated by spaces or commas, ``#`` starts a 
 """
 from __future__ import annotations
 
+from itertools import combinations
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
 from adnmesh.errors import UsageError
 from adnmesh.files import read_regular
-from adnmesh.tuning.problem import all_subsets
 
-__all__ = ["DIRECTION_HEADROOM", "MAX_ALL_DERS", "MAX_SUBSETS", "able_to_move", "select_subsets",
+__all__ = ["DIRECTION_HEADROOM", "MAX_ALL_DERS", "MAX_SUBSETS", "able_to_move", "all_subsets", "select_subsets",
            "scenario_subsets", "random_subsets", "spread_random_subsets"]
 
 #: ``--subsets all`` is refused beyond this many DERs (2^16 - 1 = 65,535 subsets)
@@ -34,6 +35,11 @@ SEED = 0
 #: power (down to 0), is at least this fraction of its installed power
 #: (docs/method.md#directional-availability)
 DIRECTION_HEADROOM = 0.01
+
+
+def all_subsets(ids: Sequence[str]) -> list[tuple[str, ...]]:
+    """Every non-empty subset of ``ids`` (2^m - 1), by size then config order."""
+    return [c for k in range(1, len(ids) + 1) for c in combinations(ids, k)]
 
 
 def able_to_move(config, available_w=None) -> dict[int, frozenset[str]]:
