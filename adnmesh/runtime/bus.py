@@ -37,6 +37,13 @@ sessions dropped with 10 s); a process that dies closes its TCP link at once any
 KEEP_ALIVE = 10
 """Keep-alive messages per lease (Zenoh's default: 4): one every 3 s."""
 
+SHARED_MEMORY = False
+"""Whether sessions may use Zenoh's shared-memory transport (zenoh 1.x default: on, with a
+16 MiB pool per session and only for messages of 3 KiB or more). adnmesh's messages are under a
+few hundred bytes and never reach it, but each session would still set the pool up and map its
+peers' (docs/performance.md#runtime-memory-and-start-up); a ``--zenoh-config`` file may turn
+it on again."""
+
 BLOCK_BEFORE_CLOSE_US = 30_000_000
 """How long a session may wait for room in a link's queue to send a message (congestion
 control ``BLOCK``, which adnmesh uses) before Zenoh closes the link, µs (default 5 s)."""
@@ -77,6 +84,7 @@ def session_config(args: argparse.Namespace, identity: str | None = None) -> zen
     config.insert_json5("scouting/multicast/enabled", "false")
     if not args.zenoh_config:
         _lease(config)
+        _shared_memory(config)
     certs = getattr(args, "certs", None)
     if certs is not None or not args.zenoh_config:   # a config file may bring its own TLS
         _profile(config, connect, args.listen, certs, identity, accepts=bool(args.listen))
@@ -92,6 +100,7 @@ def client_config(connect: list[str], certs=None, identity: str | None = None) -
     config.insert_json5("connect/endpoints", json.dumps(connect))
     config.insert_json5("scouting/multicast/enabled", "false")
     _lease(config)
+    _shared_memory(config)
     _profile(config, connect, (), certs, identity)
     return config
 
@@ -109,6 +118,7 @@ def router_config(listen: list[str], connect=(), certs=None, identity: str | Non
         config.insert_json5("connect/endpoints", json.dumps(list(connect)))
     config.insert_json5("scouting/multicast/enabled", "false")
     _lease(config)
+    _shared_memory(config)
     _profile(config, connect, listen, certs, identity, accepts=True)
     if certs is not None:
         from adnmesh.runtime.security import apply_access_control
@@ -165,6 +175,10 @@ def _lease(config: zenoh.Config) -> None:
     config.insert_json5("transport/link/tx/keep_alive", str(KEEP_ALIVE))
     config.insert_json5("transport/link/tx/queue/congestion_control/block/wait_before_close",
                         str(BLOCK_BEFORE_CLOSE_US))
+
+
+def _shared_memory(config: zenoh.Config) -> None:
+    config.insert_json5("transport/shared_memory/enabled", json.dumps(SHARED_MEMORY))
 
 
 def _profile(config: zenoh.Config, connect, listen, certs, identity: str | None,
