@@ -53,3 +53,36 @@ def test_der_process_loads_only_the_der(configs_dir):
               "adnmesh.loopmodel.evaluation", "adnmesh.grid"}
     assert not found["adnmesh"] & others
     assert "adnmesh.control.der_controller" in found["adnmesh"]
+
+
+def test_model_params_round_trip_exactly(simbench_config):
+    """The parameters ``up`` hands a DER process are the ones it would calibrate, bit for bit
+    (every model of the reference case, the WT's ``inf`` ramp-down limit included)."""
+    from adnmesh.control.der_model import der_params, params_from_json, params_json
+
+    for der in simbench_config.ders:
+        params = der_params(der, simbench_config, 0.7 * der.p_inst_w)
+        assert params_from_json(params_json(params)) == params
+
+
+def test_model_params_refused_in_one_line():
+    from adnmesh.control.der_model import params_from_json
+
+    for text in ("{", '{"model": "NoParams"}', '{"model": "PVParams", "x": 1}', "[]"):
+        with pytest.raises(ValueError, match="not model parameters"):
+            params_from_json(text)
+
+
+def test_wt_process_with_handed_params_loads_no_scipy(configs_dir, simbench_config):
+    """A WT given its parameters (as ``up`` gives them) does not calibrate: no scipy."""
+    from adnmesh.control.der_model import der_params, params_json
+
+    (wt,) = simbench_config.ders_by_id(["SGen1"])
+    text = params_json(der_params(wt, simbench_config, wt.p_inst_w))
+    found = loaded(
+        "from adnmesh.config import load_config\n"
+        "from adnmesh.control.der_model import params_from_json\n"
+        "from adnmesh.control.registry import build_agent\n"
+        f"config = load_config({str(configs_dir / 'simbench.yaml')!r})\n"
+        f"build_agent('der/SGen1', config, p_avail_w=2e6, der_params=params_from_json({text!r}))\n")
+    assert not found["packages"] & set(HEAVY)

@@ -40,7 +40,7 @@ from msgspec import UNSET
 
 from adnmesh.config import DER, Config
 from adnmesh.control.base import Agent, Outgoing
-from adnmesh.control.der_model import der_params
+from adnmesh.control.der_model import der_params, usable_available_w
 from adnmesh.dermodels import infeed_at, set_point, steady_state
 from adnmesh.dermodels.limits import held_at
 from adnmesh.names import der_agent_id
@@ -58,16 +58,17 @@ def _first_at_or_after(t_ns: int, period_ns: int) -> int:
 class DERController(Agent):
     """Local controller of DER ``der`` (agent id ``der/<id>``; see the module docstring)."""
 
-    def __init__(self, der: DER, config: Config, p_avail_w: float | None = None) -> None:
+    def __init__(self, der: DER, config: Config, p_avail_w: float | None = None,
+                 params=None) -> None:
         self.der = der
-        self.p_avail_w = der.p_inst_w if p_avail_w is None else min(p_avail_w, der.p_inst_w)
+        self.p_avail_w = usable_available_w(der, p_avail_w)
         self.agent_id = der_agent_id(der.id)
         keys = Keys(config.grid)
         self._state_key = keys.of("der_state", der.id)
         self._heartbeat_key = keys.of("heartbeat", der.id)
         self._event_key = keys.of("event", self.agent_id)
         rt = config.runtime
-        self.params = der_params(der, config, self.p_avail_w)
+        self.params = der_params(der, config, self.p_avail_w) if params is None else params
         self.state = steady_state(self.params, der.p_sched_w)
         self.sample_period_ns = ns(rt.measurement_period_s)
         self.heartbeat_period_ns = ns(rt.heartbeat_period_s)

@@ -7,15 +7,55 @@ analyses use, :mod:`adnmesh.dermodels.pt1`);
 :mod:`adnmesh.dermodels`: WT Type
 4B-like, CHP, PV) with the defaults that reproduce the config's ``t_delay_s`` and ``t_rise_s``,
 the DER's own overrides (its ``model:`` mapping) and its available power as the upper limit.
+
+The detailed WT and CHP models are calibrated by a root finder (scipy's ``brentq``); ``adnmesh
+up`` calibrates them once and hands each DER process its parameters (:func:`params_json`,
+:func:`params_from_json`), so that a DER process loads no scipy.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import json
+
 from adnmesh import dermodels
+from adnmesh.dermodels.pt1 import PT1DelayParams
 from adnmesh.config import DER, Config
 from adnmesh.errors import ConfigError
 
-__all__ = ["check_der_models", "der_params"]
+__all__ = ["check_der_models", "der_params", "params_from_json", "params_json",
+           "usable_available_w"]
+
+_PARAM_TYPES = {t.__name__: t for t in (dermodels.WTParams, dermodels.CHPParams,
+                                        dermodels.PVParams, PT1DelayParams)}
+
+
+def usable_available_w(der: DER, p_avail_w: float | None) -> float:
+    """The available power a DER runs with, W: ``p_avail_w`` up to its installed power (the
+    installed power if None)."""
+    return der.p_inst_w if p_avail_w is None else min(p_avail_w, der.p_inst_w)
+
+
+def params_json(params) -> str:
+    """Model parameters as one line of JSON (their type's name and every field; floats exact,
+    ``math.inf`` as ``Infinity``)."""
+    fields = {f.name: getattr(params, f.name) for f in dataclasses.fields(params) if f.init}
+    return json.dumps({"model": type(params).__name__, **fields})
+
+
+def params_from_json(text: str):
+    """The parameters :func:`params_json` wrote.
+
+    Raises
+    ------
+    ValueError
+        Not such a text.
+    """
+    try:
+        found = json.loads(text)
+        return _PARAM_TYPES[found.pop("model")](**found)
+    except (ValueError, TypeError, KeyError, AttributeError) as exc:
+        raise ValueError(f"not model parameters: {exc}") from None
 
 
 def der_params(der: DER, config: Config, p_avail_w: float):

@@ -20,10 +20,11 @@ if TYPE_CHECKING:
 __all__ = ["build_agent"]
 
 def build_agent(agent_id: str, config: Config, schedule: GainSchedule | None = None,
-                p_avail_w: float | None = None) -> Agent:
+                p_avail_w: float | None = None, der_params=None) -> Agent:
     """The state machine of ``agent_id`` for ``config``; the CPFC needs its gain schedule, a DER
     can be given its available power, W (default: :func:`adnmesh.control.operating_point.
-    available_power_w`).
+    available_power_w`), and its model parameters (default: from the config,
+    :func:`adnmesh.control.der_model.der_params`).
 
     Raises
     ------
@@ -48,5 +49,5 @@ def build_agent(agent_id: str, config: Config, schedule: GainSchedule | None = N
         if p_avail_w is None:
             from adnmesh.control.operating_point import available_power_w
             p_avail_w = available_power_w(config)[der_id]
-        return DERController(der, config, p_avail_w)
+        return DERController(der, config, p_avail_w, der_params)
     raise ValueError(f"unknown agent id {agent_id!r}")

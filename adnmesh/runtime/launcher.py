@@ -379,12 +379,23 @@ class _Launch:
                              f"{self.agent_command(agent_id, resume_ns)}")
             return
         der_id = der_id_of(agent_id)
+        p_avail_w = self.options.available_w.get(der_id)
         argv = agent_argv(agent_id, Path(self.config.path), self.endpoint,
-                          self.options.table_path, self.options.available_w.get(der_id),
-                          self.options.certs)
+                          self.options.table_path, p_avail_w, self.options.certs,
+                          self._model_params(der_id, p_avail_w))
         if resume_ns:
             argv += ["--resume-at-ns", str(resume_ns)]
         self.children.spawn(agent_id, argv)
+
+    def _model_params(self, der_id: str | None, p_avail_w: float | None) -> str | None:
+        """A DER's model parameters as JSON, calibrated here (the WT and CHP models by a root
+        finder: the DER process then loads no scipy); None for another agent or a DER whose
+        available power ``up`` was not given."""
+        if der_id is None or p_avail_w is None:
+            return None
+        from adnmesh.control.der_model import der_params, params_json, usable_available_w
+        (der,) = self.config.ders_by_id([der_id])
+        return params_json(der_params(der, self.config, usable_available_w(der, p_avail_w)))
 
     def agent_command(self, agent_id: str, resume_ns: int = 0) -> str:
         """The ``adnmesh agent`` command line that runs ``agent_id`` against this router."""
