@@ -19,7 +19,14 @@ Measures, each printed as it comes:
    CPU time, per pair of runs;
 6. with ``--view``: the SimBench scenario with the live view streamed to a file (``up --view
    FILE.rrd``: the same work as for a viewer, without one), alternating with plain runs, and
-   its cost as the ratio view / plain of wall and CPU time per pair (target: <= 1.10).
+   its cost as the ratio view / plain of wall and CPU time per pair (target: <= 1.10);
+7. with ``--memory``: per agent kind (DER by type, CPFC, measurement, availability monitor)
+   the modules loaded and the time from the interpreter's start to the agent built (what its
+   program does before it opens its session; a fresh interpreter each), and in the SimBench
+   run the PSS of every process (``/proc/PID/smaps_rollup``) when all agents are ready and at
+   half the run, and the start-up time to "agents ready"; with ``--baseline-rev REV[,REV...]``
+   the same for those commits (a ``git worktree`` each, run with ``PYTHONPATH`` set to it),
+   alternating run by run with this tree.
 
 It measures; it asserts nothing (targets: speed factor >= 30, ratio >= 3). Every measurement
 is repeated (``--repeat``, default 3) and reported as min / median / max, with the load average
@@ -35,6 +42,8 @@ time. Usage::
     .venv/bin/python benchmarks/bench_runtime.py --view --only-pairs --agents '' --skip-helics
     .venv/bin/python benchmarks/bench_runtime.py --view --view-config CASE.yaml \
         --view-table CASE.table.json --skip-simbench --agents '' --skip-helics
+    .venv/bin/python benchmarks/bench_runtime.py --memory --baseline-rev e63e162 \
+        --only-pairs --agents '' --skip-helics
 
 The gain table for the SimBench config is ``tables/simbench.<sha>.json`` if ``adnmesh tune``
 made one that holds the subsets the scenario needs; otherwise those two entries (all DERs; CHPs
@@ -47,6 +56,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import statistics
 import subprocess
 import sys
@@ -274,6 +284,202 @@ def grid_cost(config_path: Path, workdir: Path, repeat: int) -> dict:
     return out
 
 
+# -- memory and start-up per agent kind (--memory) ---------------------------------------------
+
+PROBE = """
+import sys, time
+t0 = time.perf_counter()
+kind, config_path, table_path, der, model = sys.argv[1:6]
+import adnmesh.agents.{program}
+t_import = time.perf_counter() - t0
+from adnmesh.config import load_config
+from adnmesh.control.registry import build_agent
+from adnmesh.sim.node import Node
+config = load_config(config_path)
+if kind == "cpfc":
+    from adnmesh.control.cpfc_controller import GainSchedule
+    from adnmesh.tuning.table import load_table
+    agent = build_agent("cpfc", config, GainSchedule(config, load_table(table_path, config)))
+elif der != "-":
+    from adnmesh.names import der_agent_id
+    from adnmesh.control import der_model
+    (d,) = config.ders_by_id([der])
+    if hasattr(der_model, "params_from_json"):   # handed over by up, as up does
+        agent = build_agent(der_agent_id(der), config, p_avail_w=d.p_inst_w,
+                            der_params=der_model.params_from_json(model))
+    else:                                         # before: calibrated in the process
+        agent = build_agent(der_agent_id(der), config, p_avail_w=d.p_inst_w)
+else:
+    agent = build_agent(kind, config)
+Node.for_config(agent, config)
+t_built = time.perf_counter() - t0
+import json
+heavy = ("scipy", "numba", "pandas", "pyarrow", "pandapower", "lightsim2grid")
+print(json.dumps({"modules": len(sys.modules), "import_s": round(t_import, 3),
+                  "built_s": round(t_built, 3),
+                  "heavy": [h for h in heavy if h in sys.modules]}))
+"""
+
+
+def probe_kinds(tree: Path, config_path: Path, table: Path) -> dict:
+    """Per agent kind (a DER of each type): modules loaded and time from the interpreter's
+    start to the module imported and to the agent built, in a fresh interpreter of ``tree``
+    (a DER given its available power, and its model parameters where ``tree``'s ``up`` hands
+    them over)."""
+    config = load_config(config_path)
+    kinds = {f"der {t}": ("der", next(d.id for d in config.ders if d.type == t))
+             for t in dict.fromkeys(d.type for d in config.ders)}
+    kinds.update({k: (k, "-") for k in ("cpfc", "measurement", "availability")})
+    found = {}
+    for name, (kind, der) in kinds.items():
+        model = "-"
+        if der != "-":
+            from adnmesh.control.der_model import der_params, params_json
+            (d,) = config.ders_by_id([der])
+            model = params_json(der_params(d, config, d.p_inst_w))
+        out = subprocess.run([sys.executable, "-c", PROBE.replace("{program}", kind), kind,
+                              str(config_path), str(table), der, model], env=tree_env(tree),
+                             cwd=tree, capture_output=True, text=True, timeout=300, check=True)
+        found[name] = json.loads(out.stdout.splitlines()[-1])
+    return found
+
+
+def tree_env(tree: Path) -> dict:
+    """The environment of a process of the adnmesh source ``tree`` (as ``adnmesh`` sets it
+    for itself: OpenBLAS on one thread)."""
+    return dict(os.environ, PYTHONPATH=str(tree), OPENBLAS_NUM_THREADS="1")
+
+
+def pss_kb(pid: int) -> int | None:
+    """Proportional set size of process ``pid``, kB (None: gone)."""
+    try:
+        for line in Path(f"/proc/{pid}/smaps_rollup").read_text().splitlines():
+            if line.startswith("Pss:"):
+                return int(line.split()[1])
+    except OSError:
+        return None
+    return None
+
+
+def agent_pids(parent: int) -> dict[str, int]:
+    """The children of ``parent`` that run an agent program: agent (``cpfc``, ``der
+    SGen1``...) -> pid."""
+    found = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+            if int(fields[1]) != parent:
+                continue
+            argv = (stat.parent / "cmdline").read_bytes().split(b"\0")
+        except (OSError, IndexError):
+            continue
+        words = [a.decode() for a in argv if a]
+        program = next((w for w in words if w.startswith("adnmesh.agents.")), None)
+        if program is not None:
+            kind = program.rsplit(".", 1)[1]
+            if "--der" in words:
+                kind += " " + words[words.index("--der") + 1]
+            found[kind] = int(stat.parent.name)
+    return found
+
+
+def pss_sample(up_pid: int, kinds: dict[str, str]) -> dict:
+    """PSS, MB, of ``up`` (router, clock, recorder) and its agent processes now: the median
+    per kind (``der WT``...), ``up``'s and the total."""
+    per_agent = {a: pss_kb(pid) for a, pid in agent_pids(up_pid).items()}
+    per_agent = {a: kb / 1024 for a, kb in per_agent.items() if kb is not None}
+    by_kind: dict[str, list] = {}
+    for agent, mb in per_agent.items():
+        by_kind.setdefault(kinds.get(agent, agent), []).append(mb)
+    out = {k: round(statistics.median(v), 1) for k, v in sorted(by_kind.items())}
+    out["up"] = round((pss_kb(up_pid) or 0) / 1024, 1)
+    out["total"] = round(sum(per_agent.values()) + out["up"], 1)
+    out["agents"] = len(per_agent)
+    return out
+
+
+def memory_run(tree: Path, config_path: Path, table: Path, workdir: Path) -> dict:
+    """One ``adnmesh up CONFIG`` of ``tree`` on the sim clock: its start-up to "agents ready"
+    (as it says), the PSS of every process when all are ready and half-way through the run
+    (the sample, every 0.25 s, in the middle of the run's wall time), MB."""
+    config = load_config(config_path)
+    kinds = {f"der {d.id}": f"der {d.type}" for d in config.ders}
+    argv = [sys.executable, "-m", "adnmesh", "up", str(config_path), "--table", str(table),
+            "--out", str(workdir / "memory.mcap")]
+    load_before = load()
+    up = subprocess.Popen(argv, env=tree_env(tree), cwd=tree, stdout=subprocess.DEVNULL,
+                          stderr=subprocess.PIPE, text=True)
+    startup_s, ready, during = None, None, []
+    try:
+        for line in up.stderr:
+            found = re.search(r"agents ready in ([0-9.]+) s", line)
+            if found:
+                startup_s, ready = float(found.group(1)), pss_sample(up.pid, kinds)
+                break
+        while up.poll() is None and ready is not None:
+            during.append(pss_sample(up.pid, kinds))
+            time.sleep(0.25)
+        rest = up.stderr.read()
+    finally:
+        if up.poll() is None:
+            up.terminate()
+        code = up.wait()
+    if code != 0 or ready is None:
+        raise SystemExit(f"adnmesh up ({tree}) failed with exit code {code}: {rest[-2000:]}")
+    during = [d for d in during if d["agents"] == ready["agents"]]
+    return {"startup_s": startup_s, "pss_mb": {"ready": ready,
+                                               "mid_run": during[len(during) // 2]},
+            "load_before": load_before}
+
+
+def worktree(rev: str) -> Path:
+    """A detached worktree of ``rev`` under /tmp (made once)."""
+    sha = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short=12", rev],
+                         capture_output=True, text=True, check=True).stdout.strip()
+    path = Path(tempfile.gettempdir()) / f"adnmesh-bench-{sha}"
+    if not path.exists():
+        subprocess.run(["git", "-C", str(REPO), "worktree", "add", "--detach", str(path), sha],
+                       capture_output=True, check=True)
+    return path
+
+
+def memory_compare(args, table: Path, workdir: Path) -> dict:
+    """``--memory``: this tree and every ``--baseline-rev``, alternating run by run; per tree
+    the probes (once), and start-up and PSS as ranges over the runs."""
+    config_path = Path(args.config).resolve()
+    trees = {"this tree": REPO}
+    for rev in [r.strip() for r in (args.baseline_rev or "").split(",") if r.strip()]:
+        trees[rev] = worktree(rev)
+    probes = {}
+    for name, tree in trees.items():
+        probes[name] = probe_kinds(tree, config_path, table)
+        for kind, p in probes[name].items():
+            print(f"  {name:>12}: {kind:14s} {p['modules']:5d} modules, import "
+                  f"{p['import_s']:.2f} s, built {p['built_s']:.2f} s "
+                  f"{' '.join(p['heavy'])}", flush=True)
+    runs: dict[str, list] = {name: [] for name in trees}
+    for i in range(args.repeat):
+        for name, tree in (trees.items() if i % 2 == 0 else reversed(trees.items())):
+            r = memory_run(tree, config_path, table, workdir)
+            runs[name].append(r)
+            print(f"  {name:>12}: start-up {r['startup_s']} s, PSS total ready "
+                  f"{r['pss_mb']['ready']['total']} MB, mid-run "
+                  f"{r['pss_mb']['mid_run']['total']} MB (load {r['load_before']})",
+                  flush=True)
+    summary = {}
+    for name, found in runs.items():
+        out = summary[name] = {"startup_s": spread(found, "startup_s"), "pss_mb": {}}
+        show_range(f"{name}: start-up to agents ready", out, "startup_s", " s")
+        for when in ("ready", "mid_run"):
+            keys = found[0]["pss_mb"][when]
+            pss = out["pss_mb"][when] = {k: spread([f["pss_mb"][when] for f in found], k)
+                                         for k in keys}
+            print(f"  {name}: PSS at {when}, MB (min .. max): " + ", ".join(
+                f"{k} {v['min']:g}..{v['max']:g}" for k, v in pss.items() if k != "agents"),
+                flush=True)
+    return {"probes": probes, "runs": runs, "summary": summary}
+
+
 def run_helics(python: str, steps: int, nfeds: int, core: str) -> dict:
     """One run of the HELICS baseline: the JSON line of ``run_helics.py``."""
     load_before = load()
@@ -344,7 +550,13 @@ def main() -> int:
                         "of the SimBench scenario")
     parser.add_argument("--view-table", metavar="JSON", help="the gain table of --view-config")
     parser.add_argument("--only-pairs", action="store_true",
-                        help="with --secure or --view: skip the plain SimBench runs before")
+                        help="with --secure, --view or --memory: skip the plain SimBench runs "
+                        "before")
+    parser.add_argument("--memory", action="store_true",
+                        help="also modules, import time and PSS per agent kind and start-up "
+                        "to agents ready (SimBench scenario), alternating with --baseline-rev")
+    parser.add_argument("--baseline-rev", metavar="REV[,REV...]",
+                        help="with --memory: also measure these commits (a git worktree each)")
     parser.add_argument("--json", metavar="PATH", help="also write every figure as JSON")
     args = parser.parse_args()
 
@@ -364,6 +576,10 @@ def main() -> int:
                 show_pairs(security, ("open", "secure"))
             if args.view and not args.view_config:
                 view_pairs(figures, args, config_path, table, workdir)
+            if args.memory:
+                print(f"memory and start-up per agent kind, {args.repeat} runs per tree, "
+                      "alternating ...", flush=True)
+                figures["memory"] = memory_compare(args, table, workdir)
         if args.view and args.view_config:
             view_pairs(figures, args, None, None, workdir)
         if args.grid_cost:
