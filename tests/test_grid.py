@@ -470,3 +470,13 @@ def test_simbench_cache_round_trip_gives_identical_results(tmp_path):
 def test_unknown_simbench_code_is_a_one_line_error(tmp_path):
     with pytest.raises(GridError, match="'1-MV-nowhere--0-no_sw' is not a SimBench code"):
         load_grid("1-MV-nowhere--0-no_sw", "lW", cache_dir=tmp_path)
+
+
+def test_is_cached_looks_where_load_grid_stores(tmp_path) -> None:
+    # up announces "tens of seconds to build its cache" only when load_grid will build one
+    from adnmesh.grid.cache import cache_key, cache_path, is_cached
+    args = ("1-MV-rural--0-no_sw", "lW", "impedance")
+    assert not is_cached(*args, cache_dir=tmp_path)
+    cache_path(cache_key(*args), tmp_path).write_bytes(b"")
+    assert is_cached(*args, cache_dir=tmp_path)
+    assert not is_cached("1-MV-rural--0-no_sw", "hL", "impedance", cache_dir=tmp_path)

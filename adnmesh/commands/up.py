@@ -239,8 +239,11 @@ def operating_point(config: Config, log) -> dict[str, float]:
     from adnmesh.control.operating_point import available_power_w, initial_p_ip_w
 
     if config.grid_model is not None:
-        log(f"grid model: SimBench {config.simbench_code}, study case "
-            f"{config.grid_model.study_case} (the first time: tens of seconds to build its cache)")
+        from adnmesh.grid.cache import is_cached
+        gm = config.grid_model
+        building = "" if is_cached(config.simbench_code, gm.study_case, gm.load_model) else \
+            " (not cached yet: tens of seconds to build its cache)"
+        log(f"grid model: SimBench {config.simbench_code}, study case {gm.study_case}{building}")
     try:
         available = available_power_w(config)
     except GridError as exc:

@@ -43,7 +43,7 @@ import numpy as np
 from adnmesh.files import write_atomic
 from adnmesh.grid.data import GridData, from_arrays, to_arrays
 
-__all__ = ["FORMAT_VERSION", "default_cache_dir", "cache_key", "cache_path", "model_path",
+__all__ = ["FORMAT_VERSION", "default_cache_dir", "cache_key", "cache_path", "is_cached", "model_path",
            "arrays_digest", "cached", "load_grid"]
 
 FORMAT_VERSION = 3          # 3: the arrays' digest (files of format 2 are not read, nor removed)
@@ -79,6 +79,13 @@ def cache_path(key: dict, directory: Path) -> Path:
     digest = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
     stem = re.sub(r"[^A-Za-z0-9._-]+", "_", f"{key['code']}-{key['case']}-{key['load_model']}")
     return Path(directory) / f"grid-{stem}-{digest}.npz"
+
+
+def is_cached(code: str, case: str, load_model: str, cache_dir=None) -> bool:
+    """Whether :func:`load_grid` finds a cache file for these arguments (it may still rebuild
+    one it finds damaged); tells a caller whether to announce a build of tens of seconds."""
+    directory = Path(cache_dir) if cache_dir is not None else default_cache_dir()
+    return cache_path(cache_key(code, case, load_model), directory).exists()
 
 
 def cached(key: dict, build: Callable[[], GridData], directory=None) -> GridData:
