@@ -1,4 +1,5 @@
-"""Independent reference for the loop numerics: python-control with Padé delay models.
+"""Independent reference for the loop numerics: python-control with Padé delay models
+(built by :mod:`adnmesh.loopmodel.control_models`, the models users take into python-control).
 
 Each forward path's delay ``T_com + T_delay,g`` and the measurement delay ``T_meas`` are
 replaced by Padé approximants of order ``order`` (>= 10 in the tests). Two delays of one path
@@ -10,39 +11,14 @@ from __future__ import annotations
 
 import control as ct
 import numpy as np
-import scipy.linalg
 
+from adnmesh.loopmodel.control_models import loop_models
 from adnmesh.loopmodel.plant import Plant
-
-
-def pade_ss(delay_s: float, order: int) -> ct.StateSpace:
-    num, den = ct.pade(delay_s, order)
-    return ct.ss(ct.tf(num, den))
-
-
-def actuator_tf(act) -> ct.TransferFunction:
-    return ct.tf(act.numerator[::-1], act.denominator[::-1])
-
-
-def balanced(sys: ct.StateSpace) -> ct.StateSpace:
-    _, (scale, _) = scipy.linalg.matrix_balance(sys.A, permute=False, separate=True)
-    return ct.ss(sys.A / scale[:, None] * scale[None, :], sys.B / scale[:, None],
-                 sys.C * scale[None, :], sys.D)
 
 
 def reference_models(plant: Plant, kp: float, ki: float, order: int = 10):
     """(L, G_CL) of the loop as python-control state-space models with Padé delays."""
-    pi = ct.ss(ct.tf([kp, ki], [1.0, 0.0]))
-    forward = None
-    for act, gain, delay in zip(plant.actuators, np.atleast_1d(plant.gains_w), plant.path_delays_s):
-        if gain == 0:
-            continue
-        path = ct.ss(gain * actuator_tf(act)) * pade_ss(delay, order)
-        forward = path if forward is None else forward + path
-    meas = pade_ss(plant.t_meas_s, order) if plant.t_meas_s > 0 else ct.ss([], [], [], [[1.0]])
-    loop = balanced(pi * forward * meas)
-    closed = balanced(ct.feedback(pi * forward, meas))
-    return loop, closed
+    return loop_models(plant, kp, ki, order)
 
 
 def reference_figures(plant: Plant, kp: float, ki: float, t_end_s: float | None = None,

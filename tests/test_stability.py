@@ -69,3 +69,20 @@ def test_gain_scaling_invariance():
     b = nyquist_stability(plant.scaled(1e3), kp / 1e3, ki / 1e3)
     assert a.stable[0] and b.stable[0]
     np.testing.assert_allclose(a.loop, b.loop, rtol=1e-12)
+
+
+@pytest.mark.parametrize("name", sorted(LOOPS))
+def test_the_loop_taken_into_python_control_has_the_exact_frequency_response(name):
+    # adnmesh.loopmodel.control_models (Padé order 14) against the exact delays of
+    # loop_response, over the band where the loop is designed (an order-n Padé of a delay
+    # tau is exact to ~1e-6 in magnitude and phase for omega * tau well below n)
+    import control as ct
+    from adnmesh.loopmodel.control_models import loop_models
+    from adnmesh.loopmodel.frequency_response import loop_response
+
+    plant, kp, ki = gains(name)
+    loop, _ = loop_models(plant, kp, ki, order=14)
+    omega = np.geomspace(1e-3, 5.0, 60)
+    exact = loop_response(plant, kp, ki, omega)[0]
+    approx = np.array([complex(ct.evalfr(loop, 1j * w)) for w in omega])
+    np.testing.assert_allclose(approx, exact, rtol=1e-5)
