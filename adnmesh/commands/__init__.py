@@ -55,3 +55,25 @@ def output_path(path: str | Path, flag: str, directory: bool = False) -> Path:
         what = "folder" if directory else "file"
         raise UsageError(f"{flag} {path}: cannot write the {what} there: "
                          f"{exc.strerror or exc}{where}") from None
+
+
+def comma_list(text: str | None) -> list[str]:
+    """The items of a comma-separated option value, stripped, empty ones dropped (``None``:
+    none). The one parser of every such option (``--ders``, ``--solution-space``,
+    ``--external``, ``--routers``, ``--renew``, ``--only``, ...)."""
+    return [item.strip() for item in (text or "").split(",") if item.strip()]
+
+
+def der_id_list(config, text: str, option: str) -> list[str]:
+    """DER ids of ``config`` from a comma-separated ``option`` value, as given; one line for
+    none, a duplicate or an unknown id."""
+    ids = comma_list(text)
+    if not ids:
+        raise UsageError(f"{option}: give at least one DER id, e.g. SGen1,SGen5")
+    if len(set(ids)) != len(ids):
+        raise UsageError(f"{option}: duplicate DER id in {text!r}")
+    known = config.der_ids()
+    unknown = [i for i in ids if i not in known]
+    if unknown:
+        raise UsageError(f"{option}: unknown DER id '{unknown[0]}' (known: {', '.join(known)})")
+    return ids

@@ -28,7 +28,7 @@ from adnmesh.analysis.robustness import METRICS, analyze_robustness
 from adnmesh.analysis.solution_space import paper_path, solution_space
 from adnmesh.analysis.subset_loops import subset_name
 from adnmesh.analysis.uncertainty import MODELS, analyze_uncertainty
-from adnmesh.commands import add_config_argument, output_path
+from adnmesh.commands import add_config_argument, comma_list, der_id_list, output_path
 from adnmesh.config import load_config
 from adnmesh.errors import ConfigError, UsageError
 from adnmesh.tuning.table import default_table_path, load_table
@@ -76,21 +76,12 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 def parse_subset(config, text: str) -> tuple[str, ...]:
     """DER ids from ``"SGen1,SGen5"`` in config order; one-line errors for bad input."""
-    ids = [x.strip() for x in text.split(",") if x.strip()]
-    if not ids:
-        raise UsageError("--solution-space: give at least one DER id, e.g. SGen1,SGen5")
-    if len(set(ids)) != len(ids):
-        raise UsageError(f"--solution-space: duplicate DER id in {text!r}")
-    known = config.der_ids()
-    unknown = [i for i in ids if i not in known]
-    if unknown:
-        raise UsageError(f"--solution-space: unknown DER id '{unknown[0]}' "
-                         f"(known: {', '.join(known)})")
-    return tuple(d for d in known if d in ids)
+    ids = der_id_list(config, text, "--solution-space")
+    return tuple(d for d in config.der_ids() if d in ids)
 
 
 def _parse_list(text: str, allowed, option: str) -> tuple[str, ...]:
-    items = [x.strip().lower() for x in text.split(",") if x.strip()]
+    items = [x.lower() for x in comma_list(text)]
     bad = [x for x in items if x not in allowed]
     if not items or bad:
         raise UsageError(f"{option}: {'unknown value ' + repr(bad[0]) if bad else 'empty'} "

@@ -14,7 +14,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from adnmesh.commands import output_path
+from adnmesh.commands import comma_list, output_path
 from adnmesh.errors import UsageError
 
 __all__ = ["add_parser", "run"]
@@ -57,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         names = [*SINGLE_AGENT_KINDS, LAUNCHER, OPERATOR]
     names += [router_identity(n) for n in args.router]
-    renew = [n.strip() for n in (args.renew or "").split(",") if n.strip()]
+    renew = comma_list(args.renew)
     directory = Path(args.directory)
     if directory.exists() and not directory.is_dir():
         raise UsageError(f"{directory}: not a directory")

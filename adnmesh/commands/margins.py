@@ -6,7 +6,7 @@ import json
 
 from rich.console import Console
 
-from adnmesh.commands import add_config_argument
+from adnmesh.commands import add_config_argument, der_id_list
 from adnmesh.config import load_config
 from adnmesh.errors import UsageError
 from adnmesh.loopmodel.evaluation import evaluate
@@ -39,13 +39,7 @@ def parse_der_list(config, text: str | None) -> list[str]:
     """DER ids from ``"SGen1,SGen5"`` (all DERs for None); one-line error for unknown ids."""
     if text is None:
         return list(config.der_ids())
-    ids = [x.strip() for x in text.split(",") if x.strip()]
-    if not ids:
-        raise UsageError("--ders: give at least one DER id")
-    if len(set(ids)) != len(ids):
-        raise UsageError(f"--ders: duplicate DER id in {text!r}")
-    config.ders_by_id(ids)          # raises ConfigError naming the unknown id
-    return ids
+    return der_id_list(config, text, "--ders")
 
 
 def loop_report(config, ids: list[str], kp: float, ki: float,

@@ -19,7 +19,7 @@ from pathlib import Path
 
 from rich.console import Console
 
-from adnmesh.commands import add_config_argument, output_path
+from adnmesh.commands import add_config_argument, comma_list, output_path
 from adnmesh.config import Config, load_config
 from adnmesh.errors import ConfigError, GridError, UsageError
 from adnmesh.tuning.table import SchedulingTable, default_table_path, load_table, save_table
@@ -109,14 +109,13 @@ def external_agents(text: str | None, config: Config) -> frozenset[str]:
     from adnmesh.sim.topology import Topology
 
     agents = Topology.from_config(config).agents
-    if text is not None and not text.replace(",", "").strip():
+    items = comma_list(text)
+    if text is not None and not items:
         raise UsageError(f"--external {text!r}: names no agent (KIND[:ID],..., e.g. "
                          "der:SGen2,measurement)")
     found = set()
-    for item in (text or "").split(","):
-        item = item.strip().replace(":", "/", 1)
-        if not item:
-            continue
+    for item in items:
+        item = item.replace(":", "/", 1)
         if item not in agents:
             raise UsageError(f"--external: no agent {item!r} in {config.path} (agents: "
                              f"{', '.join(agents)})")
@@ -321,7 +320,7 @@ def run(args: argparse.Namespace) -> int:
 
     certs = _certs(args)
     external = external_agents(args.external, config)
-    routers = tuple(n.strip() for n in (args.routers or "").split(",") if n.strip())
+    routers = tuple(comma_list(args.routers))
     if args.print_zenoh_config:
         return _print_zenoh_config(args, config, certs, routers)
     if args.listen is not None:
