@@ -1388,28 +1388,35 @@ def bus_newlines(ctx: Ctx) -> str | None:
     return None
 
 
+class PYFollower:
+    """A Zenoh callback on ``cpfc/p_y``: the latest send time seen (``seen_ns``), and
+    ``reached`` set once it is at least ``at_ns``."""
+
+    def __init__(self, at_ns: float) -> None:
+        self.at_ns, self.seen_ns, self.reached = at_ns, 0, threading.Event()
+
+    def __call__(self, sample) -> None:
+        try:
+            t = json.loads(sample.payload.to_bytes().split(b"\n")[-1])["t_send_ns"]
+        except (ValueError, KeyError):
+            return
+        self.seen_ns = max(self.seen_ns, t)
+        if self.seen_ns >= self.at_ns:
+            self.reached.set()
+
+
 def stolen_key(ep: str, grid: str, certs: Path, proc_notes: dict) -> int:
     """With der/SGen2's certificate: from 20 s on, 16 states of 10 MW and 16 heartbeats
     on SGen2's own keys (seq from 10^9, sent 5 s ahead), two forged clock reports."""
     import zenoh
     root = f"adn/{grid}/"
-    seen, running = [0], threading.Event()
-
-    def on_p_y(sample) -> None:
-        try:
-            t = json.loads(sample.payload.to_bytes().split(b"\n")[-1])["t_send_ns"]
-        except (ValueError, KeyError):
-            return
-        seen[0] = max(seen[0], t)
-        if seen[0] >= 20 * 10**9:
-            running.set()
-
+    p_y = PYFollower(20 * 10**9)
     sent = 0
     with zenoh_session(ep, certs, "der/SGen2") as session:
-        subscriber = session.declare_subscriber(root + "cpfc/p_y", on_p_y)
-        if not running.wait(90):
+        subscriber = session.declare_subscriber(root + "cpfc/p_y", p_y)
+        if not p_y.reached.wait(90):
             raise RuntimeError("the run did not reach 20 s (as seen by der/SGen2)")
-        at = seen[0] + 5 * 10**9
+        at = p_y.seen_ns + 5 * 10**9
         for i in range(16):
             for key, body in ((root + "der/SGen2/state", envelope(
                     "der_state", "der/SGen2", 10**9 + i, at + i, p_w=1e7, setpoint_w=1e7,
@@ -1419,7 +1426,7 @@ def stolen_key(ep: str, grid: str, certs: Path, proc_notes: dict) -> int:
                 sent += 1
         for i, claimed in enumerate(({root + "der/SGen2/state": [1000, at]}, {})):
             session.put(root + "clock/report/der/SGen2", envelope(
-                "clock_report", "der/SGen2", 10**9 + i, seen[0], next_ns=None, granted_ns=at,
+                "clock_report", "der/SGen2", 10**9 + i, p_y.seen_ns, next_ns=None, granted_ns=at,
                 received=0, sent=claimed), congestion_control=zenoh.CongestionControl.BLOCK)
             sent += 1
         subscriber.undeclare()
@@ -1476,25 +1483,15 @@ def sim_time_watch(ep: str, grid: str, at_s: float, on_time: Callable[[], None],
     """Follow the run's P_Y on the bus; call ``on_time`` once its send time reaches ``at_s``;
     return the sim time it was called at."""
     root = f"adn/{grid}/"
-    seen, reached = [0], threading.Event()
-
-    def on_p_y(sample) -> None:
-        try:
-            t = json.loads(sample.payload.to_bytes().split(b"\n")[-1])["t_send_ns"]
-        except (ValueError, KeyError):
-            return
-        seen[0] = max(seen[0], t)
-        if seen[0] >= at_s * 1e9:
-            reached.set()
-
+    p_y = PYFollower(at_s * 1e9)
     with zenoh_session(ep) as session:
-        subscriber = session.declare_subscriber(root + "cpfc/p_y", on_p_y)
-        while not reached.wait(0.05):
+        subscriber = session.declare_subscriber(root + "cpfc/p_y", p_y)
+        while not p_y.reached.wait(0.05):
             if stop.is_set():
                 raise RuntimeError(f"the run ended before {at_s} s")
         on_time()
         subscriber.undeclare()
-    return seen[0] / 1e9
+    return p_y.seen_ns / 1e9
 
 
 def kill_at(ctx: Ctx, agent: str, at_s: float, base: str = "ref", changes=None,
