@@ -139,3 +139,28 @@ def test_the_foxglove_log_says_it_once_the_window_closed(recorded) -> None:
     assert log.payload()["level"] == 3      # WARNING
     t = log.payload()["timestamp"]        # when the step's window closed: the run's end
     assert t["sec"] * 10**9 + t["nsec"] == log.publish_time_ns == 240 * 10**9
+
+
+def test_the_watch_holds_the_open_windows_not_the_run(recorded, monkeypatch) -> None:
+    """The recorder's watch forgets the P_IP samples of checked steps (up's memory stays
+    flat over a long run) and finds the same steps over their design as when it keeps all."""
+    from adnmesh.results import design_watch
+
+    _, path, _ = recorded
+    messages = [(m.schema_name, m.data, m.publish_time_ns) for m in read_recording(path).messages
+                if m.schema_name != "foxglove.Log"]
+
+    def watched(trim: int):
+        monkeypatch.setattr(design_watch, "_TRIM", trim)
+        watch, found, held = design_watch.OverDesignWatch(), [], 0
+        for schema_name, data, t_ns in messages:
+            found += watch.observe(schema_name, data, t_ns)
+            held = max(held, len(watch.series.p_ip_t_ns))
+        return found, held, len(watch.series.p_ip_t_ns)
+
+    found_all, held_all, _ = watched(10**9)
+    found, held, left = watched(500)
+    assert found == found_all and len(found) == 1 and "OVER THE DESIGN" in found[0][1]
+    assert held_all == 24_001          # every P_IP sample of the 240 s run at 10 ms
+    assert left == 6_001               # the last step's open window: 180 s to the end at 240 s
+    assert held < held_all / 3, held

@@ -6,7 +6,9 @@
 from __future__ import annotations
 
 import json
+from array import array
 
+import numpy as np
 from adnmesh.loopmodel.step_figures import reference_step_figures
 from adnmesh.results.design_check import design_checks, design_lines
 from adnmesh.results.summary import RunSeries
@@ -17,6 +19,8 @@ __all__ = ["GRACE_NS", "OverDesignWatch"]
 #: has been recorded (messages of one clock window arrive in any order), ns
 GRACE_NS = 1_000_000_000
 
+_TRIM = 20_000      # P_IP samples (200 s at 10 ms) between two trims of the checked ones
+
 _WATCHED = frozenset({"p_ip", "p_ref", "p_y", "heartbeat", "si", "fault", "event", "clock_start",
                       "clock_stop"})
 
@@ -26,7 +30,8 @@ class OverDesignWatch:
     Foxglove log, :class:`adnmesh.results.eventlog.EventLog`).
 
     It keeps the messages ``adnmesh up``'s summary reads (:class:`~adnmesh.results.summary.
-    RunSeries`) and, once a step's window has closed (the next step or window-ending event,
+    RunSeries`; P_IP only as far back as a step still to be checked needs it, so its memory
+    does not grow with the run) and, once a step's window has closed (the next step or window-ending event,
     seen :data:`GRACE_NS` of P_IP samples later; the last one at the clock's stop), takes its
     figures by the summary's rule and checks them (:func:`design_checks`). Each step over its
     design gives one ``(t_ns, text)``: its window's end and the words of :func:`design_lines`
@@ -40,6 +45,7 @@ class OverDesignWatch:
         self._checked = 0                  # steps (P_ref changes) already checked
         self._due_ns = 0                   # no step can close before this P_IP sample
         self._known = (0, 0)               # window ends and P_ref values seen at _due_ns
+        self._trim_at = _TRIM              # P_IP samples held when the next trim is due
 
     def observe(self, schema_name: str, payload: bytes, t_ns: int) -> list[tuple[int, str]]:
         """The over-design findings a recorded message closes (usually none)."""
@@ -64,7 +70,28 @@ class OverDesignWatch:
             return []
         if schema_name == "p_y" and isinstance(body.get("design"), dict):
             self._band_pct = float(body["design"].get("settling_band_pct", self._band_pct or 5))
-        return self._close(final=False) if schema_name == "p_ip" else []
+        if schema_name != "p_ip":
+            return []
+        found = self._close(final=False)
+        self._forget_checked()
+        return found
+
+    def _forget_checked(self) -> None:
+        """Drop the P_IP samples no step still to be checked can use (before the first such
+        step's start, and more than :data:`GRACE_NS` before the newest sample), so that the
+        watch holds the open windows, not the run: every :data:`_TRIM` samples, O(samples)."""
+        series = self.series
+        if len(series.p_ip_t_ns) < self._trim_at:
+            return
+        starts = series.p_ref_t_ns[1:]
+        cutoff = series.p_ip_t_ns[-1] - GRACE_NS
+        if self._checked < len(starts):
+            cutoff = min(cutoff, starts[self._checked])
+        t = np.asarray(series.p_ip_t_ns, dtype=np.int64)
+        keep = t >= cutoff
+        series.p_ip_t_ns = array("q", t[keep].tobytes())
+        series.p_ip_w = array("d", np.asarray(series.p_ip_w, dtype=float)[keep].tobytes())
+        self._trim_at = len(series.p_ip_t_ns) + _TRIM
 
     def _close(self, final: bool) -> list[tuple[int, str]]:
         series = self.series
