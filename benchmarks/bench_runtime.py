@@ -45,7 +45,7 @@ time. Usage::
     .venv/bin/python benchmarks/bench_runtime.py --memory --baseline-rev e63e162 \
         --only-pairs --agents '' --skip-helics
 
-The gain table for the SimBench config is ``tables/simbench.<sha>.json`` if ``adnmesh tune``
+The gain table for the SimBench config is ``configs/tables/simbench.<design hash>.json`` if ``adnmesh tune``
 made one that holds the subsets the scenario needs; otherwise those two entries (all DERs; CHPs
 and PVs) are built here from gains checked against both design constraints (stable, disk margin
 >= 1.5, overshoot < 1 %), so that nothing is tuned during the measured run.
@@ -131,7 +131,7 @@ def simbench_table(config, workdir: Path) -> Path:
     from adnmesh.errors import ConfigError
     from adnmesh.tuning.table import load_table
 
-    path = REPO / default_table_path(config)
+    path = default_table_path(config)        # next to the config
     try:
         tuned = load_table(path, config)
         if all(tuned.lookup(s) is not None for s in scenario_subsets(config)):

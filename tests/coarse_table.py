@@ -20,6 +20,7 @@ import numpy as np
 from adnmesh.analysis.subset_loops import SubsetBatch, deployed_batch
 from adnmesh.config import load_config
 from adnmesh.loopmodel.evaluation import evaluate
+from adnmesh.tuning.design_key import design_document
 from adnmesh.tuning.problem import all_subsets
 from adnmesh.tuning.table import FIGURE_KEYS, SchedulingTable, TableEntry
 
@@ -86,7 +87,8 @@ def coarse_table(config, subsets: Sequence[Sequence[str]] | None = None,
     table = SchedulingTable(config.sha256, {"disk_margin_min": c.disk_margin_min,
                                             "overshoot_max_pct": c.overshoot_max_pct,
                                             "settling_band_pct": c.settling_band_pct},
-                            "coarse-grid", tuple(config.der_ids()))
+                            "coarse-grid", tuple(config.der_ids()),
+                            design=design_document(config))
     kp = np.array([kpg[j] for j in best]) / total
     ki = np.array([kig[j] for j in best]) / total
     final = deployed_batch(config, subsets, kp, ki)

@@ -88,7 +88,7 @@ def test_bad_arguments_give_one_line_errors(capsys, two_wt_table, tmp_path, args
 def test_table_of_another_config_is_refused(capsys, two_wt_table, tmp_path):
     err = _error(capsys, "analyze", str(EXAMPLES / "wt-chp.yaml"), "--table", str(two_wt_table),
                  "--out", str(tmp_path / "x"))
-    assert "tuned for another config" in err
+    assert "tuned for another design (ders" in err
     err = _error(capsys, "analyze", str(EXAMPLES / "wt-chp.yaml"), "--table",
                  str(tmp_path / "nope.json"))
     assert "nope.json" in err and "adnmesh tune" in err

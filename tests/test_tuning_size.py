@@ -151,7 +151,7 @@ def test_the_table_up_tunes_for_itself_has_a_static_pair(configs_dir: Path, tmp_
 
     config = load_config(configs_dir / "examples" / "mixed-4.yaml")
     said: list[str] = []
-    monkeypatch.chdir(tmp_path)         # no tables/<config>.json here: up tunes its own
+    monkeypatch.setenv("ADNMESH_CACHE_DIR", str(tmp_path))   # no table kept: up tunes its own
     args = argparse.Namespace(table=None)
     path = up._table(args, config, tmp_path, "run", said.append)
     static = load_table(path, config).static

@@ -4,7 +4,7 @@
 
 PI on P_err = P_ref - P_meas; bumpless gain switch when SI changes; sends P_Y (and the weights W
 on a switch) to the DERs. Gains: the table matching CONFIG (default
-tables/<name>.<sha256[:12]>.json), tuning missing subsets on demand.
+tables/<name>.<design hash[:12]>.json next to the config), tuning missing subsets on demand.
 Logic: adnmesh.control.cpfc_controller.CPFC.
 """
 

@@ -28,7 +28,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         help="compute the gain-scheduling table (all DER subsets)",
         description="Tune a PI pair and weights for every non-empty DER subset of CONFIG "
         "(disk margin and overshoot constraints from the config) and write the table as JSON "
-        "plus CSV. Default output: tables/<config>.<sha12>.json, where `adnmesh up` looks. "
+        "plus CSV. Default output: tables/<config>.<design hash[:12]>.json next to the config, where `adnmesh up` looks. "
         "Exit code 0 when the table is written, 2 for a user error (config, options, an "
         "unwritable output), 130 after Ctrl-C (the partial table is kept for --resume).",
     )

@@ -22,10 +22,11 @@ from rich.console import Console
 from adnmesh.commands import add_config_argument, comma_list, output_path
 from adnmesh.config import Config, load_config
 from adnmesh.errors import ConfigError, GridError, UsageError
-from adnmesh.tuning.table import SchedulingTable, default_table_path, load_table, save_table
+from adnmesh.tuning.table import (SchedulingTable, default_table_path, load_table, new_table,
+                                   save_table)
 
 __all__ = ["MAX_SPEED", "MIN_SPEED", "add_parser", "operating_point", "run",
-           "scenario_subsets"]
+           "scenario_subsets", "tuned_table_path"]
 
 MIN_SPEED, MAX_SPEED = 1e-3, 1e6
 """The range of ``--speed``, simulated s per wall s: slower than 1e-3 a second of sim time
@@ -62,7 +63,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--seed", type=int, metavar="N",
                         help="seed of the ICT random streams (default: runtime.seed of CONFIG)")
     parser.add_argument("--table", metavar="PATH",
-                        help="gain-scheduling table (default: tables/<name>.<sha256[:12]>.json)")
+                        help="gain-scheduling table (default: tables/<name>.<design "
+                             "hash[:12]>.json next to the config, else the one an earlier up "
+                             "kept in its cache)")
     parser.add_argument("--out", metavar="PATH",
                         help="MCAP recording to write (default: logs/<run-id>.mcap)")
     parser.add_argument("--summary-json", metavar="PATH",
@@ -147,8 +150,26 @@ def _tuner():
     return tune
 
 
+def tuned_table_path(config: Config, subsets) -> Path:
+    """Where ``up`` keeps the table it tunes for itself: ``<cache>/tables/<config stem>.<key>.json``
+    (``<cache>``: :func:`adnmesh.grid.cache.default_cache_dir`), the key the first 16 hex of the
+    SHA-256 of the config's design (:mod:`adnmesh.tuning.design_key`) and the scenario's
+    ``subsets``: exactly what the tuning depends on, so a run that finds it uses the table it
+    would have tuned."""
+    from adnmesh.grid.cache import default_cache_dir
+    from adnmesh.tuning.design_key import design_sha256
+
+    order = {d: i for i, d in enumerate(config.der_ids())}
+    listed = sorted(sorted(subset, key=order.__getitem__) for subset in subsets)
+    key = hashlib.sha256(json.dumps([design_sha256(config), listed]).encode()).hexdigest()
+    return default_cache_dir() / "tables" / f"{Path(config.path).stem}.{key[:16]}.json"
+
+
 def _table(args, config: Config, run_dir: Path, run_id: str, log) -> Path:
-    """The table file the CPFC will use; tunes the scenario's subsets if there is none."""
+    """The table file the CPFC will use: ``--table``, else the config's own
+    (:func:`default_table_path`, next to the config), else the one an earlier run tuned for
+    this design and scenario (:func:`tuned_table_path`), else the scenario's subsets tuned now
+    and kept there (beside the recording if the cache cannot be written)."""
     path = Path(args.table) if args.table else default_table_path(config)
     subsets = scenario_subsets(config)
     if path.exists():
@@ -159,10 +180,19 @@ def _table(args, config: Config, run_dir: Path, run_id: str, log) -> Path:
         raise UsageError(f"no gain table {path}; run 'adnmesh tune {config.path} --out "
                          f"{path}' first, or leave out --table to have the scenario's "
                          "subsets tuned now")
+    cached = tuned_table_path(config, subsets)
+    if cached.exists():
+        try:
+            table = load_table(cached, config)
+            _check_gains(config, table, subsets, cached)
+        except (ConfigError, UsageError) as exc:
+            log(f"not using the tuned table an earlier run kept: {exc}; tuning again")
+        else:
+            log(f"gain table {cached}: tuned by an earlier run for this design and scenario")
+            return cached
     tune = _tuner()
     log(f"no gain table at {path}: tuning the {len(subsets)} subset(s) the scenario needs")
-    table = SchedulingTable(config.sha256, config.constraints.model_dump(), "on-demand",
-                            config.der_ids())
+    table = new_table(config, config.constraints.model_dump(), "on-demand")
     ordered = [tuple(d for d in config.der_ids() if d in subset) for subset in subsets]
     for subset in ordered:
         entry = tune(config, list(subset))
@@ -173,8 +203,15 @@ def _table(args, config: Config, run_dir: Path, run_id: str, log) -> Path:
                               "change the DERs")
         table.add(entry)
     table.static = _static(config, ordered, log)
-    path = run_dir / f"{run_id}.table.json"
-    save_table(table, path)
+    try:
+        cached.parent.mkdir(parents=True, exist_ok=True)
+        save_table(table, cached)
+        path = cached
+    except OSError as exc:
+        path = run_dir / f"{run_id}.table.json"
+        log(f"cannot keep the tuned table in {cached.parent} ({exc.strerror or exc}); "
+            "writing it beside the recording")
+        save_table(table, path)
     log(f"tuned table written to {path}")
     return path
 

@@ -28,7 +28,8 @@ from adnmesh.tuning.global_search import tune_global
 from adnmesh.tuning.paper import initial_values, tune_paper
 from adnmesh.tuning.problem import TuningProblem, all_subsets, horizon_s
 from adnmesh.tuning.static_controller import design_over, static_any_size
-from adnmesh.tuning.table import FIGURE_KEYS, SchedulingTable, TableEntry, load_table, save_table
+from adnmesh.tuning.table import (FIGURE_KEYS, SchedulingTable, TableEntry, load_table, new_table,
+                                   save_table)
 from adnmesh.tuning.warm import SHARES, warm_share
 
 __all__ = ["tune_table", "static_entry", "paper_path", "write_csv", "group_subsets",
@@ -197,12 +198,13 @@ def tune_table(config, method: str = "paper", workers: int = 1, out: Path | None
     problem = TuningProblem(config, **(constraints or {}))
     ids = list(config.der_ids())
     wanted = [tuple(s) for s in (subsets if subsets is not None else all_subsets(ids))]
-    table = SchedulingTable(config.sha256, problem.constraints, method, tuple(ids))
+    table = new_table(config, problem.constraints, method)
     if resume and out is not None and Path(out).exists():
         old = load_table(out, config)
         if old.method == method and old.constraints == problem.constraints:
             table = old
             table.complete = False
+            table.design = new_table(config, {}, method).design   # an older table had none
     groups = group_subsets(problem, wanted)
     chunks = [c for c in plant_chunks(groups, chunk_size)
               if any(table.lookup(s) is None for g in c for s in g.subsets)]

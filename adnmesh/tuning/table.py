@@ -10,10 +10,16 @@ A table is written by ``adnmesh tune`` as JSON::
      "static": {"kp": ..., "ki": ..., ...}}
 
 Gains are in 1/W (``kp``) and 1/(W s) (``ki``), ~1e-9 for MW-scale plants. The figures stored
-with an entry are those of the as-deployed loop (weights applied). By default a table for
-``configs/NAME.yaml`` lives at ``tables/NAME.<first 12 hex of the config's sha256>.json``
-relative to the working directory (:func:`default_table_path`), so a runtime finds the table that matches its config exactly and
-never a stale one.
+with an entry are those of the as-deployed loop (weights applied).
+
+A table is bound to what its gains depend on, not to the config file
+(:mod:`adnmesh.tuning.design_key`): it holds the config's ``design`` document and its
+``design_sha256``, and :func:`load_table` refuses it for a config whose design differs, naming
+the first difference. The scenario, the grid model, the runtime and comments may change. A
+table without a design (written before it was kept) is bound to the config file's sha256 as
+before. By default the table of ``DIR/NAME.yaml`` is ``DIR/tables/NAME.<first 12 hex of the
+design sha256>.json``, next to the config whatever the working directory
+(:func:`default_table_path`).
 """
 from __future__ import annotations
 
@@ -25,9 +31,11 @@ from typing import Iterable
 from adnmesh.errors import ConfigError
 from adnmesh.files import read_regular, write_atomic
 from adnmesh.loopmodel.gains import gain_problem
+from adnmesh.tuning.design_key import (design_document, design_sha256, document_sha256,
+                                       first_difference)
 
-__all__ = ["TableEntry", "SchedulingTable", "default_table_path", "load_table", "save_table",
-           "check_table", "FIGURE_KEYS", "MAX_TABLE_BYTES"]
+__all__ = ["TableEntry", "SchedulingTable", "new_table", "default_table_path", "load_table",
+           "save_table", "check_table", "FIGURE_KEYS", "MAX_TABLE_BYTES"]
 
 FORMAT = 1
 
@@ -91,7 +99,12 @@ class TableEntry:
 
 @dataclass
 class SchedulingTable:
-    """CP for one config: entries keyed by subset, plus the static controller."""
+    """CP for one config: entries keyed by subset, plus the static controller.
+
+    ``config_sha256``: the file it was tuned from (provenance); ``design``: the design
+    document it is bound to (:mod:`adnmesh.tuning.design_key`; None in older tables, bound to
+    ``config_sha256``).
+    """
 
     config_sha256: str
     constraints: dict
@@ -100,6 +113,12 @@ class SchedulingTable:
     entries: dict = field(default_factory=dict)      # frozenset(ids) -> TableEntry
     static: TableEntry | None = None
     complete: bool = False
+    design: dict | None = None
+
+    @property
+    def design_sha256(self) -> str | None:
+        """SHA-256 of :attr:`design` (None without one)."""
+        return None if self.design is None else document_sha256(self.design)
 
     def lookup(self, ders: Iterable[str]) -> TableEntry | None:
         """Entry for the subset ``ders`` (any order), or None if the table lacks it."""
@@ -114,6 +133,8 @@ class SchedulingTable:
                       key=lambda e: (len(e.ders), [order.get(d, 0) for d in e.ders]))
         return {"format": FORMAT, "config_sha256": self.config_sha256,
                 "constraints": self.constraints, "method": self.method,
+                **({} if self.design is None else {"design_sha256": self.design_sha256,
+                                                    "design": self.design}),
                 "der_ids": list(self.der_ids), "complete": self.complete,
                 "entries": [e.to_json() for e in rows],
                 "static": None if self.static is None else self.static.to_json()}
@@ -121,7 +142,8 @@ class SchedulingTable:
     @classmethod
     def from_json(cls, obj: dict) -> "SchedulingTable":
         table = cls(obj["config_sha256"], dict(obj["constraints"]), obj["method"],
-                    tuple(obj["der_ids"]), complete=bool(obj.get("complete", False)))
+                    tuple(obj["der_ids"]), complete=bool(obj.get("complete", False)),
+                    design=obj.get("design"))
         for row in obj["entries"]:
             table.add(TableEntry.from_json(row))
         if obj.get("static"):
@@ -129,9 +151,16 @@ class SchedulingTable:
         return table
 
 
+def new_table(config, constraints: dict, method: str) -> SchedulingTable:
+    """An empty table for ``config``, bound to its design."""
+    return SchedulingTable(config.sha256, constraints, method, config.der_ids(),
+                           design=design_document(config))
+
+
 def default_table_path(config) -> Path:
-    """``tables/<config stem>.<first 12 hex of its sha256>.json``, relative to the working dir."""
-    return Path("tables") / f"{Path(config.path).stem}.{config.sha256[:12]}.json"
+    """``<config's folder>/tables/<config stem>.<first 12 hex of its design sha256>.json``."""
+    path = Path(config.path)
+    return path.parent / "tables" / f"{path.stem}.{design_sha256(config)[:12]}.json"
 
 
 def save_table(table: SchedulingTable, path: str | Path) -> None:
@@ -176,9 +205,15 @@ def load_table(path: str | Path, config=None) -> SchedulingTable:
     except ValueError as exc:
         raise ConfigError(f"{path}: not a valid adnmesh table: {exc}") from None
     table = SchedulingTable.from_json(obj)
-    if config is not None and table.config_sha256 != config.sha256:
+    if config is not None and table.design is not None:
+        difference = first_difference(table.design, design_document(config))
+        if difference is not None:
+            raise ConfigError(f"{path}: table was tuned for another design ({difference}); "
+                              f"retune with 'adnmesh tune {config.path}'")
+    elif config is not None and table.config_sha256 != config.sha256:
         raise ConfigError(f"{path}: table was tuned for another config "
-                          f"(sha256 {table.config_sha256[:12]}, config has {config.sha256[:12]})")
+                          f"(sha256 {table.config_sha256[:12]}, config has {config.sha256[:12]}; "
+                          "a table without a design is bound to the file)")
     if config is not None and table.der_ids != config.der_ids():
         raise ConfigError(f"{path}: not a valid adnmesh table: der_ids: not the config's DERs "
                           f"({_show(list(table.der_ids))}, the config has "
@@ -245,7 +280,8 @@ def _check_entry(row, at: str, known: set[str]) -> None:
 def check_table(obj) -> None:
     """Check a table document (parsed JSON) before it is used.
 
-    The rules: ``format`` 1; ``der_ids`` distinct ids;
+    The rules: ``format`` 1; ``der_ids`` distinct ids; a ``design``, if there is one, plain
+    data whose sha256 is ``design_sha256``;
     every entry (and the static controller) names a non-empty set of distinct known DERs,
     says whether it is ``feasible``, has gains ``kp`` (1/W) and ``ki`` (1/(W s)) the loop
     numerics take (:func:`adnmesh.loopmodel.gains.gain_problem`: finite, positive, ``K_P /
@@ -271,6 +307,16 @@ def check_table(obj) -> None:
         raise ValueError(f"constraints: must be a mapping, got {_show(obj['constraints'])}")
     if not isinstance(obj["method"], str):
         raise ValueError(f"method: must be a text, got {_show(obj['method'])}")
+    if "design" in obj:
+        if not isinstance(obj["design"], dict):
+            raise ValueError(f"design: must be a mapping, got {_show(obj['design'])}")
+        try:
+            digest = document_sha256(obj["design"])
+        except (TypeError, ValueError):
+            raise ValueError("design: not plain data (numbers, texts, lists, mappings)") from None
+        if obj.get("design_sha256") != digest:
+            raise ValueError(f"design_sha256: {_show(obj.get('design_sha256'))} is not the "
+                             "design's (the table was edited)")
     ids = obj["der_ids"]
     if not (isinstance(ids, list) and all(isinstance(d, str) for d in ids)):
         raise ValueError(f"der_ids: must be a list of DER ids, got {_show(ids)}")
