@@ -24,7 +24,7 @@ from adnmesh.errors import ConfigError, UsageError
 __all__ = ["COMMANDS", "COMMAND_NAMES", "EXIT_INTERRUPTED", "EXIT_USER_ERROR", "build_parser",
            "main"]
 
-COMMAND_NAMES = ("check", "margins", "tune", "analyze", "up", "fault", "certs", "agent", "router",
+COMMAND_NAMES = ("init", "check", "margins", "tune", "analyze", "up", "fault", "certs", "agent", "router",
                  "replay", "plot", "inspect", "export", "schema")
 """The commands, in the order ``adnmesh --help`` lists them: each is the module
 ``adnmesh.commands.<name>``, imported only when needed (a command that reads a recording does

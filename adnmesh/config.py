@@ -42,9 +42,10 @@ __all__ = [
     "Scenario", "Section", "json_schema", "load_config",
 ]
 
-DERType = Literal["WT", "CHP", "PV"]
+DERType = Literal["WT", "CHP", "PV", "HYDRO", "GEN"]
 DER_TYPES: tuple[str, ...] = get_args(DERType)
-"""Accepted DER types: wind turbine, combined heat and power plant, photovoltaic plant."""
+"""Accepted DER types: wind turbine, combined heat and power plant (biomass), photovoltaic
+plant, hydro plant, generator of another kind (docs/models.md#der-types)."""
 
 PT1_RISE_TIME_FACTOR = math.log(9.0)
 """10 %→90 % rise time of a first-order lag in units of its time constant: ln(0.9/0.1) = 2.1972.
@@ -161,7 +162,8 @@ class DER(Section):
     id: _Identifier
     """Identifier, unique in the config; also a bus key segment (adn/<grid>/der/<id>/...)."""
     type: DERType
-    """WT (wind turbine), CHP (combined heat and power plant) or PV (photovoltaic plant)."""
+    """WT (wind turbine), CHP (combined heat and power plant, biomass), PV (photovoltaic plant),
+    HYDRO (hydro plant) or GEN (another kind); picks the detailed model (docs/models.md)."""
     p_inst_w: _Power
     """Installed active power P_inst,d, W; the controller's C_d."""
     t_delay_s: _Delay

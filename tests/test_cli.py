@@ -144,7 +144,7 @@ def test_schema_config_is_a_json_schema_with_units(capsys) -> None:
     der = schema["$defs"]["DER"]["properties"]
     assert der["p_inst_w"]["description"].endswith(", W; the controller's C_d.")
     assert (der["p_inst_w"]["exclusiveMinimum"], der["p_inst_w"]["maximum"]) == (0, 1e10)
-    assert der["type"]["enum"] == ["WT", "CHP", "PV"]
+    assert der["type"]["enum"] == ["WT", "CHP", "PV", "HYDRO", "GEN"]
     sections = [schema, *schema["$defs"].values()]
     descriptions = [entry["description"] for section in sections
                     for entry in (section, *section["properties"].values())]

@@ -267,7 +267,7 @@ INVALID = {
     ),
     "unknown DER type": (
         _set("ders.2.type", "Wind"),
-        "ders[2].type: must be one of 'WT', 'CHP' or 'PV', got 'Wind'",
+        "ders[2].type: must be one of 'WT', 'CHP', 'PV', 'HYDRO' or 'GEN', got 'Wind'",
     ),
     "id unusable as a bus key": (
         _set("ders.2.id", "SGen/3"),

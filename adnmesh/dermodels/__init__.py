@@ -34,14 +34,16 @@ __all__ = ["MODULES", "CHPParams", "DerState", "PVParams", "WTParams", "default_
            "params_with", "functions", "steady_state", "set_point", "infeed_at",
            "reference_pt1"]
 
-#: Model module of each DER type of the config.
-MODULES = {"WT": wt, "CHP": chp, "PV": pv}
+#: Model module of each DER type of the config: a hydro plant's governor and penstock are
+#: modelled like a CHP's two stages (two lags in series with a rate limit), a generator of
+#: another kind like a PV plant (a delay and a lag with limits) — docs/models.md#der-types.
+MODULES = {"WT": wt, "CHP": chp, "PV": pv, "HYDRO": chp, "GEN": pv}
 _BY_PARAMS = {WTParams: wt, CHPParams: chp, PVParams: pv}
 
 
 def default_params(der_type: str, p_inst_w: float, t_delay_s: float, t_rise_s: float,
                    p_max_w: float | None = None):
-    """Default parameters of the detailed model of a DER of type ``der_type`` (WT, CHP, PV).
+    """Default parameters of the detailed model of a DER of type ``der_type`` (:data:`MODULES`).
 
     Reaction ``t_delay_s``; 10-90 % rise time ``t_rise_s`` for a setpoint step from 50 % to
     60 % of ``p_inst_w``; upper limit ``p_max_w`` (default ``p_inst_w``).

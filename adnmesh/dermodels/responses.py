@@ -29,7 +29,8 @@ BASE_FRACTION = 0.5
 STEP_FRACTIONS = (0.1, 0.4)
 #: What each detailed model is called in figures and tables.
 MODEL_NAMES = {"WT": "WT Type 4B-like", "CHP": "CHP 2nd order + rate limit",
-               "PV": "PV lag + processing delay"}
+               "PV": "PV lag + processing delay", "HYDRO": "hydro 2nd order + rate limit",
+               "GEN": "generic lag + processing delay"}
 _MOVED = 1e-9          # the infeed has reacted once it moved by this fraction of the step
 
 

@@ -1,0 +1,173 @@
+"""``adnmesh init``: a config from a SimBench code (issue 32): the rules, the default dynamics,
+the scenario sized to the controllable range, the kept grid configs equal to a fresh init, and
+a generated file that passes check and up as written."""
+
+from __future__ import annotations
+
+import json
+import shlex
+from pathlib import Path
+
+import pytest
+
+from adnmesh.adn.dynamics import DEFAULT_DYNAMICS, der_type_of
+from adnmesh.adn.selection import select_actuators
+from adnmesh.adn.survey import Generator
+from adnmesh.adn.template import nice_floor, ranges_w, scenario_template, schedule_w
+from adnmesh.cli import main
+from adnmesh.config import DER_TYPES, load_config
+from adnmesh.dermodels import default_params, set_point, infeed_at, steady_state
+from adnmesh.errors import UsageError
+
+GRIDS = Path(__file__).resolve().parents[1] / "configs" / "grids"
+
+
+def _gen(name, kind, p_kw, case_kw=None, kv=20.0, profile=""):
+    return Generator(name, 1, kv, kind, profile, p_kw * 1e3,
+                     (p_kw if case_kw is None else case_kw) * 1e3)
+
+
+NET = [_gen("W1", "Wind_MV", 2000), _gen("B1", "Biomass_MV", 300), _gen("P1", "PV_MV", 200, 0),
+       _gen("H1", "Hydro_MV", 400), _gen("L1", "lv_RES", 150, 120, profile="lv_rural1"),
+       _gen("L2", "lv_RES", 50, 40, kv=0.4), _gen("X1", "something", 80)]
+
+
+def test_der_types_of_simbench_and_pandapower_generator_types() -> None:
+    assert [der_type_of(k, p) for k, p in [("Wind_MV", "WP4"), ("Biomass_MV", "BM1"),
+                                           ("PV_MV", "PV3"), ("Hydro_MV", "Hydro2"),
+                                           ("lv_RES", "lv_urban6"), ("wye", "WP7"),
+                                           ("", ""), ("CHP", "")]] == \
+        ["WT", "CHP", "PV", "HYDRO", "PV", "WT", "GEN", "CHP"]
+    assert set(DEFAULT_DYNAMICS) == set(DER_TYPES)
+    assert DEFAULT_DYNAMICS["WT"][:2] == (0.01, 0.515) and DEFAULT_DYNAMICS["CHP"][:2] == \
+        (1.0, 24.57) and DEFAULT_DYNAMICS["PV"][:2] == (0.01, 0.1)     # the paper's
+
+
+@pytest.mark.parametrize("der_type", ["HYDRO", "GEN"])
+def test_the_new_types_have_a_detailed_model_with_the_default_rise(der_type) -> None:
+    delay, rise, _ = DEFAULT_DYNAMICS[der_type]
+    params = default_params(der_type, 1e6, delay, rise)
+    state = steady_state(params, 5e5)
+    set_point(params, state, 0, 6e5)
+    t = [k * 0.01 for k in range(int((delay + 3 * rise) / 0.01))]
+    p = [infeed_at(params, state, int(round(x * 1e9))) for x in t]
+    t10 = next(x for x, v in zip(t, p) if v >= 5.1e5)
+    t90 = next(x for x, v in zip(t, p) if v >= 5.9e5)
+    assert t90 - t10 == pytest.approx(rise, rel=0.02)
+    assert p[-1] == pytest.approx(6e5, rel=1e-3)
+
+
+def test_the_rules_pick_plants_types_sizes_and_names() -> None:
+    mv = select_actuators(NET)
+    assert [a.generator.name for a in mv.actuators] == ["W1", "B1", "H1", "X1"]
+    assert [a.der_type for a in mv.actuators] == ["WT", "CHP", "HYDRO", "GEN"]
+    assert [g.name for g in mv.idle] == ["P1"]          # produces nothing at the study case
+    every = select_actuators(NET, "all", types=["PV", "WT"], min_size_w=100e3)
+    assert [a.generator.name for a in every.actuators] == ["W1", "L1"]
+    named = select_actuators(NET, names=["L2", "H1"])
+    assert [a.generator.name for a in named.actuators] == ["H1", "L2"]
+    with pytest.raises(UsageError, match=r"no static generator named 'H 1'.*closest: 'H1'"):
+        select_actuators(NET, names=["H 1"])
+    with pytest.raises(UsageError, match=r"no static generator matches the rules \(level mv, "
+                                         r"types PV\) of 7 in the net \(1 match but produce"):
+        select_actuators(NET, types=["PV"])
+
+
+def test_schedules_ranges_and_the_scenario_fit_what_the_actuators_deliver() -> None:
+    assert [nice_floor(x) for x in (0.99, 1.0, 2.4, 4.99, 5.0, 7.3e5)] == \
+        [0.5, 1.0, 2.0, 2.0, 5.0, 5e5]
+    assert schedule_w(1_000_001) == 500_000 or schedule_w(1_000_001) == 500_001
+    ders = [("WT1", "WT", 2e6, 2e6, 1e6), ("WT2", "WT", 2e6, 1.6e6, 8e5),
+            ("CHP1", "CHP", 5e5, 5e5, 2.5e5)]
+    assert ranges_w((c, s) for *_, c, s in ders) == (2.05e6, 2.05e6)
+    planned = scenario_template(ders)
+    assert planned.steps == ((20.0, 5e5), (120.0, -5e5), (240.0, 1e5), (340.0, -1e5))
+    assert planned.unavailable == ((220.0, ("WT1", "WT2")),) and planned.dropped_type == "WT"
+    assert planned.duration_s == 440.0
+    alone = scenario_template([("H1", "HYDRO", 1e6, 1e6, 5e5)])
+    assert alone.steps == ((20.0, 2e5), (120.0, -2e5)) and not alone.unavailable
+
+
+def _header_command(path: Path) -> list[str]:
+    first = path.read_text().splitlines()[1]          # after the schema line
+    assert first.startswith("# Written by: adnmesh init ")
+    return shlex.split(first[len("# Written by: adnmesh "):])
+
+
+@pytest.mark.parametrize("grid", ["1-MV-rural", "1-MV-semiurb", "1-MV-urban", "1-MV-comm"])
+def test_the_kept_grid_configs_are_what_init_writes_today(grid, tmp_path, capsys) -> None:
+    kept = GRIDS / f"{grid}.yaml"
+    argv = _header_command(kept)
+    (tmp_path / "grids").mkdir()
+    (tmp_path / "config.schema.json").write_text("{}")   # as configs/ has it
+    out = tmp_path / "grids" / kept.name
+    assert argv[-2:] == ["-o", kept.name]
+    assert main([*argv[:-1], str(out)]) == 0
+    assert out.read_text() == kept.read_text(), (
+        f"{kept} is not what init writes now; regenerate it: adnmesh {' '.join(argv)} --force "
+        "(from configs/grids)")
+    config = load_config(out)
+    said = capsys.readouterr().out
+    assert f"actuators (" in said and "controllable range at the schedules: +" in said
+    steps = config.scenario.p_ref_steps
+    assert [s.t_s for s in steps][:2] == [20.0, 120.0] and steps[0].delta_w == -steps[1].delta_w
+    for der in config.ders:        # every actuator can move both ways from its schedule
+        assert 0 < der.p_sched_w < der.p_inst_w
+
+
+def test_bad_input_is_one_line(tmp_path, capsys) -> None:
+    def error(*argv: str) -> str:
+        assert main(["init", *argv]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err[-1].startswith("adnmesh: error: ") and not any("Traceback" in e for e in err)
+        return err[-1]
+
+    out = str(tmp_path / "x.yaml")
+    assert "'1-MV-nowhere--0-no_sw' is not a SimBench code" in error(
+        "--simbench", "1-MV-nowhere--0-no_sw", "-o", out)
+    assert "unknown study case 'lw'" in error("--simbench", "1-MV-comm--0-no_sw",
+                                              "--study-case", "lw", "-o", out)
+    assert "--types: unknown DER type 'BESS'" in error("--simbench", "1-MV-comm--0-no_sw",
+                                                       "--types", "BESS", "-o", out)
+    assert "--dynamics 'WT=1': expected KEY=DELAY,RISE" in error(
+        "--simbench", "1-MV-comm--0-no_sw", "--dynamics", "WT=1", "-o", out)
+    assert "no static generator matches the rules" in error(
+        "--simbench", "1-MV-comm--0-no_sw", "--min-size-w", "1e9", "-o", out)
+    assert not Path(out).exists()
+    Path(out).write_text("mine\n")
+    assert "exists; --force overwrites it" in error("--simbench", "1-MV-comm--0-no_sw",
+                                                    "-o", out)
+    assert Path(out).read_text() == "mine\n"
+
+
+def test_overrides_of_the_dynamics_per_type_and_per_der(tmp_path, capsys) -> None:
+    out = tmp_path / "comm.yaml"
+    assert main(["init", "--simbench", "1-MV-comm--0-no_sw", "-o", str(out), "--dynamics",
+                 "HYDRO=0.8,15", "--der-dynamics", "WT2=0.02,0.7"]) == 0
+    config = load_config(out)
+    by_id = {d.id: d for d in config.ders}
+    assert (by_id["HYDRO1"].t_delay_s, by_id["HYDRO1"].t_rise_s) == (0.8, 15.0)
+    assert (by_id["WT2"].t_delay_s, by_id["WT2"].t_rise_s) == (0.02, 0.7)
+    assert (by_id["WT1"].t_delay_s, by_id["WT1"].t_rise_s) == (0.01, 0.515)
+    assert "--der-dynamics" in out.read_text().splitlines()[0]      # no schema beside it
+
+
+@pytest.mark.slow
+def test_a_generated_config_passes_check_and_up_as_written(tmp_path, capsys) -> None:
+    """semiurb as init writes it: check, then up (its own tuning, 14 processes, 440 s of sim
+    time): every step compensated within the design constraints, the grid reported."""
+    out = tmp_path / "semiurb.yaml"
+    assert main(["init", "--simbench", "1-MV-semiurb--0-no_sw", "-o", str(out)]) == 0
+    assert main(["check", str(out)]) == 0
+    capsys.readouterr()
+    summary = tmp_path / "summary.json"
+    assert main(["up", str(out), "--out", str(tmp_path / "run.mcap"),
+                 "--summary-json", str(summary)]) == 0
+    data = json.loads(summary.read_text())
+    config = load_config(out)
+    assert [s["t_s"] for s in data["steps"]] == [s.t_s for s in config.scenario.p_ref_steps]
+    for step in data["steps"]:
+        figures = step["figures"]
+        assert figures["overshoot_pct"] < config.constraints.overshoot_max_pct, step
+        assert figures["settling_time_s"] is not None, step
+    assert data["grid"]["outside_band"] == 0 and data["grid"]["not_converged"] == 0
