@@ -111,6 +111,7 @@ def test_the_kept_grid_configs_are_what_init_writes_today(grid, tmp_path, capsys
     assert f"actuators (" in said and "controllable range at the schedules: +" in said
     steps = config.scenario.p_ref_steps
     assert [s.t_s for s in steps][:2] == [20.0, 120.0] and steps[0].delta_w == -steps[1].delta_w
+    assert ("large ADN: " in said) == (len(config.ders) > 16)    # urban: 60 actuators
     for der in config.ders:        # every actuator can move both ways from its schedule
         assert 0 < der.p_sched_w < der.p_inst_w
 
@@ -171,3 +172,25 @@ def test_a_generated_config_passes_check_and_up_as_written(tmp_path, capsys) -> 
         assert figures["overshoot_pct"] < config.constraints.overshoot_max_pct, step
         assert figures["settling_time_s"] is not None, step
     assert data["grid"]["outside_band"] == 0 and data["grid"]["not_converged"] == 0
+
+
+def test_tune_chooses_the_scenario_subsets_beyond_16_ders_and_says_so(tmp_path, capsys) -> None:
+    """A large ADN needs no flag: 17 DERs have 131,071 subsets, more than a table holds."""
+    import yaml
+
+    document = yaml.safe_load((GRIDS.parent / "examples" / "two-wt.yaml").read_text())
+    first = document["ders"][0]
+    document["ders"] = [{**first, "id": f"WT{i}", "sgen": f"sgen {i}"} for i in range(1, 18)]
+    document["scenario"]["availability"] = [{"t_s": 20, "available": False, "ders": ["WT17"]}]
+    document.pop("grid_model", None)
+    path = tmp_path / "seventeen.yaml"
+    path.write_text(yaml.safe_dump(document, sort_keys=False))
+    out = tmp_path / "t.json"
+    assert main(["tune", str(path), "--out", str(out), "--workers", "1"]) == 0
+    err = capsys.readouterr().err
+    assert "17 DERs: 2^17 - 1 subsets are more than a table holds" in err
+    assert "tuning the 2 subset(s) the scenario meets" in err
+    entries = json.loads(out.read_text())["entries"]
+    assert sorted(len(e["ders"]) for e in entries) == [16, 17]
+    assert main(["tune", str(path), "--out", str(out), "--subsets", "all"]) == 2
+    assert "more than a table can hold" in capsys.readouterr().err

@@ -120,6 +120,8 @@ def run(args: argparse.Namespace) -> int:
     from adnmesh.adn.survey import survey_simbench
     from adnmesh.adn.template import ranges_w, scenario_template, schedule_w
     from adnmesh.errors import GridError
+    from adnmesh.tuning.problem import MAX_EXACT_CLASSES
+    from adnmesh.tuning.subset_selection import MAX_ALL_DERS
 
     types = comma_list(args.types) if args.types else None
     if types is not None:
@@ -181,5 +183,12 @@ def run(args: argparse.Namespace) -> int:
     drop = (f"; the {planned.dropped_type}s unavailable at {planned.unavailable[0][0]:g} s"
             if planned.unavailable else "")
     print(f"scenario: {planned.duration_s:g} s, steps {steps}{drop}")
+    if len(ids) > MAX_ALL_DERS:
+        classes = len({dynamics[i][:2] for i in ids})
+        print(f"large ADN: {len(ids)} actuators ({classes} dynamics classes"
+              + (f", more than {MAX_EXACT_CLASSES}: the searches run on one design plant per "
+                 "type" if classes > MAX_EXACT_CLASSES else "")
+              + f"); tune and up take the scenario's subsets, the CPFC tunes any other on "
+              "demand at run time")
     print(f"next: adnmesh check {args.out} && adnmesh up {args.out}")
     return 0

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 import time
 from pathlib import Path
 
@@ -38,10 +39,12 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1,
                         help="worker processes (default: the number of CPUs, here %(default)s)")
     parser.add_argument("--out", type=Path, help="table path (JSON); the CSV goes beside it")
-    parser.add_argument("--subsets", default="all", metavar="all|scenario|random:N|FILE",
-                        help="which subsets: all (default; refused beyond %d DERs), those the "
+    parser.add_argument("--subsets", metavar="all|scenario|random:N|FILE",
+                        help="which subsets: all (refused beyond %d DERs), those the "
                         "scenario meets, N random ones plus the set of all DERs, or those "
-                        "listed in FILE (one subset per line, DER ids)" % MAX_ALL_DERS)
+                        "listed in FILE (one subset per line, DER ids); default: all up to "
+                        "%d DERs, the scenario's beyond (the CPFC tunes any other on demand)"
+                        % (MAX_ALL_DERS, MAX_ALL_DERS))
     parser.add_argument("--resume", action="store_true",
                         help="continue an interrupted run's partial table at --out")
     parser.add_argument("--disk-margin-min", type=float, help="override the config's alpha limit")
@@ -62,7 +65,15 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--overshoot-max-pct must be in (0, 100] (as the config's "
                          f"overshoot_max_pct), got {args.overshoot_max_pct:g}")
     config = load_config(args.config)
-    subsets = select_subsets(config, args.subsets)
+    spec = args.subsets
+    if spec is None:
+        spec = "all" if len(config.ders) <= MAX_ALL_DERS else "scenario"
+    subsets = select_subsets(config, spec)
+    if args.subsets is None and spec == "scenario":
+        print(f"{len(config.ders)} DERs: 2^{len(config.ders)} - 1 subsets are more than a table "
+              f"holds (all: up to {MAX_ALL_DERS} DERs); tuning the {len(subsets)} subset(s) the "
+              "scenario meets, and the static pair; the CPFC tunes any other subset on demand "
+              "at run time (--subsets chooses otherwise)", file=sys.stderr)
     out = args.out or default_table_path(config)
     if args.resume and not out.exists():
         raise UsageError(f"--resume: no partial table at {out}")
