@@ -209,12 +209,17 @@ class GridLimits(Section):
 
 
 class GridModel(Section):
-    """The AC power flow of the SimBench grid (simbench_code) behind P_IP: the measurement
-    agent solves it at every sample, the DERs' sgens set to their infeeds."""
+    """The AC power flow behind P_IP — of the SimBench grid (simbench_code) or of a pandapower
+    net file (pandapower_net): the measurement agent solves it at every sample, the DERs'
+    sgens set to their infeeds."""
 
+    pandapower_net: _Name | None = None
+    """A pandapower net file (as pandapower.to_json writes it), relative to the config, instead
+    of the SimBench grid; its content's hash keys the grid cache."""
     study_case: Annotated[str, Field(pattern=r"^[A-Za-z0-9]+$", max_length=16)] = "lW"
-    """SimBench study case of the loads, the other generators and the slack voltage (a row of
-    the net's loadcases table: hL, n1, hW, hPV, lW, lPV); also the DERs' available power."""
+    """Study case of the loads, the other generators and the slack voltage (a row of the net's
+    loadcases table: hL, n1, hW, hPV, lW, lPV); also the DERs' available power. A pandapower
+    net without a loadcases table is used as saved (leave study_case out)."""
     load_model: Literal["impedance", "power"] = "impedance"
     """Loads as constant impedances (docs/method.md#reference-case) or constant power."""
     report_period_s: _Period = 1.0
@@ -447,8 +452,9 @@ class ConfigFile(Section):
 
     grid: _Identifier
     """Name of the grid, used as the <grid> segment of bus keys (adn/<grid>/...)."""
-    simbench_code: _Name
-    """SimBench code of the grid, e.g. 1-MV-rural--0-no_sw."""
+    simbench_code: _Name | None = None
+    """SimBench code of the grid, e.g. 1-MV-rural--0-no_sw (the grid model's net unless
+    grid_model.pandapower_net names another)."""
     t_com_s: _Lag
     """Communication delay CPFC -> DERs T_com, s."""
     t_meas_s: _Lag
@@ -565,6 +571,20 @@ class ConfigFile(Section):
         return self
 
     @model_validator(mode="after")
+    def _grid_source(self) -> ConfigFile:
+        """A grid model names one net: a SimBench code or a pandapower net file."""
+        model = self.grid_model
+        if model is None:
+            return self
+        if model.pandapower_net is None and self.simbench_code is None:
+            raise _problem(("grid_model",), "needs the net: simbench_code (a SimBench code) or "
+                                            "grid_model.pandapower_net (a file)")
+        if model.pandapower_net is not None and self.simbench_code is not None:
+            raise _problem(("grid_model", "pandapower_net"),
+                           "names a net beside simbench_code; keep one of the two")
+        return self
+
+    @model_validator(mode="after")
     def _relations(self) -> ConfigFile:
         _unique([d.id for d in self.ders], lambda i: ("ders", i, "id"), "DER id")
         _unique([d.sgen for d in self.ders], lambda i: ("ders", i, "sgen"), "sgen")
@@ -591,6 +611,13 @@ class Config(ConfigFile):
     """The file it was loaded from."""
     sha256: str
     """SHA-256 of the file's bytes (hex), to tie results to the exact file."""
+
+    def pandapower_net_path(self) -> Path | None:
+        """The grid model's pandapower net file, resolved next to the config (None if the
+        grid model is SimBench's or there is none)."""
+        if self.grid_model is None or self.grid_model.pandapower_net is None:
+            return None
+        return (Path(self.path).parent / self.grid_model.pandapower_net).resolve()
 
 
 def _listing(ids: Iterable[str], most: int = 20) -> str:

@@ -520,7 +520,7 @@ def test_load_config_raises_config_error_with_the_same_message(tmp_path: Path) -
     path.write_text("grid: x\n")
     with pytest.raises(ConfigError) as info:
         load_config(path)
-    assert str(info.value) == f"{path}: simbench_code: required key is missing"
+    assert str(info.value) == f"{path}: t_com_s: required key is missing"
 
 
 # --- the optional runtime section (adnmesh up) ---------------------------------------------------

@@ -5,6 +5,7 @@ a generated file that passes check and up as written."""
 from __future__ import annotations
 
 import json
+import os
 import shlex
 from pathlib import Path
 
@@ -194,3 +195,106 @@ def test_tune_chooses_the_scenario_subsets_beyond_16_ders_and_says_so(tmp_path, 
     assert sorted(len(e["ders"]) for e in entries) == [16, 17]
     assert main(["tune", str(path), "--out", str(out), "--subsets", "all"]) == 2
     assert "more than a table can hold" in capsys.readouterr().err
+
+
+# --- a pandapower net file ------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def cigre_file(tmp_path_factory) -> Path:
+    """CIGRE's MV benchmark with its PV and wind DERs, written by pandapower.to_json."""
+    import pandapower as pp
+    import pandapower.networks as pn
+
+    path = tmp_path_factory.mktemp("net") / "cigre-mv.json"
+    pp.to_json(pn.create_cigre_network_mv(with_der="pv_wind"), str(path))
+    return path
+
+
+def test_init_from_a_pandapower_file_checks_and_solves_it(cigre_file, tmp_path, capsys,
+                                                          monkeypatch) -> None:
+    import pandapower as pp
+
+    from adnmesh.control.operating_point import initial_p_ip_w
+
+    monkeypatch.setenv("ADNMESH_CACHE_DIR", str(tmp_path / "cache"))
+    out = tmp_path / "site" / "cigre.yaml"
+    out.parent.mkdir()
+    assert main(["init", "--pandapower", str(cigre_file), "-o", str(out)]) == 0
+    said = capsys.readouterr().out
+    assert "pandapower net" in said and "9 (8 PV, 1 WT)" in said
+    config = load_config(out)
+    assert config.simbench_code is None and config.grid_model.pandapower_net == \
+        os.path.relpath(cigre_file, out.parent)           # relative to the config
+    assert config.pandapower_net_path() == cigre_file.resolve()
+    assert main(["check", str(out)]) == 0
+    assert "pandapower net" in capsys.readouterr().out
+    # the grid model's P_IP at the schedules is runpp's of the same net with the DERs there
+    net = pp.from_json(str(cigre_file))
+    for der in config.ders:
+        net.sgen.loc[net.sgen.name == der.sgen, "p_mw"] = der.p_sched_w / 1e6
+    loads = net.load[net.load.in_service]
+    for _, load in loads.iterrows():           # constant impedance at 1 p.u., as the model
+        pp.create_shunt(net, int(load.bus), q_mvar=float(load.q_mvar * load.scaling),
+                        p_mw=float(load.p_mw * load.scaling))
+    net.load.in_service = False
+    pp.runpp(net)
+    assert initial_p_ip_w(config) == pytest.approx(-net.res_ext_grid.p_mw.sum() * 1e6, abs=1.0)
+
+
+def test_bad_pandapower_input_is_one_line(cigre_file, tmp_path, capsys, monkeypatch) -> None:
+    import pandapower as pp
+    import yaml
+
+    monkeypatch.setenv("ADNMESH_CACHE_DIR", str(tmp_path / "cache"))
+
+    def error(*argv: str) -> str:
+        assert main(list(argv)) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err[-1].startswith("adnmesh: error: ") and not any("Traceback" in e for e in err)
+        return err[-1]
+
+    junk = tmp_path / "junk.json"
+    junk.write_text('{"not": "a net"}')
+    out = str(tmp_path / "x.yaml")
+    assert "is not a pandapower net file" in error("init", "--pandapower", str(junk), "-o", out)
+    assert "no pandapower net file" in error("init", "--pandapower", str(tmp_path / "no.json"),
+                                             "-o", out)
+    net = pp.from_json(str(cigre_file))
+    net.ext_grid.in_service = False
+    island = tmp_path / "island.json"
+    pp.to_json(net, str(island))
+    assert "no external grid in service" in error("init", "--pandapower", str(island), "-o", out)
+    assert "the net has no study cases" in error("init", "--pandapower", str(cigre_file),
+                                                 "--study-case", "hL", "-o", out)
+    # a config whose sgen is not in the net: check says so, with the closest names
+    good = tmp_path / "good.yaml"
+    assert main(["init", "--pandapower", str(cigre_file), "-o", str(good)]) == 0
+    capsys.readouterr()
+    document = yaml.safe_load(good.read_text())
+    document["ders"][0]["sgen"] = "PV 99"
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(yaml.safe_dump(document, sort_keys=False))
+    assert "no static generator named 'PV 99'" in error("check", str(bad))
+    document["grid_model"]["pandapower_net"] = "junk.json"
+    bad.write_text(yaml.safe_dump(document, sort_keys=False))
+    assert "is not a pandapower net file" in error("check", str(bad))
+    document["simbench_code"] = "1-MV-rural--0-no_sw"
+    bad.write_text(yaml.safe_dump(document, sort_keys=False))
+    assert "grid_model.pandapower_net: names a net beside simbench_code" in error("check",
+                                                                                   str(bad))
+
+
+@pytest.mark.slow
+def test_a_pandapower_config_runs_with_up(cigre_file, tmp_path, capsys) -> None:
+    out = tmp_path / "cigre.yaml"
+    assert main(["init", "--pandapower", str(cigre_file), "-o", str(out)]) == 0
+    summary = tmp_path / "summary.json"
+    assert main(["up", str(out), "--out", str(tmp_path / "run.mcap"),
+                 "--summary-json", str(summary)]) == 0
+    data = json.loads(summary.read_text())
+    config = load_config(out)
+    assert [s["t_s"] for s in data["steps"]] == [s.t_s for s in config.scenario.p_ref_steps]
+    for step in data["steps"]:
+        assert step["figures"]["overshoot_pct"] < config.constraints.overshoot_max_pct, step
+    assert data["grid"]["samples"] > 0 and data["grid"]["not_converged"] == 0

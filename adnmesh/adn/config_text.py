@@ -40,18 +40,22 @@ def _number(value: float) -> str:
 
 def config_text(survey: Survey, selection: Selection, dynamics: dict, ids: list[str],
                 schedules: list[float], planned: Planned, command: str,
-                rules: str, schema: str | None = None) -> str:
+                rules: str, schema: str | None = None, net_file: str | None = None,
+                grid: str | None = None) -> str:
     """The config file's text.
 
     ``dynamics``: DER id -> ``(t_delay_s, t_rise_s, source)``; ``ids`` and ``schedules`` in
     the order of ``selection.actuators``; ``schema``: the path of ``config.schema.json``
-    relative to the file, named on its first line for editors (None: no such line).
+    relative to the file, named on its first line for editors (None: no such line);
+    ``net_file``: a pandapower net file's path relative to the config (None: SimBench
+    ``survey.code``), and ``grid`` the config's grid name then.
     """
+    source = f"pandapower net {net_file}" if net_file else f"SimBench {survey.code}"
     acts = selection.actuators
     lines = [f"# yaml-language-server: $schema={schema}"] if schema else []
     lines += [
         f"# Written by: {command}",
-        f"# SimBench {survey.code} at study case {survey.case}: {survey.buses} buses, "
+        f"# {source} at study case {survey.case}: {survey.buses} buses, "
         f"{len(survey.generators)} static generators, {survey.ext_grids} external grid(s).",
         f"# Actuators ({rules}): {len(acts)}; the other {len(survey.generators) - len(acts)} "
         "generators stay constant injections at the study case.",
@@ -75,8 +79,8 @@ def config_text(survey: Survey, selection: Selection, dynamics: dict, ids: list[
                      f"{_mw(g.p_inst_w):>9} {_mw(g.p_case_w):>10}  {source}")
     lines += [
         "",
-        f"grid: {grid_name(survey.code)}",
-        f"simbench_code: {survey.code}",
+        f"grid: {grid or grid_name(survey.code)}",
+        *([] if net_file else [f"simbench_code: {survey.code}"]),
         "",
         f"t_com_s: {T_COM_S}    # CPFC -> DER setpoint delay T_com (the paper's)",
         f"t_meas_s: {T_MEAS_S}   # measurement delay T_meas (the paper's)",
@@ -105,10 +109,12 @@ def config_text(survey: Survey, selection: Selection, dynamics: dict, ids: list[
                          f"  # the {planned.dropped_type}s")
     lines += [
         "",
-        "# The grid behind P_IP: the AC power flow of the SimBench net at the study case, loads as",
+        f"# The grid behind P_IP: the AC power flow of the {'net' if net_file else 'SimBench net'} "
+        "at the study case, loads as",
         "# constant impedances, every DER's sgen at its infeed.",
         "grid_model:",
-        f"  study_case: {survey.case}",
+        *([f"  pandapower_net: {json.dumps(net_file)}"] if net_file else []),
+        *([f"  study_case: {survey.case}"] if survey.cases or not net_file else []),
         "  load_model: impedance",
         "",
     ]

@@ -1,5 +1,5 @@
-"""The static generators of a SimBench net at a study case, and P_IP there (imports simbench
-and pandapower).
+"""The static generators of a SimBench net or a pandapower net file at a study case, and P_IP
+there (imports simbench and pandapower).
 
 :func:`survey_simbench` loads the net of a SimBench code at one of its study cases, with the
 grid model's own functions (:func:`adnmesh.grid.simbench_net.grid_net`: loads as constant
@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 from adnmesh.errors import GridError
 
-__all__ = ["Generator", "Survey", "survey_simbench"]
+__all__ = ["Generator", "Survey", "survey_pandapower", "survey_simbench"]
 
 
 @dataclass(frozen=True)
@@ -68,15 +68,36 @@ def _text(value) -> str:
 def survey_simbench(code: str, case: str) -> Survey:
     """The :class:`Survey` of SimBench ``code`` at study ``case`` (:class:`GridError` for an
     unknown code or study case, or a net whose power flow does not converge there)."""
-    import pandapower as pp
-
     from adnmesh.grid.simbench_net import (apply_study_case, load_simbench_net,
-                                           loads_as_impedances, study_cases)
+                                           loads_as_impedances)
 
     net = load_simbench_net(code)
     installed = net.sgen.p_mw.copy()
     apply_study_case(net, case)
     loads_as_impedances(net)
+    return _survey(net, installed, code, case)
+
+
+def survey_pandapower(path, case: str | None) -> Survey:
+    """The :class:`Survey` of a pandapower net file at study ``case`` of its loadcases table,
+    or as saved (``case`` None, a net without one; :mod:`adnmesh.grid.net_file`). Installed
+    power is the file's ``p_mw`` (``sn_mva`` where that is larger)."""
+    from adnmesh.grid.net_file import net_at_case, read_net
+
+    net, _ = read_net(path)
+    installed = net.sgen.p_mw.copy()
+    if "sn_mva" in net.sgen:
+        rated = net.sgen.sn_mva.astype(float)
+        installed = installed.where(~(rated > installed), rated)
+    used = net_at_case(net, case, "impedance")
+    return _survey(net, installed, str(path), used)
+
+
+def _survey(net, installed, code: str, case: str) -> Survey:
+    import pandapower as pp
+
+    from adnmesh.grid.simbench_net import study_cases
+
     try:
         pp.runpp(net)
     except pp.LoadflowNotConverged:
@@ -87,7 +108,8 @@ def survey_simbench(code: str, case: str) -> Survey:
     on = sgen.in_service.astype(bool)
     generators = tuple(
         Generator(name=_text(sgen.name.at[i]), bus=int(sgen.bus.at[i]),
-                  vn_kv=float(net.bus.vn_kv.at[sgen.bus.at[i]]), kind=_text(sgen.type.at[i]),
+                  vn_kv=float(net.bus.vn_kv.at[sgen.bus.at[i]]),
+                  kind=_text(sgen.type.at[i]) if "type" in sgen else "",
                   profile=_text(sgen.profile.at[i]) if "profile" in sgen else "",
                   p_inst_w=float(installed.at[i]) * 1e6,
                   p_case_w=float(sgen.p_mw.at[i] * scaling.at[i]) * 1e6 if on.at[i] else 0.0)

@@ -40,13 +40,18 @@ def run(args: argparse.Namespace) -> int:
     console = Console(highlight=False, markup=False, soft_wrap=True)
     c = config.constraints
     console.print(f"{config.path}: valid (sha256 {config.sha256[:12]})")
-    console.print(f"grid: {config.grid} (SimBench {config.simbench_code})")
+    source = (f"pandapower net {config.pandapower_net_path()}" if config.pandapower_net_path()
+              else f"SimBench {config.simbench_code}" if config.simbench_code else "no grid model")
+    console.print(f"grid: {config.grid} ({source})")
     console.print(f"delays: T_com {config.t_com_s:g} s, T_meas {config.t_meas_s:g} s")
     if config.grid_model is not None:
         from adnmesh.control.operating_point import initial_p_ip_w
 
+        from adnmesh.control.operating_point import grid_source
+
         model = config.grid_model
-        console.print(f"grid model: study case {model.study_case}, {model.load_model} loads: "
+        case = grid_source(config)[2] or "the net as saved"
+        console.print(f"grid model: study case {case}, {model.load_model} loads: "
                       f"P_IP {initial_p_ip_w(config) / 1e6:.4f} MW at the schedules, the DERs "
                       f"can deliver {sum(available.values()) / 1e6:.3f} MW")
     console.print(

@@ -1,5 +1,5 @@
-"""``adnmesh init --simbench CODE -o OUT.yaml``: a complete, commented config for a SimBench
-grid — its actuators by rules, their dynamics from the documented default table, schedules and
+"""``adnmesh init --simbench CODE | --pandapower NET.json -o OUT.yaml``: a complete, commented
+config for a SimBench grid or a pandapower net — its actuators by rules, their dynamics from the documented default table, schedules and
 a scenario sized to what they can deliver (docs/configuration.md#adnmesh-init)."""
 
 from __future__ import annotations
@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import re
 import shlex
 import sys
 from pathlib import Path
@@ -24,8 +25,10 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     defaults = ", ".join(f"{t} {d:g}/{r:g} s" for t, (d, r, _) in DEFAULT_DYNAMICS.items())
     parser = subparsers.add_parser(
         "init",
-        help="write a config for a SimBench grid: actuators by rules, dynamics, a scenario",
-        description="Write a complete, commented config for SimBench grid CODE at a study case. "
+        help="write a config for a SimBench grid or a pandapower net: actuators by rules, "
+        "dynamics, a scenario",
+        description="Write a complete, commented config for SimBench grid CODE or the pandapower "
+        "net file NET.json at a study case. "
         "Actuators are the static generators that pass the rules (--actuators, --types, "
         "--min-size-w, or an explicit --sgens list); the others stay constant injections. "
         f"Dynamics (T_delay/T_rise) per DER type by default: {defaults} "
@@ -33,14 +36,19 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "actuator is scheduled at half its study-case infeed; the scenario's steps are sized "
         "to the controllable range. Prints the ADN in a few lines. The file passes check, tune "
         "and up as written. Exit code 0 when written, 2 for a user error (unknown code or "
-        "study case, no generator matching the rules, an output that exists without --force).",
+        "study case, a file that is not a pandapower net, a net without an external grid, "
+        "no generator matching the rules, an output that exists without --force).",
     )
-    parser.add_argument("--simbench", metavar="CODE", required=True,
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--simbench", metavar="CODE",
                         help="SimBench code, e.g. 1-MV-semiurb--0-no_sw")
+    source.add_argument("--pandapower", metavar="NET.json", type=Path,
+                        help="a pandapower net file, as pandapower.to_json writes it")
     parser.add_argument("-o", "--out", metavar="FILE", required=True, type=Path,
                         help="the config to write (.yaml)")
-    parser.add_argument("--study-case", default="lW",
-                        help="SimBench study case giving the infeeds (default lW)")
+    parser.add_argument("--study-case",
+                        help="study case giving the infeeds (default lW; a pandapower net "
+                        "without study cases is used as saved)")
     parser.add_argument("--actuators", default="mv", metavar="mv|all",
                         help="mv (default): generators on >= 1 kV buses that are plants, not "
                         "SimBench's aggregated LV feeders (lv_RES); all: every generator")
@@ -84,8 +92,9 @@ def parse_dynamics(items, known, option: str) -> dict[str, tuple[float, float]]:
 def _command_line(args: argparse.Namespace) -> str:
     """The command that writes this file again (``-o`` by the file's name: the line does not
     depend on where it was written)."""
-    argv = ["--simbench", args.simbench]
-    if args.study_case != "lW":
+    argv = ["--simbench", args.simbench] if args.simbench else \
+        ["--pandapower", str(args.pandapower)]
+    if args.study_case:
         argv += ["--study-case", args.study_case]
     if args.sgens:
         argv += ["--sgens", args.sgens]
@@ -117,7 +126,7 @@ def run(args: argparse.Namespace) -> int:
     from adnmesh.adn.config_text import config_text
     from adnmesh.adn.dynamics import DEFAULT_DYNAMICS
     from adnmesh.adn.selection import select_actuators
-    from adnmesh.adn.survey import survey_simbench
+    from adnmesh.adn.survey import survey_pandapower, survey_simbench
     from adnmesh.adn.template import ranges_w, scenario_template, schedule_w
     from adnmesh.errors import GridError
     from adnmesh.tuning.problem import MAX_EXACT_CLASSES
@@ -135,10 +144,13 @@ def run(args: argparse.Namespace) -> int:
     if args.out.exists() and not args.force:
         raise UsageError(f"{args.out} exists; --force overwrites it")
     output_path(args.out, "--out")
-    print(f"adnmesh init: loading SimBench {args.simbench} at study case {args.study_case} "
-          "(a few seconds)", file=sys.stderr)
+    what = f"SimBench {args.simbench}" if args.simbench else f"pandapower net {args.pandapower}"
+    print(f"adnmesh init: loading {what} (a few seconds)", file=sys.stderr)
     try:
-        survey = survey_simbench(args.simbench, args.study_case)
+        if args.simbench:
+            survey = survey_simbench(args.simbench, args.study_case or "lW")
+        else:
+            survey = survey_pandapower(args.pandapower, args.study_case)
     except GridError as exc:
         raise UsageError(str(exc)) from None
     selection = select_actuators(survey.generators, args.actuators, types, args.min_size_w,
@@ -165,13 +177,18 @@ def run(args: argparse.Namespace) -> int:
              f"level {args.actuators}") + (f", types {','.join(types)}" if types else "") + \
         (f", at least {args.min_size_w:g} W" if args.min_size_w else "")
     command = _command_line(args)
+    net_file = grid = None
+    if args.pandapower:
+        net_file = os.path.relpath(args.pandapower.resolve(), args.out.resolve().parent)
+        grid = "net-" + (re.sub(r"[^A-Za-z0-9_-]+", "-", args.pandapower.stem).strip("-")
+                         or "adn")
     text = config_text(survey, selection, dynamics, ids, schedules, planned, command, rules,
-                       _schema_ref(args.out))
+                       _schema_ref(args.out), net_file, grid)
     from adnmesh.files import write_atomic
     write_atomic(args.out, text)
     up, down = ranges_w((c, s) for *_, c, s in rows)
     by_kind = ", ".join(f"{n} {t}" for t, n in counts.items())
-    print(f"{args.out}: SimBench {survey.code}, study case {survey.case}: {survey.buses} buses, "
+    print(f"{args.out}: {what}, study case {survey.case}: {survey.buses} buses, "
           f"{len(survey.generators)} static generators")
     print(f"actuators ({rules}): {len(ids)} ({by_kind}), "
           f"{sum(a.generator.p_inst_w for a in selection.actuators) / 1e6:.3f} MW installed"

@@ -275,11 +275,13 @@ def operating_point(config: Config, log) -> dict[str, float]:
     from adnmesh.control.operating_point import available_power_w, initial_p_ip_w
 
     if config.grid_model is not None:
+        from adnmesh.control.operating_point import grid_label, grid_source
         from adnmesh.grid.cache import is_cached
-        gm = config.grid_model
-        building = "" if is_cached(config.simbench_code, gm.study_case, gm.load_model) else \
+        source, name, case = grid_source(config)
+        building = "" if source != "simbench" or is_cached(
+            name, case, config.grid_model.load_model) else \
             " (not cached yet: tens of seconds to build its cache)"
-        log(f"grid model: SimBench {config.simbench_code}, study case {gm.study_case}{building}")
+        log(f"grid model: {grid_label(config)}{building}")
     try:
         available = available_power_w(config)
     except GridError as exc:

@@ -1,8 +1,8 @@
 """The plant side of a config: what the DERs can deliver and where the run starts.
 
-With a grid model (the config's ``grid_model``) both come from the SimBench study case
-(:mod:`adnmesh.grid`): a DER's available power is its sgen's power at the study case, and the
-initial P_IP is the power flow's at the DERs' schedules. Without one, a DER can deliver its
+With a grid model (the config's ``grid_model``) both come from the study case of its net, the
+SimBench grid or a pandapower net file (:mod:`adnmesh.grid`): a DER's available power is its
+sgen's power at the study case, and the initial P_IP is the power flow's at the DERs' schedules. Without one, a DER can deliver its
 installed power and P_IP is ``runtime.rest_of_grid_w`` plus the schedules. The values are
 computed once per config (the grid loads from its disk cache).
 """
@@ -13,13 +13,41 @@ import functools
 
 from adnmesh.config import Config
 
-__all__ = ["available_power_w", "grid_solver", "initial_p_ip_w"]
+__all__ = ["available_power_w", "grid_label", "grid_solver", "grid_source", "initial_p_ip_w"]
 
 
 @functools.lru_cache(maxsize=8)
-def _grid(code: str, case: str, load_model: str):
+def _load(source: str, name: str, case: str | None, load_model: str):
+    if source == "pandapower":
+        from adnmesh.grid.cache import load_net_grid
+        return load_net_grid(name, case, load_model)
     from adnmesh.grid import load_grid
-    return load_grid(code, case, load_model)
+    return load_grid(name, case, load_model)
+
+
+def grid_source(config: Config) -> tuple[str, str, str | None]:
+    """``(source, name, case)`` of the config's grid model: ``("simbench", code, case)`` or
+    ``("pandapower", resolved file path, case or None when not given)``."""
+    model = config.grid_model
+    net = config.pandapower_net_path()
+    if net is not None:
+        given = "study_case" in model.model_fields_set
+        return "pandapower", str(net), model.study_case if given else None
+    return "simbench", config.simbench_code, model.study_case
+
+
+def grid_label(config: Config) -> str:
+    """The grid model's net in words: ``SimBench CODE, study case X`` or ``pandapower net
+    FILE`` (with its study case if one is given)."""
+    source, name, case = grid_source(config)
+    if source == "pandapower":
+        return f"pandapower net {name}" + (f", study case {case}" if case else "")
+    return f"SimBench {name}, study case {case}"
+
+
+def _grid(config: Config):
+    source, name, case = grid_source(config)
+    return _load(source, name, case, config.grid_model.load_model)
 
 
 def grid_solver(config: Config):
@@ -27,9 +55,7 @@ def grid_solver(config: Config):
     if config.grid_model is None:
         return None
     from adnmesh.grid import GridSolver
-    model = config.grid_model
-    return GridSolver(_grid(config.simbench_code, model.study_case, model.load_model),
-                      [d.sgen for d in config.ders])
+    return GridSolver(_grid(config), [d.sgen for d in config.ders])
 
 
 @functools.lru_cache(maxsize=8)
@@ -38,8 +64,7 @@ def available_power_w(config: Config) -> dict[str, float]:
     if config.grid_model is None:
         return {d.id: d.p_inst_w for d in config.ders}
     from adnmesh.grid import available_power_w as study_case_power
-    model = config.grid_model
-    data = _grid(config.simbench_code, model.study_case, model.load_model)
+    data = _grid(config)
     powers = study_case_power(data, [d.sgen for d in config.ders])
     return {d.id: min(float(p), d.p_inst_w) for d, p in zip(config.ders, powers)}
 

@@ -43,8 +43,8 @@ import numpy as np
 from adnmesh.files import write_atomic
 from adnmesh.grid.data import GridData, from_arrays, to_arrays
 
-__all__ = ["FORMAT_VERSION", "default_cache_dir", "cache_key", "cache_path", "is_cached", "model_path",
-           "arrays_digest", "cached", "load_grid"]
+__all__ = ["FORMAT_VERSION", "default_cache_dir", "cache_key", "net_cache_key", "cache_path",
+           "is_cached", "model_path", "arrays_digest", "cached", "load_grid", "load_net_grid"]
 
 FORMAT_VERSION = 3          # 3: the arrays' digest (files of format 2 are not read, nor removed)
 
@@ -72,6 +72,16 @@ def cache_key(code: str, case: str, load_model: str) -> dict:
     return {"format": FORMAT_VERSION, "code": code, "case": case, "load_model": load_model,
             "simbench": _version("simbench"), "pandapower": _version("pandapower"),
             "lightsim2grid": _version("lightsim2grid")}
+
+
+def net_cache_key(path, case: str | None, load_model: str) -> dict:
+    """What the cached data of a pandapower net file depends on: its content's sha256 (not its
+    name), the study case asked for (None: as saved) and the load model, with the versions."""
+    from adnmesh.grid.net_file import net_sha256
+
+    key = cache_key(f"net-{Path(path).stem}", case or "as-saved", load_model)
+    key["net_sha256"] = net_sha256(path)
+    return key
 
 
 def cache_path(key: dict, directory: Path) -> Path:
@@ -139,6 +149,39 @@ def load_grid(code: str, case: str = "lW", load_model: str = "impedance",
         raise GridError(f"grid: load model must be one of {', '.join(LOAD_MODELS)}, "
                         f"got {load_model!r}")
     return cached(cache_key(code, case, load_model), build, cache_dir)
+
+
+def load_net_grid(path, case: str | None = None, load_model: str = "impedance",
+                  cache_dir=None) -> GridData:
+    """The solver's data of a pandapower net file (:mod:`adnmesh.grid.net_file`) at study
+    ``case`` (None: as saved, for a net without study cases), cached by the file's content.
+
+    Raises
+    ------
+    GridError
+        The file cannot be read or is no pandapower net, the case is not the net's, the net
+        has elements the solver does not model, or its power flow does not converge.
+    """
+    from adnmesh.errors import GridError
+
+    def build() -> GridData:
+        import pandapower as pp
+
+        from adnmesh.grid.from_net import build_grid_data
+        from adnmesh.grid.net_file import net_at_case, read_net
+        net, _ = read_net(path)
+        used = net_at_case(net, case, load_model)
+        try:
+            return build_grid_data(net, f"net {Path(path).name}", used, load_model)
+        except pp.LoadflowNotConverged:
+            raise GridError(f"grid: {path}: the power flow of the net at its operating point "
+                            f"({used}) does not converge") from None
+
+    from adnmesh.grid.simbench_net import LOAD_MODELS
+    if load_model not in LOAD_MODELS:
+        raise GridError(f"grid: load model must be one of {', '.join(LOAD_MODELS)}, "
+                        f"got {load_model!r}")
+    return cached(net_cache_key(path, case, load_model), build, cache_dir)
 
 
 def model_path(path: Path) -> Path:

@@ -79,9 +79,13 @@ def loads_as_impedances(net) -> None:
     if loads.empty:
         return
     scaling = loads.scaling.fillna(1.0).to_numpy()
-    pp.create_shunts(net, loads.bus.to_numpy(), q_mvar=loads.q_mvar.to_numpy() * scaling,
-                     p_mw=loads.p_mw.to_numpy() * scaling,
-                     name=[f"{n} (Z)" for n in loads.name.astype(str)])
+    buses, names = loads.bus.to_numpy(), [f"{n} (Z)" for n in loads.name.astype(str)]
+    p_mw, q_mvar = loads.p_mw.to_numpy() * scaling, loads.q_mvar.to_numpy() * scaling
+    if len(set(buses.tolist())) == len(buses):
+        pp.create_shunts(net, buses, q_mvar=q_mvar, p_mw=p_mw, name=names)
+    else:       # pandapower's create_shunts fails on two loads at one bus (CIGRE MV has them)
+        for bus, p, q, name in zip(buses, p_mw, q_mvar, names):
+            pp.create_shunt(net, int(bus), q_mvar=float(q), p_mw=float(p), name=name)
     net.load.loc[loads.index, "in_service"] = False
 
 
