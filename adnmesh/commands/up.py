@@ -267,12 +267,14 @@ def operating_point(config: Config, log) -> dict[str, float]:
     Raises
     ------
     ConfigError
-        An unknown SimBench code or study case, an sgen the net does not have, a schedule
+        An unknown SimBench code or study case, an sgen the net does not have, a ``p_inst_w``
+        above the sgen's rating, a ``type`` that is not the sgen's, a schedule
         above what the DER can deliver, a bad model override, a power flow that does not
         converge.
     """
     from adnmesh.control.der_model import check_der_models
-    from adnmesh.control.operating_point import available_power_w, initial_p_ip_w
+    from adnmesh.control.operating_point import (available_power_w, initial_p_ip_w,
+                                                 sgen_problem)
 
     if config.grid_model is not None:
         from adnmesh.control.operating_point import grid_label, grid_source
@@ -286,6 +288,9 @@ def operating_point(config: Config, log) -> dict[str, float]:
         available = available_power_w(config)
     except GridError as exc:
         raise GridError(f"{config.path}: {exc}") from None
+    problem = sgen_problem(config)
+    if problem is not None:
+        raise ConfigError(f"{config.path}: {problem}")
     check_der_models(config, available)
     try:
         p_ip_w = initial_p_ip_w(config)

@@ -13,7 +13,8 @@ import functools
 
 from adnmesh.config import Config
 
-__all__ = ["available_power_w", "grid_label", "grid_solver", "grid_source", "initial_p_ip_w"]
+__all__ = ["available_power_w", "grid_label", "grid_solver", "grid_source", "initial_p_ip_w",
+           "sgen_problem"]
 
 
 @functools.lru_cache(maxsize=8)
@@ -79,3 +80,29 @@ def initial_p_ip_w(config: Config) -> float:
     if not sample.converged:
         raise ValueError("the power flow at the DERs' schedules does not converge")
     return float(sample.p_ip_w)
+
+
+def sgen_problem(config: Config) -> str | None:
+    """The first DER whose sgen does not fit what the config says of it, as ``ders[i].key:
+    why`` (None if all fit; no grid model: None): ``p_inst_w`` above the sgen's rating (the
+    net's ``sn_mva``; the gains would be designed for power the plant does not have), or a
+    ``type`` that is not the sgen's (its net ``type`` read as :func:`adnmesh.adn.dynamics.
+    der_type_of` reads it; a type it cannot tell, GEN, fits any)."""
+    if config.grid_model is None:
+        return None
+    from adnmesh.adn.dynamics import der_type_of
+
+    data = _grid(config)
+    index = data.sgen_index([d.sgen for d in config.ders])
+    for i, (der, k) in enumerate(zip(config.ders, index)):
+        rating_w = float(data.sgen_rating_mw[k]) * 1e6
+        if rating_w == rating_w and der.p_inst_w > rating_w * (1 + 1e-9):
+            return (f"ders[{i}].p_inst_w: {der.p_inst_w / 1e6:g} MW is more than its sgen "
+                    f"{der.sgen!r} is rated for, {rating_w / 1e6:g} MW (the net's sn_mva): the "
+                    "gains would be designed for power it does not have")
+        kind = data.sgen_types[k]
+        net_type = der_type_of(kind)
+        if kind and net_type != "GEN" and net_type != der.type:
+            return (f"ders[{i}].type: {der.type}, but its sgen {der.sgen!r} is a {kind} plant "
+                    f"({net_type}); its detailed model and default dynamics are {net_type}'s")
+    return None

@@ -21,7 +21,7 @@ import numpy as np
 
 __all__ = ["GridData", "to_arrays", "from_arrays"]
 
-_META = ("code", "case", "load_model", "converter", "sgen_names", "slack_gen")
+_META = ("code", "case", "load_model", "converter", "sgen_names", "sgen_types", "slack_gen")
 _MODEL = ("lsgrid",)
 
 
@@ -43,6 +43,11 @@ class GridData:
         Bus voltages of the study case's solution, in the model's bus order, p.u.
     sgen_names : tuple of str
         Names of the static generators, in pandapower's (and the model's) order.
+    sgen_types : tuple of str
+        Their ``type`` in the net (SimBench's ``Wind_MV``, ``Biomass_MV``, ...; "" if none).
+    sgen_rating_mw : ndarray of float
+        Their rating, the net's ``sn_mva`` (SimBench: the installed power), MW; NaN where the
+        net gives none.
     sgen_p_mw, sgen_q_mvar : ndarray of float
         Each static generator's power at the study case (scaling applied), MW and Mvar.
     slack_gen : int
@@ -63,6 +68,8 @@ class GridData:
     lsgrid: object
     v_init: np.ndarray
     sgen_names: tuple[str, ...]
+    sgen_types: tuple[str, ...]
+    sgen_rating_mw: np.ndarray
     sgen_p_mw: np.ndarray
     sgen_q_mvar: np.ndarray
     slack_gen: int
@@ -80,8 +87,12 @@ class GridData:
         names = list(names)
         for name in names:
             if name not in position:
+                import difflib
+                close = difflib.get_close_matches(name, list(position), n=3, cutoff=0.5)
+                hint = (f"closest: {', '.join(repr(c) for c in close)}" if close else
+                        f"e.g. {self.sgen_names[0]!r}")
                 raise GridError(f"grid {self.code}: no static generator named {name!r} "
-                                f"({len(self.sgen_names)} sgens, e.g. {self.sgen_names[0]!r})")
+                                f"({len(self.sgen_names)} sgens; {hint})")
         if len(set(names)) != len(names):
             raise GridError(f"grid {self.code}: a static generator is named twice in {names}")
         return np.array([position[n] for n in names], dtype=np.int64)
@@ -127,6 +138,7 @@ def _check_shapes(data: GridData) -> None:
     n_line, n_trafo = len(grid.get_line_res1()[0]), len(grid.get_trafo_res1()[0])
     ok = (data.v_init.shape == (n_bus,)
           and len(data.sgen_names) == len(data.sgen_p_mw) == len(data.sgen_q_mvar)
+          == len(data.sgen_types) == len(data.sgen_rating_mw)
           == len(grid.get_sgens_res()[0])
           and data.line_i_max_ka.shape == (n_line,)
           and data.trafo_vn_hv_kv.shape == data.trafo_vn_lv_kv.shape

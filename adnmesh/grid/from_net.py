@@ -121,6 +121,9 @@ def _convert(model_net, reference, code, case, load_model, converter) -> GridDat
     return GridData(
         code=code, case=case, load_model=load_model, converter=converter, lsgrid=grid,
         v_init=v_init.astype(complex), sgen_names=tuple(str(n) for n in sgen.name),
+        sgen_types=tuple("" if t != t or t is None else str(t)
+                         for t in (sgen.type if "type" in sgen else [None] * len(sgen))),
+        sgen_rating_mw=_ratings(sgen),
         sgen_p_mw=sgen.p_mw.to_numpy(dtype=float) * on,
         sgen_q_mvar=sgen.q_mvar.to_numpy(dtype=float) * on,
         slack_gen=len(model_net.gen),            # the converter appends it after the gens
@@ -129,6 +132,15 @@ def _convert(model_net, reference, code, case, load_model, converter) -> GridDat
         trafo_vn_hv_kv=trafo.vn_hv_kv.to_numpy(dtype=float),
         trafo_vn_lv_kv=trafo.vn_lv_kv.to_numpy(dtype=float),
         trafo_rating_mva=(trafo.sn_mva * trafo.parallel * trafo.df).to_numpy(dtype=float))
+
+
+def _ratings(sgen) -> np.ndarray:
+    """Each static generator's ``sn_mva`` (the rating; SimBench: its installed power), MW; NaN
+    where it is missing or not positive."""
+    if "sn_mva" not in sgen:
+        return np.full(len(sgen), np.nan)
+    rating = sgen.sn_mva.astype(float).to_numpy()
+    return np.where(rating > 0, rating, np.nan)
 
 
 def _differences(data: GridData, reference) -> list:

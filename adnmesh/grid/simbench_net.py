@@ -61,8 +61,10 @@ def apply_study_case(net, case: str) -> None:
 
     cases = study_cases(net)
     if case not in cases:
+        same = [c for c in cases if c.lower() == case.lower()]
+        hint = f"; did you mean {same[0]!r}? study cases are case-sensitive" if same else ""
         raise GridError(f"grid: unknown study case {case!r} (this grid has: "
-                        f"{', '.join(cases) or 'none'})")
+                        f"{', '.join(cases) or 'none'}){hint}")
     values = simbench.get_absolute_values(net, profiles_instead_of_study_cases=False)
     for (element, column), frame in values.items():
         net[element][column] = frame.loc[case, net[element].index].to_numpy(dtype=float)
