@@ -30,7 +30,7 @@ from pydantic import ValidationError, model_validator
 from pydantic_core import ErrorDetails, PydanticCustomError
 
 from adnmesh.errors import ConfigError
-from adnmesh.files import FileRefused, read_regular
+from adnmesh.files import FileRefused, read_regular, unreadable
 from adnmesh.names import (AGENT_PATTERN, FAULT_KINDS, ICT_LINKS, ID_PATTERN, PER_DER_KIND,
                            SINGLE_AGENT_KINDS, der_id_of)
 
@@ -764,12 +764,8 @@ def _read(path: Path) -> bytes:
     except FileRefused as exc:
         raise ConfigError(f"{path}: {exc.strerror}; a config must be a regular file of at most "
                           f"{MAX_CONFIG_BYTES // 2**20} MiB") from None
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: no such file") from None
-    except IsADirectoryError:
-        raise ConfigError(f"{path}: is a directory, not a config file") from None
     except OSError as exc:
-        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
+        raise ConfigError(unreadable(path, exc, "config file")) from None
 
 
 def json_schema() -> dict[str, Any]:

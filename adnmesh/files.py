@@ -25,7 +25,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import BinaryIO
 
-__all__ = ["FileRefused", "check_writable", "read_regular", "write_atomic"]
+__all__ = ["FileRefused", "check_writable", "read_regular", "unreadable", "write_atomic"]
 
 #: file mode of a new file before the umask (as :func:`open` creates one)
 DEFAULT_MODE = 0o666
@@ -76,6 +76,19 @@ def _new_temporary(path: Path, mode: int) -> tuple[int, Path]:
         except FileExistsError:
             continue
     raise FileExistsError(f"no free temporary file name beside {path}")
+
+
+def unreadable(path: str | Path, exc: OSError, what: str) -> str:
+    """Why ``path``, a ``what`` (``"config file"``, ``"recording"``), could not be read, as one
+    line: ``PATH: no such file``, ``PATH: is a directory, not a WHAT``, the refusal of
+    :func:`read_regular` in words, or ``PATH: cannot read: REASON``."""
+    if isinstance(exc, FileNotFoundError):
+        return f"{path}: no such file"
+    if isinstance(exc, IsADirectoryError):
+        return f"{path}: is a directory, not a {what}"
+    if isinstance(exc, FileRefused):
+        return f"{path}: {exc.strerror}"
+    return f"{path}: cannot read: {exc.strerror or exc}"
 
 
 class FileRefused(OSError):

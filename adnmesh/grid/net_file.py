@@ -15,7 +15,7 @@ import hashlib
 from pathlib import Path
 
 from adnmesh.errors import GridError
-from adnmesh.files import FileRefused, read_regular
+from adnmesh.files import read_regular, unreadable
 
 __all__ = ["MAX_NET_BYTES", "AS_SAVED", "read_net", "net_sha256", "net_at_case"]
 
@@ -28,14 +28,8 @@ AS_SAVED = "as saved"
 def _read(path: Path) -> bytes:
     try:
         return read_regular(path, MAX_NET_BYTES)
-    except FileNotFoundError:
-        raise GridError(f"grid: no pandapower net file {path}") from None
-    except IsADirectoryError:
-        raise GridError(f"grid: {path} is a directory, not a pandapower net file") from None
-    except FileRefused as exc:
-        raise GridError(f"grid: {path}: {exc}") from None
     except OSError as exc:
-        raise GridError(f"grid: cannot read {path}: {exc.strerror or exc}") from None
+        raise GridError(f"grid: {unreadable(path, exc, 'pandapower net file')}") from None
 
 
 def net_sha256(path: str | Path) -> str:

@@ -36,6 +36,7 @@ from mcap.opcode import Opcode
 from mcap.records import Channel, Chunk, DataEnd, Footer, Header, Message, Metadata, Schema
 
 from adnmesh.errors import UsageError
+from adnmesh.files import unreadable
 
 __all__ = [
     "KNOWN_OPCODES",
@@ -93,12 +94,8 @@ def open_recording(path: Path) -> BinaryIO:
     """``path`` opened for reading, or the error that says why it cannot be."""
     try:
         return open(path, "rb")  # noqa: SIM115 -- the caller closes it
-    except FileNotFoundError:
-        raise RecordingError(f"{path}: no such file") from None
-    except IsADirectoryError:
-        raise RecordingError(f"{path}: is a directory, not a recording") from None
     except OSError as exc:
-        raise RecordingError(f"{path}: cannot read: {exc.strerror or exc}") from None
+        raise RecordingError(unreadable(path, exc, "recording")) from None
 
 
 class TopLevelRecords:
