@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import hashlib
 import json
 import math
 import os
@@ -1138,7 +1139,18 @@ tcase("entries-empty", lambda t: t.update(entries=[]), codes=(0, 2),
       note="an empty table: tuned on demand or refused")
 tcase("entry-empty-subset", lambda t: t["entries"].append({**t["entries"][0], "ders": [], "w": {}}))
 tcase("entry-weights-of-other-ders", lambda t: all_ders(t).update(w={"SGen1": 1.0}))
-tcase("other-config", lambda t: t.update(config_sha256="0" * 64))
+def _other_design(t):
+    """A table tuned for another config: another design where the table keeps one (a build
+    that binds tables to the design), else another file's sha256 (one that binds to the file)."""
+    if "design" not in t:
+        t.update(config_sha256="0" * 64)
+        return
+    t["design"]["ders"][0]["t_delay_s"] = 5.0
+    text = json.dumps(t["design"], sort_keys=True, separators=(",", ":"), allow_nan=False)
+    t["design_sha256"] = hashlib.sha256(text.encode()).hexdigest()
+
+
+tcase("other-config", _other_design)
 tcase("format-99", lambda t: t.update(format=99))
 tcase("static-kp-nan", lambda t: t["static"] and t["static"].update(kp=NAN))
 tcase("empty-file", "")
