@@ -68,7 +68,10 @@ def build_grid_data(net, code: str, case: str, load_model: str) -> GridData:
         if not bad:
             return data
         failures.append(f"{converter}: {bad}")
-    raise RuntimeError(f"grid {code}: no lightsim2grid model reproduces runpp: {failures}")
+    worst = failures[-1] if failures else ""
+    raise GridError(f"grid {code}: the solver's model does not reproduce pandapower's runpp "
+                    f"(not supported yet, e.g. an off-neutral transformer tap); "
+                    f"{' '.join(str(worst).split())[:300]}")
 
 
 def without_switches(net):
