@@ -23,7 +23,7 @@ PACKAGE = Path(__file__).resolve().parent.parent / "adnmesh"
 LAYERS = (
     ("__init__", "config", "errors", "names", "files"),
     ("loopmodel", "grid", "dermodels"),
-    ("tuning", "analysis"),
+    ("tuning", "analysis", "adn"),
     ("wire",),
     ("control",),
     ("sim",),

@@ -76,7 +76,7 @@ def _config_with(tmp_path, n: int) -> Path:
 
 def test_all_subsets_beyond_the_limit_is_a_one_line_error(tmp_path, capsys):
     path = _config_with(tmp_path, MAX_ALL_DERS + 1)
-    assert main(["tune", str(path), "--out", str(tmp_path / "t.json")]) == 2
+    assert main(["tune", str(path), "--subsets", "all", "--out", str(tmp_path / "t.json")]) == 2
     err = capsys.readouterr().err
     assert "--subsets all" in err and "limit 16 DERs" in err and err.count("\n") == 1
     assert not (tmp_path / "t.json").exists()
