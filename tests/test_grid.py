@@ -184,6 +184,115 @@ def test_build_rejects_unsupported_elements():
         build_grid_data(net, "small", "base", "power")
 
 
+def _topology_components(net, ext_bus: int) -> set:
+    """Buses joined to ``ext_bus`` by closed bus-bus switches, by pandapower's topology."""
+    import networkx as nx
+    from pandapower.topology import create_nxgraph
+
+    graph = create_nxgraph(net, include_lines=False, include_trafos=False,
+                           include_impedances=False, include_trafo3ws=False)
+    return set(nx.node_connected_component(graph, ext_bus))
+
+
+def test_bus_couplers_are_fused_as_runpp_fuses_them():
+    """Closed bus-bus switches join their buses into one node, open ones keep them apart, a
+    line between two coupled buses keeps its charging; the solver equals runpp all along."""
+    net = small_net()
+    cable = "NA2XS2Y 1x185 RM/25 12/20 kV"
+    hv2 = pp.create_bus(net, 110.0, name="HV coupled")           # a second busbar at 110 kV
+    pp.create_switch(net, 0, hv2, et="b", closed=True)
+    net.trafo.at[0, "hv_bus"] = hv2                              # the transformer on it
+    mv_b = pp.create_bus(net, 20.0, name="MV busbar 2")
+    pp.create_switch(net, 1, mv_b, et="b", closed=True)
+    pp.create_line(net, 1, mv_b, 0.3, cable, name="between coupled buses")
+    spare = pp.create_bus(net, 20.0, name="spare busbar")       # joined by an open coupler
+    pp.create_switch(net, 2, spare, et="b", closed=False)
+    pp.create_line(net, spare, 5, 0.8, cable, name="from the spare busbar")
+    pp.create_sgen(net, mv_b, p_mw=0.7, name="on busbar 2")
+    loads_as_impedances(net)
+    data = build_grid_data(net, "small-sw", "base", "impedance")
+    assert data.lsgrid.total_bus() == len(net.bus) - 2 + 1      # two fused, one open line end
+    names = SMALL_ACTUATORS + ("on busbar 2",)
+    solver = GridSolver(data, names)
+    rng = np.random.default_rng(3)
+    for _ in range(5):
+        p = rng.uniform(0.0, 1.0, 3) * np.array([4e6, 1e6, 1e6])
+        want = runpp_sample(net, names, p)
+        upper = _topology_components(net, int(net.ext_grid.bus.iloc[0]))
+        adn = net.res_bus.vm_pu[~net.bus.index.isin(upper)]
+        assert_agrees(solver.solve(p), want[:2] + (adn.min(), adn.max()) + want[4:])
+
+
+@pytest.mark.parametrize("kind, applied", [("Ratio", True), (None, False)])
+def test_a_transformer_tap_counts_as_runpp_counts_it(kind, applied):
+    """An off-neutral tap with a tap-changer type moves the ratio; without one (SimBench's
+    1-MV-urban) pandapower 3 ignores it, and so does the model."""
+    net = small_net()
+    net.trafo["tap_pos"] = 3.0
+    net.trafo["tap_neutral"] = 1.0                              # the ratio: tap_pos - neutral
+    net.trafo["tap_changer_type"] = kind
+    neutral = small_net()
+    for n in (net, neutral):
+        loads_as_impedances(n)
+    p = np.array([2.5e6, 0.6e6])
+    solver = GridSolver(build_grid_data(net, "small-tap", "base", "impedance"), SMALL_ACTUATORS)
+    sample = solver.solve(p)
+    assert_agrees(sample, runpp_sample(net, SMALL_ACTUATORS, p))
+    at_neutral = GridSolver(small_data(), SMALL_ACTUATORS).solve(p)
+    moved = abs(sample.vm_max_pu - at_neutral.vm_max_pu) > 1e-3
+    assert moved == applied
+
+
+def _two_feeds(vm_second: float = 1.02, va_second: float = 0.0):
+    """The small net fed from two external grids: its own at 110 kV and one at 220 kV through
+    a 220/20 kV transformer into the far end of the second feeder."""
+    net = small_net()
+    ehv = pp.create_bus(net, 220.0, name="EHV")
+    pp.create_ext_grid(net, ehv, vm_pu=vm_second, va_degree=va_second)
+    pp.create_transformer_from_parameters(
+        net, ehv, 5, sn_mva=20.0, vn_hv_kv=220.0, vn_lv_kv=20.0, vkr_percent=0.4,
+        vk_percent=12.0, pfe_kw=15.0, i0_percent=0.05, shift_degree=150.0, name="T2")
+    return net
+
+
+def test_several_external_grids_at_one_voltage_are_one_interconnection_point():
+    """P_IP and Q_IP are the external grids' injections summed (sign turned); the voltage
+    extremes leave out both of their buses."""
+    net = _two_feeds()
+    loads_as_impedances(net)
+    data = build_grid_data(net, "two-feeds", "base", "impedance")
+    solver = GridSolver(data, SMALL_ACTUATORS)
+    for p in ([4.0e6, 1.0e6], [0.5e6, 0.0], [2.0e6, 0.8e6]):
+        sample = solver.solve(p)
+        runpp_sample(net, SMALL_ACTUATORS, p)
+        ext = net.res_ext_grid
+        assert sample.p_ip_w == pytest.approx(-ext.p_mw.sum() * 1e6, abs=1.0)
+        assert sample.q_ip_var == pytest.approx(-ext.q_mvar.sum() * 1e6, abs=1.0)
+        assert abs(ext.p_mw.iloc[1]) > 0.1                  # the second feed carries power
+        adn = net.res_bus.vm_pu[~net.bus.index.isin(net.ext_grid.bus)]
+        assert (sample.vm_min_pu, sample.vm_max_pu) == pytest.approx(
+            (adn.min(), adn.max()), abs=1e-7)
+        assert sample.trafo_loading_max_pct == pytest.approx(
+            net.res_trafo.loading_percent.max(), abs=1e-5)
+
+
+@pytest.mark.parametrize("vm, va", [(1.03, 0.0), (1.02, 2.0)])
+def test_external_grids_at_different_voltages_are_a_one_line_error(vm, va):
+    net = _two_feeds(vm, va)
+    with pytest.raises(GridError, match="2 external grids at different voltages"):
+        build_grid_data(net, "two-feeds", "base", "power")
+
+
+def test_storage_is_a_constant_power_injection():
+    net = small_net()
+    pp.create_storage(net, 4, p_mw=-0.8, max_e_mwh=2.0, q_mvar=0.1, scaling=0.5)
+    loads_as_impedances(net)
+    solver = GridSolver(build_grid_data(net, "small-storage", "base", "impedance"),
+                        SMALL_ACTUATORS)
+    p = np.array([1.5e6, 0.4e6])
+    assert_agrees(solver.solve(p), runpp_sample(net, SMALL_ACTUATORS, p))
+
+
 def test_not_converged_gives_nan_and_keeps_the_last_solution():
     data = small_data()
     solver = GridSolver(data, SMALL_ACTUATORS)

@@ -53,12 +53,17 @@ class GridData:
     slack_gen : int
         The model's generator that stands for the external grid (the slack).
     report_bus : ndarray of int
-        Model bus of each bus of the pandapower net (auxiliary buses of open switches
-        excluded): voltage extremes are taken over these, as in pandapower's ``res_bus``.
+        Model bus of each in-service bus of the pandapower net (auxiliary buses of open
+        switches excluded; buses coupled by closed switches, or carrying an external grid, map
+        to the bus they were joined into): voltage extremes are taken over these but the
+        slack's, as in pandapower's ``res_bus``.
     line_i_max_ka : ndarray of float
         ``max_i_ka · df · parallel`` of every line, kA.
     trafo_vn_hv_kv, trafo_vn_lv_kv, trafo_rating_mva : ndarray of float
-        Rated voltages and ``sn_mva · parallel · df`` of every transformer.
+        Rated voltages and ``sn_mva · parallel · df`` of every transformer, kV and MVA. A side
+        the model moved onto another external grid's bus (:mod:`adnmesh.grid.from_net`) has
+        its rated voltage times the new bus's nominal voltage over the old's: the model's
+        current there is in the new bus's base, and the product stays pandapower's loading.
     """
 
     code: str

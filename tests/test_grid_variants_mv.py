@@ -1,0 +1,15 @@
+"""The SimBench MV scenarios 1 and 2 (storages, more generation; with and without switches)
+build at lW, their model checked against pandapower's runpp by the build itself."""
+
+from __future__ import annotations
+
+import pytest
+
+from simbench_variants import check_code, simbench_codes
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.mark.parametrize("code", simbench_codes("MV", ("1", "2")))
+def test_simbench_scenario_code_builds(code):
+    check_code(code, operating_points=False)
