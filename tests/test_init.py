@@ -299,3 +299,30 @@ def test_a_pandapower_config_runs_with_up(cigre_file, tmp_path, capsys) -> None:
     assert main(["init", "--pandapower", str(cigre_file), "-o", str(out)]) == 0
     data, _ = _up_summary(out, tmp_path)
     assert data["grid"]["samples"] > 0
+
+
+def test_several_external_grids_of_a_pandapower_net(cigre_file, tmp_path, capsys,
+                                                    monkeypatch) -> None:
+    """A second feed at the first's voltage: init says P_IP is their sum and check accepts it;
+    at another voltage check refuses it in one line (as up would)."""
+    import pandapower as pp
+
+    monkeypatch.setenv("ADNMESH_CACHE_DIR", str(tmp_path / "cache"))
+    net = pp.from_json(str(cigre_file))
+    first = net.ext_grid.iloc[0]
+    hv = pp.create_bus(net, 110.0, name="second feed")
+    pp.create_ext_grid(net, hv, vm_pu=float(first.vm_pu), va_degree=float(first.va_degree))
+    pp.create_transformer(net, hv, 12, std_type="25 MVA 110/20 kV", name="second feed")
+    two = tmp_path / "two-feeds.json"
+    pp.to_json(net, str(two))
+    out = tmp_path / "two.yaml"
+    assert main(["init", "--pandapower", str(two), "-o", str(out)]) == 0
+    text = out.read_text()
+    assert "2 external grid(s)" in text and "P_IP is their exchange summed" in text
+    assert main(["check", str(out)]) == 0
+    capsys.readouterr()
+    net.ext_grid.at[net.ext_grid.index[-1], "vm_pu"] = float(first.vm_pu) + 0.01
+    pp.to_json(net, str(two))
+    assert main(["check", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "2 external grids at different voltages" in err[0]

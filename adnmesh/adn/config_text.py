@@ -60,6 +60,9 @@ def config_text(survey: Survey, selection: Selection, dynamics: dict, ids: list[
         f"# Actuators ({rules}): {len(acts)}; the other {len(survey.generators) - len(acts)} "
         "generators stay constant injections at the study case.",
     ]
+    if survey.ext_grids > 1:
+        lines.append(f"# The {survey.ext_grids} external grids are one interconnection point: "
+                     "P_IP is their exchange summed (docs/models.md#what-the-grid-model-accepts).")
     if selection.idle:
         lines.append(f"# Left out for producing nothing at {survey.case}: "
                      + ", ".join(g.name for g in selection.idle) + ".")

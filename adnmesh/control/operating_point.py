@@ -18,7 +18,8 @@ __all__ = ["available_power_w", "grid_label", "grid_solver", "grid_source", "ini
 
 
 @functools.lru_cache(maxsize=8)
-def _load(source: str, name: str, case: str | None, load_model: str):
+def _load(source: str, name: str, case: str | None, load_model: str, content: str = ""):
+    """The grid data (``content``: the net file's sha256, so an edited file is read anew)."""
     if source == "pandapower":
         from adnmesh.grid.cache import load_net_grid
         return load_net_grid(name, case, load_model)
@@ -48,7 +49,11 @@ def grid_label(config: Config) -> str:
 
 def _grid(config: Config):
     source, name, case = grid_source(config)
-    return _load(source, name, case, config.grid_model.load_model)
+    load_model = config.grid_model.load_model
+    if source == "pandapower":
+        from adnmesh.grid.net_file import net_sha256
+        return _load(source, name, case, load_model, net_sha256(name))
+    return _load(source, name, case, load_model)
 
 
 def grid_solver(config: Config):
