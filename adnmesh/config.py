@@ -220,12 +220,22 @@ class GridModel(Section):
     """Study case of the loads, the other generators and the slack voltage (a row of the net's
     loadcases table: hL, n1, hW, hPV, lW, lPV); also the DERs' available power. A pandapower
     net without a loadcases table is used as saved (leave study_case out)."""
+    time_step: Annotated[int, Field(ge=0, le=10**6)] | None = None
+    """Instead of a study case: this quarter hour of the net's year of profiles (0 = 1 January
+    00:00; SimBench: 0 to 35135), for the loads, the other generators and the DERs' available
+    power; the slack voltage as saved."""
     load_model: Literal["impedance", "power"] = "impedance"
     """Loads as constant impedances (docs/method.md#reference-case) or constant power."""
     report_period_s: _Period = 1.0
     """The grid's extremes (voltages, loadings, Q_IP) are sent this often, s."""
     limits: GridLimits = GridLimits()
     """The band of voltages and loadings."""
+
+    @model_validator(mode="after")
+    def _one_operating_point(self) -> GridModel:
+        if self.time_step is not None and "study_case" in self.model_fields_set:
+            raise _problem(("time_step",), "give a study_case or a time_step, not both")
+        return self
 
 
 class Constraints(Section):

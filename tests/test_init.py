@@ -19,6 +19,7 @@ from adnmesh.cli import main
 from adnmesh.config import DER_TYPES, load_config
 from adnmesh.dermodels import default_params, set_point, infeed_at, steady_state
 from adnmesh.errors import UsageError
+from adnmesh.control.operating_point import available_power_w
 
 GRIDS = Path(__file__).resolve().parents[1] / "configs" / "grids"
 
@@ -326,3 +327,53 @@ def test_several_external_grids_of_a_pandapower_net(cigre_file, tmp_path, capsys
     assert main(["check", str(out)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "2 external grids at different voltages" in err[0]
+
+
+def test_a_time_step_of_the_profiles_gives_the_operating_point(tmp_path, capsys,
+                                                               monkeypatch) -> None:
+    """init --time-step: the config holds grid_model.time_step; check and the grid model put
+    the net at that quarter hour, each sgen at its installed power times its profile there
+    (computed here from the net's profiles, not through simbench's own function)."""
+    import simbench
+
+    monkeypatch.setenv("ADNMESH_CACHE_DIR", str(tmp_path / "cache"))
+    step = 20_000                                              # 31 July 2016, 08:00
+    out = tmp_path / "comm-t.yaml"
+    assert main(["init", "--simbench", "1-MV-comm--0-no_sw", "--time-step", str(step),
+                 "-o", str(out)]) == 0
+    said = capsys.readouterr().out
+    assert f"time step {step} (" in said
+    config = load_config(out)
+    assert config.grid_model.time_step == step and "--time-step 20000" in out.read_text()
+    net = simbench.get_simbench_net("1-MV-comm--0-no_sw")
+    renewables = net.profiles["renewables"].loc[step]
+    for der in config.ders:
+        row = net.sgen[net.sgen.name == der.sgen].iloc[0]
+        want = row.p_mw * renewables[row.profile] * row.scaling * 1e6
+        assert available_power_w(config)[der.id] == pytest.approx(want, rel=1e-9)
+    assert main(["check", str(out)]) == 0
+    assert f"grid model: time step {step}," in capsys.readouterr().out
+
+
+def test_bad_time_steps_are_one_line(cigre_file, tmp_path, capsys) -> None:
+    def error(*argv: str) -> str:
+        assert main(list(argv)) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err[-1].startswith("adnmesh") and "error: " in err[-1]
+        assert not any("Traceback" in e for e in err)
+        return err[-1]
+
+    out = str(tmp_path / "x.yaml")
+    assert "time step 35136 is not in the net's profiles (0 to 35135" in error(
+        "init", "--simbench", "1-MV-comm--0-no_sw", "--time-step", "35136", "-o", out)
+    assert "a whole number >= 0, got '-1'" in error(
+        "init", "--simbench", "1-MV-comm--0-no_sw", "--time-step", "-1", "-o", out)
+    assert "not allowed with argument" in error(
+        "init", "--simbench", "1-MV-comm--0-no_sw", "--time-step", "3", "--study-case", "hL",
+        "-o", out)
+    assert "the net has no profiles" in error(
+        "init", "--pandapower", str(cigre_file), "--time-step", "3", "-o", out)
+    assert main(["init", "--simbench", "1-MV-comm--0-no_sw", "-o", out]) == 0
+    text = Path(out).read_text().replace("  study_case: lW", "  study_case: lW\n  time_step: 7")
+    Path(out).write_text(text)
+    assert "give a study_case or a time_step, not both" in error("check", out)

@@ -50,15 +50,17 @@ def config_text(survey: Survey, selection: Selection, dynamics: dict, ids: list[
     ``net_file``: a pandapower net file's path relative to the config (None: SimBench
     ``survey.code``), and ``grid`` the config's grid name then.
     """
+    from adnmesh.grid.simbench_net import TIME_STEP, case_words, is_time_step
+
     source = f"pandapower net {net_file}" if net_file else f"SimBench {survey.code}"
     acts = selection.actuators
     lines = [f"# yaml-language-server: $schema={schema}"] if schema else []
     lines += [
         f"# Written by: {command}",
-        f"# {source} at study case {survey.case}: {survey.buses} buses, "
+        f"# {source} at {case_words(survey.case)}{survey.when}: {survey.buses} buses, "
         f"{len(survey.generators)} static generators, {survey.ext_grids} external grid(s).",
         f"# Actuators ({rules}): {len(acts)}; the other {len(survey.generators) - len(acts)} "
-        "generators stay constant injections at the study case.",
+        "generators stay constant injections there.",
     ]
     if survey.ext_grids > 1:
         lines.append(f"# The {survey.ext_grids} external grids are one interconnection point: "
@@ -67,7 +69,8 @@ def config_text(survey: Survey, selection: Selection, dynamics: dict, ids: list[
         lines.append(f"# Left out for producing nothing at {survey.case}: "
                      + ", ".join(g.name for g in selection.idle) + ".")
     lines += [
-        "# Each actuator is scheduled at half its infeed at the study case (p_sched_w), so it can",
+        f"# Each actuator is scheduled at half its infeed at {case_words(survey.case)} (p_sched_w), "
+        "so it can",
         "# move both ways: up to that infeed (its available power), down to 0.",
         "# Dynamics: docs/models.md#der-types (per type; override per DER here or with",
         "# adnmesh init --dynamics / --der-dynamics).",
@@ -113,11 +116,12 @@ def config_text(survey: Survey, selection: Selection, dynamics: dict, ids: list[
     lines += [
         "",
         f"# The grid behind P_IP: the AC power flow of the {'net' if net_file else 'SimBench net'} "
-        "at the study case, loads as",
+        f"at {case_words(survey.case)}, loads as",
         "# constant impedances, every DER's sgen at its infeed.",
         "grid_model:",
         *([f"  pandapower_net: {json.dumps(net_file)}"] if net_file else []),
-        *([f"  study_case: {survey.case}"] if survey.cases or not net_file else []),
+        *([f"  time_step: {survey.case[len(TIME_STEP):]}"] if is_time_step(survey.case) else
+          [f"  study_case: {survey.case}"] if survey.cases or not net_file else []),
         "  load_model: impedance",
         "",
     ]

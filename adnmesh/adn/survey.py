@@ -50,7 +50,12 @@ class Generator:
 
 @dataclass(frozen=True)
 class Survey:
-    """A net's generators at a study case (see the module docstring)."""
+    """A net's generators at a study case or time step (see the module docstring).
+
+    ``case`` is the operating point's name (a study case, or
+    :func:`adnmesh.grid.simbench_net.time_step_case`); ``when`` its time in brackets for a
+    time step (`` (10.02.2016 01:45)``), else "".
+    """
 
     code: str
     case: str
@@ -59,6 +64,7 @@ class Survey:
     generators: tuple[Generator, ...]
     p_ip_w: float
     ext_grids: int
+    when: str = ""
 
 
 def _text(value) -> str:
@@ -68,14 +74,15 @@ def _text(value) -> str:
 def survey_simbench(code: str, case: str) -> Survey:
     """The :class:`Survey` of SimBench ``code`` at study ``case`` (:class:`GridError` for an
     unknown code or study case, or a net whose power flow does not converge there)."""
-    from adnmesh.grid.simbench_net import (apply_study_case, load_simbench_net,
+    from adnmesh.grid.simbench_net import (apply_operating_point, load_simbench_net,
                                            loads_as_impedances)
 
     net = load_simbench_net(code)
     installed = net.sgen.p_mw.copy()
-    apply_study_case(net, case)
+    when = _when(net, case)
+    apply_operating_point(net, case)
     loads_as_impedances(net)
-    return _survey(net, installed, code, case)
+    return _survey(net, installed, code, case, when)
 
 
 def survey_pandapower(path, case: str | None) -> Survey:
@@ -89,19 +96,31 @@ def survey_pandapower(path, case: str | None) -> Survey:
     if "sn_mva" in net.sgen:
         rated = net.sgen.sn_mva.astype(float)
         installed = installed.where(~(rated > installed), rated)
+    when = _when(net, case)
     used = net_at_case(net, case, "impedance")
-    return _survey(net, installed, str(path), used)
+    return _survey(net, installed, str(path), used, when)
 
 
-def _survey(net, installed, code: str, case: str) -> Survey:
+def _when(net, case: str | None) -> str:
+    """`` (10.02.2016 01:45)`` for a time step of the net's profiles, else ""."""
+    from adnmesh.grid.simbench_net import TIME_STEP, is_time_step, time_steps
+
+    if not is_time_step(case):
+        return ""
+    step = int(case[len(TIME_STEP):])
+    times = net.profiles["load"].get("time") if time_steps(net) else None
+    return f" ({times.iloc[step]})" if times is not None and 0 <= step < len(times) else ""
+
+
+def _survey(net, installed, code: str, case: str, when: str = "") -> Survey:
     import pandapower as pp
 
-    from adnmesh.grid.simbench_net import study_cases
+    from adnmesh.grid.simbench_net import case_words, study_cases
 
     try:
         pp.runpp(net)
     except pp.LoadflowNotConverged:
-        raise GridError(f"grid {code}: the power flow at study case {case} does not "
+        raise GridError(f"grid {code}: the power flow at {case_words(case)} does not "
                         "converge") from None
     sgen = net.sgen
     scaling = sgen.scaling.fillna(1.0)
@@ -118,4 +137,4 @@ def _survey(net, installed, code: str, case: str) -> Survey:
     return Survey(code=code, case=case, cases=study_cases(net), buses=len(net.bus),
                   generators=generators,
                   p_ip_w=-float(net.res_ext_grid.p_mw.loc[slack].sum()) * 1e6,
-                  ext_grids=len(slack))
+                  ext_grids=len(slack), when=when)

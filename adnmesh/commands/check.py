@@ -45,13 +45,13 @@ def run(args: argparse.Namespace) -> int:
     console.print(f"grid: {config.grid} ({source})")
     console.print(f"delays: T_com {config.t_com_s:g} s, T_meas {config.t_meas_s:g} s")
     if config.grid_model is not None:
-        from adnmesh.control.operating_point import initial_p_ip_w
-
-        from adnmesh.control.operating_point import grid_source
+        from adnmesh.control.operating_point import grid_source, initial_p_ip_w
 
         model = config.grid_model
-        case = grid_source(config)[2] or "the net as saved"
-        console.print(f"grid model: study case {case}, {model.load_model} loads: "
+        from adnmesh.grid.simbench_net import case_words
+
+        point = case_words(grid_source(config)[2])
+        console.print(f"grid model: {point}, {model.load_model} loads: "
                       f"P_IP {initial_p_ip_w(config) / 1e6:.4f} MW at the schedules, the DERs "
                       f"can deliver {sum(available.values()) / 1e6:.3f} MW")
     console.print(

@@ -28,7 +28,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         help="write a config for a SimBench grid or a pandapower net: actuators by rules, "
         "dynamics, a scenario",
         description="Write a complete, commented config for SimBench grid CODE or the pandapower "
-        "net file NET.json at a study case. "
+        "net file NET.json at a study case (or a time step of its profiles). "
         "Actuators are the static generators that pass the rules (--actuators, --types, "
         "--min-size-w, or an explicit --sgens list); the others stay constant injections. "
         f"Dynamics (T_delay/T_rise) per DER type by default: {defaults} "
@@ -36,7 +36,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "actuator is scheduled at half its study-case infeed; the scenario's steps are sized "
         "to the controllable range. Prints the ADN in a few lines. The file passes check, tune "
         "and up as written. Exit code 0 when written, 2 for a user error (unknown code or "
-        "study case, a file that is not a pandapower net, a net without an external grid, "
+        "study case or time step, a file that is not a pandapower net, a net without an external grid, "
         "no generator matching the rules, an output that exists without --force).",
     )
     source = parser.add_mutually_exclusive_group(required=True)
@@ -46,9 +46,13 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         help="a pandapower net file, as pandapower.to_json writes it")
     parser.add_argument("-o", "--out", metavar="FILE", required=True, type=Path,
                         help="the config to write (.yaml)")
-    parser.add_argument("--study-case",
-                        help="study case giving the infeeds (default lW; a pandapower net "
-                        "without study cases is used as saved)")
+    point = parser.add_mutually_exclusive_group()
+    point.add_argument("--study-case",
+                       help="study case giving the infeeds (default lW; a pandapower net "
+                       "without study cases is used as saved)")
+    point.add_argument("--time-step", metavar="N", type=_time_step,
+                       help="instead: quarter hour N of the net's year of profiles (0 = 1 "
+                       "January 00:00; SimBench: 0 to 35135)")
     parser.add_argument("--actuators", default="mv", metavar="mv|all",
                         help="mv (default): generators on >= 1 kV buses that are plants, not "
                         "SimBench's aggregated LV feeders (lv_RES); all: every generator")
@@ -89,6 +93,16 @@ def parse_dynamics(items, known, option: str) -> dict[str, tuple[float, float]]:
     return out
 
 
+def _time_step(text: str) -> int:
+    try:
+        step = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"a whole number >= 0, got {text!r}") from None
+    if step < 0:
+        raise argparse.ArgumentTypeError(f"a whole number >= 0, got {text!r}")
+    return step
+
+
 def _command_line(args: argparse.Namespace) -> str:
     """The command that writes this file again (``-o`` by the file's name: the line does not
     depend on where it was written)."""
@@ -96,6 +110,8 @@ def _command_line(args: argparse.Namespace) -> str:
         ["--pandapower", str(args.pandapower)]
     if args.study_case:
         argv += ["--study-case", args.study_case]
+    if args.time_step is not None:
+        argv += ["--time-step", str(args.time_step)]
     if args.sgens:
         argv += ["--sgens", args.sgens]
     elif args.actuators != "mv":
@@ -129,6 +145,7 @@ def run(args: argparse.Namespace) -> int:
     from adnmesh.adn.survey import survey_pandapower, survey_simbench
     from adnmesh.adn.template import ranges_w, scenario_template, schedule_w
     from adnmesh.errors import GridError
+    from adnmesh.grid.simbench_net import case_words, time_step_case
     from adnmesh.tuning.problem import MAX_EXACT_CLASSES
     from adnmesh.tuning.subset_selection import MAX_ALL_DERS
 
@@ -145,12 +162,13 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"{args.out} exists; --force overwrites it")
     output_path(args.out, "--out")
     what = f"SimBench {args.simbench}" if args.simbench else f"pandapower net {args.pandapower}"
+    case = time_step_case(args.time_step) if args.time_step is not None else args.study_case
     print(f"adnmesh init: loading {what} (a few seconds)", file=sys.stderr)
     try:
         if args.simbench:
-            survey = survey_simbench(args.simbench, args.study_case or "lW")
+            survey = survey_simbench(args.simbench, case or "lW")
         else:
-            survey = survey_pandapower(args.pandapower, args.study_case)
+            survey = survey_pandapower(args.pandapower, case)
     except GridError as exc:
         raise UsageError(str(exc)) from None
     selection = select_actuators(survey.generators, args.actuators, types, args.min_size_w,
@@ -188,13 +206,13 @@ def run(args: argparse.Namespace) -> int:
     write_atomic(args.out, text)
     up, down = ranges_w((c, s) for *_, c, s in rows)
     by_kind = ", ".join(f"{n} {t}" for t, n in counts.items())
-    print(f"{args.out}: {what}, study case {survey.case}: {survey.buses} buses, "
+    print(f"{args.out}: {what}, {case_words(survey.case)}{survey.when}: {survey.buses} buses, "
           f"{len(survey.generators)} static generators")
     print(f"actuators ({rules}): {len(ids)} ({by_kind}), "
           f"{sum(a.generator.p_inst_w for a in selection.actuators) / 1e6:.3f} MW installed"
           + (f"; {len(selection.idle)} produce nothing at {survey.case}, left out"
              if selection.idle else ""))
-    print(f"P_IP at the study case: {survey.p_ip_w / 1e6:.3f} MW (MV -> HV positive); "
+    print(f"P_IP there: {survey.p_ip_w / 1e6:.3f} MW (MV -> HV positive); "
           f"controllable range at the schedules: +{up / 1e6:.3f} / -{down / 1e6:.3f} MW")
     steps = ", ".join(f"{d / 1e6:+g} MW at {t:g} s" for t, d in planned.steps)
     drop = (f"; the {planned.dropped_type}s unavailable at {planned.unavailable[0][0]:g} s"

@@ -1,9 +1,10 @@
 """The plant side of a config: what the DERs can deliver and where the run starts.
 
-With a grid model (the config's ``grid_model``) both come from the study case of its net, the
-SimBench grid or a pandapower net file (:mod:`adnmesh.grid`): a DER's available power is its
-sgen's power at the study case, and the initial P_IP is the power flow's at the DERs' schedules. Without one, a DER can deliver its
-installed power and P_IP is ``runtime.rest_of_grid_w`` plus the schedules. The values are
+With a grid model (the config's ``grid_model``) both come from the study case (or time step)
+of its net, the SimBench grid or a pandapower net file (:mod:`adnmesh.grid`): a DER's available
+power is its sgen's power there, and the initial P_IP is the power flow's at the DERs'
+schedules. Without one, a DER can deliver its installed power and P_IP is
+``runtime.rest_of_grid_w`` plus the schedules. The values are
 computed once per config (the grid loads from its disk cache).
 """
 
@@ -29,22 +30,29 @@ def _load(source: str, name: str, case: str | None, load_model: str, content: st
 
 def grid_source(config: Config) -> tuple[str, str, str | None]:
     """``(source, name, case)`` of the config's grid model: ``("simbench", code, case)`` or
-    ``("pandapower", resolved file path, case or None when not given)``."""
+    ``("pandapower", resolved file path, case or None when not given)``; ``case`` names a time
+    step (:func:`adnmesh.grid.simbench_net.time_step_case`) where the config gives one."""
     model = config.grid_model
     net = config.pandapower_net_path()
+    if model.time_step is not None:
+        from adnmesh.grid.simbench_net import time_step_case
+        case = time_step_case(model.time_step)
+    else:
+        case = model.study_case
     if net is not None:
-        given = "study_case" in model.model_fields_set
-        return "pandapower", str(net), model.study_case if given else None
-    return "simbench", config.simbench_code, model.study_case
+        given = "study_case" in model.model_fields_set or model.time_step is not None
+        return "pandapower", str(net), case if given else None
+    return "simbench", config.simbench_code, case
 
 
 def grid_label(config: Config) -> str:
-    """The grid model's net in words: ``SimBench CODE, study case X`` or ``pandapower net
-    FILE`` (with its study case if one is given)."""
+    """The grid model's net in words: ``SimBench CODE, study case X`` (or ``, time step N``) or
+    ``pandapower net FILE`` (with its study case or time step if one is given)."""
+    from adnmesh.grid.simbench_net import case_words
+
     source, name, case = grid_source(config)
-    if source == "pandapower":
-        return f"pandapower net {name}" + (f", study case {case}" if case else "")
-    return f"SimBench {name}, study case {case}"
+    point = "" if case is None else f", {case_words(case)}"
+    return (f"pandapower net {name}" if source == "pandapower" else f"SimBench {name}") + point
 
 
 def _grid(config: Config):

@@ -59,20 +59,26 @@ def read_net(path: str | Path):
 
 
 def net_at_case(net, case: str | None, load_model: str) -> str:
-    """Put ``net`` (in place) at study ``case`` of its loadcases table, or leave it as saved if
-    ``case`` is None and it has none; loads as ``load_model``. Returns the case used
-    (:data:`AS_SAVED` for none).
+    """Put ``net`` (in place) at study ``case`` of its loadcases table (or the time step of its
+    profiles that ``case`` names: :func:`adnmesh.grid.simbench_net.time_step_case`), or leave
+    it as saved if ``case`` is None and it has none; loads as ``load_model``. Returns the case
+    used (:data:`AS_SAVED` for none).
 
     Raises
     ------
     GridError
-        A case for a net without study cases, or one it does not have.
+        A case for a net without study cases, or one it does not have; a time step for a net
+        without profiles, or one they do not have.
     """
-    from adnmesh.grid.simbench_net import apply_study_case, loads_as_impedances, study_cases
+    from adnmesh.grid.simbench_net import (apply_study_case, apply_time_step, is_time_step,
+                                           loads_as_impedances, study_cases, TIME_STEP)
 
     cases = study_cases(net)
     used = AS_SAVED
-    if cases:
+    if is_time_step(case):
+        apply_time_step(net, int(case[len(TIME_STEP):]))
+        used = case
+    elif cases:
         used = case or "lW"
         apply_study_case(net, used)
     elif case is not None:

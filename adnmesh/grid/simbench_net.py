@@ -7,6 +7,10 @@
   ``pload`` and ``qload``; static generators by ``Wind_p`` (type containing "Wind" or "WP"),
   ``PV_p`` (containing "PV") or ``RES_p`` (every other type: biomass, hydro, the aggregated
   low-voltage ``lv_RES``); the external grid's voltage set to ``Slack_vm``.
+- :func:`apply_time_step`: the same at one quarter hour of the net's year of profiles
+  (``get_absolute_values(net, profiles_instead_of_study_cases=True)``): loads, static
+  generators and storages; the slack voltage stays as saved (the profiles have none).
+  :func:`time_step_case` names such an operating point where a study case would be.
 - :func:`loads_as_impedances`: every load becomes a shunt of the same power at 1 p.u. — a
   constant impedance, ``S = S_0 |V|²`` (docs/method.md#reference-case).
 
@@ -28,10 +32,14 @@ from __future__ import annotations
 
 from adnmesh.errors import GridError
 
-__all__ = ["LOAD_MODELS", "load_simbench_net", "study_cases", "apply_study_case",
-           "loads_as_impedances", "grid_net"]
+__all__ = ["LOAD_MODELS", "TIME_STEP", "load_simbench_net", "study_cases", "apply_study_case",
+           "time_step_case", "is_time_step", "case_words", "time_steps", "apply_time_step",
+           "apply_operating_point", "loads_as_impedances", "grid_net"]
 
 LOAD_MODELS = ("impedance", "power")
+#: how an operating point at a time step of the net's profiles is named where a study case
+#: would be (``"time step 4711"``; a study case's name has no spaces)
+TIME_STEP = "time step "
 
 
 def load_simbench_net(code: str):
@@ -70,6 +78,69 @@ def apply_study_case(net, case: str) -> None:
         net[element][column] = frame.loc[case, net[element].index].to_numpy(dtype=float)
 
 
+def time_step_case(step: int) -> str:
+    """The operating point's name of time step ``step`` (quarter hours from 1 January 00:00)."""
+    return f"{TIME_STEP}{int(step)}"
+
+
+def case_words(case: str | None) -> str:
+    """An operating point in words: ``"study case lW"``, ``"time step 4711"`` or, for None,
+    ``"the net as saved"``."""
+    if case is None:
+        return "the net as saved"
+    return case if is_time_step(case) else f"study case {case}"
+
+
+def is_time_step(case: str | None) -> bool:
+    """Whether ``case`` names a time step (:func:`time_step_case`), not a study case."""
+    return bool(case) and case.startswith(TIME_STEP)
+
+
+def time_steps(net) -> int:
+    """Number of time steps of ``net``'s profiles (SimBench: 35,136 quarter hours; 0: none)."""
+    profiles = net.get("profiles")
+    if not profiles or "load" not in profiles:
+        return 0
+    return len(profiles["load"])
+
+
+def apply_time_step(net, step: int) -> str:
+    """Set ``net``'s loads, static generators and storages to time step ``step`` of its
+    profiles (in place), through simbench's ``get_absolute_values(net,
+    profiles_instead_of_study_cases=True)``; the external grid's voltage stays as saved.
+    Returns the step's time as the profiles give it (``"10.02.2016 01:45"``).
+
+    Raises
+    ------
+    GridError
+        If the net has no profiles or no such step.
+    """
+    import simbench
+
+    count = time_steps(net)
+    if not count:
+        raise GridError("grid: a time step asked for, but the net has no profiles (SimBench "
+                        "nets have a year of quarter hours); use a study case")
+    if not 0 <= step < count:
+        raise GridError(f"grid: time step {step} is not in the net's profiles (0 to "
+                        f"{count - 1}, quarter hours from the first)")
+    values = simbench.get_absolute_values(net, profiles_instead_of_study_cases=True)
+    for (element, column), frame in values.items():
+        if frame.shape[1]:
+            net[element][column] = frame.loc[step, net[element].index].to_numpy(dtype=float)
+    times = net.profiles["load"].get("time")
+    return str(times.iloc[step]) if times is not None else f"step {step}"
+
+
+def apply_operating_point(net, case: str) -> None:
+    """Set ``net`` to study case ``case`` or, if ``case`` names one (:func:`time_step_case`),
+    to that time step of its profiles (in place)."""
+    if is_time_step(case):
+        apply_time_step(net, int(case[len(TIME_STEP):]))
+    else:
+        apply_study_case(net, case)
+
+
 def loads_as_impedances(net) -> None:
     """Replace every in-service load by a shunt of the same p and q at 1 p.u. (in place).
 
@@ -92,7 +163,8 @@ def loads_as_impedances(net) -> None:
 
 
 def grid_net(code: str, case: str = "lW", load_model: str = "impedance"):
-    """The net of SimBench ``code`` at study ``case``, loads as ``load_model`` (a new net).
+    """The net of SimBench ``code`` at study ``case`` (or the time step it names:
+    :func:`time_step_case`), loads as ``load_model`` (a new net).
 
     ``load_model``: ``"impedance"`` (constant impedance, as shunts;
     docs/method.md#reference-case) or ``"power"``
@@ -102,7 +174,7 @@ def grid_net(code: str, case: str = "lW", load_model: str = "impedance"):
         raise GridError(f"grid: load model must be one of {', '.join(LOAD_MODELS)}, "
                         f"got {load_model!r}")
     net = load_simbench_net(code)
-    apply_study_case(net, case)
+    apply_operating_point(net, case)
     if load_model == "impedance":
         loads_as_impedances(net)
     return net
