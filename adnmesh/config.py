@@ -214,8 +214,9 @@ class GridModel(Section):
     sgens set to their infeeds."""
 
     pandapower_net: _Name | None = None
-    """A pandapower net file (as pandapower.to_json writes it), relative to the config, instead
-    of the SimBench grid; its content's hash keys the grid cache."""
+    """A pandapower net file (as pandapower.to_json writes it, or to_sqlite: .sqlite, .sqlite3,
+    .db), relative to the config, instead of the SimBench grid; its content's hash keys the grid
+    cache."""
     study_case: Annotated[str, Field(pattern=r"^[A-Za-z0-9]+$", max_length=16)] = "lW"
     """Study case of the loads, the other generators and the slack voltage (a row of the net's
     loadcases table: hL, n1, hW, hPV, lW, lPV); also the DERs' available power. A pandapower

@@ -19,7 +19,7 @@ from adnmesh.cli import main
 from adnmesh.config import DER_TYPES, load_config
 from adnmesh.dermodels import default_params, set_point, infeed_at, steady_state
 from adnmesh.errors import UsageError
-from adnmesh.control.operating_point import available_power_w
+from adnmesh.control.operating_point import available_power_w, initial_p_ip_w
 
 GRIDS = Path(__file__).resolve().parents[1] / "configs" / "grids"
 
@@ -377,3 +377,27 @@ def test_bad_time_steps_are_one_line(cigre_file, tmp_path, capsys) -> None:
     text = Path(out).read_text().replace("  study_case: lW", "  study_case: lW\n  time_step: 7")
     Path(out).write_text(text)
     assert "give a study_case or a time_step, not both" in error("check", out)
+
+
+def test_a_pandapower_sqlite_file(cigre_file, tmp_path, capsys, monkeypatch) -> None:
+    """A net saved with pandapower.to_sqlite is read as the JSON one (same P_IP); a file named
+    .sqlite that is no database is one line."""
+    import pandapower as pp
+
+    monkeypatch.setenv("ADNMESH_CACHE_DIR", str(tmp_path / "cache"))
+    db = tmp_path / "cigre.sqlite"
+    pp.to_sqlite(pp.from_json(str(cigre_file)), str(db))
+    configs = []
+    for source in (cigre_file, db):
+        out = tmp_path / f"{source.suffix[1:]}.yaml"
+        assert main(["init", "--pandapower", str(source), "-o", str(out)]) == 0
+        assert main(["check", str(out)]) == 0
+        configs.append(load_config(out))
+    capsys.readouterr()
+    assert initial_p_ip_w(configs[1]) == pytest.approx(initial_p_ip_w(configs[0]), abs=1e-6)
+    junk = tmp_path / "junk.db"
+    junk.write_bytes(b"SQLite format 3\x00" + b"\x00" * 200)
+    assert main(["init", "--pandapower", str(junk), "-o", str(tmp_path / "j.yaml")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("adnmesh: error: ") and "junk.db is not a pandapower net file" in \
+        err[-1] and not any("Traceback" in e for e in err)

@@ -43,7 +43,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     source.add_argument("--simbench", metavar="CODE",
                         help="SimBench code, e.g. 1-MV-semiurb--0-no_sw")
     source.add_argument("--pandapower", metavar="NET.json", type=Path,
-                        help="a pandapower net file, as pandapower.to_json writes it")
+                        help="a pandapower net file, as pandapower.to_json writes it (or "
+                        "to_sqlite: .sqlite, .sqlite3, .db)")
     parser.add_argument("-o", "--out", metavar="FILE", required=True, type=Path,
                         help="the config to write (.yaml)")
     point = parser.add_mutually_exclusive_group()

@@ -1,9 +1,11 @@
 """A pandapower net file as a grid model's net (imports pandapower, and simbench for a net
 with study cases).
 
-:func:`read_net` reads a file as ``pandapower.to_json`` writes it (``pandapower.from_json_string``
-on at most :data:`MAX_NET_BYTES` of a regular file) and returns the net with the SHA-256 of the
-file's bytes, which keys the grid cache. :func:`net_at_case` puts it at its operating point: a
+:func:`read_net` reads at most :data:`MAX_NET_BYTES` of a regular file, as
+``pandapower.to_json`` writes it (``pandapower.from_json_string``) or, named ``.sqlite``,
+``.sqlite3`` or ``.db``, as ``pandapower.to_sqlite`` writes it (``pandapower.from_sqlite`` on a
+private copy of the bytes read). It returns the net with the SHA-256 of the file's bytes, which
+keys the grid cache. :func:`net_at_case` puts it at its operating point: a
 net with a ``loadcases`` table (a SimBench net saved to a file keeps it) at one of its study
 cases, as :func:`adnmesh.grid.simbench_net.apply_study_case` does; a net without one as saved.
 Loads as constant impedances or as constant power, as for SimBench.
@@ -17,10 +19,12 @@ from pathlib import Path
 from adnmesh.errors import GridError
 from adnmesh.files import read_regular, unreadable
 
-__all__ = ["MAX_NET_BYTES", "AS_SAVED", "read_net", "net_sha256", "net_at_case"]
+__all__ = ["MAX_NET_BYTES", "SQLITE_SUFFIXES", "AS_SAVED", "read_net", "net_sha256", "net_at_case"]
 
 #: the largest net file read, bytes
 MAX_NET_BYTES = 256 * 2**20
+#: file name suffixes read as ``pandapower.to_sqlite`` writes them (any other: JSON)
+SQLITE_SUFFIXES = (".sqlite", ".sqlite3", ".db")
 #: the study case of a net used as saved (it has no loadcases table)
 AS_SAVED = "as saved"
 
@@ -37,6 +41,21 @@ def net_sha256(path: str | Path) -> str:
     return hashlib.sha256(_read(Path(path))).hexdigest()
 
 
+def _from_sqlite(path: Path, data: bytes):
+    """``pandapower.from_sqlite`` of the bytes read (a private copy: the file the hash was
+    taken of, and sqlite3 never creates or changes the user's file)."""
+    import tempfile
+
+    import pandapower as pp
+
+    if not data.startswith(b"SQLite format 3\x00"):
+        raise ValueError("not an SQLite database")
+    with tempfile.TemporaryDirectory(prefix="adnmesh-net-") as folder:
+        copy = Path(folder) / "net.sqlite"
+        copy.write_bytes(data)
+        return pp.from_sqlite(str(copy))
+
+
 def read_net(path: str | Path):
     """``(net, sha256)`` of a pandapower net file (:class:`GridError`, one line, for a file
     that cannot be read or is not a pandapower net)."""
@@ -44,9 +63,10 @@ def read_net(path: str | Path):
 
     path = Path(path)
     data = _read(path)
+    sqlite = path.suffix.lower() in SQLITE_SUFFIXES
     try:
-        net = pp.from_json_string(data.decode())
-    except Exception as exc:                # whatever the JSON reader of pandapower raises
+        net = _from_sqlite(path, data) if sqlite else pp.from_json_string(data.decode())
+    except Exception as exc:                # whatever pandapower's readers raise
         text = " ".join(str(exc).split())[:120]
         raise GridError(f"grid: {path} is not a pandapower net file ({type(exc).__name__}: "
                         f"{text})") from None
