@@ -1133,7 +1133,10 @@ tcase("negative-weight", _weight(-0.5), quick=True)
 tcase("unstable-gains-x12", _scaled(12), quick=True, note="issue: unstable gains used silently")
 tcase("kp-infinity", set_gains(kp=INF))
 tcase("weight-5", _weight(5.0))
-tcase("weight-zero", _weight(0.0))
+tcase("weight-zero", _weight(0.0), codes=(0,),
+      note="accepted: Find W gives 0 to a DER whose single loop violates at every weight "
+           "(docs/method.md#find-w); the rule is [0, 1], not all 0 in a feasible entry")
+tcase("weights-all-zero", lambda t: all_ders(t).update(w=dict.fromkeys(all_ders(t)["ders"], 0.0)))
 tcase("entries-missing", lambda t: t.pop("entries"))
 tcase("entries-empty", lambda t: t.update(entries=[]), codes=(0, 2),
       note="an empty table: tuned on demand or refused")
