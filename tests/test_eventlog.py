@@ -134,3 +134,19 @@ def test_each_record_names_the_agent_it_is_about_or_that_sent_it() -> None:
     rejected = json.loads(record)
     assert (rejected["name"], rejected["message"]) == (
         "up", "[rejected] rejected a payload on adn/g/cpfc/p_y: sender (x)")
+
+
+def test_fault_spans_of_faults_at_one_instant_one_without_an_end() -> None:
+    """A quarantine (a kill, an instant) and an ICT outage without an end at the same time:
+    the spans sort (they compared None with a number and ``inspect`` crashed)."""
+    from adnmesh.results.rules import Event
+    from adnmesh.results.series import RunData
+
+    events = [Event(0, "fault", "ERROR", "outage", "faults",
+                    {"fault_id": 2, "kind": "ict_outage", "start_ns": 0, "end_ns": None}),
+              Event(0, "fault", "ERROR", "kill", "faults",
+                    {"fault_id": 1, "kind": "kill", "start_ns": 0, "end_ns": None}),
+              Event(5, "fault", "ERROR", "again", "faults",
+                    {"fault_id": 1, "kind": "kill", "start_ns": 0, "end_ns": None})]
+    spans = RunData(series={}, events=events, der_ids=[], t0_ns=0).fault_spans()
+    assert spans == [(0, 0, "kill"), (0, None, "outage")]

@@ -511,6 +511,33 @@ def test_local_run_switches_gains_without_a_bump(config: Config, schedule: GainS
 
 
 
+def test_a_forged_fault_shuts_out_none_of_ups_own(config: Config) -> None:
+    """Open profile: someone sends a valid fault as ``up`` with a huge seq, a far send time and
+    a number ``up`` uses. Faults are taken at once, so the gate's order rule must not then
+    refuse ``up``'s own faults (seq 0, 1, sent earlier): the node counts them (the clock
+    expects them) and applies the kill under the same fault number (the run stalled)."""
+    from payloads import payload
+
+    topo = Topology.from_config(config)
+    node = Node(Ticker(topo.keys.of("p_ip")), topo, seed=0)
+    faults = topo.keys.of("fault")
+    node.receive(faults, payload(faults, {"fault_id": 1, "kind": "ict_outage",
+                                          "start_ns": 150 * 10**9, "end_ns": 160 * 10**9},
+                                 seq=10**9, t_send_ns=150 * 10**9))
+    me = node.agent_id
+    node.receive(faults, payload(faults, {"fault_id": 1, "kind": "kill", "start_ns": 50,
+                                          "end_ns": None, "agent": me,
+                                          "origin": "quarantine"}, seq=0))
+    node.receive(faults, payload(faults, {"fault_id": 2, "kind": "ict_outage", "start_ns": 60,
+                                          "end_ns": None}, seq=1))
+    assert node.counts.received == 3 and node.counts.rejected == {}
+    assert node.kill_ns == 50
+    node.receive(faults, payload(faults, {"fault_id": 2, "kind": "ict_outage", "start_ns": 60,
+                                          "end_ns": None}, seq=1))     # again: applied once
+    assert node.counts.received == 4 and node.counts.rejected == {}
+    assert len(node._faults_applied) == 3
+
+
 def test_a_quarantine_cuts_the_agent_off_also_from_what_the_node_holds(config: Config) -> None:
     """``up`` quarantines der/SGen1 (a kill with origin ``quarantine``) at 50 ns: what SGen1
     sent before stays, what it sent from then on is dropped, also if it was already held."""

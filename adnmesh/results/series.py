@@ -154,7 +154,8 @@ class RunData:
                 if data.get("kind") == "kill" and end is None:
                     end = data["start_ns"]
                 spans[data["fault_id"]] = (data["start_ns"], end, event.text)
-        return sorted(spans.values())
+        # by start, then end (a fault without one last), then text: ends may be None
+        return sorted(spans.values(), key=lambda s: (s[0], s[1] is None, s[1] or 0, s[2]))
 
 
 def _number(value: object) -> float | None:

@@ -132,7 +132,7 @@ class Node:
         self._ict_in = frozenset(k for k in self.subscriptions
                                  if topology.inbound_link(k) in ICT_LINKS)
         self._offline: list[tuple[int, int | None]] = []   # windows without ICT in and out
-        self._faults_applied: set[int] = set()
+        self._faults_applied: set[tuple] = set()       # what each applied fault said
         self._link_of = {k: topology.inbound_link(k) or "up" for k in self.subscriptions}
         self.instant_inputs = "physical" in self._link_of.values()
         """The agent receives over the zero-delay ``physical`` path (the measurement)."""
@@ -181,7 +181,7 @@ class Node:
         counts = self.counts
         counts.received += 1
         if message.type == "fault":
-            self.gate.consumed(key, message)
+            self.gate.taken_unordered(key, message)
             self._apply(message)
             return
         t = message.t_deliver_ns
@@ -198,10 +198,14 @@ class Node:
 
     def _apply(self, fault) -> None:
         """Take an injected fault (see the module docstring); a fault sent again (to a
-        restarted agent) is applied once."""
-        if fault.fault_id in self._faults_applied:
+        restarted agent, or replayed) is applied once. A fault is known by all it says, not by
+        its number alone: in the open profile anyone may send one, and one under a number
+        ``up`` uses must not make an agent ignore ``up``'s own (a quarantine's kill, say)."""
+        said = (fault.fault_id, fault.kind, fault.start_ns, fault.end_ns, fault.link,
+                fault.der, fault.agent, fault.probability, fault.delay_ns, fault.origin)
+        if said in self._faults_applied:
             return
-        self._faults_applied.add(fault.fault_id)
+        self._faults_applied.add(said)
         kind, me = fault.kind, self.agent_id
         window = (fault.start_ns, fault.end_ns)
         if kind == "kill":

@@ -26,7 +26,8 @@ Rule 7 compares with what the receiver has **processed**, not with everything it
 node holds a message until its delivery time (:meth:`Gate.consumed` then marks it processed),
 so a forged message with a far-future send time or a huge ``seq`` sits in the inbox and cannot
 shut out the genuine sender's next messages (it was accepted before they were sent, and they
-come before it in time).
+come before it in time). An injected fault is taken at once and orders nothing
+(:meth:`Gate.taken_unordered`): its receiver knows a fault by what it says.
 
 Whatever fails is counted per key and reason, at most :data:`KEYS_TOLD_APART` keys told apart
 (a flood of made-up keys cannot grow the counts), and never raised past the receiver. A sample
@@ -182,6 +183,16 @@ class Gate:
         last = self._processed.get(key)
         if last is None or stamp > last:
             self._processed[key] = stamp
+
+    def taken_unordered(self, key: str, message: Envelope) -> None:
+        """A held message on ``key`` was taken at once and orders nothing after it (an
+        injected fault: it carries its own window, and its receiver knows a fault it has
+        applied by what it says). Unlike :meth:`consumed`, a later message with an earlier
+        ``(t_send, seq)`` stays welcome: a forged fault with a huge ``seq`` cannot shut out
+        ``up``'s own."""
+        held = self._held.get(key)
+        if held is not None:
+            held.discard((message.t_send_ns, message.seq))
 
     def cut_off(self, agent: str, from_ns: int) -> None:
         """Accept nothing ``agent`` sends at or after ``from_ns`` (it is quarantined)."""
