@@ -7,7 +7,11 @@ check against runpp), the model's size, and then, with the five largest static g
 beside that of pandapower's ``runpp`` on the same points (the peer, same run), their ratio and
 the largest differences from runpp in P_IP and Q_IP (every external grid, sign turned).
 
+With ``--every-case`` it also builds each code at every study case of its net with both load
+models (12 builds a code) and prints how many pass the check against runpp.
+
     .venv/bin/python benchmarks/grid_codes.py [--codes 1-HV-mixed--0-sw,...] [--points 20]
+                                              [--every-case]
 """
 from __future__ import annotations
 
@@ -66,10 +70,38 @@ def measure(code: str, points: int, rng) -> dict:
                 runpp_ms=peer * 1e3, ratio=peer / solve, dp_w=dp, dq_var=dq)
 
 
+def every_case(code: str) -> tuple[int, int, list[str]]:
+    """Build ``code`` at each of its study cases with each load model: (built, tried,
+    failures)."""
+    import copy
+
+    from adnmesh.errors import GridError
+    from adnmesh.grid import simbench_net as sn
+    from adnmesh.grid.from_net import build_grid_data
+
+    base = sn.load_simbench_net(code)
+    built, tried, failures = 0, 0, []
+    for case in sn.study_cases(base):
+        for load_model in sn.LOAD_MODELS:
+            net = copy.deepcopy(base)
+            sn.apply_study_case(net, case)
+            if load_model == "impedance":
+                sn.loads_as_impedances(net)
+            tried += 1
+            try:
+                build_grid_data(net, code, case, load_model)
+                built += 1
+            except GridError as exc:
+                failures.append(f"{case}/{load_model}: {exc}")
+    return built, tried, failures
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--codes", help="comma-separated SimBench codes (default: every MV/HV)")
     parser.add_argument("--points", type=int, default=20, help="operating points per code")
+    parser.add_argument("--every-case", action="store_true",
+                        help="also build each code at every study case, both load models")
     args = parser.parse_args(argv)
     warnings.simplefilter("ignore")
     codes = args.codes.split(",") if args.codes else _codes()
@@ -81,6 +113,14 @@ def main(argv=None) -> int:
         print(f"{r['code']:24s} {r['read_s']:5.1f}s {r['build_s']:5.2f}s {r['buses']:5d} "
               f"{r['ext']:3d} {r['solve_us']:7.0f}µs {r['runpp_ms']:6.1f}ms {r['ratio']:5.0f}x "
               f"{r['dp_w']:7.3f} W {r['dq_var']:5.3f} var   [{i}/{len(codes)}]", flush=True)
+    if args.every_case:
+        total = tried_all = 0
+        for code in codes:
+            built, tried, failures = every_case(code)
+            total, tried_all = total + built, tried_all + tried
+            print(f"{code:24s} every study case, both load models: {built} of {tried} built"
+                  + "".join(f"\n  {f}" for f in failures), flush=True)
+        print(f"every case: {total} of {tried_all} builds pass the check against runpp")
     return 0
 
 
