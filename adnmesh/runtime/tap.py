@@ -150,15 +150,7 @@ class RecorderTap:
     def _tally(self, key: str, accepted: list, rejects: list) -> tuple[list, list]:
         """Count each agent's messages per key since its last clock report, and take a report
         only if it claims no more than that (a report that claims messages nobody sent would
-        make their receivers wait for them for ever): else it is ``implausible``. Messages of
-        a quarantined agent count though they are not recorded as genuine: they were sent,
-        and its receivers count them too; without them its reports went unheard and the
-        clock waited for it for ever."""
-        found = route(key)
-        for reject in rejects:
-            if reject.reason == "quarantined" and found is not None:
-                tally = self._unreported.setdefault(found.sender, {})
-                tally[key] = tally.get(key, 0) + reject.envelopes
+        make their receivers wait for them for ever): else it is ``implausible``."""
         kept = []
         for payload, message in accepted:
             sender = message.src

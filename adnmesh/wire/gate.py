@@ -137,6 +137,8 @@ class Gate:
         self.rejected: dict[str, dict[str, int]] = {}
         self._processed: dict[str, tuple[int, int]] = {}   # key -> latest (t_send, seq) done
         self._held: dict[str, set[tuple[int, int]]] = {}   # key -> stamps accepted, not done
+        self._taken: dict[str, dict[tuple[int, int], None]] = {}   # key -> stamps taken at
+        #                                                            once, oldest first
         self._cut_off: dict[str, int] = {}                 # agent -> quarantined from, ns
 
     def admit(self, key: str, payload: bytes, *, hold: bool = False) -> Envelope:
@@ -189,10 +191,16 @@ class Gate:
         injected fault: it carries its own window, and its receiver knows a fault it has
         applied by what it says). Unlike :meth:`consumed`, a later message with an earlier
         ``(t_send, seq)`` stays welcome: a forged fault with a huge ``seq`` cannot shut out
-        ``up``'s own."""
+        ``up``'s own. The same stamp again is ``replayed`` (the last :data:`HELD_MAX` stamps
+        are remembered; older ones are forgotten, so a flood cannot refuse a new one)."""
+        stamp = (message.t_send_ns, message.seq)
         held = self._held.get(key)
         if held is not None:
-            held.discard((message.t_send_ns, message.seq))
+            held.discard(stamp)
+        taken = self._taken.setdefault(key, {})
+        taken[stamp] = None
+        if len(taken) > HELD_MAX:           # the oldest go: a flood cannot refuse a new one
+            del taken[next(iter(taken))]
 
     def cut_off(self, agent: str, from_ns: int) -> None:
         """Accept nothing ``agent`` sends at or after ``from_ns`` (it is quarantined)."""
@@ -235,7 +243,8 @@ class Gate:
         stamp = (t_send, message.seq)
         last = self._processed.get(key)
         held = self._held.setdefault(key, set()) if hold else None
-        if (last is not None and stamp <= last) or (held is not None and stamp in held):
+        if (last is not None and stamp <= last) or (held is not None and stamp in held) \
+                or stamp in self._taken.get(key, ()):
             raise MessageError("replayed", f"(t_send_ns, seq) {stamp} already seen")
         if held is not None and len(held) >= HELD_MAX:
             raise MessageError("held_full", f"{HELD_MAX} messages already held on the key")
