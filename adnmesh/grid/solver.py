@@ -6,7 +6,8 @@ static generators, and solves the power flow for one vector of their active powe
 the build has it) on its own copy of the grid model, starting from the previous solution. The
 model keeps its factorisation structure between solves; only the actuators' injections change.
 Everything else in the grid is a constant injection (constant-impedance loads are shunts); the
-actuators' reactive power stays at its study-case value.
+actuators' reactive power stays at its study-case value unless :meth:`GridSolver.solve` is given
+theirs.
 
 Results (:class:`GridSample`) follow pandapower's definitions: ``P_IP``/``Q_IP`` are the external
 grid's injection with the sign turned, so that power flowing from the MV grid into the 110 kV
@@ -130,19 +131,22 @@ class GridSolver:
         """Complex bus voltages of the last converged solution (model bus order), p.u."""
         return self._v.copy()
 
-    def solve(self, p_actuator_w) -> GridSample:
-        """Solve the power flow with the actuators at ``p_actuator_w`` (W, construction order).
+    def solve(self, p_actuator_w, q_actuator_var=None) -> GridSample:
+        """Solve the power flow with the actuators at ``p_actuator_w`` (W, construction order)
+        and, if given, ``q_actuator_var`` (var, same order; None: each keeps the reactive
+        power it was last given, at first its study-case value).
 
         Starts from the last converged solution (the study case's at first); if Newton-Raphson
         fails from there it tries once more from the study case's solution.
         """
-        p = np.asarray(p_actuator_w, dtype=float)
-        if p.shape != (self.n_actuators,) or not np.all(np.isfinite(p)):
-            raise GridError(f"grid solver: expected {self.n_actuators} finite actuator powers "
-                            f"in W, got {p_actuator_w!r}")
+        p = self._powers(p_actuator_w, "active powers in W")
         grid = self._grid
         for sgen, p_w in zip(self._act, p.tolist()):
             grid.change_p_sgen(sgen, p_w * 1e-6)
+        if q_actuator_var is not None:
+            q = self._powers(q_actuator_var, "reactive powers in var")
+            for sgen, q_var in zip(self._act, q.tolist()):
+                grid.change_q_sgen(sgen, q_var * 1e-6)
         v = grid.ac_pf(self._v, self._max_iter, self._tol)
         if v.size == 0:
             v = grid.ac_pf(self.data.v_init, self._max_iter, self._tol)
@@ -151,6 +155,13 @@ class GridSolver:
             return _not_converged(iterations)
         self._v = np.array(v, dtype=complex)
         return self._sample(iterations)
+
+    def _powers(self, values, what: str) -> np.ndarray:
+        out = np.asarray(values, dtype=float)
+        if out.shape != (self.n_actuators,) or not np.all(np.isfinite(out)):
+            raise GridError(f"grid solver: expected {self.n_actuators} finite actuator {what}, "
+                            f"got {values!r}")
+        return out
 
     def _sample(self, iterations: int) -> GridSample:
         grid, d = self._grid, self.data
