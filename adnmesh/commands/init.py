@@ -213,7 +213,7 @@ def run(args: argparse.Namespace) -> int:
           f"{sum(a.generator.p_inst_w for a in selection.actuators) / 1e6:.3f} MW installed"
           + (f"; {len(selection.idle)} produce nothing at {survey.case}, left out"
              if selection.idle else ""))
-    print(f"P_IP there: {survey.p_ip_w / 1e6:.3f} MW (MV -> HV positive); "
+    print(f"P_IP there: {survey.p_ip_w / 1e6:.3f} MW (positive into the upper grid); "
           f"controllable range at the schedules: +{up / 1e6:.3f} / -{down / 1e6:.3f} MW")
     steps = ", ".join(f"{d / 1e6:+g} MW at {t:g} s" for t, d in planned.steps)
     drop = (f"; the {planned.dropped_type}s unavailable at {planned.unavailable[0][0]:g} s"
