@@ -305,6 +305,27 @@ def test_external_grids_at_different_voltages_are_a_one_line_error(vm, va):
         build_grid_data(net, "two-feeds", "base", "power")
 
 
+def test_an_island_is_left_out_as_runpp_leaves_it_out():
+    """Buses no external grid supplies (here two, with a load, a generator and the line between
+    them) have no power flow in runpp; the model leaves them out, the rest equals runpp, and the
+    island's generator has no power to give."""
+    net = small_net()
+    island = [pp.create_bus(net, 20.0, name=f"island {i}") for i in range(2)]
+    pp.create_line(net, *island, 1.0, "NA2XS2Y 1x185 RM/25 12/20 kV")
+    pp.create_load(net, island[1], p_mw=0.1)
+    pp.create_sgen(net, island[0], p_mw=0.2, name="island PV")
+    loads_as_impedances(net)
+    data = build_grid_data(net, "island", "base", "impedance")
+    assert available_power_w(data, ["island PV"]).tolist() == [0.0]
+    solver = GridSolver(data, SMALL_ACTUATORS)
+    p = np.array([2.0e6, 0.3e6])
+    want = runpp_sample(net, SMALL_ACTUATORS, p)
+    assert np.isnan(net.res_bus.vm_pu.loc[island]).all()
+    adn = net.res_bus.vm_pu[~net.bus.index.isin(net.ext_grid.bus)].dropna()
+    assert_agrees(solver.solve(p), want[:2] + (adn.min(), adn.max())
+                  + (net.res_line.loading_percent.max(), want[5]))
+
+
 def test_storage_is_a_constant_power_injection():
     net = small_net()
     pp.create_storage(net, 4, p_mw=-0.8, max_e_mwh=2.0, q_mvar=0.1, scaling=0.5)

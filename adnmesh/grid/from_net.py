@@ -121,7 +121,7 @@ def _convert(model, reference, bus_map, code, case, load_model, converter) -> Gr
     v_init = (res.vm_pu.to_numpy() * np.exp(1j * np.deg2rad(res.va_degree.to_numpy())))
     sgen, line, trafo = model.sgen, model.line, model.trafo
     on = sgen.in_service.to_numpy(dtype=bool) * sgen.scaling.fillna(1.0).to_numpy()
-    buses = reference.bus.index[reference.bus.in_service.to_numpy(dtype=bool)]
+    buses = reference.bus.index[_supplied(reference)]
     report = np.array([bus_map[int(b)] for b in buses], dtype=np.int64)
     report = np.where(np.isin(report, list(slack_bus)), next(iter(slack_bus.values())),
                       report)
@@ -202,6 +202,12 @@ def _ratings(sgen) -> np.ndarray:
     return np.where(rating > 0, rating, np.nan)
 
 
+def _supplied(reference) -> np.ndarray:
+    """The buses of ``reference`` (after runpp) in service and supplied (a voltage)."""
+    return reference.bus.in_service.to_numpy(dtype=bool) & np.isfinite(
+        reference.res_bus.vm_pu.reindex(reference.bus.index).to_numpy(dtype=float))
+
+
 def _at_slack(data: GridData) -> np.ndarray:
     """Which of ``data.report_bus`` are the slack's model bus (the upper grid's node)."""
     return data.report_bus == int(data.lsgrid.get_generators()[data.slack_gen].bus_id)
@@ -214,7 +220,7 @@ def _differences(data: GridData, reference) -> list:
     if not sample.converged:
         return ["no convergence"]
     vm = np.abs(solver.voltages_pu[data.report_bus])
-    in_service = reference.bus.in_service.to_numpy(dtype=bool)
+    in_service = _supplied(reference)
     vm_ref = reference.res_bus.vm_pu[in_service].to_numpy()
     slack = reference.ext_grid.index[reference.ext_grid.in_service.astype(bool)]
     ext = reference.res_ext_grid.loc[slack]

@@ -19,6 +19,10 @@ equations; :func:`adnmesh.grid.from_net.build_grid_data` then checks that it doe
   1-MV-urban: both transformers at ``tap_pos`` -1, no type) ``runpp`` ignores the position. The
   copy puts such taps at neutral, and moves every tap's neutral to 0 (``tap_pos - tap_neutral``,
   the converter's convention; the ratio depends only on the difference).
+- **Islands.** Buses no external grid supplies (a spare busbar, a feeder cut off by open
+  switches) get no power flow in ``runpp`` (NaN results); the copy puts them and what is on them
+  out of service (``pandapower.toolbox.set_isolated_areas_out_of_service``). A generator there
+  has no power to give.
 - **Scaling of storages** is folded into their p and q (the converter ignores it).
 - **Column types.** SimBench leaves the generators' optional limit columns as objects, which the
   converter cannot read; they are cast to floats (their NaNs become 0, unused by the power flow).
@@ -52,6 +56,7 @@ def model_net(net):
     _fuse(out, bus_map)
     out.switch = out.switch.iloc[0:0]
     out.ext_grid = out.ext_grid[out.ext_grid.in_service.astype(bool)]
+    _islands_out_of_service(out)
     renumbered = _continuous_bus_index(out)
     _taps_as_runpp_reads_them(out)
     _storage_scaling(out)
@@ -120,6 +125,22 @@ def _continuous_bus_index(net) -> dict:
     from pandapower.toolbox import create_continuous_bus_index
 
     return {int(old): int(new) for old, new in create_continuous_bus_index(net, start=0).items()}
+
+
+def _islands_out_of_service(net) -> None:
+    """Buses no external grid supplies, and what is on them, out of service (in place): runpp
+    leaves them out of its power flow (NaN results), the converter would keep them."""
+    import logging
+
+    from pandapower.toolbox import set_isolated_areas_out_of_service
+
+    logger = logging.getLogger("pandapower.toolbox")
+    level = logger.level
+    logger.setLevel(logging.WARNING)             # it says how many at INFO
+    try:
+        set_isolated_areas_out_of_service(net, respect_switches=True)
+    finally:
+        logger.setLevel(level)
 
 
 def _taps_as_runpp_reads_them(net) -> None:
