@@ -203,3 +203,34 @@ def test_up_remembers_how_many_reports_an_agent_sent_before_it_was_heard():
     assert roster.unheard == {"der/SGen1": 0, "der/SGen2": 2}
     assert roster.not_ready() == ["der/SGen1", "der/SGen2"]      # no liveliness seen yet
 
+
+def test_a_quarantined_agents_clock_reports_are_still_heard(tmp_path, simbench_config):
+    """What a quarantined agent sends is not recorded as genuine, but it was sent (an agent
+    sends on until its kill reaches it) and its receivers count it: its clock report that
+    counts it must reach the clock, else its process waits for its end for ever (the
+    stolen-key run stalled so under load, now and then)."""
+    from payloads import payload
+
+    from adnmesh.recording import Recorder
+    from adnmesh.runtime.tap import RecorderTap, recording_schemas
+    from adnmesh.sim.topology import Topology
+
+    topology = Topology.from_config(simbench_config)
+    der_id = sorted(topology.der_ids)[0]
+    der = "der/" + der_id
+    state = topology.keys.of("der_state", der_id)
+    report_key = topology.keys.of("clock_report", der)
+    body = {"p_w": 1e5, "setpoint_w": 1e5, "mode": "control"}
+    with Recorder(tmp_path / "tap.mcap", metadata={"run_id": "tap"},
+                  schemas=recording_schemas()) as recorder:
+        tap = RecorderTap(recorder, topology, RunSeries(), lambda: 0)
+        tap.cut_off(der, 0)
+        assert tap.take(state, payload(state, body, seq=0, t_send_ns=0)) == []
+        report = payload(report_key, {"next_ns": None, "granted_ns": 0, "received": 0,
+                                      "sent": {state: (1, 0)}}, seq=1)
+        (heard,) = tap.take(report_key, report)
+        assert heard.type == "clock_report"
+        # a report claiming more than the agent sent stays implausible
+        again = payload(report_key, {"next_ns": None, "granted_ns": 0, "received": 0,
+                                     "sent": {state: (1, 0)}}, seq=2, t_send_ns=1)
+        assert tap.take(report_key, again) == []

@@ -555,4 +555,7 @@ def test_a_quarantine_cuts_the_agent_off_also_from_what_the_node_holds(config: C
     node.advance(100)
     assert [s for s in agent.seen if s[0] == "SGen1"] == [("SGen1", 10, 1.0)]
     assert node.counts.rejected == {k1: {"quarantined": 2}}
+    # every message SGen1 sent counts as received (its clock reports count them all), the one
+    # dropped on arrival too: 3 states and the fault
+    assert node.counts.received == 4
     assert not node.killed                                   # it was not the node's own agent

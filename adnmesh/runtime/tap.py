@@ -150,7 +150,17 @@ class RecorderTap:
     def _tally(self, key: str, accepted: list, rejects: list) -> tuple[list, list]:
         """Count each agent's messages per key since its last clock report, and take a report
         only if it claims no more than that (a report that claims messages nobody sent would
-        make their receivers wait for them for ever): else it is ``implausible``."""
+        make their receivers wait for them for ever): else it is ``implausible``.
+
+        A quarantined agent's messages count too, though they are not recorded as genuine:
+        an agent sends on until its kill reaches it, its receivers count what they drop as
+        quarantined (:meth:`adnmesh.sim.node.Node.receive`), and its report of them must
+        reach the clock (else its process waits for its end for ever)."""
+        found = route(key)
+        for reject in rejects:
+            if reject.reason == "quarantined" and found is not None:
+                tally = self._unreported.setdefault(found.sender, {})
+                tally[key] = tally.get(key, 0) + reject.envelopes
         kept = []
         for payload, message in accepted:
             sender = message.src

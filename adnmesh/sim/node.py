@@ -54,7 +54,8 @@ class NodeCounts:
     published : dict
         Messages handed to the bus per key.
     received : int
-        Genuine messages received (valid, from the key's sender): what the sim clock counts.
+        Genuine messages received (valid, from the key's sender), and those dropped because
+        their sender is quarantined: what the sim clock counts.
     rejected : dict
         ``key -> {reason -> count}`` of payloads rejected (the node's gate's counts).
     lost : int
@@ -162,17 +163,25 @@ class Node:
 
     def receive(self, key: str, payload: bytes) -> None:
         """Take one envelope from the bus; what the gate rejects (:mod:`adnmesh.wire.gate`) is
-        counted and dropped."""
+        counted and dropped. A message dropped because its sender is quarantined counts as
+        received: its sender's clock reports count it (whether it came before or after the
+        quarantine reached this node, the count is the same)."""
         try:
             message = self.gate.admit(key, payload, hold=True)
-        except MessageError:
+        except MessageError as exc:
+            if exc.reason == "quarantined":
+                self.counts.received += 1
             return
         self._take(key, message)
 
     def receive_sample(self, key: str, sample: bytes) -> None:
         """Take one sample from the bus (one or more envelopes of ``key``,
-        :func:`~adnmesh.wire.envelope.frames`); its rejects count once per reason."""
-        accepted, _ = self.gate.admit_sample(key, sample, hold=True)
+        :func:`~adnmesh.wire.envelope.frames`); its rejects count once per reason, and those
+        of a quarantined sender count as received (:meth:`receive`)."""
+        accepted, rejects = self.gate.admit_sample(key, sample, hold=True)
+        for reject in rejects:
+            if reject.reason == "quarantined":
+                self.counts.received += reject.envelopes
         for _, message in accepted:
             self._take(key, message)
 
