@@ -50,7 +50,9 @@ def config_text(survey: Survey, selection: Selection, dynamics: dict, ids: list[
     ``net_file``: a pandapower net file's path relative to the config (None: SimBench
     ``survey.code``), and ``grid`` the config's grid name then.
     """
-    from adnmesh.grid.simbench_net import TIME_STEP, case_words, is_time_step
+    from adnmesh.grid.simbench_net import case_words, time_step_of
+
+    step = time_step_of(survey.case)
 
     source = f"pandapower net {net_file}" if net_file else f"SimBench {survey.code}"
     acts = selection.actuators
@@ -120,7 +122,7 @@ def config_text(survey: Survey, selection: Selection, dynamics: dict, ids: list[
         "# constant impedances, every DER's sgen at its infeed.",
         "grid_model:",
         *([f"  pandapower_net: {json.dumps(net_file)}"] if net_file else []),
-        *([f"  time_step: {survey.case[len(TIME_STEP):]}"] if is_time_step(survey.case) else
+        *([f"  time_step: {step}"] if step is not None else
           [f"  study_case: {survey.case}"] if survey.cases or not net_file else []),
         "  load_model: impedance",
         "",

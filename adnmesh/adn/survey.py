@@ -103,11 +103,11 @@ def survey_pandapower(path, case: str | None) -> Survey:
 
 def _when(net, case: str | None) -> str:
     """`` (10.02.2016 01:45)`` for a time step of the net's profiles, else ""."""
-    from adnmesh.grid.simbench_net import TIME_STEP, is_time_step, time_steps
+    from adnmesh.grid.simbench_net import time_step_of, time_steps
 
-    if not is_time_step(case):
+    step = time_step_of(case)
+    if step is None:
         return ""
-    step = int(case[len(TIME_STEP):])
     times = net.profiles["load"].get("time") if time_steps(net) else None
     return f" ({times.iloc[step]})" if times is not None and 0 <= step < len(times) else ""
 

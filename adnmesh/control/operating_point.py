@@ -11,6 +11,7 @@ computed once per config (the grid loads from its disk cache).
 from __future__ import annotations
 
 import functools
+import os
 
 from adnmesh.config import Config
 
@@ -20,7 +21,8 @@ __all__ = ["available_power_w", "grid_label", "grid_solver", "grid_source", "ini
 
 @functools.lru_cache(maxsize=8)
 def _load(source: str, name: str, case: str | None, load_model: str, content: str = ""):
-    """The grid data (``content``: the net file's sha256, so an edited file is read anew)."""
+    """The grid data (``content``: the net file's modification stamp, so an edited file is
+    read anew)."""
     if source == "pandapower":
         from adnmesh.grid.cache import load_net_grid
         return load_net_grid(name, case, load_model)
@@ -58,10 +60,18 @@ def grid_label(config: Config) -> str:
 def _grid(config: Config):
     source, name, case = grid_source(config)
     load_model = config.grid_model.load_model
-    if source == "pandapower":
-        from adnmesh.grid.net_file import net_sha256
-        return _load(source, name, case, load_model, net_sha256(name))
+    if source == "pandapower":                   # an edited file is read anew (stat, no hash:
+        return _load(source, name, case, load_model, _stamp(name))   # the loader hashes it)
     return _load(source, name, case, load_model)
+
+
+def _stamp(path: str) -> str:
+    """The file's modification time and size ("" if it cannot be read: the loader says so)."""
+    try:
+        stat = os.stat(path)
+    except OSError:
+        return ""
+    return f"{stat.st_mtime_ns}:{stat.st_size}"
 
 
 def grid_solver(config: Config):

@@ -90,13 +90,14 @@ def net_at_case(net, case: str | None, load_model: str) -> str:
         A case for a net without study cases, or one it does not have; a time step for a net
         without profiles, or one they do not have.
     """
-    from adnmesh.grid.simbench_net import (apply_study_case, apply_time_step, is_time_step,
-                                           loads_as_impedances, study_cases, TIME_STEP)
+    from adnmesh.grid.simbench_net import (apply_study_case, apply_time_step,
+                                           loads_as_impedances, study_cases, time_step_of)
 
     cases = study_cases(net)
     used = AS_SAVED
-    if is_time_step(case):
-        apply_time_step(net, int(case[len(TIME_STEP):]))
+    step = time_step_of(case)
+    if step is not None:
+        apply_time_step(net, step)
         used = case
     elif cases:
         used = case or "lW"

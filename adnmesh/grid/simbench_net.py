@@ -33,7 +33,7 @@ from __future__ import annotations
 from adnmesh.errors import GridError
 
 __all__ = ["LOAD_MODELS", "TIME_STEP", "load_simbench_net", "study_cases", "apply_study_case",
-           "time_step_case", "is_time_step", "case_words", "time_steps", "apply_time_step",
+           "time_step_case", "is_time_step", "time_step_of", "case_words", "time_steps", "apply_time_step",
            "apply_operating_point", "loads_as_impedances", "grid_net"]
 
 LOAD_MODELS = ("impedance", "power")
@@ -96,6 +96,11 @@ def is_time_step(case: str | None) -> bool:
     return bool(case) and case.startswith(TIME_STEP)
 
 
+def time_step_of(case: str | None) -> int | None:
+    """The time step ``case`` names (:func:`time_step_case`), None for a study case."""
+    return int(case[len(TIME_STEP):]) if is_time_step(case) else None
+
+
 def time_steps(net) -> int:
     """Number of time steps of ``net``'s profiles (SimBench: 35,136 quarter hours; 0: none)."""
     profiles = net.get("profiles")
@@ -135,8 +140,9 @@ def apply_time_step(net, step: int) -> str:
 def apply_operating_point(net, case: str) -> None:
     """Set ``net`` to study case ``case`` or, if ``case`` names one (:func:`time_step_case`),
     to that time step of its profiles (in place)."""
-    if is_time_step(case):
-        apply_time_step(net, int(case[len(TIME_STEP):]))
+    step = time_step_of(case)
+    if step is not None:
+        apply_time_step(net, step)
     else:
         apply_study_case(net, case)
 
