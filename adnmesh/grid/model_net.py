@@ -69,21 +69,19 @@ def model_net(net):
 
 def coupled_buses(net) -> dict:
     """Each bus of ``net`` to the lowest-numbered bus it is joined to by closed bus-bus switches
-    (itself if none)."""
-    root = {int(b): int(b) for b in net.bus.index}
+    (itself if none), by pandapower's topology (a graph of those switches only)."""
+    from pandapower.topology import connected_components, create_nxgraph
 
-    def find(b: int) -> int:
-        while root[b] != b:
-            root[b] = root[root[b]]
-            b = root[b]
-        return b
-
-    sw = net.switch
-    closed = sw[(sw.et == "b") & sw.closed.astype(bool)]
-    for a, b in zip(closed.bus.astype(int), closed.element.astype(int)):
-        ra, rb = find(a), find(b)
-        root[max(ra, rb)] = min(ra, rb)
-    return {b: find(b) for b in root}
+    graph = create_nxgraph(net, respect_switches=True, include_lines=False,
+                           include_impedances=False, include_dclines=False,
+                           include_trafos=False, include_trafo3ws=False, include_tcsc=False,
+                           include_vsc=False, include_line_dc=False,
+                           include_out_of_service=True)
+    out = {int(b): int(b) for b in net.bus.index}
+    for group in connected_components(graph):
+        keep = min(int(b) for b in group)
+        out.update((int(b), keep) for b in group)
+    return out
 
 
 def _open_branch_ends(net) -> None:
