@@ -38,7 +38,7 @@ __all__ = [
     "DER_TYPES", "PT1_RISE_TIME_FACTOR", "AvailabilityChange", "Config", "ConfigFile",
     "Constraints", "DER", "Fault", "GridLimits", "GridModel", "LinkSettings", "Links", "Outage",
     "MAX_CONFIG_BYTES", "MAX_DELAY_PER_LAG", "MAX_IN_FLIGHT", "MAX_SPAN_PER_DELAY", "PRefStep",
-    "Runtime",
+    "CAPABILITY_PRESETS", "QRefStep", "QU", "Reactive", "Runtime", "VoltageStep",
     "Scenario", "Section", "json_schema", "load_config",
 ]
 
@@ -113,6 +113,16 @@ _Lag = Annotated[float, Field(gt=0, le=_MAX_DELAY_S)]
 _Period = Annotated[float, Field(ge=1e-6, le=_MAX_DELAY_S)]
 _Time = Annotated[float, Field(ge=0, le=_MAX_TIME_S)]
 _Duration = Annotated[float, Field(gt=0, le=_MAX_TIME_S)]
+_CosPhi = Annotated[float, Field(ge=0.5, le=1.0)]
+_PerUnitVoltage = Annotated[float, Field(gt=0, le=2)]
+CapabilityPreset = Literal["cos_phi_0.95", "cos_phi_0.925", "cos_phi_0.90", "unity"]
+CAPABILITY_PRESETS: dict[str, tuple[float, float]] = {
+    "cos_phi_0.95": (0.95, 0.95), "cos_phi_0.925": (0.925, 0.925),
+    "cos_phi_0.90": (0.90, 0.90), "unity": (1.0, 1.0)}
+"""Preset -> (least cos phi under-excited, least cos phi over-excited), both taken at P_inst
+(docs/models.md#reactive-power-capability): ``cos_phi_0.95`` is the MV connection rules' usual
+range (VDE-AR-N 4110: Q from -0.33 to +0.33 P_inst), the wider ones what HV connections and
+many inverters offer, ``unity`` no reactive power."""
 _T = TypeVar("_T")
 _Events = Annotated[tuple[_T, ...], Field(strict=False, max_length=_MAX_EVENTS)]
 """A YAML list of at most 100,000 items, read as a tuple."""
@@ -175,6 +185,25 @@ class DER(Section):
     p_sched_w: _PowerOrZero = 0.0
     """Scheduled active power P_sched,d, W, at most p_inst_w: the DER falls back to it when it
     loses contact with the CPFC, and P_Y adds to it (p_avail - p_sched is its upward reserve)."""
+    s_inst_va: _Power | None = None
+    """Apparent power rating S_inst,d, VA (default p_inst_w): P^2 + Q^2 stays within its
+    square; reactive.priority says which gives way when it binds."""
+    q_capability: CapabilityPreset | None = None
+    """Its reactive power range by a named preset (default reactive.capability; see
+    docs/models.md#reactive-power-capability)."""
+    cos_phi_under: _CosPhi | None = None
+    """Override of the preset: the least cos phi under-excited (absorbing Q), taken at p_inst_w:
+    Q_min = -p_inst_w tan(acos(cos_phi_under)); 1 allows no absorption."""
+    cos_phi_over: _CosPhi | None = None
+    """Override of the preset: the least cos phi over-excited (injecting Q), taken at p_inst_w:
+    Q_max = p_inst_w tan(acos(cos_phi_over)); 1 allows no injection."""
+    t_delay_q_s: _Delay | None = None
+    """Reaction time of the reactive power T_delay,d^Q, s (default by type: docs/models.md)."""
+    t_rise_q_s: _Lag | None = None
+    """10 %-90 % rise time of the reactive power T_rise,d^Q, s (default by type)."""
+    q_sched_var: _Balance = 0.0
+    """Scheduled reactive power Q_sched,d, var (generator convention: positive injects,
+    over-excited): its fallback and what Q_Y adds to."""
     model: Annotated[dict[Annotated[str, Field(pattern=r"^[a-z][a-z0-9_]*$", max_length=40)],
                           Annotated[float, Field(ge=-_MAX_W, le=_MAX_W)]] | None,
                      Field(strict=False)] = None
@@ -187,7 +216,15 @@ class DER(Section):
         if self.p_sched_w > self.p_inst_w:
             raise _problem(("p_sched_w",), f"must not exceed p_inst_w ({self.p_inst_w:g}), "
                                            f"got {self.p_sched_w:g}")
+        if self.s_inst_va is not None and self.s_inst_va < self.p_inst_w:
+            raise _problem(("s_inst_va",), f"must be at least p_inst_w ({self.p_inst_w:g}), "
+                                           f"got {self.s_inst_va:g}")
         return self
+
+    @property
+    def apparent_va(self) -> float:
+        """S_inst,d, VA (``s_inst_va``, else ``p_inst_w``)."""
+        return self.p_inst_w if self.s_inst_va is None else self.s_inst_va
 
 
 class GridLimits(Section):
@@ -263,6 +300,25 @@ class PRefStep(Section):
     """Change of P_ref, W (non-zero; positive raises the reference)."""
 
 
+class QRefStep(Section):
+    """A step of the reactive power reference Q_ref at the interconnection point."""
+
+    t_s: _Time
+    """Time of the step, s from the start of the scenario."""
+    delta_var: _Change
+    """Change of Q_ref, var (non-zero; positive: more reactive power into the upper grid)."""
+
+
+class VoltageStep(Section):
+    """The voltage at the interconnection point's upper side from a time on (the input of the
+    Q(U) characteristic)."""
+
+    t_s: _Time
+    """Time of the change, s from the start of the scenario."""
+    u_pu: _PerUnitVoltage
+    """The voltage from then on, p.u."""
+
+
 class AvailabilityChange(Section):
     """DERs becoming available or unavailable."""
 
@@ -284,10 +340,15 @@ class Scenario(Section):
     """Reference steps in chronological order."""
     availability: _Events[AvailabilityChange] = ()
     """Availability changes in chronological order."""
+    q_ref_steps: _Events[QRefStep] = ()
+    """Reactive power reference steps in chronological order (reactive.mode q)."""
+    u_hv_steps: _Events[VoltageStep] = ()
+    """The upper side's voltage over the run (reactive.mode q_u; before the first: the Q(U)
+    characteristic's u_ref_pu), chronological."""
 
     @model_validator(mode="after")
     def _chronological(self) -> Scenario:
-        for key in ("p_ref_steps", "availability"):
+        for key in ("p_ref_steps", "availability", "q_ref_steps", "u_hv_steps"):
             previous = 0.0
             for i, event in enumerate(getattr(self, key)):
                 _not_after(event.t_s, self.duration_s, (key, i, "t_s"))
@@ -456,6 +517,44 @@ class Runtime(Section):
         return self
 
 
+class QU(Section):
+    """The Q(U) characteristic at the interconnection point: Q_ref from the upper side's
+    voltage, a dead band around u_ref_pu and a slope beyond it, limited."""
+
+    u_ref_pu: _PerUnitVoltage = 1.0
+    """Voltage at the centre of the dead band, p.u."""
+    dead_band_pu: Annotated[float, Field(ge=0, le=0.5)] = 0.01
+    """Half width of the dead band, p.u.: no change of Q_ref within u_ref_pu +- this."""
+    slope_var_per_pu: Annotated[float, Field(ge=0, le=_MAX_W * 100)] = 1.0e+8
+    """Q_ref falls by this much per p.u. above the band (injection lowers, absorption raises the
+    voltage) and rises by it below, var per p.u."""
+    q_max_var: _PowerOrZero = 1.0e+6
+    """The characteristic's reactive power at most, either way, var (above Q_ref's start)."""
+
+
+class Reactive(Section):
+    """Reactive power at the interconnection point: a second gain-scheduled PI (Q) beside the
+    one of P (the optional ``reactive:`` section; docs/method.md#reactive-power)."""
+
+    capability: CapabilityPreset = "cos_phi_0.95"
+    """The DERs' reactive power range unless a DER names its own (see CAPABILITY_PRESETS)."""
+    priority: Literal["p", "q"] = "p"
+    """When a DER's apparent power limit binds: p keeps its active power (Q gives way), q its
+    reactive power (P gives way)."""
+    mode: Literal["q", "q_u", "cos_phi"] = "q"
+    """What Q_ref follows: q its start plus scenario.q_ref_steps; q_u the Q(U) characteristic
+    of scenario.u_hv_steps; cos_phi the power factor cos_phi at the interface (Q_ref from
+    P_ref)."""
+    q_u: QU = QU()
+    """The Q(U) characteristic (mode q_u)."""
+    cos_phi: _CosPhi = 1.0
+    """Power factor at the interconnection point (mode cos_phi)."""
+    cos_phi_q_with_p: bool = True
+    """mode cos_phi: Q flows the way P flows (into the upper grid when P does); false: against."""
+    rest_of_grid_var: _Balance = 0.0
+    """Constant part of Q_IP besides the DERs' reactive infeeds without a grid model, var."""
+
+
 class ConfigFile(Section):
     """An adnmesh configuration: the content of a config file (YAML)."""
 
@@ -480,6 +579,9 @@ class ConfigFile(Section):
     """How the distributed runtime runs the scenario."""
     grid_model: GridModel | None = None
     """The power flow behind P_IP; without it P_IP = runtime.rest_of_grid_w + the infeeds."""
+    reactive: Reactive | None = None
+    """Control Q_IP too (docs/method.md#reactive-power); without it every DER runs at its
+    q_sched_var."""
     t_rise_is: Literal["rise_time", "time_constant"] = "rise_time"
     """What the DERs' t_rise_s is: their 10-90 % rise time (the reference model's time constant
     is then t_rise_s / ln 9, as the paper has it) or the time constant itself."""
@@ -622,6 +724,10 @@ class Config(ConfigFile):
     """The file it was loaded from."""
     sha256: str
     """SHA-256 of the file's bytes (hex), to tie results to the exact file."""
+    quantity: Literal["P", "Q"] = "P"
+    """The quantity the DERs' fields describe: P as written, Q in the reactive view
+    (:func:`adnmesh.reactive.reactive_view`: each DER's reactive capability, dynamics and
+    schedule in its P fields)."""
 
     def pandapower_net_path(self) -> Path | None:
         """The grid model's pandapower net file, resolved next to the config (None if the

@@ -446,7 +446,7 @@ def _grid_recording(path: Path, config: str) -> Path:
                   schemas=message_schemas()) as recorder:
         for i in range(1, 6):
             t_ns = i * 1_000_000_000
-            for key, body in ((keys.of("p_ip"), {"p_ip_w": 16.5e6 + i}),
+            for key, body in ((keys.of("p_ip"), {"p_ip_w": 16.5e6 + i, "q_ip_var": 3.5e5 + i}),
                               (keys.of("grid_state"), {**grid, "q_ip_var": 3.5e5 + i})):
                 recorder.write(key, route(key).type, payload(key, body, seq=i, t_send_ns=t_ns),
                                log_time_ns=t_ns, publish_time_ns=t_ns)
@@ -467,9 +467,11 @@ def test_the_grid_is_drawn_with_the_configured_band_and_q_ip_in_mvar(tmp_path: P
         assert {v for _, _, v in values} == {value}
         assert values[0][0] == 1_000_000_000 and values[-1][0] == 5_000_000_000   # the whole run
         assert _style(rrd, f"{limits}/{field}")[:2] == (name, 2)
-    q_ip = _rrd_values(rrd, "/adn/g/measurement/grid/q_ip_var")
-    assert [v for _, _, v in q_ip] == [(3.5e5 + i) * 1e-6 for i in range(1, 6)]
-    assert _style(rrd, "/adn/g/measurement/grid/q_ip_var")[0] == "Q_IP [Mvar]"
+    for entity, name in (("/adn/g/measurement/p_ip/q_ip_var", "Q_IP [Mvar]"),
+                         ("/adn/g/measurement/grid/q_ip_var", "Q_IP at the report [Mvar]")):
+        q_ip = _rrd_values(rrd, entity)
+        assert [v for _, _, v in q_ip] == [(3.5e5 + i) * 1e-6 for i in range(1, 6)]
+        assert _style(rrd, entity)[0] == name
     assert _style(rrd, "/adn/g/measurement/grid/v_min_pu")[0] == "lowest bus voltage [p.u.]"
     # without a grid model in the config: no band (and none is made up)
     bare = _grid_recording(tmp_path / "bare.mcap", "grid: g\n")
@@ -511,4 +513,4 @@ def test_the_layout_shows_every_der_and_the_grid_with_its_band(fake, tmp_path: P
         "/adn/g/measurement/grid/v_min_pu", "/adn/g/measurement/grid/v_max_pu",
         f"{limits}/v_max_pu", f"{limits}/v_min_pu"]
     assert views["grid: highest loadings and the limit [%]"][-1] == f"{limits}/loading_max_pct"
-    assert views["Q_IP [Mvar]"] == ["/adn/g/measurement/grid/q_ip_var"]
+    assert views["Q_IP and Q_ref [Mvar]"] == ["/adn/g/measurement/p_ip/q_ip_var"]

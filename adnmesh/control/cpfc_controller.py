@@ -97,6 +97,7 @@ import numpy as np
 
 from adnmesh.config import Config
 from adnmesh.control.base import Agent, Outgoing
+from adnmesh.control.loop_quantity import P_LOOP, LoopQuantity
 from adnmesh.control.operating_point import available_power_w, initial_p_ip_w
 from adnmesh.control.pi import SampledPI, SwitchRecord
 from adnmesh.names import der_id_of
@@ -304,14 +305,31 @@ class CPFC(Agent):
     Parameters
     ----------
     config : Config
+        For the Q loop its reactive view (:func:`adnmesh.reactive.reactive_view`).
     schedule : GainSchedule
         Must resolve the set of all DERs (available at t = 0).
+    loop : LoopQuantity
+        The quantity it controls (:data:`~adnmesh.control.loop_quantity.P_LOOP` or
+        ``Q_LOOP``): the keys and fields it reads and writes. Values named ``p_...`` below are
+        in the loop's unit (W or var).
+    start_ref : float, optional
+        The reference before the first step (default :func:`initial_p_ref_w`).
+    available : dict, optional
+        DER id -> the top of its range (default
+        :func:`~adnmesh.control.operating_point.available_power_w`); the bottom is 0.
+    steps : list, optional
+        ``(t_ns, change)`` of the reference (default the scenario's P_ref steps).
+    known_ids : iterable of str, optional
+        Every DER an SI may name (default the config's); the loop uses those of the config.
     """
 
     agent_id = "cpfc"
 
-    def __init__(self, config: Config, schedule: GainSchedule) -> None:
+    def __init__(self, config: Config, schedule: GainSchedule, loop: LoopQuantity = P_LOOP,
+                 start_ref: float | None = None, available: dict[str, float] | None = None,
+                 steps: list[tuple[int, float]] | None = None, known_ids=None) -> None:
         self.config = config
+        self.loop = loop
         self.keys = Keys(config.grid)
         rt = config.runtime
         self.schedule = schedule
@@ -320,13 +338,13 @@ class CPFC(Agent):
         self._p_sched = {d.id: d.p_sched_w for d in config.ders}
         self._response_s = {d.id: d.t_delay_s + config.t_lag_s(d) * math.log(9.0)
                             for d in config.ders}
-        self._available = available_power_w(config)
+        self._available = available_power_w(config) if available is None else available
         self._able = able_to_move(config, self._available)   # directional availability
         self.direction = 0                    # +1 up, -1 down, 0 not moved yet
         self._redirected = False              # the pending switch is one of direction
         self.period_ns = ns(rt.pi_period_s)
         self.weights_period_ns = ns(rt.weights_period_s)
-        self.p_ref_w = initial_p_ref_w(config)
+        self.p_ref_w = initial_p_ref_w(config) if start_ref is None else start_ref
         self.p_meas_w = self.p_ref_w          # the run starts in the operating point
         self.meas_timeout_ns = ns(rt.measurement_timeout_s)
         self.ack_timeout_ns = ns(rt.heartbeat_timeout_s)
@@ -344,7 +362,9 @@ class CPFC(Agent):
         self._t_meas_ns = ns(config.t_meas_s)
         self._history: deque = deque(maxlen=max(2, int(5 * ns(1.0) // self.period_ns)))
         self._rollback_to: int | None = None    # undo the samples after this time
-        self._steps = [(ns(s.t_s), s.delta_w) for s in config.scenario.p_ref_steps]
+        self._steps = ([(ns(s.t_s), s.delta_w) for s in config.scenario.p_ref_steps]
+                       if steps is None else list(steps))
+        self._known = frozenset(self._ids if known_ids is None else known_ids)
         self._next_step = 0
         self.available = self.in_use = frozenset(self._ids)
         self._pending: frozenset[str] | None = None
@@ -373,8 +393,9 @@ class CPFC(Agent):
         return self.next_sample_ns
 
     def stats(self) -> dict[str, float]:
-        return {**{k: float(v) for k, v in self.counts.items()},
-                **{f"gains_{k}": float(v) for k, v in self.schedule.sources.items()}}
+        prefix = self.loop.stats_prefix
+        return {**{f"{prefix}{k}": float(v) for k, v in self.counts.items()},
+                **{f"{prefix}gains_{k}": float(v) for k, v in self.schedule.sources.items()}}
 
     def on_clock(self, mode: str) -> None:
         """In realtime runs a subset the table lacks is tuned in a background thread (the
@@ -388,16 +409,20 @@ class CPFC(Agent):
         self.hold = "resuming"
 
     def on_message(self, t_ns: int, message: Envelope) -> list[Outgoing]:
+        loop = self.loop
         if message.type == "p_ip":
-            self.p_meas_w = message.p_ip_w
+            measured = getattr(message, loop.measured_field)
+            if measured is UNSET:
+                return []
+            self.p_meas_w = measured
             self.last_meas_ns = t_ns
-            self.actuators_held = 0 if message.held is UNSET else \
-                (1 if message.held == "up" else -1)
+            held = getattr(message, loop.held_field)
+            self.actuators_held = 0 if held is UNSET else (1 if held == "up" else -1)
         elif message.type == "heartbeat":
             self._ack(t_ns, message)
         elif message.type == "si":
             si = message.si
-            if not set(si) <= set(self._ids):
+            if not set(si) <= self._known:
                 self.counts["rejected_si"] += 1
                 return []
             self._si_seen = True
@@ -415,8 +440,12 @@ class CPFC(Agent):
     def _ack(self, t_ns: int, message) -> None:
         """A DER's acknowledgement; a new fallback undoes the samples it disturbed."""
         der = der_id_of(message.src)
+        if der not in self._p_inst:         # a DER without reactive range: not in the Q loop
+            return
         before = self.acks.get(der)
-        self.acks[der] = (t_ns, message.mode, message.p_y, message.available)
+        acked = getattr(message, self.loop.ack_field)
+        self.acks[der] = (t_ns, message.mode, 0.0 if acked is UNSET else acked,
+                          message.available)
         fell_back = message.mode == "watchdog" and (before is None or before[1] != "watchdog")
         if fell_back and der in self.weights and self.hold is None:
             self._undo_after(message.t_send_ns + self._t_meas_ns)
@@ -467,7 +496,9 @@ class CPFC(Agent):
         else:
             p_y = self.pi.output
             self.counts["held_samples"] += 1
-        body = {"p_y": p_y, "p_ref_w": self.p_ref_w, "kp": self.pi.kp, "ki": self.pi.ki}
+        loop = self.loop
+        body = {loop.output_field: p_y, loop.reference_field: self.p_ref_w, "kp": self.pi.kp,
+                "ki": self.pi.ki}
         if (self._pending is None and self._awaiting is not None
                 and self.schedule.ready(self._awaiting, t_ns)):
             self._pending, self._awaiting = self.available, None    # the tuned gains are in
@@ -484,8 +515,8 @@ class CPFC(Agent):
             self._next_weights_ns = t_ns + self.weights_period_ns
         if self.hold is not None:
             body["hold"] = self.hold
-        out.append(Outgoing(self.keys.of("p_y"), body))
-        self._p_y_sent = body["p_y"]
+        out.append(Outgoing(self.keys.of(loop.output_kind), body))
+        self._p_y_sent = body[loop.output_field]
         self.counts["samples"] += 1
         self._history.append((t_ns, self.pi.snapshot()))
         return out
@@ -513,7 +544,8 @@ class CPFC(Agent):
         if self.p_ref_w == self._p_ref_sent:
             return []
         self._p_ref_sent = self.p_ref_w
-        return [Outgoing(self.keys.of("p_ref"), {"p_ref_w": self.p_ref_w})]
+        loop = self.loop
+        return [Outgoing(self.keys.of(loop.reference_kind), {loop.reference_field: self.p_ref_w})]
 
     def _watch_direction(self, t_ns: int, p_y: float) -> None:
         """Directional availability (docs/method.md#directional-availability): at the sample
@@ -579,7 +611,7 @@ class CPFC(Agent):
             out.append(self._event("INFO", "resume", "DERs available again: control resumed"))
         handover_s = self.switches[-1].handover_s
         direction = self.switches[-1].direction
-        body.update(p_y=record.p_y_after, kp=self.pi.kp, ki=self.pi.ki,
+        body.update({self.loop.output_field: record.p_y_after}, kp=self.pi.kp, ki=self.pi.ki,
                     switch=Switch(record.p_y_before, record.p_y_limited, record.kp_before,
                                   record.ki_before, record.scale,
                                   handover_s if handover_s > 0 else UNSET,
@@ -612,6 +644,8 @@ class CPFC(Agent):
         return True
 
     def _event(self, level: str, kind: str, text: str) -> Outgoing:
+        if self.loop is not P_LOOP:
+            text = f"{self.loop.name} loop: {text}"
         return Outgoing(self._event_key, {"level": level, "kind": kind, "text": text,
                                           "subject": self.agent_id})
 

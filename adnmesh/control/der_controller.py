@@ -32,6 +32,17 @@ from the acknowledged P_Y (docs/method.md#watchdog-and-holds), so that the DERs 
 setpoints before the fault. A watchdog fallback is also an event (``event/der/<id>``).
 Injected ICT faults are the node's business (:mod:`adnmesh.sim.node`): the DER only notices that
 commands stop.
+
+**Reactive power** (the config's ``reactive`` section; docs/method.md#reactive-power): the DER
+also follows the CPFC's ``Q_Y`` on ``cpfc/q_y`` with the weights of the Q table's entry,
+``Q_ref,d = Q_Y · w_d^Q · C_d^Q + Q_sched,d``, and both setpoints are limited together by its
+P-Q capability (:func:`adnmesh.reactive.limit_pq`: its reactive range and apparent power, the
+config's priority when S binds). Its reactive power follows the reference PT1 behind a dead
+time with its reactive dynamics (``t_delay_q_s``, ``t_rise_q_s``). It reports Q with its state,
+``q_held`` when the capability holds its reactive setpoint back, and the last Q_Y it applied
+with its heartbeat. Outside ``control`` mode (unavailable, watchdog) it runs at ``Q_sched,d``;
+one watchdog serves both loops, whose commands come from the one CPFC over the same link. A
+switch of the Q table moves the DERs' reactive shares at once (Q is fast; no handover).
 """
 
 from __future__ import annotations
@@ -42,7 +53,9 @@ from adnmesh.config import DER, Config
 from adnmesh.control.base import Agent, Outgoing
 from adnmesh.control.der_model import der_params, usable_available_w
 from adnmesh.dermodels import infeed_at, set_point, steady_state
+from adnmesh.dermodels import reference_pt1
 from adnmesh.dermodels.limits import held_at
+from adnmesh.reactive import capability_of, limit_pq, q_dynamics
 from adnmesh.names import der_agent_id
 from adnmesh.wire.keys import Keys
 from adnmesh.wire.messages import Envelope
@@ -91,6 +104,17 @@ class DERController(Agent):
         self._clamped = 0                # +1 / -1: the setpoint is at its upper / lower limit
         self._handover: tuple[int, int, float] | None = None   # (start, duration ns, offset W)
         self.counts = {"commands": 0, "stale_commands": 0, "watchdog_trips": 0}
+        self.reactive = config.reactive
+        if self.reactive is not None:
+            self.capability = capability_of(der, self.reactive)
+            delay, rise = q_dynamics(der)
+            self.q_params = reference_pt1(self.capability.capacity_var or 1.0, delay,
+                                          rise / config.rise_per_lag)
+            self.q_state = steady_state(self.q_params, der.q_sched_var)
+            self.q_weight, self.q_entry, self.q_y = 0.0, None, 0.0
+            self.q_setpoint_var = der.q_sched_var
+            self._q_clamped = 0
+            self.counts.update(q_commands=0, q_stale_commands=0)
         self._plan()
 
     # -- agent interface -----------------------------------------------------------------------
@@ -103,6 +127,8 @@ class DERController(Agent):
         while self._availability and self._availability[0][0] < t_ns:
             self.available = self._availability.pop(0)[1]
         self.state = steady_state(self.params, self.der.p_sched_w, t_ns)
+        if self.reactive is not None:
+            self.q_state = steady_state(self.q_params, self.der.q_sched_var, t_ns)
         self.next_sample_ns = _first_at_or_after(t_ns, self.sample_period_ns)
         self.next_heartbeat_ns = t_ns
         self.watchdog_deadline_ns = t_ns + self.watchdog_ns
@@ -119,6 +145,9 @@ class DERController(Agent):
         self._next_timer_ns = t
 
     def on_message(self, t_ns: int, message: Envelope) -> list[Outgoing]:
+        if message.type == "q_y" and self.reactive is not None:
+            self._on_q_y(t_ns, message)
+            return []
         if message.type != "p_y":
             return []
         counts = self.counts
@@ -162,6 +191,11 @@ class DERController(Agent):
             state = {"p_w": p_w, "setpoint_w": self.setpoint_w, "mode": self.mode}
             if self.mode == "control" and self.weight > 0:
                 state["held"] = self._clamped or held_at(self.params, self.state, t_ns)
+            if self.reactive is not None:
+                state["q_var"] = infeed_at(self.q_params, self.q_state, t_ns)
+                state["q_setpoint_var"] = self.q_setpoint_var
+                if self.mode == "control" and self.q_weight > 0:
+                    state["q_held"] = self._q_clamped
             out.append(Outgoing(self._state_key, state))
             self.next_sample_ns += self.sample_period_ns
         if t_ns >= self.next_heartbeat_ns or self.mode != mode or self.available != available:
@@ -176,8 +210,24 @@ class DERController(Agent):
     # -- internals -----------------------------------------------------------------------------
 
     def _heartbeat(self) -> dict:
-        return {"available": self.available, "mode": self.mode, "p_y": self.p_y,
+        beat = {"available": self.available, "mode": self.mode, "p_y": self.p_y,
                 "entry": self.entry}
+        if self.reactive is not None:
+            beat["q_y"] = self.q_y
+        return beat
+
+    def _on_q_y(self, t_ns: int, message) -> None:
+        """A Q_Y command: its weights (on a switch and repeated), then Q_Y if of that entry."""
+        if message.w is not UNSET:
+            self.q_weight = float(message.w.get(self.der.id, 0.0))
+            self.q_entry = message.entry
+        if message.entry != self.q_entry:
+            self.counts["q_stale_commands"] += 1
+            return
+        self.counts["q_commands"] += 1
+        self.q_y = message.q_y
+        if self.mode == "control":
+            self._update_setpoint(t_ns)
 
     def _hand_over(self, t_ns: int, message) -> None:
         """A command of a new entry with a switch record that gives a handover time: the DER
@@ -226,6 +276,24 @@ class DERController(Agent):
             self._clamped = (wanted > setpoint) - (wanted < setpoint)
             mode = "control"
         self.mode = mode
+        if self.reactive is not None:
+            setpoint = self._limit_pq(t_ns, setpoint, mode == "control")
         if setpoint != self.setpoint_w:
             self.setpoint_w = setpoint
             set_point(self.params, self.state, t_ns, setpoint)
+
+    def _limit_pq(self, t_ns: int, p_setpoint_w: float, control: bool) -> float:
+        """Set the reactive setpoint (Eq. 1 for Q in control, else the schedule) and limit it
+        with ``p_setpoint_w`` by the capability; return the active setpoint, W."""
+        der = self.der
+        wanted = (self.q_y * self.q_weight * self.capability.capacity_var + der.q_sched_var
+                  if control else der.q_sched_var)
+        p, q, p_held, q_held = limit_pq(self.capability, p_setpoint_w, wanted, self.p_avail_w,
+                                        self.reactive.priority)
+        if control:
+            self._q_clamped = q_held
+            self._clamped = self._clamped or p_held
+        if q != self.q_setpoint_var:
+            self.q_setpoint_var = q
+            set_point(self.q_params, self.q_state, t_ns, q)
+        return p

@@ -13,6 +13,11 @@ the CPFC on ``measurement/p_ip`` over the ``measurement_to_cpfc`` link (delay ``
   highest line and transformer loading, the samples outside ``grid_model.limits``);
 - without it: ``P_IP = runtime.rest_of_grid_w + Σ_d P_d``.
 
+With reactive power control (the config's ``reactive``) the DERs' reactive infeeds enter the
+power flow as their sgens' ``q_mvar`` (without a grid model ``Q_IP = reactive.rest_of_grid_var +
+Σ_d Q_d``), every ``p_ip`` carries Q_IP, and ``q_held`` says when every DER following Q_Y is
+held back by its capability in one direction (the Q loop's anti-windup).
+
 **A DER that stops reporting** (its process died, or ``up`` quarantined it) is taken at its
 schedule ``P_sched,d`` once its state has been missing for ``watchdog_timeout_s``: a plant that
 lost its controller falls back to its schedule as its watchdog does when commands stop, and a
@@ -32,7 +37,7 @@ from msgspec import UNSET
 
 from adnmesh.config import Config
 from adnmesh.control.base import Agent, Outgoing
-from adnmesh.control.operating_point import grid_solver, initial_p_ip_w
+from adnmesh.control.operating_point import grid_solver, initial_p_ip_w, initial_q_ip_var
 from adnmesh.names import der_agent_id, der_id_of
 from adnmesh.wire.keys import Keys
 from adnmesh.wire.messages import Envelope
@@ -88,6 +93,12 @@ class Measurement(Agent):
         # infeed per DER agent, in config order (fixed summation order: reproducible sums)
         self.infeed_w = {der_agent_id(d.id): d.p_sched_w for d in config.ders}
         self.held: dict[str, int] = {}          # DERs that follow P_Y: their limit state
+        self.q_held: dict[str, int] = {}        # DERs that follow Q_Y: their limit state
+        self.reactive = config.reactive is not None
+        self.q_sched_var = {der_agent_id(d.id): d.q_sched_var for d in config.ders}
+        self.infeed_var = dict(self.q_sched_var)
+        self.rest_of_grid_var = 0.0 if config.reactive is None else \
+            config.reactive.rest_of_grid_var
         self.p_sched_w = {der_agent_id(d.id): d.p_sched_w for d in config.ders}
         self.silent_after_ns = ns(config.runtime.watchdog_timeout_s)
         self.last_state_ns = dict.fromkeys(self.infeed_w, 0)   # when each DER last reported
@@ -100,6 +111,7 @@ class Measurement(Agent):
         self.p_ip_w = self.q_ip_var = 0.0
         if self.solver is not None:     # the operating point, should the first flow fail
             self.p_ip_w = initial_p_ip_w(config)
+            self.q_ip_var = initial_q_ip_var(config)
         if self.solver is not None:
             self.report = GridReport(config.grid_model.limits)
             self.report_period_ns = ns(config.grid_model.report_period_s)
@@ -128,16 +140,26 @@ class Measurement(Agent):
                 self.held.pop(message.src, None)
             else:
                 self.held[message.src] = message.held
+            if self.reactive:
+                if message.q_var is not UNSET:
+                    self.infeed_var[message.src] = message.q_var
+                if message.q_held is UNSET:
+                    self.q_held.pop(message.src, None)
+                else:
+                    self.q_held[message.src] = message.q_held
         return []
 
     def _held(self) -> dict:
-        """``{"held": "up"|"down"}`` when every DER that follows P_Y is held that way."""
-        states = set(self.held.values())
-        if states == {1}:
-            return {"held": "up"}
-        if states == {-1}:
-            return {"held": "down"}
-        return {}
+        """``{"held": "up"|"down"}`` when every DER that follows P_Y is held that way (and
+        ``q_held`` the same for Q_Y)."""
+        found = {}
+        for field, held in (("held", self.held), ("q_held", self.q_held)):
+            states = set(held.values())
+            if states == {1}:
+                found[field] = "up"
+            elif states == {-1}:
+                found[field] = "down"
+        return found
 
     def _silent(self, t_ns: int) -> list[Outgoing]:
         """DERs whose state has been missing for ``watchdog_timeout_s`` go to their schedule;
@@ -160,7 +182,9 @@ class Measurement(Agent):
                 continue
             self.silent.add(der)
             self.infeed_w[der] = self.p_sched_w[der]
+            self.infeed_var[der] = self.q_sched_var[der]
             self.held.pop(der, None)
+            self.q_held.pop(der, None)
             text = (f"{der_id_of(der)} sent no state for {self.silent_after_ns / 1e9:g} s: its "
                     f"infeed is taken at its schedule, {self.p_sched_w[der] / 1e3:.6g} kW")
             out.append(Outgoing(self._event_key, {"level": "WARNING", "kind": "der_silent",
@@ -176,8 +200,15 @@ class Measurement(Agent):
             p_ip = self.rest_of_grid_w
             for p_w in self.infeed_w.values():
                 p_ip += p_w
-            return [Outgoing(self._p_ip_key, {"p_ip_w": p_ip, **self._held()}), *events]
-        sample = self.solver.solve(list(self.infeed_w.values()))
+            body = {"p_ip_w": p_ip, **self._held()}
+            if self.reactive:
+                q_ip = self.rest_of_grid_var
+                for q_var in self.infeed_var.values():
+                    q_ip += q_var
+                body["q_ip_var"] = q_ip
+            return [Outgoing(self._p_ip_key, body), *events]
+        sample = self.solver.solve(list(self.infeed_w.values()),
+                                   list(self.infeed_var.values()) if self.reactive else None)
         self.report.add(sample)
         if sample.converged:
             self.p_ip_w, self.q_ip_var = float(sample.p_ip_w), float(sample.q_ip_var)

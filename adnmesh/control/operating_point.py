@@ -16,6 +16,7 @@ import os
 from adnmesh.config import Config
 
 __all__ = ["available_power_w", "grid_label", "grid_solver", "grid_source", "initial_p_ip_w",
+           "initial_q_ip_var",
            "sgen_problem"]
 
 
@@ -94,15 +95,31 @@ def available_power_w(config: Config) -> dict[str, float]:
 
 
 @functools.lru_cache(maxsize=8)
-def initial_p_ip_w(config: Config) -> float:
-    """P_IP with every DER at its schedule, W (MV -> HV positive): the operating point."""
+def _operating_point(config: Config) -> tuple[float, float]:
+    """(P_IP, Q_IP) with every DER at its schedule (the reactive one with reactive power
+    control), W and var, MV -> HV positive."""
+    reactive = config.reactive
+    q_rest = 0.0 if reactive is None else reactive.rest_of_grid_var
     solver = grid_solver(config)
     if solver is None:
-        return config.runtime.rest_of_grid_w + sum(d.p_sched_w for d in config.ders)
-    sample = solver.solve([d.p_sched_w for d in config.ders])
+        return (config.runtime.rest_of_grid_w + sum(d.p_sched_w for d in config.ders),
+                q_rest + sum(d.q_sched_var for d in config.ders))
+    q_sched = None if reactive is None else [d.q_sched_var for d in config.ders]
+    sample = solver.solve([d.p_sched_w for d in config.ders], q_sched)
     if not sample.converged:
         raise ValueError("the power flow at the DERs' schedules does not converge")
-    return float(sample.p_ip_w)
+    return float(sample.p_ip_w), float(sample.q_ip_var)
+
+
+def initial_p_ip_w(config: Config) -> float:
+    """P_IP with every DER at its schedule, W (MV -> HV positive): the operating point."""
+    return _operating_point(config)[0]
+
+
+def initial_q_ip_var(config: Config) -> float:
+    """Q_IP with every DER at its schedule, var (MV -> HV positive; without a grid model and
+    reactive power control: 0)."""
+    return _operating_point(config)[1]
 
 
 def sgen_problem(config: Config) -> str | None:

@@ -20,8 +20,11 @@ if TYPE_CHECKING:
 __all__ = ["build_agent"]
 
 def build_agent(agent_id: str, config: Config, schedule: GainSchedule | None = None,
-                p_avail_w: float | None = None, der_params=None) -> Agent:
-    """The state machine of ``agent_id`` for ``config``; the CPFC needs its gain schedule, a DER
+                p_avail_w: float | None = None, der_params=None,
+                q_schedule: GainSchedule | None = None) -> Agent:
+    """The state machine of ``agent_id`` for ``config``; the CPFC needs its gain schedule (with
+    reactive power control it runs a Q loop too, :mod:`adnmesh.control.cpfc_pair`, with
+    ``q_schedule``, default the Q gains tuned on demand), a DER
     can be given its available power, W (default: :func:`adnmesh.control.operating_point.
     available_power_w`), and its model parameters (default: from the config,
     :func:`adnmesh.control.der_model.der_params`).
@@ -35,7 +38,10 @@ def build_agent(agent_id: str, config: Config, schedule: GainSchedule | None = N
         if schedule is None:
             raise ValueError("the CPFC needs a gain schedule")
         from adnmesh.control.cpfc_controller import CPFC
-        return CPFC(config, schedule)
+        if config.reactive is None:
+            return CPFC(config, schedule)
+        from adnmesh.control.cpfc_pair import CPFCPair, reactive_cpfc
+        return CPFCPair(CPFC(config, schedule), reactive_cpfc(config, q_schedule))
     if agent_id == "measurement":
         from adnmesh.control.measurement_point import Measurement
         return Measurement(config)

@@ -114,8 +114,12 @@ def blueprint(run: RunData):
               plot("DERs available", "available_count")]
     bottom = [plot("DER infeed [MW]", "der_infeed"),
               plot("DER set-points [MW]", "der_setpoint")]
+    if run.one("q_y") is not None:
+        middle.append(plot("Q_Y (per unit of each DER's w·C^Q)", "q_y"))
+        bottom.append(plot("DER reactive infeed [Mvar]", "der_q_infeed"))
+    if run.one("q_ip") is not None:
+        middle.append(plot("Q_IP and Q_ref [Mvar]", "q_ref", "q_ip"))
     if run.one("grid_v_min") is not None:
-        middle.append(plot("Q_IP [Mvar]", "q_ip"))
         bottom.append(rrb.Vertical(
             plot("grid: bus voltages and the band [p.u.]", "grid_v_min", "grid_v_max",
                  paths=sorted(limits - set(loading_limit))),

@@ -93,7 +93,8 @@ COLORS: dict[str, tuple[int, int, int]] = {
     "p_ref": (255, 160, 0), "p_ip": (60, 150, 255), "p_y": (40, 180, 80),
     "kp": (170, 100, 220), "ki": (255, 130, 40), "grid_v_min": (230, 120, 0),
     "grid_v_max": (60, 60, 200), "grid_line_loading": (90, 90, 90),
-    "grid_trafo_loading": (160, 110, 50), "q_ip": (200, 80, 160),
+    "grid_trafo_loading": (160, 110, 50), "q_ip": (200, 80, 160), "grid_q_ip": (200, 80, 160),
+    "q_ref": (120, 40, 100), "q_y": (20, 120, 60),
     "available_count": (80, 80, 80), "grid_limit": (230, 30, 30),
 }
 """Role -> the RGB colour of its line in Rerun (the others: Rerun's choice; a DER's series:

@@ -43,8 +43,12 @@ def _plain(value):
 
 
 def design_document(config) -> dict:
-    """The design-relevant content of ``config`` (:class:`adnmesh.config.Config`), plain data."""
+    """The design-relevant content of ``config`` (:class:`adnmesh.config.Config`), plain data;
+    a reactive view's (:func:`adnmesh.reactive.reactive_view`) says ``quantity: Q`` (a P
+    document says nothing, as before there was a Q)."""
+    quantity = {"quantity": "Q"} if getattr(config, "quantity", "P") == "Q" else {}
     return _plain({
+        **quantity,
         "format": DESIGN_FORMAT,
         "ders": [{f: getattr(der, f) for f in _DER_FIELDS} for der in config.ders],
         "t_com_s": config.t_com_s,

@@ -45,6 +45,8 @@ __all__ = [
     "PIP",
     "PRef",
     "PY",
+    "QRef",
+    "QY",
     "SI",
     "Switch",
 ]
@@ -134,6 +136,23 @@ class PY(Envelope):
     design: Design | UnsetType = UNSET
 
 
+class QY(Envelope):
+    """CPFC output Q_Y of the reactive power loop (docs/method.md#reactive-power): the fields
+    of :class:`PY` for Q (gains in 1/var and 1/(var s), ``q_ref_var`` in var, weights and the
+    entry of the Q table)."""
+
+    type: Literal["q_y"]
+    q_y: Ratio
+    q_ref_var: Power
+    kp: Gain
+    ki: Gain
+    entry: Count
+    w: Annotated[dict[DERId, Weight], Meta(max_length=MAX_DERS)] | UnsetType = UNSET
+    switch: Switch | UnsetType = UNSET
+    hold: Literal["measurement", "actuators", "resuming"] | UnsetType = UNSET
+    design: Design | UnsetType = UNSET
+
+
 class PRef(Envelope):
     """Reference P_ref at the interconnection point, W."""
 
@@ -141,39 +160,54 @@ class PRef(Envelope):
     p_ref_w: Power
 
 
+class QRef(Envelope):
+    """Reference Q_ref at the interconnection point, var."""
+
+    type: Literal["q_ref"]
+    q_ref_var: Power
+
+
 class DERState(Envelope):
     """A DER's infeed and setpoint at a sampling instant, W, and where its setpoint comes from;
     while it follows P_Y (``control``, a weight > 0), whether a limit holds its output back:
-    +1 from rising, -1 from falling, 0 free (absent while it does not follow)."""
+    +1 from rising, -1 from falling, 0 free (absent while it does not follow). With reactive
+    power control its reactive infeed and setpoint, var, and ``q_held`` as ``held`` for Q_Y
+    (its P-Q capability)."""
 
     type: Literal["der_state"]
     p_w: Power
     setpoint_w: Power
     mode: Literal["control", "schedule", "watchdog"]
     held: Literal[-1, 0, 1] | UnsetType = UNSET
+    q_var: Power | UnsetType = UNSET
+    q_setpoint_var: Power | UnsetType = UNSET
+    q_held: Literal[-1, 0, 1] | UnsetType = UNSET
 
 
 class Heartbeat(Envelope):
     """A DER's heartbeat: its availability flag, where its setpoint comes from (``mode``) and
     the last P_Y it applied with the number of the CPFC's table entry of that command (its
-    acknowledgement of the CPFC's commands)."""
+    acknowledgement of the CPFC's commands); with reactive power control the last Q_Y too."""
 
     type: Literal["heartbeat"]
     available: bool
     mode: Literal["control", "schedule", "watchdog"] = "control"
     p_y: Ratio = 0.0
     entry: Count | None = None
+    q_y: Ratio | UnsetType = UNSET
 
 
 class PIP(Envelope):
     """Measured active power at the interconnection point, W (MV -> HV positive), with the grid
-    model its reactive power, var; ``held`` when every DER that follows P_Y is held back by a
-    limit in that direction (the CPFC's anti-windup)."""
+    model (or reactive power control) its reactive power, var; ``held`` when every DER that
+    follows P_Y is held back by a limit in that direction (the CPFC's anti-windup), ``q_held``
+    the same for Q_Y."""
 
     type: Literal["p_ip"]
     p_ip_w: Power
     q_ip_var: Power | UnsetType = UNSET
     held: Literal["up", "down"] | UnsetType = UNSET
+    q_held: Literal["up", "down"] | UnsetType = UNSET
 
 
 PerUnit = Annotated[float, Meta(ge=0.0, le=10.0, description="p.u.")]

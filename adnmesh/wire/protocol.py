@@ -20,6 +20,8 @@ kind                 key (``adn/<grid>/``)      sender          receivers       
 ===================  =========================  ==============  =====================  ===================
 ``p_y``              ``cpfc/p_y``               ``cpfc``        every DER              ``cpfc_to_der``
 ``p_ref``            ``scenario/p_ref``         ``cpfc``        (recorded)             ``local``
+``q_y``              ``cpfc/q_y``               ``cpfc``        every DER              ``cpfc_to_der``
+``q_ref``            ``scenario/q_ref``         ``cpfc``        (recorded)             ``local``
 ``der_state``        ``der/{der}/state``        the DER         ``measurement``        ``physical``
 ``heartbeat``        ``der/{der}/heartbeat``    the DER         availability, cpfc     ``der_to_availability``
 ``p_ip``             ``measurement/p_ip``       ``measurement`` ``cpfc``               ``measurement_to_cpfc``
@@ -173,13 +175,24 @@ PROTOCOL: tuple[MessageKind, ...] = (
         _S("entry", "table entry", "entry", unit="1", step=True))),
     MessageKind("p_ref", "scenario/p_ref", m.PRef, "cpfc", (), "local", (
         _S("p_ref_w", "P_ref", "p_ref", step=True),)),
+    MessageKind("q_y", "cpfc/q_y", m.QY, "cpfc", ("der",), "cpfc_to_der", (
+        _S("q_y", "Q_Y", "q_y", unit="1"),
+        _S("kp", "K_P of Q", "q_kp", unit="1/var", step=True),
+        _S("ki", "K_I of Q", "q_ki", unit="1/(var s)", step=True),
+        _S("entry", "Q table entry", "q_entry", unit="1", step=True))),
+    MessageKind("q_ref", "scenario/q_ref", m.QRef, "cpfc", (), "local", (
+        _S("q_ref_var", "Q_ref", "q_ref", unit="var", step=True),)),
     MessageKind("der_state", "der/{der}/state", m.DERState, "der", ("measurement",), "physical", (
         _S("p_w", "{der} infeed", "der_infeed"),
-        _S("setpoint_w", "{der} setpoint", "der_setpoint", step=True))),
+        _S("setpoint_w", "{der} setpoint", "der_setpoint", step=True),
+        _S("q_var", "{der} reactive infeed", "der_q_infeed", unit="var"),
+        _S("q_setpoint_var", "{der} reactive setpoint", "der_q_setpoint", unit="var",
+           step=True))),
     MessageKind("heartbeat", "der/{der}/heartbeat", m.Heartbeat, "der", ("availability", "cpfc"),
                 "der_to_availability", quiet=True),
     MessageKind("p_ip", "measurement/p_ip", m.PIP, "measurement", ("cpfc",),
-                "measurement_to_cpfc", (_S("p_ip_w", "P_IP", "p_ip"),)),
+                "measurement_to_cpfc", (_S("p_ip_w", "P_IP", "p_ip"),
+                                        _S("q_ip_var", "Q_IP", "q_ip", unit="var"))),
     MessageKind("grid_state", "measurement/grid", m.GridState, "measurement", (), "local", (
         _S("v_min_pu", "lowest bus voltage", "grid_v_min", unit="p.u.", step=True),
         _S("v_max_pu", "highest bus voltage", "grid_v_max", unit="p.u.", step=True),
@@ -187,7 +200,7 @@ PROTOCOL: tuple[MessageKind, ...] = (
           step=True),
         _S("trafo_loading_max_pct", "highest transformer loading", "grid_trafo_loading",
           unit="%", step=True),
-        _S("q_ip_var", "Q_IP", "q_ip", unit="var", step=True))),
+        _S("q_ip_var", "Q_IP at the report", "grid_q_ip", unit="var", step=True))),
     MessageKind("si", "availability/si", m.SI, "availability", ("cpfc",), "availability_to_cpfc"),
     MessageKind("fault", "faults", m.Fault, LAUNCHER, (EVERY_AGENT,), None),
     MessageKind("fault_request", "control/fault", m.FaultRequest, OPERATOR, (LAUNCHER,), None),
