@@ -7,13 +7,14 @@ static controller and the CPFC read a DER through four fields: its capacity ``C_
 whose DERs carry their reactive side in those fields, so every command that works for P works
 for Q on it (``--quantity q``):
 
-- capacity ``C_d^Q`` = the mean of the DER's largest absorption and injection (var), so that
-  Eq. 1 reads ``Q_ref,d = Q_Y w_d C_d^Q + Q_sched,d``;
+- capacity ``C_d^Q`` = the width of the DER's reactive range, ``Q_max,d - Q_min,d`` (var), as
+  ``C_d = P_inst,d`` is the width of ``[0, P_inst,d]``, so that Eq. 1 reads
+  ``Q_ref,d = Q_Y w_d C_d^Q + Q_sched,d``;
 - reaction and rise time: ``t_delay_q_s`` and ``t_rise_q_s`` (defaults by type,
   :data:`Q_DYNAMICS`);
 - schedule and range: Q is counted from the DER's lowest reactive power ``Q_min,d`` (≤ 0), so
-  that its range is ``[0, Q_max,d - Q_min,d]`` like a P range ``[0, P_avail,d]``; the shift is
-  the same on both sides of Eq. 1 and leaves ``Q_Y`` unchanged;
+  that its range is ``[0, C_d^Q]`` like a P range ``[0, P_inst,d]``; the shift is the same on
+  both sides of Eq. 1 and leaves ``Q_Y`` unchanged;
 - the scenario's Q_ref steps in place of its P_ref steps.
 
 A DER without reactive range (preset ``unity``) is left out of the view. The view's design
@@ -37,12 +38,14 @@ __all__ = ["Capability", "Q_DYNAMICS", "capability_of", "limit_pq", "q_dynamics"
            "q_of_cos_phi", "q_of_u", "q_reference", "reactive_settings", "reactive_view"]
 
 Q_DYNAMICS: dict[str, tuple[float, float]] = {
-    "WT": (0.02, 0.1), "PV": (0.02, 0.1),
+    "WT": (0.01, 0.05), "PV": (0.01, 0.05),
     "CHP": (0.05, 0.5), "HYDRO": (0.05, 0.5), "GEN": (0.05, 0.5)}
 """Type -> default (reaction time, 10-90 % rise time) of the reactive power, s: converter-
-coupled plants (WT Type 4, PV) set Q within a few grid periods plus their control cycle;
-synchronous generators (CHP, hydro, other) through their excitation, a few hundred ms. They are
-assumptions for a generic plant (docs/models.md#reactive-power-dynamics); set a DER's own."""
+coupled plants (WT Type 4, PV) set Q by their current control within a few grid periods plus
+their control cycle (much faster than P, which a WT's pitch and a CHP's engine limit);
+synchronous generators (CHP, hydro, other) through their excitation and voltage regulator, a
+few hundred ms. They are assumptions for a generic plant (docs/models.md#reactive-power);
+set a DER's own (``t_delay_q_s``, ``t_rise_q_s``)."""
 
 
 @dataclass(frozen=True)
@@ -65,8 +68,9 @@ class Capability:
 
     @property
     def capacity_var(self) -> float:
-        """``C_d^Q``: the mean of the largest absorption and injection, var."""
-        return (self.q_max_var - self.q_min_var) / 2.0
+        """``C_d^Q``: the width of the reactive range, ``Q_max - Q_min``, var (as ``C_d =
+        P_inst,d`` is the width of ``[0, P_inst,d]``)."""
+        return self.q_max_var - self.q_min_var
 
 
 def _q_at(p_inst_w: float, cos_phi: float) -> float:

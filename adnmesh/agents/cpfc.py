@@ -10,10 +10,12 @@ Logic: adnmesh.control.cpfc_controller.CPFC.
 
 import argparse
 import sys
+from pathlib import Path
 
 from adnmesh.control.cpfc_controller import GainSchedule
 from adnmesh.control.registry import build_agent
 from adnmesh.errors import ConfigError
+from adnmesh.reactive import reactive_view
 from adnmesh.runtime.process import (AgentProcess, add_agent_arguments, load_config_or_exit,
                                      open_session)
 from adnmesh.sim.node import Node
@@ -25,16 +27,26 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("config", metavar="CONFIG", help="adnmesh config file (YAML)")
     parser.add_argument("--table", metavar="PATH",
                         help="gain-scheduling table (default: the one matching CONFIG)")
+    parser.add_argument("--q-table", metavar="PATH",
+                        help="reactive power control: the Q table (default: the one matching "
+                        "CONFIG's reactive view; none: tuned on demand)")
     add_agent_arguments(parser)
     args = parser.parse_args(argv)
 
     config = load_config_or_exit(args.config)
+    q_schedule = None
     try:
         table = load_table(args.table or default_table_path(config), config)
+        if config.reactive is not None:
+            view = reactive_view(config)
+            q_path = Path(args.q_table) if args.q_table else default_table_path(view)
+            q_table = load_table(q_path, view) if args.q_table or q_path.exists() else None
+            q_schedule = GainSchedule(view, q_table)
     except ConfigError as exc:
         print(f"adnmesh agent: error: {exc}", file=sys.stderr)
         return 2
-    node = Node.for_config(build_agent("cpfc", config, GainSchedule(config, table)), config,
+    node = Node.for_config(build_agent("cpfc", config, GainSchedule(config, table),
+                                       q_schedule=q_schedule), config,
                           start_ns=args.resume_at_ns)
     with open_session(args, "cpfc") as session:
         return AgentProcess(session, node, config.grid,

@@ -36,6 +36,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         help="the router (tcp/HOST:PORT; tls/HOST:PORT with --certs)")
     parser.add_argument("--certs", metavar="DIR", help="secure profile: certificate directory")
     parser.add_argument("--table", metavar="PATH", help="cpfc: gain-scheduling table")
+    parser.add_argument("--q-table", metavar="PATH",
+                        help="cpfc with reactive power control: the Q table")
     parser.add_argument("--connect-timeout", type=float, default=60.0, metavar="S",
                         help="keep trying to reach the router for S seconds (default 60)")
     parser.add_argument("--resume-at-ns", type=int, metavar="NS",
@@ -48,8 +50,9 @@ def _argv(args: argparse.Namespace) -> list[str]:
         raise UsageError("der needs --id ID (the DER's id in CONFIG)")
     if args.kind != "der" and args.der_id is not None:
         raise UsageError(f"{args.kind} takes no --id")
-    if args.table and args.kind != "cpfc":
-        raise UsageError("--table is for cpfc only")
+    for flag, value in (("--table", args.table), ("--q-table", args.q_table)):
+        if value and args.kind != "cpfc":
+            raise UsageError(f"{flag} is for cpfc only")
     if not 0 <= args.connect_timeout <= 86400:
         raise UsageError(f"--connect-timeout must be in [0, 86400] s, got "
                          f"{args.connect_timeout:g}")
@@ -58,7 +61,8 @@ def _argv(args: argparse.Namespace) -> list[str]:
     argv = [args.config]
     for endpoint in args.connect:
         argv += ["--connect", endpoint]
-    options = {"--der": args.der_id, "--table": args.table, "--certs": args.certs,
+    options = {"--der": args.der_id, "--table": args.table, "--q-table": args.q_table,
+               "--certs": args.certs,
                "--resume-at-ns": args.resume_at_ns, "--connect-timeout": args.connect_timeout}
     for flag, value in options.items():
         if value is not None:

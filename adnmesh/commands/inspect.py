@@ -134,18 +134,21 @@ class _SummaryMessages:
         if kind not in self.types:
             return None
         if kind == "p_ip":
-            return _Fields(("t_send_ns", "p_ip_w"), self._p_ip)
+            return _Fields(("t_send_ns", "p_ip_w", "q_ip_var"), self._p_ip)
         if kind == "p_y":
             return _Fields(("switch", "design"), self._p_y)
         return lambda batch: self._keep(kind, batch, range(len(batch)))
 
     def _p_ip(self, batch, columns) -> None:
         t, p = columns.columns["t_send_ns"], columns.columns["p_ip_w"]
+        q = columns.columns.get("q_ip_var") or [None] * len(t)
         rows = [i for i in range(len(t)) if columns.valid[i] and isinstance(t[i], int)
                 and isinstance(p[i], int | float)]
         self.p_ip.append((batch.publish_time_ns[rows], batch.ordinal[rows],
                           np.asarray([t[i] for i in rows], dtype=np.int64),
-                          np.asarray([p[i] for i in rows], dtype=np.float64)))
+                          np.asarray([p[i] for i in rows], dtype=np.float64),
+                          np.asarray([q[i] if isinstance(q[i], int | float) else np.nan
+                                      for i in rows], dtype=np.float64)))
 
     def _p_y(self, batch, columns) -> None:
         switch, design = columns.columns["switch"], columns.columns["design"]
@@ -164,9 +167,11 @@ class _SummaryMessages:
 
         series = RunSeries()
         if self.p_ip:
-            publish, ordinal, t_ns, p_w = (np.concatenate(c) for c in zip(*self.p_ip))
+            publish, ordinal, t_ns, p_w, q_var = (np.concatenate(c) for c in zip(*self.p_ip))
             order = np.lexsort((ordinal, publish))
             series.p_ip_t_ns, series.p_ip_w = t_ns[order].tolist(), p_w[order].tolist()
+            with_q = order[np.isfinite(q_var[order])]
+            series.q_ip_t_ns, series.q_ip_var = t_ns[with_q].tolist(), q_var[with_q].tolist()
         for _, _, kind, payload in sorted(self.whole, key=lambda m: m[:2]):
             try:
                 series.add(kind, json.loads(payload))
@@ -201,12 +206,16 @@ def _summary(recording: ScannedRecording, messages: _SummaryMessages, band_pct: 
 
 def _print_figures(console: Console, run_data: RunData, figures: RunFigures, summary) -> None:
     from adnmesh.results.design_check import design_lines
-    from adnmesh.results.summary import fault_table, grid_line, scenario_lines
+    from adnmesh.results.summary import coupling_line, fault_table, grid_line, scenario_lines
 
     if figures.steps:
         console.print(step_table(figures.steps, figures.band_pct, checks=summary.design_checks))
     for line in design_lines(summary.design_checks):
         console.print(line)
+    if summary.coupling is not None:
+        console.print(step_table(summary.q_steps, figures.band_pct, "Q_IP after each Q_ref step",
+                                 unit="var"))
+        console.print(coupling_line(summary.coupling))
     for line in scenario_lines(summary.scenario_steps):
         console.print(line)
     if figures.rms_error_w is not None:
@@ -376,7 +385,8 @@ def _json_report(path: Path, recording: ScannedRecording, run_data: RunData,
                     "switches": summary_json["switches"],
                     "fault_figures": summary_json["faults"], "grid": summary_json["grid"],
                     "scenario_steps": summary_json["scenario_steps"],
-                    "design_checks": summary_json["design_checks"]},
+                    "design_checks": summary_json["design_checks"],
+                    "q_steps": summary_json["q_steps"], "coupling": summary_json["coupling"]},
         "events": [{"t_s": seconds(e.t_ns), "kind": e.kind, "level": e.level, "text": e.text,
                     "topic": e.topic} for e in _shown_events(run_data)],
         "schema_check": None if problems is None else [str(p) for p in problems],

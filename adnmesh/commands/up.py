@@ -22,6 +22,7 @@ from rich.console import Console
 from adnmesh.commands import add_config_argument, comma_list, output_path
 from adnmesh.config import Config, load_config
 from adnmesh.errors import ConfigError, GridError, UsageError
+from adnmesh.reactive import reactive_view
 from adnmesh.tuning.table import (SchedulingTable, default_table_path, load_table, new_table,
                                    save_table)
 
@@ -66,6 +67,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         help="gain-scheduling table (default: tables/<name>.<design "
                              "hash[:12]>.json next to the config, else the one an earlier up "
                              "kept in its cache)")
+    parser.add_argument("--q-table", metavar="PATH",
+                        help="reactive power control: the Q table (default: as --table, for "
+                        "the config's reactive view: 'adnmesh tune CONFIG --quantity q')")
     parser.add_argument("--out", metavar="PATH",
                         help="MCAP recording to write (default: logs/<run-id>.mcap)")
     parser.add_argument("--summary-json", metavar="PATH",
@@ -165,33 +169,36 @@ def tuned_table_path(config: Config, subsets) -> Path:
     return default_cache_dir() / "tables" / f"{Path(config.path).stem}.{key[:16]}.json"
 
 
-def _table(args, config: Config, run_dir: Path, run_id: str, log) -> Path:
-    """The table file the CPFC will use: ``--table``, else the config's own
+def _table(given: str | None, config: Config, run_dir: Path, run_id: str, log) -> Path:
+    """The table file the CPFC will use: ``given`` (``--table``; for the Q loop, whose
+    ``config`` is the reactive view, ``--q-table``), else the config's own
     (:func:`default_table_path`, next to the config), else the one an earlier run tuned for
     this design and scenario (:func:`tuned_table_path`), else the scenario's subsets tuned now
     and kept there (beside the recording if the cache cannot be written)."""
-    path = Path(args.table) if args.table else default_table_path(config)
+    q = config.quantity == "Q"
+    what, option = ("Q gain table", " --quantity q") if q else ("gain table", "")
+    path = Path(given) if given else default_table_path(config)
     subsets = scenario_subsets(config)
     if path.exists():
         table = load_table(path, config)  # a bad table: one line now, not in the CPFC later
         _check_gains(config, table, subsets, path)
         return path                     # subsets it lacks: the CPFC tunes them on demand
-    if args.table:
-        raise UsageError(f"no gain table {path}; run 'adnmesh tune {config.path} --out "
-                         f"{path}' first, or leave out --table to have the scenario's "
-                         "subsets tuned now")
+    if given:
+        raise UsageError(f"no {what} {path}; run 'adnmesh tune {config.path}{option} --out "
+                         f"{path}' first, or leave out --{'q-' if q else ''}table to have the "
+                         "scenario's subsets tuned now")
     cached = tuned_table_path(config, subsets)
     if cached.exists():
         try:
             table = load_table(cached, config)
             _check_gains(config, table, subsets, cached)
         except (ConfigError, UsageError) as exc:
-            log(f"not using the tuned table an earlier run kept: {exc}; tuning again")
+            log(f"not using the tuned {what} an earlier run kept: {exc}; tuning again")
         else:
-            log(f"gain table {cached}: tuned by an earlier run for this design and scenario")
+            log(f"{what} {cached}: tuned by an earlier run for this design and scenario")
             return cached
     tune = _tuner()
-    log(f"no gain table at {path}: tuning the {len(subsets)} subset(s) the scenario needs")
+    log(f"no {what} at {path}: tuning the {len(subsets)} subset(s) the scenario needs")
     table = new_table(config, config.constraints.model_dump(), "on-demand")
     ordered = [tuple(d for d in config.der_ids() if d in subset) for subset in subsets]
     for subset in ordered:
@@ -212,7 +219,7 @@ def _table(args, config: Config, run_dir: Path, run_id: str, log) -> Path:
         log(f"cannot keep the tuned table in {cached.parent} ({exc.strerror or exc}); "
             "writing it beside the recording")
         save_table(table, path)
-    log(f"tuned table written to {path}")
+    log(f"tuned {what} written to {path}")
     return path
 
 
@@ -374,9 +381,13 @@ def run(args: argparse.Namespace) -> int:
     if args.summary_json:
         output_path(args.summary_json, "--summary-json")
     available = operating_point(config, log)
-    table_path = _table(args, config, out.parent, run_id, log)
+    table_path = _table(args.table, config, out.parent, run_id, log)
+    q_table_path = None
+    if config.reactive is not None:
+        q_table_path = _table(args.q_table, reactive_view(config), out.parent, run_id, log)
     options = UpOptions(
-        config=config, table_path=table_path, out=out, clock=args.clock,
+        config=config, table_path=table_path, q_table_path=q_table_path, out=out,
+        clock=args.clock,
         speed=args.speed or 1.0,
         seed=config.runtime.seed if args.seed is None else args.seed,
         listen=args.listen, log=log, run_id=run_id, run_file=run_file_path(out),
@@ -385,7 +396,9 @@ def run(args: argparse.Namespace) -> int:
                            else args.startup_timeout), stall_timeout_s=args.stall_timeout,
         available_w=available, strict=args.strict, rt_priority=args.rt_priority or "off",
         metadata={"run_id": run_id, "table_sha256":
-                  hashlib.sha256(table_path.read_bytes()).hexdigest()},
+                  hashlib.sha256(table_path.read_bytes()).hexdigest(),
+                  **({} if q_table_path is None else {"q_table_sha256": hashlib.sha256(
+                      q_table_path.read_bytes()).hexdigest()})},
     )
     result = _launch_with_view(args, options, launch, err, log)
     for problem in result.problems:

@@ -15,7 +15,7 @@ from adnmesh.control.base import Agent, Outgoing
 from adnmesh.control.cpfc_controller import CPFC, GainSchedule, initial_p_ref_w
 from adnmesh.control.loop_quantity import Q_LOOP
 from adnmesh.control.operating_point import initial_q_ip_var
-from adnmesh.reactive import capability_of, q_reference, reactive_view
+from adnmesh.reactive import q_reference, reactive_view
 from adnmesh.wire.messages import Envelope
 from adnmesh.wire.units import ns
 
@@ -29,9 +29,7 @@ def reactive_cpfc(config: Config, schedule: GainSchedule | None = None) -> CPFC:
     if schedule is None:
         schedule = GainSchedule(view, None)
     start, steps = q_reference(config, initial_p_ref_w(config), initial_q_ip_var(config))
-    top = {der.id: capability_of(der, config.reactive).q_max_var
-           - capability_of(der, config.reactive).q_min_var
-           for der in config.ders if der.id in view.der_ids()}
+    top = {der.id: der.p_inst_w for der in view.ders}      # C_d^Q: the whole reactive range
     return CPFC(view, schedule, Q_LOOP, start_ref=start, available=top,
                 steps=[(ns(t_s), change) for t_s, change in steps],
                 known_ids=config.der_ids())

@@ -46,8 +46,13 @@ class RunFigures:
 
 def window_ends(run: RunData) -> list[int]:
     """Instants (ns) other than P_ref steps that end a step's window: those of the run's events
-    by the rule of :class:`~adnmesh.results.rules.StepWindowEnds`."""
-    return rules.window_ends(run.events)
+    by the rule of :class:`~adnmesh.results.rules.StepWindowEnds`, and the steps of Q_ref
+    (reactive power control: what follows them is their response)."""
+    ends = rules.window_ends(run.events)
+    q_ref = run.one("q_ref")
+    if q_ref is None or q_ref.t_ns.size < 2:
+        return ends
+    return sorted([*ends, *(int(t) for t in q_ref.t_ns[1:])])
 
 
 def run_end_ns(run: RunData) -> int | None:
@@ -78,7 +83,7 @@ def run_figures(run: RunData, *, band_pct: float = 5.0) -> RunFigures:
 
 
 def step_table(steps, band_pct: float, title: str = "P_IP after each P_ref step",
-               checks=()):
+               checks=(), unit: str = "W"):
     """Rich table of :class:`~adnmesh.loopmodel.step_figures.ReferenceStep` records (``adnmesh up``'s
     summary and ``adnmesh inspect`` print the same one).
 
@@ -86,14 +91,15 @@ def step_table(steps, band_pct: float, title: str = "P_IP after each P_ref step"
     ``> w`` means not settled within the window of ``w`` s. With ``checks`` (one
     :class:`~adnmesh.results.design_check.DesignCheck` per step), if any has certified
     figures, two more columns: what the step's table entry was designed for (rise, settling,
-    overshoot) and which figures are over it (docs/method.md#said-when-over).
+    overshoot) and which figures are over it (docs/method.md#said-when-over). ``unit``: ``W``
+    (P) or ``var`` (Q).
     """
     from rich.table import Table
 
     table = Table(title=f"{title} (rise 10-90 %, settling band {band_pct:g} %)",
                   title_justify="left")
-    columns = ["t [s]", "step [MW]", "rise [s]", "settling [s]", "overshoot [%]",
-               "steady error [kW]", "window [s]"]
+    columns = ["t [s]", f"step [M{unit}]", "rise [s]", "settling [s]", "overshoot [%]",
+               f"steady error [k{unit}]", "window [s]"]
     checks = checks if any(c.figures for c in checks) else ()   # none said: as before
     if checks:
         columns += ["designed: rise / settling / overshoot (entry)", "over the design"]

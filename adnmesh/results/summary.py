@@ -66,13 +66,14 @@ __all__ = [
     "RunSummary",
     "SUMMARY_TYPES",
     "ScenarioStep",
+    "Coupling",
     "SwitchFigures",
     "WINDOW_EVENTS",
     "summarize",
 ]
 
-SUMMARY_TYPES = frozenset({"p_ip", "p_ref", "p_y", "heartbeat", "si", "fault", "event",
-                           "grid_state"})
+SUMMARY_TYPES = frozenset({"p_ip", "p_ref", "q_ref", "p_y", "heartbeat", "si", "fault",
+                           "event", "grid_state"})
 """The message types :meth:`RunSeries.add` takes (of ``p_y`` only those with a ``switch``):
 the few the summary reads, not every message type of the wire."""
 
@@ -138,6 +139,9 @@ class RunSeries:
         sequence assigned works too).
     p_ref_t_ns, p_ref_w : array of int64, array of float64
         Instants at which ``P_ref`` took a new value, and the value (the first is the initial one).
+    q_ip_t_ns, q_ip_var, q_ref_t_ns, q_ref_var : array
+        The same of ``Q_IP`` (the ``p_ip`` messages that carry it) and ``Q_REF`` (reactive
+        power control), var.
     switches : list of dict
         One per gain switch: ``t_ns``, ``p_y_before``, ``p_y_limited`` (limited to the new
         output range), ``p_y_after``, ``available`` (DER ids).
@@ -169,6 +173,10 @@ class RunSeries:
     p_ip_w: array = field(default_factory=lambda: array("d"))
     p_ref_t_ns: array = field(default_factory=lambda: array("q"))
     p_ref_w: array = field(default_factory=lambda: array("d"))
+    q_ip_t_ns: array = field(default_factory=lambda: array("q"))
+    q_ip_var: array = field(default_factory=lambda: array("d"))
+    q_ref_t_ns: array = field(default_factory=lambda: array("q"))
+    q_ref_var: array = field(default_factory=lambda: array("d"))
     switches: list = field(default_factory=list)
     faults: dict = field(default_factory=dict)
     events: list = field(default_factory=list)
@@ -190,9 +198,15 @@ class RunSeries:
         if kind == "p_ip":
             self.p_ip_t_ns.append(message.t_send_ns)
             self.p_ip_w.append(message.p_ip_w)
+            if message.q_ip_var is not msgspec.UNSET:
+                self.q_ip_t_ns.append(message.t_send_ns)
+                self.q_ip_var.append(message.q_ip_var)
         elif kind == "p_ref":
             self.p_ref_t_ns.append(message.t_send_ns)
             self.p_ref_w.append(message.p_ref_w)
+        elif kind == "q_ref":
+            self.q_ref_t_ns.append(message.t_send_ns)
+            self.q_ref_var.append(message.q_ref_var)
         elif kind in SUMMARY_TYPES and (kind != "p_y" or message.switch is not msgspec.UNSET
                                         or message.design is not msgspec.UNSET):
             self.add(kind, msgspec.to_builtins(message))
@@ -204,9 +218,15 @@ class RunSeries:
         if message_type == "p_ip":
             self.p_ip_t_ns.append(body["t_send_ns"])
             self.p_ip_w.append(body["p_ip_w"])
+            if "q_ip_var" in body:
+                self.q_ip_t_ns.append(body["t_send_ns"])
+                self.q_ip_var.append(body["q_ip_var"])
         elif message_type == "p_ref":
             self.p_ref_t_ns.append(body["t_send_ns"])
             self.p_ref_w.append(body["p_ref_w"])
+        elif message_type == "q_ref":
+            self.q_ref_t_ns.append(body["t_send_ns"])
+            self.q_ref_var.append(body["q_ref_var"])
         elif message_type == "p_y" and ("switch" in body or "design" in body):
             if ("switch" in body or not self.entries
                     or self.entries[-1]["entry"] != body.get("entry")):
@@ -305,6 +325,19 @@ class ScenarioStep:
 
 
 @dataclass(frozen=True)
+class Coupling:
+    """How much the two loops disturb each other through the grid (reactive power control;
+    docs/method.md#coupling-of-p-and-q): the largest ``|P_IP - P_ref|`` in the window of a
+    Q_ref step, W, and of ``|Q_IP - Q_ref|`` in the window of a P_ref step, var, each also in %
+    of the step that caused it (None without such steps)."""
+
+    p_deviation_in_q_steps_w: float | None
+    p_deviation_in_q_steps_pct: float | None
+    q_deviation_in_p_steps_var: float | None
+    q_deviation_in_p_steps_pct: float | None
+
+
+@dataclass(frozen=True)
 class RunSummary:
     """Everything ``adnmesh up`` prints at the end (and writes with ``--summary-json``)."""
 
@@ -320,6 +353,8 @@ class RunSummary:
     realtime: RealtimeFigures | None = None
     scenario_steps: tuple[ScenarioStep, ...] = ()
     design_checks: tuple[DesignCheck, ...] = ()
+    q_steps: tuple[ReferenceStep, ...] = ()
+    coupling: Coupling | None = None
 
     def to_json(self) -> dict:
         """Plain data for ``json.dump`` (NaN and infinities become null)."""
@@ -375,9 +410,21 @@ def summarize(series: RunSeries, *, end_ns: int, band_pct: float = 5.0,
     sample_s : float
         The CPFC's sampling period, s: a step recorded within it of its time is on time.
     """
+    reactive = len(series.q_ref_t_ns) > 0
+    q_changes = list(series.q_ref_t_ns[1:]) if reactive else []
     steps = reference_step_figures(
         series.p_ip_t_ns, series.p_ip_w, series.p_ref_t_ns, series.p_ref_w,
-        series.windows.instants, end_ns, band_pct=band_pct)
+        sorted([*series.windows.instants, *q_changes]), end_ns, band_pct=band_pct)
+    q_steps, coupling = (), None
+    if reactive:
+        q_steps = reference_step_figures(
+            series.q_ip_t_ns, series.q_ip_var, series.q_ref_t_ns, series.q_ref_var,
+            sorted([*series.windows.instants, *series.p_ref_t_ns[1:]]), end_ns,
+            band_pct=band_pct)
+        coupling = Coupling(*_cross(q_steps, series.p_ip_t_ns, series.p_ip_w,
+                                    series.p_ref_t_ns, series.p_ref_w),
+                            *_cross(steps, series.q_ip_t_ns, series.q_ip_var,
+                                    series.q_ref_t_ns, series.q_ref_var))
     t_ip = np.asarray(series.p_ip_t_ns, dtype=np.int64)
     p_ip = np.asarray(series.p_ip_w, dtype=float)
     switches = []
@@ -400,7 +447,33 @@ def summarize(series: RunSeries, *, end_ns: int, band_pct: float = 5.0,
                       dict(extra or {}), _faults(series, sim_s, band_pct), _grid(series),
                       realtime, scenario_steps(series, planned_steps, end_ns, sample_s,
                                                (extra or {}).get("ended")),
-                      design_checks(steps, series.entries))
+                      design_checks(steps, series.entries), q_steps, coupling)
+
+
+def _cross(steps, t_ns, values, ref_t_ns, ref_values) -> tuple[float | None, float | None]:
+    """The largest ``|value - reference|`` of the other quantity in the windows of ``steps``
+    and that deviation in % of the step that caused it (None, None without steps)."""
+    t = np.asarray(t_ns, dtype=np.int64)
+    v = np.asarray(values, dtype=float)
+    ref_t = np.asarray(ref_t_ns, dtype=np.int64)
+    ref_v = np.asarray(ref_values, dtype=float)
+    worst, worst_pct = None, None
+    for step in steps:
+        start = int(round(step.t_s * 1e9))
+        inside = (t >= start) & (t < start + int(round(step.window_s * 1e9)))
+        if not inside.any() or ref_v.size == 0:
+            continue
+        index = np.searchsorted(ref_t, t[inside], side="right") - 1
+        valid = index >= 0
+        if not valid.any():
+            continue
+        deviation = float(np.nanmax(np.abs(v[inside][valid] - ref_v[index[valid]])))
+        if worst is None or deviation > worst:
+            worst = deviation
+        pct = 100.0 * deviation / abs(step.step_w) if step.step_w else None
+        if pct is not None and (worst_pct is None or pct > worst_pct):
+            worst_pct = pct
+    return worst, worst_pct
 
 
 def _cpfc_down(series: RunSeries) -> list[tuple[int, float, str]]:
@@ -494,6 +567,10 @@ def format_summary(summary: RunSummary):
                       summary.design_checks)]
     out += design_lines(summary.design_checks)
     out += scenario_lines(summary.scenario_steps)
+    if summary.coupling is not None:
+        out.append(step_table(summary.q_steps, summary.band_pct, "Q_ref steps: Q_IP",
+                              unit="var"))
+        out.append(coupling_line(summary.coupling))
     switches = Table(title="gain switches", title_justify="left")
     for column in ("t [s]", "available DERs", "max |P_IP - P_ref| in 10 s [W]", "P_Y jump"):
         switches.add_column(column, justify="right" if column != "available DERs" else "left",
@@ -536,6 +613,20 @@ def format_summary(summary: RunSummary):
     if summary.extra:
         out.append(", ".join(f"{k} {_fmt(v)}" for k, v in summary.extra.items()))
     return out
+
+
+def coupling_line(coupling: Coupling) -> str:
+    """One line on how much each loop's steps disturbed the other quantity."""
+    def part(value, pct, unit, what):
+        if value is None:
+            return f"no {what} step"
+        share = "" if pct is None else f" ({pct:.3g} % of the step)"
+        return f"{value / 1e3:.4g} k{unit}{share}"
+
+    return ("coupling through the grid: largest |P_IP - P_ref| after a Q_ref step "
+            f"{part(coupling.p_deviation_in_q_steps_w, coupling.p_deviation_in_q_steps_pct, 'W', 'Q_ref')}"
+            "; largest |Q_IP - Q_ref| after a P_ref step "
+            f"{part(coupling.q_deviation_in_p_steps_var, coupling.q_deviation_in_p_steps_pct, 'var', 'P_ref')}")
 
 
 def scenario_lines(planned) -> list[str]:

@@ -57,10 +57,12 @@ attempt can fail, and the agent exited on it."""
 
 def agent_argv(agent_id: str, config_path: Path, endpoint: str, table_path: Path,
                p_avail_w: float | None = None, certs: Path | None = None,
-               model_params: str | None = None) -> list[str]:
+               model_params: str | None = None, q_table_path: Path | None = None
+               ) -> list[str]:
     """Command line of the process of ``agent_id`` (a DER may be told its available power, W,
     so that it need not load the grid to learn it, and its model parameters as JSON, so that it
-    need not calibrate them; secure profile: with ``--certs``)."""
+    need not calibrate them; the CPFC its P table and, with reactive power control, its Q
+    table; secure profile: with ``--certs``)."""
     der_id = der_id_of(agent_id)
     kind = "der" if der_id is not None else agent_id
     argv = [sys.executable, "-m", f"{AGENT_PACKAGE}.{kind}", str(config_path),
@@ -73,6 +75,8 @@ def agent_argv(agent_id: str, config_path: Path, endpoint: str, table_path: Path
             argv += ["--model-params", model_params]
     if kind == "cpfc":
         argv += ["--table", str(table_path)]
+        if q_table_path is not None:
+            argv += ["--q-table", str(q_table_path)]
     if certs is not None:
         argv += ["--certs", str(certs)]
     return argv

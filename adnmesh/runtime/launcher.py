@@ -104,6 +104,8 @@ class UpOptions:
     config : Config
     table_path : Path
         Gain table for the CPFC.
+    q_table_path : Path, optional
+        Its Q table (reactive power control).
     out : Path
         MCAP file to write.
     clock : str
@@ -152,6 +154,7 @@ class UpOptions:
     config: Config
     table_path: Path
     out: Path
+    q_table_path: Path | None = None
     clock: str = "sim"
     speed: float = 1.0
     seed: int = 0
@@ -382,7 +385,7 @@ class _Launch:
         p_avail_w = self.options.available_w.get(der_id)
         argv = agent_argv(agent_id, Path(self.config.path), self.endpoint,
                           self.options.table_path, p_avail_w, self.options.certs,
-                          self._model_params(der_id, p_avail_w))
+                          self._model_params(der_id, p_avail_w), self.options.q_table_path)
         if resume_ns:
             argv += ["--resume-at-ns", str(resume_ns)]
         self.children.spawn(agent_id, argv)

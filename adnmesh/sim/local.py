@@ -51,8 +51,8 @@ class LocalRun:
 class _LocalRunner:
     """What ``adnmesh up`` does, in one process: nodes, clock, faults, restarts."""
 
-    def __init__(self, config: Config, schedule, end_ns: int) -> None:
-        self.config, self.schedule = config, schedule
+    def __init__(self, config: Config, schedule, end_ns: int, q_schedule=None) -> None:
+        self.config, self.schedule, self.q_schedule = config, schedule, q_schedule
         self.topology = Topology.from_config(config)
         self.run = LocalRun()
         self.plan = FaultPlan(config, self.topology.agents)
@@ -63,7 +63,8 @@ class _LocalRunner:
             self.run.nodes[agent_id] = self._node(agent_id, 0)
 
     def _node(self, agent_id: str, start_ns: int) -> Node:
-        return Node(build_agent(agent_id, self.config, self.schedule), self.topology,
+        return Node(build_agent(agent_id, self.config, self.schedule,
+                                q_schedule=self.q_schedule), self.topology,
                     self.config.runtime.seed, start_ns=start_ns)
 
     def send_own(self, key: str, t_send: int, body: dict, t_deliver: int | None = None) -> None:
@@ -128,7 +129,8 @@ class _LocalRunner:
                 self.inject(planned, now, body)
 
 
-def run_local(config: Config, schedule, *, end_s: float | None = None) -> LocalRun:
+def run_local(config: Config, schedule, *, end_s: float | None = None,
+              q_schedule=None) -> LocalRun:
     """Run the scenario of ``config`` (to ``end_s``, default its duration) in this process,
     with the config's faults (kills and restarts included), as ``adnmesh up`` would.
 
@@ -137,11 +139,13 @@ def run_local(config: Config, schedule, *, end_s: float | None = None) -> LocalR
     config : Config
     schedule : GainSchedule
         The CPFC's gains.
+    q_schedule : GainSchedule, optional
+        Its Q gains (reactive power control; default tuned on demand).
     end_s : float, optional
         Last instant, s.
     """
     runner = _LocalRunner(config, schedule,
-                          ns(config.scenario.duration_s if end_s is None else end_s))
+                          ns(config.scenario.duration_s if end_s is None else end_s), q_schedule)
     grants = runner.start()
     while grants:
         grants.extend(runner.step(grants.popleft()))
