@@ -729,6 +729,11 @@ class Config(ConfigFile):
     (:func:`adnmesh.reactive.reactive_view`: each DER's reactive capability, dynamics and
     schedule in its P fields)."""
 
+    @property
+    def unit(self) -> str:
+        """The unit of the quantity the DERs' fields describe: ``W`` (P) or ``var`` (Q)."""
+        return "var" if self.quantity == "Q" else "W"
+
     def pandapower_net_path(self) -> Path | None:
         """The grid model's pandapower net file, resolved next to the config (None if the
         grid model is SimBench's or there is none)."""

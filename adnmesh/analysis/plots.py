@@ -42,10 +42,11 @@ def _save(fig: Figure, path) -> Path:
     return path
 
 
-def plot_robustness(result: RobustnessResult, path, outliers: bool = False,
+def plot_robustness(result: RobustnessResult, path, outliers: bool = False, unit: str = "W",
                     covers: str = "") -> Path:
     """Box plots of every metric, adaptive and static side by side; ``covers`` names where the
-    subsets come from (e.g. ``"simbench.yaml, paper table"``) for the title."""
+    subsets come from (e.g. ``"simbench.yaml, paper table"``) for the title; ``unit`` the
+    controlled quantity's (``W``, ``var``) in the gains' units."""
     fig = Figure(figsize=(15, 7.5), layout="constrained")
     axes = fig.subplots(2, 4).ravel()
     for ax, metric in zip(axes, METRICS):
@@ -85,7 +86,7 @@ def plot_robustness(result: RobustnessResult, path, outliers: bool = False,
     lines = [f"{len(result.subsets)} subsets",
              "adaptive: table gains and weights per subset",
              ("static: none in the table" if sb is None else
-              f"static: K_P = {sb.kp[0]:.3g} 1/W, K_I = {sb.ki[0]:.3g} 1/(W s)"),
+              f"static: K_P = {sb.kp[0]:.3g} 1/{unit}, K_I = {sb.ki[0]:.3g} 1/({unit} s)"),
              "unstable: " + ", ".join(f"{c} {len(result.unstable(c))}" for c in ctrls),
              f"without a PI pair in the table: {len(result.without_gains())}",
              "reference model (PT1), exact delays",
@@ -149,10 +150,11 @@ _REASON_COLOURS = {"unstable": "#7f7f7f", "disk margin": "#f4a582", "overshoot":
                    "": "#4dac26"}
 
 
-def plot_solution_space(space: SolutionSpace, path, covers: str = "") -> Path:
+def plot_solution_space(space: SolutionSpace, path, covers: str = "", unit: str = "W") -> Path:
     """Feasibility classes and rise time over the (K_P, K_I) plane, search path on top
     (``covers``: the config and table, for the title). Markers that can coincide (table entry,
-    path result, grid optimum) differ in shape, colour and fill, the larger drawn first."""
+    path result, grid optimum) differ in shape, colour and fill, the larger drawn first;
+    ``unit``: the controlled quantity's (``W``, ``var``) in the gains' axes."""
     fig = Figure(figsize=(13, 5.5), layout="constrained")
     ax_f, ax_r = fig.subplots(1, 2, sharex=True, sharey=True)
     codes = np.zeros(space.reason.shape, int)
@@ -182,7 +184,7 @@ def plot_solution_space(space: SolutionSpace, path, covers: str = "") -> Path:
     for ax in (ax_f, ax_r):
         ax.set_xscale("log")
         ax.set_yscale("log")
-        ax.set_xlabel("K_P [1/W]")
+        ax.set_xlabel(f"K_P [1/{unit}]")
         if space.table_point is not None:
             ax.plot(*space.table_point, "*", ms=18, color="gold", mec="black", zorder=5,
                     label="table entry")
@@ -199,7 +201,7 @@ def plot_solution_space(space: SolutionSpace, path, covers: str = "") -> Path:
         if best is not None:
             ax.plot(best[0], best[1], "o", ms=13, mfc="none", mec="magenta", mew=2.0,
                     zorder=7, label=f"grid optimum ({best[2]:.3g} s)")
-    ax_f.set_ylabel("K_I [1/(W s)]")
+    ax_f.set_ylabel(f"K_I [1/({unit} s)]")
     handles, labels = ax_r.get_legend_handles_labels()
     if handles:
         ax_r.legend(handles, labels, loc="lower left", fontsize=8)

@@ -20,7 +20,8 @@ from pathlib import Path
 from adnmesh.errors import UsageError
 from adnmesh.files import check_writable
 
-__all__ = ["add_config_argument", "input_file", "output_path"]
+__all__ = ["add_config_argument", "add_quantity_argument", "input_file", "load_loop_config",
+           "output_path"]
 
 
 def add_config_argument(parser: argparse.ArgumentParser) -> None:
@@ -28,6 +29,26 @@ def add_config_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "config", metavar="CONFIG", help="configuration file (YAML), e.g. configs/simbench.yaml"
     )
+
+
+def add_quantity_argument(parser: argparse.ArgumentParser) -> None:
+    """Add ``--quantity p|q``: which loop a numeric command works on."""
+    parser.add_argument(
+        "--quantity", choices=("p", "q"), default="p",
+        help="the loop: p active power (default) or q reactive power (each DER's reactive "
+        "range as its C_d, its reactive dynamics; docs/method.md#reactive-power)")
+
+
+def load_loop_config(args: argparse.Namespace):
+    """The config of ``args.config`` for the loop ``args.quantity``: as written for P, its
+    reactive view for Q (:func:`adnmesh.reactive.reactive_view`)."""
+    from adnmesh.config import load_config
+
+    config = load_config(args.config)
+    if getattr(args, "quantity", "p") == "q":
+        from adnmesh.reactive import reactive_view
+        config = reactive_view(config)
+    return config
 
 
 def input_file(path: str | Path) -> Path:

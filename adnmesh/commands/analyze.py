@@ -28,7 +28,8 @@ from adnmesh.analysis.robustness import METRICS, analyze_robustness
 from adnmesh.analysis.solution_space import paper_path, solution_space
 from adnmesh.analysis.subset_loops import subset_name
 from adnmesh.analysis.uncertainty import MODELS, analyze_uncertainty
-from adnmesh.commands import add_config_argument, comma_list, der_id_list, output_path
+from adnmesh.commands import (add_config_argument, add_quantity_argument, comma_list,
+                              der_id_list, load_loop_config, output_path)
 from adnmesh.config import load_config
 from adnmesh.errors import ConfigError, UsageError
 from adnmesh.tuning.table import default_table_path, load_table
@@ -53,6 +54,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "table, options, an unwritable folder).",
     )
     add_config_argument(parser)
+    add_quantity_argument(parser)
     parser.add_argument("--table", metavar="PATH",
                         help="scheduling table (default: the one 'adnmesh tune CONFIG' writes)")
     parser.add_argument("--out", metavar="DIR",
@@ -92,12 +94,13 @@ def _parse_list(text: str, allowed, option: str) -> tuple[str, ...]:
 def default_out_dir(config) -> Path:
     """``out/analyze-<config stem>-<YYYYmmdd-HHMMSS>`` relative to the working directory."""
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
-    return Path("out") / f"analyze-{Path(config.path).stem}-{stamp}"
+    loop = "-q" if config.quantity == "Q" else ""
+    return Path("out") / f"analyze-{Path(config.path).stem}{loop}-{stamp}"
 
 
 def _covers(config, table) -> str:
     """What a figure covers, for its title: the config file and its table."""
-    name = Path(config.path).name
+    name = Path(config.path).name + (", Q loop" if config.quantity == "Q" else "")
     if table is None:
         return f"{name}, no table"
     return f"{name}, {table.method} table of {len(table.entries)} entries"
@@ -123,7 +126,7 @@ def _robustness(config, table, out: Path, outliers: bool, console: Console, err:
     header, rows = result.csv_rows()
     _write_csv(out / "robustness.csv", header, rows)
     plots.plot_robustness(result, out / "robustness.png", outliers=outliers,
-                          covers=_covers(config, table))
+                          covers=_covers(config, table), unit=config.unit)
     md = report.robustness_markdown(result)
     (out / "robustness.md").write_text(md)
     t = Table(title=f"Robustness and performance over {len(result.subsets)} subsets "
@@ -207,7 +210,8 @@ def _solution_space(config, table, ids, grid: int, out: Path, console: Console, 
         space = solution_space(config, ids, n=grid, path=path, table_point=point,
                                progress=lambda k: bar.advance(task, k))
     stem = "solution-space-" + "+".join(ids)
-    plots.plot_solution_space(space, out / f"{stem}.png", covers=_covers(config, table))
+    plots.plot_solution_space(space, out / f"{stem}.png", covers=_covers(config, table),
+                              unit=config.unit)
     rows = []
     for i, ki in enumerate(space.ki):
         for j, kp in enumerate(space.kp):
@@ -231,7 +235,8 @@ def _solution_space(config, table, ids, grid: int, out: Path, console: Console, 
     counts = ", ".join(f"{k} {v}" for k, v in space.counts().items())
     line = f"solution space {{{subset_name(ids)}}}: {grid}x{grid} points ({counts})"
     if best is not None:
-        line += f"; grid optimum K_P {best[0]:.4g} 1/W, K_I {best[1]:.4g} 1/(W s), " \
+        line += f"; grid optimum K_P {best[0]:.4g} 1/{config.unit}, K_I {best[1]:.4g} " \
+                f"1/({config.unit} s), " \
                 f"rise time {best[2]:.4g} s"
     console.print(line)
     if path is None:
@@ -331,7 +336,8 @@ def _index(config, table_path: Path, table, out: Path, parts: dict, times: dict,
                   f"- [{stem}.csv]({stem}.csv) — every grid point",
                   f"- [{stem}.json]({stem}.json) — grid extent, counts, search path", ""]
         if best is not None:
-            lines += [f"Grid optimum: K_P = {best[0]:.4g} 1/W, K_I = {best[1]:.4g} 1/(W s), "
+            lines += [f"Grid optimum: K_P = {best[0]:.4g} 1/{config.unit}, K_I = "
+                      f"{best[1]:.4g} 1/({config.unit} s), "
                       f"rise time {best[2]:.4g} s.", ""]
     if "der-models" in parts:
         lines += ["## DER models", "",
@@ -359,7 +365,10 @@ def run(args: argparse.Namespace) -> int:
     parts = tuple(p for p in parts if p != "der-models" or args.only)   # only on request
     if args.der_models and "der-models" not in parts:
         parts += ("der-models",)
-    config = load_config(args.config)
+    config = load_loop_config(args)
+    if config.quantity == "Q" and "der-models" in parts:
+        raise UsageError("--der-models shows the detailed models of active power; leave out "
+                         "--quantity q")
     ids = parse_subset(config, args.solution_space) if args.solution_space is not None else None
     if ids is None:
         if args.only and "solution-space" in parts:
@@ -369,8 +378,9 @@ def run(args: argparse.Namespace) -> int:
     table = None
     if any(p in _TABLE_PARTS for p in parts):
         if not table_path.exists():
+            option = " --quantity q" if config.quantity == "Q" else ""
             raise ConfigError(f"{table_path}: no scheduling table; run 'adnmesh tune "
-                              f"{args.config}' first (or give --table PATH)")
+                              f"{args.config}{option}' first (or give --table PATH)")
         table = load_table(table_path, config)
         if not table.entries:
             raise ConfigError(f"{table_path}: the table has no entries")

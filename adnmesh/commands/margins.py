@@ -6,8 +6,8 @@ import json
 
 from rich.console import Console
 
-from adnmesh.commands import add_config_argument, der_id_list
-from adnmesh.config import load_config
+from adnmesh.commands import (add_config_argument, add_quantity_argument, der_id_list,
+                              load_loop_config)
 from adnmesh.errors import UsageError
 from adnmesh.loopmodel.evaluation import evaluate
 from adnmesh.loopmodel.gains import gain_problem
@@ -28,6 +28,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "unstable loop too: it is a figure), 2 for a user error (config, gains, DER ids).",
     )
     add_config_argument(parser)
+    add_quantity_argument(parser)
     parser.add_argument("--kp", type=float, required=True, help="proportional gain, 1/W")
     parser.add_argument("--ki", type=float, required=True, help="integral gain, 1/(W s)")
     parser.add_argument("--ders", help="comma-separated DER ids (default: all DERs)")
@@ -85,7 +86,8 @@ def run(args: argparse.Namespace) -> int:
     problem = gain_problem(args.kp, args.ki)
     if problem is not None:
         raise UsageError(f"--kp/--ki: {problem}")
-    config = load_config(args.config)
+    config = load_loop_config(args)
+    unit = "var" if config.quantity == "Q" else "W"
     ids = parse_der_list(config, args.ders)
     problem = gain_problem(args.kp, args.ki, sum(d.p_inst_w for d in config.ders_by_id(ids)))
     if problem is not None:
@@ -95,8 +97,8 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(r, allow_nan=False))
         return 0
     out = Console(highlight=False, markup=False, soft_wrap=True)
-    out.print(f"loop of {len(ids)} DER(s): {', '.join(ids)}; K_P {args.kp:.4g} 1/W, "
-              f"K_I {args.ki:.4g} 1/(W s)")
+    out.print(f"{config.quantity} loop of {len(ids)} DER(s): {', '.join(ids)}; K_P "
+              f"{args.kp:.4g} 1/{unit}, K_I {args.ki:.4g} 1/({unit} s)")
     if not r["stable"]:
         poles = r["unstable_poles"]
         out.print("closed loop UNSTABLE" + (f" ({poles} poles in the right half-plane)"

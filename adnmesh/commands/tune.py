@@ -10,8 +10,7 @@ from pathlib import Path
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-from adnmesh.commands import add_config_argument, output_path
-from adnmesh.config import load_config
+from adnmesh.commands import add_config_argument, add_quantity_argument, load_loop_config, output_path
 from adnmesh.errors import UsageError
 from adnmesh.tuning.table import default_table_path
 #: shown in --help; equals adnmesh.tuning.subset_selection.MAX_ALL_DERS (not imported: the CLI stays light)
@@ -34,6 +33,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "unwritable output), 130 after Ctrl-C (the partial table is kept for --resume).",
     )
     add_config_argument(parser)
+    add_quantity_argument(parser)
     parser.add_argument("--method", choices=("paper", "global"), default="paper",
                         help="the paper's path/area search (default) or the global search")
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1,
@@ -64,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
     if args.overshoot_max_pct is not None and not 0 < args.overshoot_max_pct <= 100:
         raise UsageError(f"--overshoot-max-pct must be in (0, 100] (as the config's "
                          f"overshoot_max_pct), got {args.overshoot_max_pct:g}")
-    config = load_config(args.config)
+    config = load_loop_config(args)
     spec = args.subsets
     if spec is None:
         spec = "all" if len(config.ders) <= MAX_ALL_DERS else "scenario"
@@ -110,7 +110,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"  infeasible {','.join(e.ders)}: {e.reason}")
     if table.static is not None and table.static.feasible:
         s = table.static
-        print(f"static controller: K_P {s.kp:.4g} 1/W, K_I {s.ki:.4g} 1/(W s), worst rise time "
+        u = config.unit
+        print(f"static controller: K_P {s.kp:.4g} 1/{u}, K_I {s.ki:.4g} 1/({u} s), worst rise time "
               f"{s.figures['worst_rise_time_s']:.3g} s ({','.join(s.figures['worst_rise_time_subset'])})")
         if "verified_random_subsets" in s.figures:
             n = s.figures["verified_random_subsets"]

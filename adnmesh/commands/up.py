@@ -259,7 +259,8 @@ def _static(config: Config, subsets, log):
     if not entry.feasible:
         log(f"no static controller: {entry.reason}")
         return None
-    log(f"static controller: K_P {entry.kp:.4g} 1/W, K_I {entry.ki:.4g} 1/(W s), verified on "
+    u = config.unit
+    log(f"static controller: K_P {entry.kp:.4g} 1/{u}, K_I {entry.ki:.4g} 1/({u} s), verified on "
         f"{entry.figures.get('verified_random_subsets', 0)} random subsets "
         f"({time.perf_counter() - t0:.1f} s)")
     return entry
