@@ -30,13 +30,13 @@ from adnmesh.analysis.subset_loops import subset_name
 from adnmesh.analysis.uncertainty import MODELS, analyze_uncertainty
 from adnmesh.commands import (add_config_argument, add_quantity_argument, comma_list,
                               der_id_list, load_loop_config, output_path)
-from adnmesh.config import load_config
+import numpy as np
 from adnmesh.errors import ConfigError, UsageError
 from adnmesh.tuning.table import default_table_path, load_table
 
 __all__ = ["add_parser", "run", "PARTS", "parse_subset", "default_out_dir"]
 
-PARTS = ("robustness", "uncertainty", "solution-space", "der-models")
+PARTS = ("robustness", "uncertainty", "solution-space", "der-models", "coupling")
 _TABLE_PARTS = ("robustness", "uncertainty", "solution-space")
 
 
@@ -66,6 +66,11 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--der-models", action="store_true",
                         help="also draw the detailed DER models' step responses beside the "
                         "reference PT1, with their rise times (der-models.png, .csv, .json)")
+    parser.add_argument("--coupling", action="store_true",
+                        help="reactive power control: the P and Q loops together, the coupled "
+                        "2x2 loop on the power flow linearised at the DERs' schedules, exact "
+                        "delays (coupling.md, .png, .json; both tables, tuned on demand where "
+                        "they lack the set of all DERs)")
     parser.add_argument("--grid", type=int, default=60, metavar="N",
                         help="solution-space grid points per axis (default 60)")
     parser.add_argument("--models", default=",".join(MODELS), metavar="LIST",
@@ -283,6 +288,78 @@ def _der_models(config, out: Path, console: Console) -> str:
     return "\n".join(lines)
 
 
+def _entry_of_all(config, table):
+    """The entry of the set of all DERs of ``config``: the table's, else tuned now."""
+    from adnmesh.tuning import tune_subset
+
+    ids = list(config.der_ids())
+    entry = None if table is None else table.lookup(ids)
+    if entry is None or not entry.feasible:
+        entry = tune_subset(config, ids)
+    if not entry.feasible:
+        raise ConfigError(f"{config.path}: no PI pair meets the constraints for the "
+                          f"{config.quantity} loop of all DERs ({entry.reason})")
+    return entry
+
+
+def _coupling(config, table, out: Path, console: Console) -> str:
+    """The coupled P-Q loop (:mod:`adnmesh.analysis.coupling`): coupling.md, .png, .json."""
+    from adnmesh.analysis.coupling import coupled_loop, loop_side
+    from adnmesh.analysis.plots import plot_coupling
+    from adnmesh.control.operating_point import grid_label, grid_solver
+    from adnmesh.grid.sensitivity import interface_sensitivities
+    from adnmesh.reactive import reactive_view
+
+    view = reactive_view(config)
+    q_path = default_table_path(view)
+    q_table = load_table(q_path, view) if q_path.exists() else None
+    p_entry, q_entry = _entry_of_all(config, table), _entry_of_all(view, q_table)
+    solver = grid_solver(config)
+    if solver is None:
+        grid = "no grid model: P_IP and Q_IP are the sums of the infeeds"
+        rows = np.array([[1.0, 0.0, 0.0, 1.0]] * len(config.ders)).T
+    else:
+        grid = f"{grid_label(config)}, linearised at the DERs' schedules"
+        rows = interface_sensitivities(solver, [d.p_sched_w for d in config.ders],
+                                       [d.q_sched_var for d in config.ders])
+    sens = {d.id: rows[:, i] for i, d in enumerate(config.ders)}
+    result = coupled_loop(loop_side(config, p_entry), loop_side(view, q_entry), sens,
+                          config.design_t_com_s, config.t_meas_s)
+    plot_coupling(result, out / "coupling.png", covers=f"{Path(config.path).name}; {grid}")
+    doc = {"config": str(config.path), "grid": grid, "mu": result.mu,
+           "mu_omega_rad_s": result.mu_omega, "stable": result.stable,
+           "p_loop": {"kp": p_entry.kp, "ki": p_entry.ki, "stable": result.p_stable,
+                      "disk_margin_with_grid": result.p_disk_margin},
+           "q_loop": {"kp": q_entry.kp, "ki": q_entry.ki, "stable": result.q_stable,
+                      "disk_margin_with_grid": result.q_disk_margin},
+           "q_into_p_max_w_per_var": float(result.q_into_p.max()),
+           "p_into_q_max_var_per_w": float(result.p_into_q.max()),
+           "sensitivities": {d: dict(zip(("dp_ip_dp", "dp_ip_dq", "dq_ip_dp", "dq_ip_dq"),
+                                         map(float, v))) for d, v in sens.items()}}
+    (out / "coupling.json").write_text(json.dumps(doc, indent=1, allow_nan=False))
+    verdict = ("stable: both loops stable with the grid's gains and max |M| < 1"
+               if result.stable else "NOT shown stable: " + (
+                   "max |M| >= 1 (the small-gain bound does not hold)"
+                   if result.p_stable and result.q_stable else "a loop is unstable alone"))
+    text = "\n".join([
+        f"Grid: {grid}.", "",
+        "| | P loop | Q loop |", "|---|---:|---:|",
+        f"| K_P, K_I | {p_entry.kp:.4g} 1/W, {p_entry.ki:.4g} 1/(W s) | {q_entry.kp:.4g} "
+        f"1/var, {q_entry.ki:.4g} 1/(var s) |",
+        f"| stable with the grid's gains | {'yes' if result.p_stable else 'NO'} | "
+        f"{'yes' if result.q_stable else 'NO'} |",
+        f"| disk margin with the grid's gains | {result.p_disk_margin:.4g} | "
+        f"{result.q_disk_margin:.4g} |", "",
+        f"Coupling: max |M(jω)| = {result.mu:.3g} at {result.mu_omega:.3g} rad/s; {verdict}.",
+        f"Largest |Q_ref → P_IP| {result.q_into_p.max():.3g} W/var, |P_ref → Q_IP| "
+        f"{result.p_into_q.max():.3g} var/W (the other loop open)."])
+    console.print(f"coupling: max |M| {result.mu:.3g} at {result.mu_omega:.3g} rad/s; "
+                  f"{verdict}; disk margins with the grid's gains: P {result.p_disk_margin:.4g}, "
+                  f"Q {result.q_disk_margin:.4g}")
+    (out / "coupling.md").write_text(text + "\n")
+    return text
+
+
 def _der_handover(config, out: Path) -> None:
     """The re-entry transient of the detailed models, open loop (der-handover.png;
     docs/method.md#returning-ders-handover)."""
@@ -352,6 +429,15 @@ def _index(config, table_path: Path, table, out: Path, parts: dict, times: dict,
                   "- [der-models.csv](der-models.csv) — rise and reaction time per DER and step",
                   "- [der-models.json](der-models.json) — the same with every model parameter",
                   "", parts["der-models"], ""]
+    if "coupling" in parts:
+        lines += ["## P and Q together", "",
+                  "The coupled 2×2 loop on the linearised grid, exact delays "
+                  "(docs/method.md#coupling-of-p-and-q): M(jω) is the part of det(I + L) the "
+                  "coupling adds; with both loops stable alone, max |M| < 1 proves the coupled "
+                  "loop stable.", "", "![coupling](coupling.png)", "",
+                  "- [coupling.png](coupling.png) — |M(jω)| and the cross transfers",
+                  "- [coupling.json](coupling.json) — figures and the grid's sensitivities", "",
+                  parts["coupling"], ""]
     return "\n".join(lines)
 
 
@@ -362,13 +448,16 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--grid must be between 5 and 400, got {args.grid}")
     models = _parse_list(args.models, MODELS, "--models")
     parts = _parse_list(args.only, PARTS, "--only") if args.only else PARTS
-    parts = tuple(p for p in parts if p != "der-models" or args.only)   # only on request
-    if args.der_models and "der-models" not in parts:
-        parts += ("der-models",)
+    parts = tuple(p for p in parts if p not in ("der-models", "coupling") or args.only)
+    for flag, part in ((args.der_models, "der-models"), (args.coupling, "coupling")):
+        if flag and part not in parts:       # these two only on request
+            parts += (part,)
     config = load_loop_config(args)
-    if config.quantity == "Q" and "der-models" in parts:
-        raise UsageError("--der-models shows the detailed models of active power; leave out "
-                         "--quantity q")
+    if config.quantity == "Q" and ("der-models" in parts or "coupling" in parts):
+        raise UsageError("--der-models and --coupling are of the config as written (the "
+                         "coupling analysis takes both loops); leave out --quantity q")
+    if "coupling" in parts and config.reactive is None:
+        raise UsageError(f"--coupling: {args.config} has no reactive section (no Q loop)")
     ids = parse_subset(config, args.solution_space) if args.solution_space is not None else None
     if ids is None:
         if args.only and "solution-space" in parts:
@@ -414,6 +503,10 @@ def run(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         done["der-models"] = _der_models(config, out, console)
         times["DER models"] = time.perf_counter() - t0
+    if "coupling" in parts:
+        t0 = time.perf_counter()
+        done["coupling"] = _coupling(config, table, out, console)
+        times["coupling"] = time.perf_counter() - t0
     total = time.perf_counter() - t_start
     index = _index(config, table_path, table, out, done, times, total, args.outliers)
     (out / "index.md").write_text(index)
