@@ -206,10 +206,16 @@ def load_table(path: str | Path, config=None) -> SchedulingTable:
         raise ConfigError(f"{path}: not a valid adnmesh table: {exc}") from None
     table = SchedulingTable.from_json(obj)
     if config is not None and table.design is not None:
-        difference = first_difference(table.design, design_document(config))
+        wanted = design_document(config)
+        option = " --quantity q" if wanted.get("quantity") == "Q" else ""
+        if table.design.get("quantity") != wanted.get("quantity"):
+            raise ConfigError(f"{path}: a table of the {'Q' if option == '' else 'P'} loop, "
+                              f"not of the {'P' if option == '' else 'Q'} loop; tune that with "
+                              f"'adnmesh tune {config.path}{option}'")
+        difference = first_difference(table.design, wanted)
         if difference is not None:
             raise ConfigError(f"{path}: table was tuned for another design ({difference}); "
-                              f"retune with 'adnmesh tune {config.path}'")
+                              f"retune with 'adnmesh tune {config.path}{option}'")
     elif config is not None and table.config_sha256 != config.sha256:
         raise ConfigError(f"{path}: table was tuned for another config "
                           f"(sha256 {table.config_sha256[:12]}, config has {config.sha256[:12]}; "
