@@ -8,6 +8,7 @@ import math
 from pathlib import Path
 
 import control as ct
+import msgspec
 import numpy as np
 import pytest
 import yaml
@@ -412,3 +413,60 @@ def test_grid_sensitivities_agree_with_pandapower_runpp(tmp_path):
             want = [(hi[0] - lo[0]) / 2e4, (hi[1] - lo[1]) / 2e4]
             assert rows[column, i] == pytest.approx(want[0], abs=2e-4)
             assert rows[2 + column, i] == pytest.approx(want[1], abs=2e-4)
+
+
+def test_a_fault_on_the_q_path_leaves_no_wind_up(tmp_path):
+    """SGen1 cut off from the ICT (both ways) for 3 s right after a Q_ref step: the Q loop
+    switches to the gains of the DERs left when SI drops SGen1 and back when it returns, as
+    the P loop does, and Q_IP settles on Q_ref without an overshoot from a wound-up
+    integrator."""
+    config = _config(tmp_path, runtime={"faults": [{"kind": "der_offline", "der": "SGen1",
+                                                    "t_s": 20.5, "duration_s": 3.0}]},
+                     scenario={"duration_s": 40, "p_ref_steps": [],
+                               "q_ref_steps": [{"t_s": 20, "delta_var": 0.4e6}]})
+    run = run_local(config, GainSchedule(config, None))
+    switches: dict[str, list] = {}
+    for key, payload in run.messages:
+        message = decode(key, payload)
+        if message.type in ("p_y", "q_y") and message.switch is not msgspec.UNSET:
+            switches.setdefault(message.type, []).append(
+                (round(message.t_send_ns / 1e9, 2), sorted(message.w)))
+    assert switches["q_y"] == switches["p_y"]
+    assert [ders for _, ders in switches["q_y"]] == [["SGen2", "SGen5"],
+                                                      ["SGen1", "SGen2", "SGen5"]]
+    assert 22.0 < switches["q_y"][0][0] < 23.5 < switches["q_y"][1][0] < 25.0
+    series = _series(run)
+    t = np.asarray(series.q_ip_t_ns) / 1e9
+    q = np.asarray(series.q_ip_var)
+    q_ref = series.q_ref_var[-1]
+    after = t > 30.0
+    assert np.max(np.abs(q[after] - q_ref)) < 0.01 * 0.4e6          # settled on Q_ref
+    assert np.max(q[t > 23.5]) < q_ref + 0.05 * 0.4e6                 # no wound-up overshoot
+
+
+def test_up_runs_both_loops_as_the_in_process_run_does(tmp_path, capsys):
+    """The distributed runtime (``adnmesh up``: a process per agent, Zenoh) records the same
+    messages as the in-process run, Q loop included, and its summary has the Q figures."""
+    import up_runs
+    from adnmesh.cli import main
+
+    config_path, table = up_runs.write_case(
+        tmp_path, "pq", reactive={"priority": "q"},
+        scenario={"duration_s": 6, "p_ref_steps": [{"t_s": 1, "delta_w": 0.5e6}],
+                  "q_ref_steps": [{"t_s": 3, "delta_var": -0.3e6}], "availability": []})
+    q_table = tmp_path / "q.json"
+    assert main(["tune", str(config_path), "--quantity", "q", "--out", str(q_table),
+                 "--workers", "1"]) == 0
+    capsys.readouterr()
+    _, recording, summary = up_runs.run_up(tmp_path, config_path, table, "pq",
+                                           "--q-table", str(q_table))
+    config = load_config(config_path)
+    from adnmesh.tuning.table import load_table
+    local = run_local(config, GainSchedule(config, load_table(table, config)),
+                      q_schedule=GainSchedule(reactive_view(config),
+                                              load_table(q_table, reactive_view(config))))
+    assert up_runs.data_messages(recording) == sorted(
+        local.messages, key=lambda m: (decode(*m).t_deliver_ns, m[0], decode(*m).seq))
+    (q_step,) = summary["q_steps"]
+    assert q_step["step_w"] == -0.3e6 and q_step["figures"]["overshoot_pct"] < 1.0
+    assert summary["coupling"]["q_deviation_in_p_steps_var"] == 0.0   # no grid: decoupled

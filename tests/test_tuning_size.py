@@ -142,7 +142,6 @@ def test_the_table_up_tunes_for_itself_has_a_static_pair(configs_dir: Path, tmp_
     # up without a table tunes the scenario's subsets and, now, the static controller the
     # CPFC falls back to for a subset the table lacks; checked on every subset on the exact
     # loop by the independent evaluation
-    import argparse
     from adnmesh.commands import up
     from adnmesh.loopmodel.evaluation import evaluate
     from adnmesh.loopmodel.plant import plant_from_ders
@@ -152,8 +151,7 @@ def test_the_table_up_tunes_for_itself_has_a_static_pair(configs_dir: Path, tmp_
     config = load_config(configs_dir / "examples" / "mixed-4.yaml")
     said: list[str] = []
     monkeypatch.setenv("ADNMESH_CACHE_DIR", str(tmp_path))   # no table kept: up tunes its own
-    args = argparse.Namespace(table=None)
-    path = up._table(args, config, tmp_path, "run", said.append)
+    path = up._table(None, config, tmp_path, "run", said.append)
     static = load_table(path, config).static
     assert static is not None and static.feasible
     assert any(line.startswith("static controller: K_P") for line in said), said

@@ -55,7 +55,8 @@ def run(args: argparse.Namespace) -> int:
         grid = _grid(found.recording, run_data)
         layout = foxglove_layout(grid, run_data.der_ids,
                                  grid_model=run_data.one("grid_v_min") is not None,
-                                 events_topic=found.recording.run.get("events_topic") or None)
+                                 events_topic=found.recording.run.get("events_topic") or None,
+                                 reactive=run_data.one("q_ref") is not None)
         args.foxglove_layout.parent.mkdir(parents=True, exist_ok=True)
         args.foxglove_layout.write_text(layout_json(layout), encoding="utf-8")
         print(f"{args.foxglove_layout}: Foxglove layout for grid {grid} and "

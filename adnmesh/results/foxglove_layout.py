@@ -88,10 +88,11 @@ def _split(direction: str, first, second, percentage: float = 50.0) -> dict:
 
 
 def foxglove_layout(grid: str, der_ids: Iterable[str], *, grid_model: bool = True,
-                    events_topic: str | None = None) -> dict:
+                    events_topic: str | None = None, reactive: bool = False) -> dict:
     """The Foxglove layout of a run on grid ``grid`` with DERs ``der_ids`` (see the module
     doc); ``grid_model``: with the grid's extremes; ``events_topic``: the run's ``foxglove.Log``
-    topic (default ``adn/<grid>/log``, as ``adnmesh up`` records it)."""
+    topic (default ``adn/<grid>/log``, as ``adnmesh up`` records it); ``reactive``: with the
+    Q loop (Q_IP and Q_ref beside P_IP, Q_Y beside P_Y)."""
     keys = Keys(grid)
     ders = sorted(set(der_ids), key=natural_key)
     colors = der_colors(ders)
@@ -106,6 +107,13 @@ def foxglove_layout(grid: str, der_ids: Iterable[str], *, grid_model: bool = Tru
         "Plot!ders": _plot("DER infeed [W]", [
             _line(keys, "der_state", "der_infeed", der, colors[der]) for der in ders]),
     }
+    top, outputs = "Plot!p_ip", "Plot!p_y"
+    if reactive:
+        config["Plot!q_ip"] = _plot("Q_IP and Q_ref [var]", [_line(keys, "q_ref", "q_ref"),
+                                                             _line(keys, "p_ip", "q_ip")])
+        config["Plot!q_y"] = _plot("Q_Y [p.u. of w·C^Q]", [_line(keys, "q_y", "q_y")])
+        top = _split("column", "Plot!p_ip", "Plot!q_ip", 60.0)
+        outputs = _split("column", "Plot!p_y", "Plot!q_y", 50.0)
     ders_and_grid: object = "Plot!ders"
     if grid_model:
         config["Plot!voltages"] = _plot("grid: bus voltage extremes [p.u.]", [
@@ -116,8 +124,8 @@ def foxglove_layout(grid: str, der_ids: Iterable[str], *, grid_model: bool = Tru
         ders_and_grid = _split("row", "Plot!ders",
                                _split("column", "Plot!voltages", "Plot!loadings"), 55.0)
     layout = _split("column",
-                    _split("row", "Plot!p_ip", "RosOut!events", 62.0),
-                    _split("column", _split("row", "Plot!p_y", "Plot!gains"), ders_and_grid,
+                    _split("row", top, "RosOut!events", 62.0),
+                    _split("column", _split("row", outputs, "Plot!gains"), ders_and_grid,
                            40.0),
                     38.0)
     return {"configById": config, "globalVariables": {}, "userNodes": {},

@@ -259,12 +259,16 @@ def _loading_panel(ax, run: RunData, t_end: float, limits) -> None:
 
 
 def _q_ip_panel(ax, run: RunData, t_end: float) -> None:
-    """The reactive power at the IP (Mvar, MV -> HV positive) at the end of each report
-    period."""
+    """The reactive power at the IP (Mvar, MV -> HV positive) and, with reactive power
+    control, its reference Q_ref."""
     _shade(ax, run, t_end, labels=False)
-    q_ip = run.one("q_ip")
+    q_ip, q_ref = run.one("q_ip"), run.one("q_ref")
+    if q_ref is not None:
+        _step(ax, run, q_ref, t_end, color="black", ls="--", lw=1.2, label=q_ref.label)
     if q_ip.t_ns.size:
         _step(ax, run, q_ip, t_end, color="tab:pink", lw=1.1, label=q_ip.label)
+    if q_ref is not None:
+        _legend(ax, ncols=2)
     ax.set_ylabel(f"Q_IP [{q_ip.display_unit}]")
 
 
