@@ -26,6 +26,8 @@ def message(key: str, t_ns: int, body: dict, *, src: str | None = None, seq: int
 BODIES = {
     "p_y": {"p_y": 0.25, "p_ref_w": 1e6, "kp": 5e-8, "ki": 2e-7, "entry": 1},
     "p_ref": {"p_ref_w": -2.5e6},
+    "q_y": {"q_y": -0.25, "q_ref_var": 1e5, "kp": 5e-8, "ki": 2e-7, "entry": 1},
+    "q_ref": {"q_ref_var": 2.5e5},
     "der_state": {"p_w": 1e5, "setpoint_w": 2e5, "mode": "control"},
     "heartbeat": {"available": True, "mode": "control", "p_y": 0.1, "entry": 0},
     "p_ip": {"p_ip_w": 3.5e6},

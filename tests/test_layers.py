@@ -21,7 +21,7 @@ import pytest
 PACKAGE = Path(__file__).resolve().parent.parent / "adnmesh"
 
 LAYERS = (
-    ("__init__", "config", "errors", "names", "files"),
+    ("__init__", "config", "errors", "names", "files", "reactive"),
     ("loopmodel", "grid", "dermodels"),
     ("tuning", "analysis", "adn"),
     ("wire",),

@@ -470,3 +470,69 @@ def test_up_runs_both_loops_as_the_in_process_run_does(tmp_path, capsys):
     (q_step,) = summary["q_steps"]
     assert q_step["step_w"] == -0.3e6 and q_step["figures"]["overshoot_pct"] < 1.0
     assert summary["coupling"]["q_deviation_in_p_steps_var"] == 0.0   # no grid: decoupled
+
+
+def test_junk_on_every_key_of_a_reactive_run_is_rejected_and_counted(tmp_path):
+    """The junk of the bad-input test (tests/test_runtime_faults.py) on every key an agent of
+    a run with both loops receives (cpfc/q_y included): each piece rejected and counted at the
+    gate, no agent ever sees one."""
+    from adnmesh.control.registry import build_agent
+    from adnmesh.sim.node import Node
+    from adnmesh.sim.topology import Topology
+    from adnmesh.wire.keys import route
+    from test_runtime_faults import junk_payloads
+
+    config = _config(tmp_path)
+    topology = Topology.from_config(config)
+    assert Keys(config.grid).of("q_y") in topology.subscriptions["der/SGen1"]
+    for agent, keys in topology.subscriptions.items():
+        node = Node(build_agent(agent, config, GainSchedule(config, None)), topology, 0)
+        before = node.agent.stats()
+        fed = 0
+        for key in keys:
+            sender = route(key).sender
+            impostor = "der/SGen2" if sender != "der/SGen2" else "der/SGen1"
+            for payload in junk_payloads(key, sender, impostor, 200):
+                node.receive(key, payload)
+                fed += 1
+        assert node.counts.rejected_total == fed
+        assert node.agent.stats() == before
+    plain = _config(tmp_path, "plain", reactive=None)
+    assert Keys(plain.grid).of("q_y") not in Topology.from_config(plain).subscriptions[
+        "der/SGen1"]
+
+
+def test_a_q_step_beyond_the_range_holds_the_q_integrator(tmp_path):
+    """+3 Mvar asked of the two WTs (the CHP has no reactive range here) at 1.99 MW of their
+    2 MVA: their apparent power holds Q at 0.2 Mvar each, far below the 0.66 Mvar of their
+    range, which the CPFC's output limit knows nothing of. They say so (``q_held``), the Q
+    integrator freezes, and the step back finds Q_IP leaving its limit within 2 s. (Without the
+    freeze Q_Y winds up to the output limit, 0.498, and Q_IP is still at its limit 2 s after
+    the step back.)"""
+    document = yaml.safe_load(_config(tmp_path, "base").path.read_text())
+    ders = document["ders"]
+    for der in ders[:2]:
+        der["p_sched_w"] = 1.99e6
+    ders[2]["q_capability"] = "unity"
+    config = _config(tmp_path, ders=ders,
+                     scenario={"duration_s": 30, "p_ref_steps": [],
+                               "q_ref_steps": [{"t_s": 2, "delta_var": 3e6},
+                                               {"t_s": 15, "delta_var": -3e6}]})
+    run = run_local(config, GainSchedule(config, None))
+    held, q_ys = [], []
+    for key, payload in run.messages:
+        message = decode(key, payload)
+        if message.type == "p_ip" and message.q_held is not msgspec.UNSET:
+            held.append((message.t_send_ns / 1e9, message.q_held))
+        elif message.type == "q_y":
+            q_ys.append((message.t_send_ns / 1e9, message.q_y))
+    assert held and all(h == "up" for _, h in held) and 2 < held[0][0] < 4
+    t, y = np.array(q_ys).T
+    # frozen: Q_Y stays where the DERs saturated, far below the output limit (0.498)
+    frozen = y[(t > 10) & (t < 15)]
+    assert np.ptp(frozen) < 1e-3 and frozen.max() < 0.4
+    series = _series(run)
+    t_q, q = np.asarray(series.q_ip_t_ns) / 1e9, np.asarray(series.q_ip_var)
+    top = q[(t_q > 10) & (t_q < 15)].max()
+    assert q[np.searchsorted(t_q, 17.0)] < top - 0.1e6          # moving back within 2 s
+    assert abs(q[-1] - series.q_ref_var[-1]) < 2e3

@@ -4,7 +4,6 @@ working directory; ``up`` keeps the table it tunes for itself and finds it again
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 
@@ -111,26 +110,25 @@ def test_the_default_table_is_next_to_the_config(tmp_path: Path, monkeypatch) ->
 def test_up_keeps_the_table_it_tuned_and_finds_it_again(tmp_path: Path, monkeypatch) -> None:
     monkeypatch.setenv("ADNMESH_CACHE_DIR", str(tmp_path / "cache"))
     said: list[str] = []
-    args = argparse.Namespace(table=None)
     config = load_config(_variant(tmp_path, "kept"))
-    first = up._table(args, config, tmp_path, "run1", said.append)
+    first = up._table(None, config, tmp_path, "run1", said.append)
     assert first.parent == tmp_path / "cache" / "tables" and "tuning the 2 subset" in said[0]
     said.clear()
     # the scenario's steps and a comment change, not its subsets: the same table, not tuned
     moved = load_config(_variant(tmp_path, "kept", lambda d: d["scenario"]["p_ref_steps"][0]
                                  .update(delta_w=5e5), comment="# moved step\n"))
-    assert up._table(args, moved, tmp_path, "run2", said.append) == first
+    assert up._table(None, moved, tmp_path, "run2", said.append) == first
     assert said == [f"gain table {first}: tuned by an earlier run for this design and scenario"]
     # another subset in the scenario: tuned again, kept apart
     said.clear()
     more = load_config(_variant(tmp_path, "kept", lambda d: d["scenario"]["availability"]
                                 .__setitem__(0, {"t_s": 20, "available": False,
                                                  "ders": ["SGen1"]})))
-    other = up._table(args, more, tmp_path, "run3", said.append)
+    other = up._table(None, more, tmp_path, "run3", said.append)
     assert other != first and other.exists() and "tuning the 2 subset" in said[0]
     # a damaged kept table is said and tuned again, never used
     first.write_text("{")
     said.clear()
-    assert up._table(args, moved, tmp_path, "run4", said.append) == first
-    assert said[0].startswith("not using the tuned table an earlier run kept: ")
+    assert up._table(None, moved, tmp_path, "run4", said.append) == first
+    assert said[0].startswith("not using the tuned gain table an earlier run kept: ")
     assert load_table(first, moved).lookup(["SGen1", "SGen2"]) is not None

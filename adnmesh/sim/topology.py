@@ -100,7 +100,8 @@ class Topology:
         der_ids = [d.id for d in config.ders]
         agents = agent_ids(der_ids)
         params = _link_params(config)
-        routes = tuple(_routes(keys, agents, der_ids))
+        features = {name for name in ("reactive",) if getattr(config, name) is not None}
+        routes = tuple(_routes(keys, agents, der_ids, features))
         links: dict[tuple[str, str], LinkParams] = {}
         receivers: dict[str, tuple[str, ...]] = {}
         for r in routes:
@@ -167,10 +168,13 @@ def _link_params(config: Config) -> dict[str, LinkParams]:
     return params
 
 
-def _routes(keys: Keys, agents: tuple[str, ...], der_ids: list[str]):
-    """The routes of every row of the protocol table for this run's parties."""
+def _routes(keys: Keys, agents: tuple[str, ...], der_ids: list[str], features=frozenset()):
+    """The routes of every row of the protocol table for this run's parties (of a row that
+    needs a config section, ``feature``, only if the run has it)."""
     ders = tuple(der_agent_id(d) for d in der_ids)
     for row in PROTOCOL:
+        if row.feature is not None and row.feature not in features:
+            continue
         if row.sender == PER_DER_KIND:
             senders = [(der_agent_id(d), d) for d in der_ids]
         elif row.sender == "{agent}":

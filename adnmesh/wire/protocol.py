@@ -126,6 +126,9 @@ class MessageKind:
         Part of the sim-clock protocol, spoken by the agent process, not by the agent.
     quiet : bool
         Tools keep none of its numbers as series of their own (clock traffic, heartbeats).
+    feature : str or None
+        The config section a run needs for this kind to exist at all (``reactive``: the Q
+        loop's messages); a run without it neither routes nor allows the kind.
     """
 
     name: str
@@ -137,6 +140,7 @@ class MessageKind:
     series: tuple[SeriesField, ...] = ()
     clock: bool = False
     quiet: bool = False
+    feature: str | None = None
     type: str = field(init=False)
     placeholder: str | None = field(init=False)
 
@@ -179,9 +183,9 @@ PROTOCOL: tuple[MessageKind, ...] = (
         _S("q_y", "Q_Y", "q_y", unit="1"),
         _S("kp", "K_P of Q", "q_kp", unit="1/var", step=True),
         _S("ki", "K_I of Q", "q_ki", unit="1/(var s)", step=True),
-        _S("entry", "Q table entry", "q_entry", unit="1", step=True))),
+        _S("entry", "Q table entry", "q_entry", unit="1", step=True)), feature="reactive"),
     MessageKind("q_ref", "scenario/q_ref", m.QRef, "cpfc", (), "local", (
-        _S("q_ref_var", "Q_ref", "q_ref", unit="var", step=True),)),
+        _S("q_ref_var", "Q_ref", "q_ref", unit="var", step=True),), feature="reactive"),
     MessageKind("der_state", "der/{der}/state", m.DERState, "der", ("measurement",), "physical", (
         _S("p_w", "{der} infeed", "der_infeed"),
         _S("setpoint_w", "{der} setpoint", "der_setpoint", step=True),
