@@ -275,6 +275,8 @@ def test_p_and_q_steps_are_compensated_together_with_the_coupling_in_the_summary
         assert f.overshoot_pct < 1.0 and f.settling_time_s < 10.0
         assert abs(step.steady_error_w) < 1e-3 * abs(step.step_w)
     assert q_step.figures.rise_time_s < 2.0
+    (check,) = summary.q_design_checks            # what the Q entry was certified for
+    assert check.figures and not check.over and check.ders == ("SGen1", "SGen2", "SGen5")
     c = summary.coupling
     assert 0 < c.p_deviation_in_q_steps_w < 0.05 * 0.4e6
     assert 0 < c.q_deviation_in_p_steps_var < 0.2 * 0.5e6

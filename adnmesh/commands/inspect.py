@@ -135,8 +135,9 @@ class _SummaryMessages:
             return None
         if kind == "p_ip":
             return _Fields(("t_send_ns", "p_ip_w", "q_ip_var"), self._p_ip)
-        if kind == "p_y":
-            return _Fields(("switch", "design"), self._p_y)
+        if kind in ("p_y", "q_y"):
+            return _Fields(("switch", "design"), lambda batch, columns: self._y(kind, batch,
+                                                                               columns))
         return lambda batch: self._keep(kind, batch, range(len(batch)))
 
     def _p_ip(self, batch, columns) -> None:
@@ -150,10 +151,10 @@ class _SummaryMessages:
                           np.asarray([q[i] if isinstance(q[i], int | float) else np.nan
                                       for i in rows], dtype=np.float64)))
 
-    def _p_y(self, batch, columns) -> None:
+    def _y(self, kind: str, batch, columns) -> None:
         switch, design = columns.columns["switch"], columns.columns["design"]
-        self._keep("p_y", batch, [i for i, (s, d) in enumerate(zip(switch, design))
-                                  if isinstance(s, dict) or isinstance(d, dict)])
+        self._keep(kind, batch, [i for i, (s, d) in enumerate(zip(switch, design))
+                                 if isinstance(s, dict) or isinstance(d, dict)])
 
     def _keep(self, kind: str, batch, rows) -> None:
         payloads = batch.payloads
@@ -214,7 +215,9 @@ def _print_figures(console: Console, run_data: RunData, figures: RunFigures, sum
         console.print(line)
     if summary.coupling is not None:
         console.print(step_table(summary.q_steps, figures.band_pct, "Q_IP after each Q_ref step",
-                                 unit="var"))
+                                 summary.q_design_checks, unit="var"))
+        for line in design_lines(summary.q_design_checks, unit="var"):
+            console.print(line)
         console.print(coupling_line(summary.coupling))
     for line in scenario_lines(summary.scenario_steps):
         console.print(line)
@@ -386,7 +389,8 @@ def _json_report(path: Path, recording: ScannedRecording, run_data: RunData,
                     "fault_figures": summary_json["faults"], "grid": summary_json["grid"],
                     "scenario_steps": summary_json["scenario_steps"],
                     "design_checks": summary_json["design_checks"],
-                    "q_steps": summary_json["q_steps"], "coupling": summary_json["coupling"]},
+                    "q_steps": summary_json["q_steps"], "coupling": summary_json["coupling"],
+                    "q_design_checks": summary_json["q_design_checks"]},
         "events": [{"t_s": seconds(e.t_ns), "kind": e.kind, "level": e.level, "text": e.text,
                     "topic": e.topic} for e in _shown_events(run_data)],
         "schema_check": None if problems is None else [str(p) for p in problems],

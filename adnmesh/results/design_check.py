@@ -114,8 +114,9 @@ def _figures(step, design: dict) -> tuple[FigureCheck, ...]:
     return tuple(checks)
 
 
-def design_lines(checks) -> list[str]:
-    """One line per step over its design, with the design figures beside the measured ones."""
+def design_lines(checks, unit: str = "W") -> list[str]:
+    """One line per step over its design, with the design figures beside the measured ones
+    (``unit``: the step's, ``W`` or ``var``)."""
     lines = []
     for check in checks:
         if not check.over:
@@ -134,7 +135,7 @@ def design_lines(checks) -> list[str]:
                 parts.append(f"{f.name} {f.measured:.3f} s against {f.design:.3f} s designed "
                              f"({100 * (f.measured / f.design - 1):+.0f} %, more than "
                              f"+{100 * FIGURE_TOLERANCE:g} %)")
-        lines.append(f"  step at {check.t_s:g} s ({check.step_w / 1e6:+.3f} MW) OVER THE "
+        lines.append(f"  step at {check.t_s:g} s ({check.step_w / 1e6:+.3f} M{unit}) OVER THE "
                      f"DESIGN of entry {check.entry}{_ders(check.ders)}: " + "; ".join(parts))
     return lines
 

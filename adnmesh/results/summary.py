@@ -72,8 +72,8 @@ __all__ = [
     "summarize",
 ]
 
-SUMMARY_TYPES = frozenset({"p_ip", "p_ref", "q_ref", "p_y", "heartbeat", "si", "fault",
-                           "event", "grid_state"})
+SUMMARY_TYPES = frozenset({"p_ip", "p_ref", "q_ref", "p_y", "q_y", "heartbeat", "si",
+                           "fault", "event", "grid_state"})
 """The message types :meth:`RunSeries.add` takes (of ``p_y`` only those with a ``switch``):
 the few the summary reads, not every message type of the wire."""
 
@@ -167,6 +167,8 @@ class RunSeries:
         the design figures of a new entry: ``t_ns``, ``entry`` (number), ``design`` (what the
         entry was certified for, :mod:`adnmesh.results.design_check`; None if not said) and
         ``ders`` (the weighted DERs, when the message has the weights).
+    q_entries : list of dict
+        The same of the Q loop's entries (its ``q_y`` messages).
     """
 
     p_ip_t_ns: array = field(default_factory=lambda: array("q"))
@@ -185,6 +187,7 @@ class RunSeries:
     lost: list = field(default_factory=list)
     rejoined: list = field(default_factory=list)
     entries: list = field(default_factory=list)
+    q_entries: list = field(default_factory=list)
     windows: StepWindowEnds = field(default_factory=StepWindowEnds, repr=False)
     _previous: dict = field(default_factory=dict, repr=False)   # (type, sender) -> last body
     _si: frozenset | None = field(default=None, repr=False)
@@ -207,7 +210,8 @@ class RunSeries:
         elif kind == "q_ref":
             self.q_ref_t_ns.append(message.t_send_ns)
             self.q_ref_var.append(message.q_ref_var)
-        elif kind in SUMMARY_TYPES and (kind != "p_y" or message.switch is not msgspec.UNSET
+        elif kind in SUMMARY_TYPES and (kind not in ("p_y", "q_y")
+                                        or message.switch is not msgspec.UNSET
                                         or message.design is not msgspec.UNSET):
             self.add(kind, msgspec.to_builtins(message))
 
@@ -227,14 +231,10 @@ class RunSeries:
         elif message_type == "q_ref":
             self.q_ref_t_ns.append(body["t_send_ns"])
             self.q_ref_var.append(body["q_ref_var"])
+        elif message_type == "q_y" and ("switch" in body or "design" in body):
+            _note_entry(self.q_entries, body)
         elif message_type == "p_y" and ("switch" in body or "design" in body):
-            if ("switch" in body or not self.entries
-                    or self.entries[-1]["entry"] != body.get("entry")):
-                design = body.get("design")
-                self.entries.append({"t_ns": body["t_send_ns"], "entry": body.get("entry"),
-                                     "design": design if isinstance(design, dict) else None,
-                                     "ders": [d for d, w in body.get("w", {}).items()
-                                              if w]})
+            _note_entry(self.entries, body)
             if "switch" in body:
                 switch = body["switch"]
                 self.switches.append({"t_ns": body["t_send_ns"],
@@ -275,6 +275,16 @@ class RunSeries:
         if found is not None:
             level, text, data = found
             self.windows.take(Event(body["t_send_ns"], kind, level, text, "", data))
+
+
+def _note_entry(entries: list, body: dict) -> None:
+    """Keep the table entry a ``p_y``/``q_y`` message with a switch record or design figures
+    announces (see :attr:`RunSeries.entries`)."""
+    if "switch" in body or not entries or entries[-1]["entry"] != body.get("entry"):
+        design = body.get("design")
+        entries.append({"t_ns": body["t_send_ns"], "entry": body.get("entry"),
+                        "design": design if isinstance(design, dict) else None,
+                        "ders": [d for d, w in body.get("w", {}).items() if w]})
 
 
 @dataclass(frozen=True)
@@ -355,6 +365,7 @@ class RunSummary:
     design_checks: tuple[DesignCheck, ...] = ()
     q_steps: tuple[ReferenceStep, ...] = ()
     coupling: Coupling | None = None
+    q_design_checks: tuple[DesignCheck, ...] = ()
 
     def to_json(self) -> dict:
         """Plain data for ``json.dump`` (NaN and infinities become null)."""
@@ -447,7 +458,8 @@ def summarize(series: RunSeries, *, end_ns: int, band_pct: float = 5.0,
                       dict(extra or {}), _faults(series, sim_s, band_pct), _grid(series),
                       realtime, scenario_steps(series, planned_steps, end_ns, sample_s,
                                                (extra or {}).get("ended")),
-                      design_checks(steps, series.entries), q_steps, coupling)
+                      design_checks(steps, series.entries), q_steps, coupling,
+                      design_checks(q_steps, series.q_entries))
 
 
 def _cross(steps, t_ns, values, ref_t_ns, ref_values) -> tuple[float | None, float | None]:
@@ -569,7 +581,8 @@ def format_summary(summary: RunSummary):
     out += scenario_lines(summary.scenario_steps)
     if summary.coupling is not None:
         out.append(step_table(summary.q_steps, summary.band_pct, "Q_ref steps: Q_IP",
-                              unit="var"))
+                              summary.q_design_checks, unit="var"))
+        out += design_lines(summary.q_design_checks, unit="var")
         out.append(coupling_line(summary.coupling))
     switches = Table(title="gain switches", title_justify="left")
     for column in ("t [s]", "available DERs", "max |P_IP - P_ref| in 10 s [W]", "P_Y jump"):
