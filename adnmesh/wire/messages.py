@@ -117,7 +117,22 @@ class Design(Struct, forbid_unknown_fields=True, omit_defaults=True):
     settling_band_pct: Annotated[float, Meta(gt=0.0, le=100.0, description="%")]
 
 
-class PY(Envelope):
+class _Output(Envelope, kw_only=True):
+    """What P_Y and Q_Y carry besides the value and its reference: the gains in use, the
+    number of the table entry, and on occasion the weights, a switch record, a hold and the
+    design figures (:class:`PY`). Keyword-only, so that each output's own fields come first in
+    the payload, right after the envelope."""
+
+    kp: Gain
+    ki: Gain
+    entry: Count
+    w: Annotated[dict[DERId, Weight], Meta(max_length=MAX_DERS)] | UnsetType = UNSET
+    switch: Switch | UnsetType = UNSET
+    hold: Literal["measurement", "actuators", "resuming"] | UnsetType = UNSET
+    design: Design | UnsetType = UNSET
+
+
+class PY(_Output):
     """CPFC output P_Y (dimensionless) with the gains in use (K_P 1/W, K_I 1/(W s)) and the
     number of the table entry; the entry's weights W on a switch and periodically; ``hold``
     while output and integrator are held (no measurement, no actuator, resuming); ``design``
@@ -127,16 +142,9 @@ class PY(Envelope):
     type: Literal["p_y"]
     p_y: Ratio
     p_ref_w: Power
-    kp: Gain
-    ki: Gain
-    entry: Count
-    w: Annotated[dict[DERId, Weight], Meta(max_length=MAX_DERS)] | UnsetType = UNSET
-    switch: Switch | UnsetType = UNSET
-    hold: Literal["measurement", "actuators", "resuming"] | UnsetType = UNSET
-    design: Design | UnsetType = UNSET
 
 
-class QY(Envelope):
+class QY(_Output):
     """CPFC output Q_Y of the reactive power loop (docs/method.md#reactive-power): the fields
     of :class:`PY` for Q (gains in 1/var and 1/(var s), ``q_ref_var`` in var, weights and the
     entry of the Q table)."""
@@ -144,13 +152,6 @@ class QY(Envelope):
     type: Literal["q_y"]
     q_y: Ratio
     q_ref_var: Power
-    kp: Gain
-    ki: Gain
-    entry: Count
-    w: Annotated[dict[DERId, Weight], Meta(max_length=MAX_DERS)] | UnsetType = UNSET
-    switch: Switch | UnsetType = UNSET
-    hold: Literal["measurement", "actuators", "resuming"] | UnsetType = UNSET
-    design: Design | UnsetType = UNSET
 
 
 class PRef(Envelope):
