@@ -148,15 +148,20 @@ def reactive_view(config: Config) -> Config:
     Raises
     ------
     ConfigError
-        No DER has reactive range, or the reactive dynamics are out of what the loop numerics
-        hold (the same rules as for P, said with the reactive keys).
+        No DER has reactive range, a reactive schedule outside its DER's range, or reactive
+        dynamics out of what the loop numerics hold (the same rules as for P, said with the
+        reactive keys).
     """
     if config.quantity == "Q":
         return config
     reactive = reactive_settings(config)
     ders = []
-    for der in config.ders:
+    for i, der in enumerate(config.ders):
         cap = capability_of(der, reactive)
+        if not cap.q_min_var <= der.q_sched_var <= cap.q_max_var:
+            raise ConfigError(f"{config.path}: ders[{i}].q_sched_var: outside its reactive "
+                              f"range [{cap.q_min_var:.6g}, {cap.q_max_var:.6g}] var, got "
+                              f"{der.q_sched_var:g}")
         if cap.capacity_var <= 0:
             continue
         delay, rise = q_dynamics(der)

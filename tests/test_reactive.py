@@ -111,6 +111,12 @@ def test_bad_reactive_keys_are_one_line_errors(tmp_path):
                                           r"non-zero number"):
         _config(tmp_path, scenario={"duration_s": 10, "q_ref_steps": [{"t_s": 1,
                                                                         "delta_var": 0}]})
+    far = _config(tmp_path, ders=[{"id": "A", "type": "WT", "p_inst_w": 2e6,
+                                   "t_delay_s": 0.01, "t_rise_s": 0.5, "sgen": "x",
+                                   "q_sched_var": 0.7e6}])
+    with pytest.raises(ConfigError, match=r"ders\[0\]\.q_sched_var: outside its reactive "
+                                          r"range \[-657368, 657368\] var, got 700000"):
+        reactive_view(far)
     config = _config(tmp_path, reactive={"capability": "unity"})
     with pytest.raises(ConfigError, match="no DER has a reactive power range"):
         reactive_view(config)

@@ -52,8 +52,7 @@ from msgspec import UNSET
 from adnmesh.config import DER, Config
 from adnmesh.control.base import Agent, Outgoing
 from adnmesh.control.der_model import der_params, usable_available_w
-from adnmesh.dermodels import infeed_at, set_point, steady_state
-from adnmesh.dermodels import reference_pt1
+from adnmesh.dermodels import infeed_at, reference_pt1, set_point, steady_state
 from adnmesh.dermodels.limits import held_at
 from adnmesh.reactive import capability_of, limit_pq, q_dynamics
 from adnmesh.names import der_agent_id
