@@ -54,6 +54,15 @@ def run(args: argparse.Namespace) -> int:
         console.print(f"grid model: {point}, {model.load_model} loads: "
                       f"P_IP {initial_p_ip_w(config) / 1e6:.4f} MW at the schedules, the DERs "
                       f"can deliver {sum(available.values()) / 1e6:.3f} MW")
+    if config.reactive is not None:
+        from adnmesh.control.operating_point import initial_q_ip_var
+        from adnmesh.reactive import reactive_view
+
+        r, view = config.reactive, reactive_view(config)
+        console.print(f"reactive power: mode {r.mode}, capability {r.capability}, priority "
+                      f"{r.priority}; {len(view.ders)} DER(s) with a reactive range of "
+                      f"{sum(d.p_inst_w for d in view.ders) / 1e6:.3f} Mvar in all; Q_IP "
+                      f"{initial_q_ip_var(config) / 1e6:.4f} Mvar at the schedules")
     console.print(
         f"constraints: disk margin >= {c.disk_margin_min:g}, "
         f"overshoot < {c.overshoot_max_pct:g} %, settling band {c.settling_band_pct:g} %"

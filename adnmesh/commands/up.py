@@ -278,7 +278,9 @@ def operating_point(config: Config, log) -> dict[str, float]:
         An unknown SimBench code or study case, an sgen the net does not have, a ``p_inst_w``
         above the sgen's rating, a ``type`` that is not the sgen's, a schedule
         above what the DER can deliver, a bad model override, a power flow that does not
-        converge.
+        converge; with reactive power control what :func:`adnmesh.reactive.reactive_view`
+        refuses (a reactive schedule outside its range, reactive dynamics the numerics cannot
+        hold, no DER with a reactive range).
     """
     from adnmesh.control.der_model import check_der_models
     from adnmesh.control.operating_point import (available_power_w, initial_p_ip_w,
@@ -300,6 +302,8 @@ def operating_point(config: Config, log) -> dict[str, float]:
     if problem is not None:
         raise ConfigError(f"{config.path}: {problem}")
     check_der_models(config, available)
+    if config.reactive is not None:
+        reactive_view(config)
     try:
         p_ip_w = initial_p_ip_w(config)
     except ValueError as exc:
