@@ -79,7 +79,7 @@ def _q_at(p_inst_w: float, cos_phi: float) -> float:
 
 def capability_of(der: DER, reactive: Reactive | None) -> Capability:
     """The capability of ``der`` (its preset or the section's, its cos phi overrides)."""
-    preset = der.q_capability or (reactive.capability if reactive else "cos_phi_0.95")
+    preset = der.q_capability or (reactive or Reactive()).capability
     under, over = CAPABILITY_PRESETS[preset]
     under = under if der.cos_phi_under is None else der.cos_phi_under
     over = over if der.cos_phi_over is None else der.cos_phi_over

@@ -443,7 +443,7 @@ class CPFC(Agent):
         if der not in self._p_inst:         # a DER without reactive range: not in the Q loop
             return
         before = self.acks.get(der)
-        acked = getattr(message, self.loop.ack_field)
+        acked = getattr(message, self.loop.output_field)
         self.acks[der] = (t_ns, message.mode, 0.0 if acked is UNSET else acked,
                           message.available)
         fell_back = message.mode == "watchdog" and (before is None or before[1] != "watchdog")

@@ -25,13 +25,12 @@ class LoopQuantity:
     output_kind, reference_kind : str
         Message kinds (:mod:`adnmesh.wire.protocol`) of the output (P_Y, Q_Y) and reference.
     output_field, reference_field : str
-        Their body fields.
+        Their body fields; a DER's heartbeat acknowledges the last output it applied in a
+        field of the output's name.
     measured_field : str
         The field of ``p_ip`` that carries the measured quantity.
     held_field : str
         The field of ``p_ip`` that says every DER following the output is held back.
-    ack_field : str
-        The field of a DER's heartbeat that acknowledges the last output it applied.
     stats_prefix : str
         Before the names of the loop's stats and events (``""`` for P, ``"q_"`` for Q).
     """
@@ -44,11 +43,9 @@ class LoopQuantity:
     reference_field: str
     measured_field: str
     held_field: str
-    ack_field: str
     stats_prefix: str
 
 
-P_LOOP = LoopQuantity("P", "W", "p_y", "p_ref", "p_y", "p_ref_w", "p_ip_w", "held", "p_y", "")
-Q_LOOP = LoopQuantity("Q", "var", "q_y", "q_ref", "q_y", "q_ref_var", "q_ip_var", "q_held",
-                      "q_y", "q_")
+P_LOOP = LoopQuantity("P", "W", "p_y", "p_ref", "p_y", "p_ref_w", "p_ip_w", "held", "")
+Q_LOOP = LoopQuantity("Q", "var", "q_y", "q_ref", "q_y", "q_ref_var", "q_ip_var", "q_held", "q_")
 LOOPS = {"P": P_LOOP, "Q": Q_LOOP}
