@@ -20,8 +20,6 @@ class LoopQuantity:
     ----------
     name : str
         ``P`` or ``Q``.
-    unit : str
-        ``W`` or ``var``.
     output_kind, reference_kind : str
         Message kinds (:mod:`adnmesh.wire.protocol`) of the output (P_Y, Q_Y) and reference.
     output_field, reference_field : str
@@ -36,7 +34,6 @@ class LoopQuantity:
     """
 
     name: str
-    unit: str
     output_kind: str
     reference_kind: str
     output_field: str
@@ -46,6 +43,6 @@ class LoopQuantity:
     stats_prefix: str
 
 
-P_LOOP = LoopQuantity("P", "W", "p_y", "p_ref", "p_y", "p_ref_w", "p_ip_w", "held", "")
-Q_LOOP = LoopQuantity("Q", "var", "q_y", "q_ref", "q_y", "q_ref_var", "q_ip_var", "q_held", "q_")
+P_LOOP = LoopQuantity("P", "p_y", "p_ref", "p_y", "p_ref_w", "p_ip_w", "held", "")
+Q_LOOP = LoopQuantity("Q", "q_y", "q_ref", "q_y", "q_ref_var", "q_ip_var", "q_held", "q_")
 LOOPS = {"P": P_LOOP, "Q": Q_LOOP}
