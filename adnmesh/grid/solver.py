@@ -131,6 +131,27 @@ class GridSolver:
         """Complex bus voltages of the last converged solution (model bus order), p.u."""
         return self._v.copy()
 
+    def bus_vm_pu(self) -> np.ndarray:
+        """Voltage magnitude of every reported bus (``data.report_bus`` but the slack's, in
+        that order) at the last converged solution, p.u."""
+        return np.abs(self._v[self._report_bus])
+
+    @property
+    def reported_buses(self) -> np.ndarray:
+        """The model buses :meth:`bus_vm_pu` reports, in its order."""
+        return self._report_bus.copy()
+
+    def line_loading_pct(self) -> np.ndarray:
+        """Every line's loading at the last solve (pandapower's definition), %."""
+        grid = self._grid
+        return np.maximum(grid.get_line_res1()[3], grid.get_line_res2()[3]) * self._line_factor
+
+    def trafo_loading_pct(self) -> np.ndarray:
+        """Every transformer's loading at the last solve (pandapower's definition), %."""
+        grid = self._grid
+        return np.maximum(grid.get_trafo_res1()[3] * self._hv_factor,
+                          grid.get_trafo_res2()[3] * self._lv_factor)
+
     def solve(self, p_actuator_w, q_actuator_var=None) -> GridSample:
         """Solve the power flow with the actuators at ``p_actuator_w`` (W, construction order)
         and, if given, ``q_actuator_var`` (var, same order; None: each keeps the reactive
@@ -166,10 +187,9 @@ class GridSolver:
     def _sample(self, iterations: int) -> GridSample:
         grid, d = self._grid, self.data
         p_gen, q_gen, _ = grid.get_gen_res()
-        vm = np.abs(self._v[self._report_bus])
-        line = np.maximum(grid.get_line_res1()[3], grid.get_line_res2()[3]) * self._line_factor
-        trafo = np.maximum(grid.get_trafo_res1()[3] * self._hv_factor,
-                           grid.get_trafo_res2()[3] * self._lv_factor)
+        vm = self.bus_vm_pu()
+        line = self.line_loading_pct()
+        trafo = self.trafo_loading_pct()
         return GridSample(p_ip_w=float(-p_gen[d.slack_gen] * 1e6),
                           q_ip_var=float(-q_gen[d.slack_gen] * 1e6),
                           vm_min_pu=float(vm.min()), vm_max_pu=float(vm.max()),
