@@ -36,7 +36,7 @@ from adnmesh.names import (AGENT_PATTERN, FAULT_KINDS, ICT_LINKS, ID_PATTERN, PE
 
 __all__ = [
     "DER_TYPES", "PT1_RISE_TIME_FACTOR", "AvailabilityChange", "Config", "ConfigFile",
-    "Constraints", "DER", "Fault", "GridLimits", "GridModel", "LinkSettings", "Links", "Outage",
+    "Constraints", "DER", "Fault", "GridLimits", "GridModel", "Guard", "TapChanger", "LinkSettings", "Links", "Outage",
     "MAX_CONFIG_BYTES", "MAX_DELAY_PER_LAG", "MAX_IN_FLIGHT", "MAX_SPAN_PER_DELAY", "PRefStep",
     "CAPABILITY_PRESETS", "QRefStep", "QU", "Reactive", "Runtime", "VoltageStep",
     "Scenario", "Section", "json_schema", "load_config",
@@ -245,6 +245,51 @@ class GridLimits(Section):
         return self
 
 
+class Guard(Section):
+    """The grid guard (docs/method.md#grid-guard): when a bus voltage or a line or transformer
+    loading comes within a margin of its limit, the DERs whose movement in a direction would
+    worsen it (by their sensitivities) are blocked for that direction; the CPFC uses the table
+    entry of the DERs still usable that way."""
+
+    mode: Literal["directional", "block", "off"] = "directional"
+    """directional: block DERs per direction (P and Q) by their sensitivity; block: hold the
+    whole control (output and integrator) while a limit is violated, the practice of waiting
+    for the tap changer to restore the band; off: watch and count only."""
+    v_margin_pu: Annotated[float, Field(ge=0, le=0.2)] = 0.01
+    """A voltage within this of its limit engages the guard, p.u."""
+    loading_margin_pct: Annotated[float, Field(ge=0, le=100)] = 5.0
+    """A loading within this of its limit engages the guard, %."""
+    v_release_pu: Annotated[float, Field(gt=0, le=0.2)] = 0.005
+    """Hysteresis: a voltage is released this far inside the engaging level, p.u."""
+    loading_release_pct: Annotated[float, Field(gt=0, le=100)] = 5.0
+    """Hysteresis: a loading is released this far below the engaging level, %."""
+    release_s: _Period = 2.0
+    """A limit stays engaged until it has been inside its release level this long, s."""
+    share: Annotated[float, Field(gt=0, le=1)] = 0.2
+    """A DER is blocked when its sensitivity worsens the limit by at least this fraction of the
+    most sensitive DER's (dimensionless)."""
+    refresh_s: _Period = 1.0
+    """The sensitivities of an engaged limit are refreshed this often as the operating point
+    moves, s."""
+
+
+class TapChanger(Section):
+    """The on-load tap changer of the HV/MV transformer (docs/models.md#tap-changer): it keeps
+    the voltage of its MV busbar within v_set_pu +- dead_band_pu, one tap step after the
+    voltage has been outside for delay_s. Tap range and step come from the net's data."""
+
+    v_set_pu: _PerUnitVoltage | None = None
+    """The busbar voltage it keeps, p.u. (default: the study case's, so it starts at rest)."""
+    dead_band_pu: Annotated[float, Field(gt=0, le=0.2)] = 0.015
+    """Half width of its dead band, p.u. (more than half a tap step, or it hunts)."""
+    delay_s: _Period = 30.0
+    """The voltage must be outside the band this long before a tap step, s (and again before
+    each further step)."""
+    trafo: Annotated[int, Field(ge=0, le=100_000)] | None = None
+    """The transformer (pandapower trafo index) whose tap it moves (default: the one at the
+    interconnection point)."""
+
+
 class GridModel(Section):
     """The AC power flow behind P_IP — of the SimBench grid (simbench_code) or of a pandapower
     net file (pandapower_net): the measurement agent solves it at every sample, the DERs'
@@ -268,6 +313,10 @@ class GridModel(Section):
     """The grid's extremes (voltages, loadings, Q_IP) are sent this often, s."""
     limits: GridLimits = GridLimits()
     """The band of voltages and loadings."""
+    guard: Guard = Guard()
+    """The grid guard: how the control keeps to the limits."""
+    tap_changer: TapChanger | None = None
+    """The HV/MV transformer's on-load tap changer in the loop (none: its tap stays)."""
 
     @model_validator(mode="after")
     def _one_operating_point(self) -> GridModel:
@@ -733,6 +782,16 @@ class Config(ConfigFile):
     def unit(self) -> str:
         """The unit of the quantity the DERs' fields describe: ``W`` (P) or ``var`` (Q)."""
         return "var" if self.quantity == "Q" else "W"
+
+    def features(self) -> frozenset[str]:
+        """The optional parts the run has, by the names the protocol table's ``feature`` uses:
+        ``reactive`` (a reactive section), ``guard`` (a grid model whose guard is on)."""
+        found = set()
+        if self.reactive is not None:
+            found.add("reactive")
+        if self.grid_model is not None and self.grid_model.guard.mode != "off":
+            found.add("guard")
+        return frozenset(found)
 
     def pandapower_net_path(self) -> Path | None:
         """The grid model's pandapower net file, resolved next to the config (None if the

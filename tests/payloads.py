@@ -34,6 +34,7 @@ BODIES = {
     "grid_state": {"v_min_pu": 0.98, "v_max_pu": 1.03, "line_loading_max_pct": 41.5,
                    "trafo_loading_max_pct": 30.0, "q_ip_var": 3.5e5, "samples": 100,
                    "outside_band": 0, "not_converged": 0},
+    "grid_guard": {"p_up": ["SGen1"], "hold": False},
     "si": {"si": {"SGen1": True}},
     "fault": {"fault_id": 1, "kind": "ict_outage", "start_ns": 10, "end_ns": 20},
     "fault_request": {"request_id": "r", "kind": "ict_outage", "at_ns": None, "for_ns": None},

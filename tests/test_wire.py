@@ -27,7 +27,7 @@ from adnmesh.wire.units import NS_MAX, ns
 
 KEYS = Keys("g")
 SENDER = {KEYS.of(kind, *who): sender for kind, who, sender in [
-    ("grid_state", (), "measurement"), ("p_y", (), "cpfc"), ("p_ref", (), "cpfc"),
+    ("grid_state", (), "measurement"), ("grid_guard", (), "measurement"), ("p_y", (), "cpfc"), ("p_ref", (), "cpfc"),
     ("q_y", (), "cpfc"), ("q_ref", (), "cpfc"),
     ("der_state", ("SGen1",), "der/SGen1"), ("der_state", ("SGen2",), "der/SGen2"),
     ("heartbeat", ("SGen1",), "der/SGen1"),
@@ -55,7 +55,9 @@ EXAMPLES = {
     KEYS.of("p_ip"): {"p_ip_w": 3.5, "q_ip_var": -2.5e5},
     KEYS.of("grid_state"): {"v_min_pu": 0.98, "v_max_pu": 1.03, "line_loading_max_pct": 41.5,
                       "trafo_loading_max_pct": 30.0, "q_ip_var": 3.5e5, "samples": 100,
-                      "outside_band": 0, "not_converged": 0},
+                      "outside_band": 2, "not_converged": 0, "outside_s": 0.02,
+                      "v_max_at": "MV1.101 Bus 14", "tap_pos": -2},
+    KEYS.of("grid_guard"): {"p_up": ["SGen1", "SGen2"], "q_down": ["SGen1"], "hold": True},
     KEYS.of("si"): {"si": {"SGen1": True, "SGen2": False}},
     KEYS.of("fault"): {"fault_id": 3, "kind": "link_loss", "start_ns": 10, "end_ns": 20,
                   "link": "cpfc_to_der", "probability": 0.5, "origin": "command"},

@@ -341,6 +341,9 @@ class CPFC(Agent):
         self._available = available_power_w(config) if available is None else available
         self._able = able_to_move(config, self._available)   # directional availability
         self.direction = 0                    # +1 up, -1 down, 0 not moved yet
+        # the grid guard: DERs blocked per direction (docs/method.md#grid-guard), its hold
+        self._blocked: dict[int, frozenset[str]] = {1: frozenset(), -1: frozenset()}
+        self.guard_hold = False
         self._redirected = False              # the pending switch is one of direction
         self.period_ns = ns(rt.pi_period_s)
         self.weights_period_ns = ns(rt.weights_period_s)
@@ -420,6 +423,8 @@ class CPFC(Agent):
             self.actuators_held = 0 if held is UNSET else (1 if held == "up" else -1)
         elif message.type == "heartbeat":
             self._ack(t_ns, message)
+        elif message.type == "grid_guard":
+            return self._guard(message)
         elif message.type == "si":
             si = message.si
             if not set(si) <= self._known:
@@ -436,6 +441,46 @@ class CPFC(Agent):
             self._update_available(t_ns)
             return out
         return []
+
+    def _guard(self, message) -> list[Outgoing]:
+        """The grid guard's state: the DERs blocked per direction for this loop's quantity
+        and the guard's hold. A change of the DERs the CPFC can use in its direction is a
+        switch at the next sample (bumpless, with handover), said by an event."""
+        q = self.loop.name.lower()
+        blocked = {1: frozenset(getattr(message, f"{q}_up")).intersection(self._p_inst),
+                   -1: frozenset(getattr(message, f"{q}_down")).intersection(self._p_inst)}
+        self.guard_hold = bool(message.hold)
+        if blocked == self._blocked:
+            return []
+        self._blocked = blocked
+        if self.direction == 0:         # not moved by a step yet: the way the DERs stand
+            standing = sum(self._share_w(d, w, self._p_y_sent) for d, w in self.weights.items())
+            self.direction = 1 if standing > 0 else -1 if standing < 0 else 0
+        if self._pending is not None or self.hold == "resuming":
+            return []
+        in_use = self._in_use(self.available)
+        if in_use == self.in_use:
+            return []
+        self._pending = self.available
+        way = "up" if self.direction > 0 else "down"
+        left = [d for d in self._ids if d in self._blocked.get(self.direction, ())
+                and d in self.available]
+        text = (f"grid guard: {', '.join(left)} left out moving {way}; the entry of "
+                f"{len(in_use)} DER(s) takes over" if left else
+                "grid guard: every DER usable again moving " + way)
+        if self._guard_stop():
+            text = (f"grid guard: every DER that can move {way} is blocked: the output no "
+                    f"longer moves {way}")
+        return [self._event("WARNING" if left else "INFO", "guard", text)]
+
+    def _guard_stop(self) -> int:
+        """+1 / -1 when every available DER that can move in the DERs' direction is blocked
+        that way by the grid guard (the output then does not move further that way; the PI's
+        integrator freezes as at a limit), else 0."""
+        if self.direction == 0:
+            return 0
+        able = self.available & self._able[self.direction]
+        return self.direction if able and not able - self._blocked[self.direction] else 0
 
     def _ack(self, t_ns: int, message) -> None:
         """A DER's acknowledgement; a new fallback undoes the samples it disturbed."""
@@ -490,8 +535,10 @@ class CPFC(Agent):
         error_w = self.p_ref_w - self.p_meas_w
         self._watch_measurement(t_ns, error_w, out)
         rolled_back = self._rollback_to is not None and self._roll_back()
+        self._watch_guard_hold(error_w, out)
         if self.hold is None and not rolled_back:
-            p_y = self.pi.update(error_w, freeze=self.actuators_held * error_w > 0)
+            stop = self.actuators_held * error_w > 0 or self._guard_stop() * error_w > 0
+            p_y = self.pi.update(error_w, freeze=stop)
             self._watch_direction(t_ns, p_y)
         else:
             p_y = self.pi.output
@@ -575,12 +622,14 @@ class CPFC(Agent):
 
     def _in_use(self, available: frozenset[str]) -> frozenset[str]:
         """The DERs whose entry the CPFC uses: the available ones that can move in the
-        direction the DERs move (all available ones before they first moved, or if none
-        can)."""
+        direction the DERs move and that the grid guard does not block that way (all
+        available ones before they first moved; those that can move if the guard blocks them
+        all: the output then stops in that direction; all available ones if none can)."""
         if self.direction == 0:
             return available
         able = available & self._able[self.direction]
-        return able or available
+        usable = able - self._blocked[self.direction]
+        return usable or able or available
 
     def _watch_measurement(self, t_ns: int, error_w: float, out: list) -> None:
         """Hold while measurements are missing; re-enter without a jump when they return."""
@@ -595,6 +644,19 @@ class CPFC(Agent):
             self.hold = None if self.weights else "actuators"
             self.pi.reenter(error_w)
             out.append(self._event("INFO", "resume", "measurements back: control resumed "
+                                   f"from P_Y {self.pi.output:.6g} without a jump"))
+
+    def _watch_guard_hold(self, error_w: float, out: list) -> None:
+        """Guard mode ``block``: hold output and integrator while the guard holds; resume
+        without a jump when it lets go."""
+        if self.guard_hold and self.hold is None:
+            self.hold = "grid"
+            out.append(self._event("WARNING", "hold", "grid limit violated: output and "
+                                   "integrator held until the band is restored"))
+        elif not self.guard_hold and self.hold == "grid":
+            self.hold = None if self.weights else "actuators"
+            self.pi.reenter(error_w)
+            out.append(self._event("INFO", "resume", "grid band restored: control resumed "
                                    f"from P_Y {self.pi.output:.6g} without a jump"))
 
     def _apply_switch(self, t_ns: int, body: dict, out: list) -> None:

@@ -37,46 +37,14 @@ from msgspec import UNSET
 
 from adnmesh.config import Config
 from adnmesh.control.base import Agent, Outgoing
+from adnmesh.control.grid_side import GridSide
 from adnmesh.control.operating_point import grid_solver, initial_p_ip_w, initial_q_ip_var
 from adnmesh.names import der_agent_id, der_id_of
 from adnmesh.wire.keys import Keys
 from adnmesh.wire.messages import Envelope
 from adnmesh.wire.units import ns
 
-__all__ = ["GridReport", "Measurement"]
-
-
-class GridReport:
-    """The extremes of the grid samples of one report period (see the module docstring)."""
-
-    def __init__(self, limits) -> None:
-        self.limits = limits
-        self.reset()
-
-    def reset(self) -> None:
-        self.v_min, self.v_max, self.line, self.trafo = math.inf, 0.0, 0.0, 0.0
-        self.samples = self.outside = self.not_converged = 0
-
-    def add(self, sample) -> None:
-        self.samples += 1
-        if not sample.converged:
-            self.not_converged += 1
-            return
-        lim = self.limits
-        self.v_min = min(self.v_min, sample.vm_min_pu)
-        self.v_max = max(self.v_max, sample.vm_max_pu)
-        self.line = max(self.line, sample.line_loading_max_pct)
-        self.trafo = max(self.trafo, sample.trafo_loading_max_pct)
-        self.outside += (sample.vm_min_pu < lim.v_min_pu or sample.vm_max_pu > lim.v_max_pu
-                         or max(sample.line_loading_max_pct, sample.trafo_loading_max_pct)
-                         > lim.loading_max_pct)
-
-    def body(self, q_ip_var: float) -> dict:
-        return {"v_min_pu": self.v_min if self.v_min < math.inf else 0.0,
-                "v_max_pu": self.v_max, "line_loading_max_pct": self.line,
-                "trafo_loading_max_pct": self.trafo, "q_ip_var": q_ip_var,
-                "samples": self.samples, "outside_band": self.outside,
-                "not_converged": self.not_converged}
+__all__ = ["Measurement"]
 
 
 class Measurement(Agent):
@@ -112,8 +80,10 @@ class Measurement(Agent):
         if self.solver is not None:     # the operating point, should the first flow fail
             self.p_ip_w = initial_p_ip_w(config)
             self.q_ip_var = initial_q_ip_var(config)
+        self.grid = None
         if self.solver is not None:
-            self.report = GridReport(config.grid_model.limits)
+            self.grid = GridSide(config, self.solver)
+            self._guard_key = keys.of("grid_guard")
             self.report_period_ns = ns(config.grid_model.report_period_s)
             self.next_report_ns = self.report_period_ns
         self.counts = {"samples": 0, "not_converged": 0}
@@ -207,20 +177,30 @@ class Measurement(Agent):
                     q_ip += q_var
                 body["q_ip_var"] = q_ip
             return [Outgoing(self._p_ip_key, body), *events]
-        sample = self.solver.solve(list(self.infeed_w.values()),
-                                   list(self.infeed_var.values()) if self.reactive else None)
-        self.report.add(sample)
+        sample, guard, grid_events = self.grid.sample(
+            t_ns, list(self.infeed_w.values()),
+            list(self.infeed_var.values()) if self.reactive else None)
         if sample.converged:
             self.p_ip_w, self.q_ip_var = float(sample.p_ip_w), float(sample.q_ip_var)
         else:
             self.counts["not_converged"] += 1
         out = [Outgoing(self._p_ip_key, {"p_ip_w": self.p_ip_w, "q_ip_var": self.q_ip_var,
                                          **self._held()}), *events]
+        if guard is not None:
+            out.append(Outgoing(self._guard_key, guard))
+        out += [Outgoing(self._event_key, event) for event in grid_events]
         if t_ns >= self.next_report_ns:
-            out.append(Outgoing(self._grid_key, self.report.body(self.q_ip_var)))
-            self.report.reset()
+            report, again = self.grid.report_bodies(self.q_ip_var)
+            out.append(Outgoing(self._grid_key, report))
+            if again is not None and guard is None:
+                out.append(Outgoing(self._guard_key, again))
             self.next_report_ns += self.report_period_ns
         return out
 
     def stats(self) -> dict[str, float]:
-        return {k: float(v) for k, v in self.counts.items()}
+        out = {k: float(v) for k, v in self.counts.items()}
+        if self.grid is not None:
+            out.update({f"guard_{k}": float(v) for k, v in self.grid.guard.counts.items()})
+            if self.grid.tap is not None:
+                out["tap_moves"] = float(self.grid.tap.moves)
+        return out

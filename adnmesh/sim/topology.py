@@ -100,7 +100,7 @@ class Topology:
         der_ids = [d.id for d in config.ders]
         agents = agent_ids(der_ids)
         params = _link_params(config)
-        features = {name for name in ("reactive",) if getattr(config, name) is not None}
+        features = config.features()
         routes = tuple(_routes(keys, agents, der_ids, features))
         links: dict[tuple[str, str], LinkParams] = {}
         receivers: dict[str, tuple[str, ...]] = {}

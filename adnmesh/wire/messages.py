@@ -39,6 +39,7 @@ __all__ = [
     "Envelope",
     "Fault",
     "FaultRequest",
+    "GridGuard",
     "GridState",
     "Event",
     "Heartbeat",
@@ -128,7 +129,7 @@ class _Output(Envelope, kw_only=True):
     entry: Count
     w: Annotated[dict[DERId, Weight], Meta(max_length=MAX_DERS)] | UnsetType = UNSET
     switch: Switch | UnsetType = UNSET
-    hold: Literal["measurement", "actuators", "resuming"] | UnsetType = UNSET
+    hold: Literal["measurement", "actuators", "resuming", "grid"] | UnsetType = UNSET
     design: Design | UnsetType = UNSET
 
 
@@ -212,6 +213,7 @@ class PIP(Envelope):
 
 
 PerUnit = Annotated[float, Meta(ge=0.0, le=10.0, description="p.u.")]
+Element = Annotated[str, Meta(max_length=200, description="a bus, line or transformer")]
 Percent = Annotated[float, Meta(ge=0.0, le=1e6, description="%")]
 
 
@@ -229,6 +231,30 @@ class GridState(Envelope):
     samples: Count
     outside_band: Count
     not_converged: Count
+    outside_s: Annotated[float, Meta(ge=0.0, le=1e9, description="s")] | UnsetType = UNSET
+    v_min_at: Element | UnsetType = UNSET
+    v_max_at: Element | UnsetType = UNSET
+    line_max_at: Element | UnsetType = UNSET
+    trafo_max_at: Element | UnsetType = UNSET
+    tap_pos: Annotated[int, Meta(ge=-1000, le=1000)] | UnsetType = UNSET
+
+
+DERList = Annotated[list[DERId], Meta(max_length=MAX_DERS)]
+
+
+class GridGuard(Envelope):
+    """The grid guard's state (docs/method.md#grid-guard), sent when it changes and with every
+    grid report: the DERs blocked from raising (``p_up``) or lowering (``p_down``) their active
+    power and likewise their reactive power (``q_up``, ``q_down``), because that would worsen a
+    voltage or loading at or near its limit; ``hold`` (guard mode ``block``): a limit is
+    violated and the whole control holds."""
+
+    type: Literal["grid_guard"]
+    p_up: DERList = []
+    p_down: DERList = []
+    q_up: DERList = []
+    q_down: DERList = []
+    hold: bool = False
 
 
 class SI(Envelope):

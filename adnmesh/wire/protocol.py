@@ -26,6 +26,7 @@ kind                 key (``adn/<grid>/``)      sender          receivers       
 ``heartbeat``        ``der/{der}/heartbeat``    the DER         availability, cpfc     ``der_to_availability``
 ``p_ip``             ``measurement/p_ip``       ``measurement`` ``cpfc``               ``measurement_to_cpfc``
 ``grid_state``       ``measurement/grid``       ``measurement`` (recorded)             ``local``
+``grid_guard``       ``measurement/guard``      ``measurement`` ``cpfc``               ``measurement_to_cpfc``
 ``si``               ``availability/si``        availability    ``cpfc``               ``availability_to_cpfc``
 ``fault``            ``faults``                 ``up``          every agent            (``up``'s own)
 ``fault_request``    ``control/fault``          ``operator``    ``up``                 (``adnmesh fault``)
@@ -205,6 +206,9 @@ PROTOCOL: tuple[MessageKind, ...] = (
         _S("trafo_loading_max_pct", "highest transformer loading", "grid_trafo_loading",
           unit="%", step=True),
         _S("q_ip_var", "Q_IP at the report", "grid_q_ip", unit="var", step=True))),
+    MessageKind("grid_guard", "measurement/guard", m.GridGuard, "measurement", ("cpfc",),
+                "measurement_to_cpfc", (_S("hold", "guard holds the control", "guard_hold",
+                                           unit="1", step=True),), feature="guard"),
     MessageKind("si", "availability/si", m.SI, "availability", ("cpfc",), "availability_to_cpfc"),
     MessageKind("fault", "faults", m.Fault, LAUNCHER, (EVERY_AGENT,), None),
     MessageKind("fault_request", "control/fault", m.FaultRequest, OPERATOR, (LAUNCHER,), None),

@@ -1,0 +1,261 @@
+"""The grid guard, the tap changer and the CPFC's answer to them, as state machines
+(docs/method.md#grid-guard, docs/models.md#tap-changer): the direction logic with its
+hysteresis in value and time, block mode, violation episodes, the tap changer's delay, band and
+range, and the CPFC leaving blocked DERs out bumplessly or holding."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from adnmesh.config import Config, GridLimits, Guard, load_config
+from adnmesh.control.cpfc_controller import CPFC, GainSchedule
+from adnmesh.control.grid_guard import GridGuard, GuardValues
+from adnmesh.control.tap_changer import TapChangerControl
+from adnmesh.tuning.table import SchedulingTable, TableEntry
+from adnmesh.wire.keys import Keys
+from payloads import message
+
+MS = 1_000_000
+DERS = ("A", "B", "C")
+
+
+@dataclass
+class Sens:
+    """Sensitivities of 2 buses, 1 line and 1 trafo to 3 DERs (p.u./W, %/W)."""
+
+    dv_dp: np.ndarray
+    dv_dq: np.ndarray
+    dline_dp: np.ndarray
+    dline_dq: np.ndarray
+    dtrafo_dp: np.ndarray
+    dtrafo_dq: np.ndarray
+
+
+SENS = Sens(dv_dp=np.array([[1e-8, 5e-9, 1e-9], [2e-9, 2e-9, 2e-9]]),
+            dv_dq=np.array([[3e-8, 1e-8, 1e-9], [1e-9, 1e-9, 1e-9]]),
+            dline_dp=np.array([[4e-6, -1e-6, 0.0]]), dline_dq=np.zeros((1, 3)),
+            dtrafo_dp=np.array([[1e-6, 1e-6, 1e-6]]), dtrafo_dq=np.zeros((1, 3)))
+
+
+def values(v0=1.0, v1=1.0, line=50.0, trafo=40.0) -> GuardValues:
+    return GuardValues(np.array([v0, v1]), np.array([line]), np.array([trafo]),
+                       ("bus X", "bus Y"), ("line L",), ("trafo T",))
+
+
+class Counter:
+    """Sensitivities on demand, counted."""
+
+    def __init__(self, sens=SENS) -> None:
+        self.sens, self.calls = sens, 0
+
+    def __call__(self):
+        self.calls += 1
+        return self.sens
+
+
+def guard(mode="directional", reactive=False, **settings) -> GridGuard:
+    return GridGuard(Guard(mode=mode, **settings), GridLimits(), DERS, reactive)
+
+
+def test_a_voltage_near_its_upper_limit_blocks_the_ders_that_raise_it() -> None:
+    """Bus X at 1.095 p.u. (engages at 1.09): A raises it most, B by half (≥ 0.2 of A), C by
+    a tenth (below the share): A and B may not raise P; lowering P is free."""
+    g, sens = guard(), Counter()
+    changed, events = g.observe(0, values(v0=1.095), sens)
+    assert changed and sens.calls == 1
+    assert g.state() == {"p_up": ["A", "B"], "p_down": [], "q_up": [], "q_down": [],
+                         "hold": False}
+    (event,) = events
+    assert event["kind"] == "guard_block" and "A, B blocked from raising P" in event["text"]
+    assert "bus X at 1.0950 p.u." in event["text"]
+    changed, events = g.observe(10 * MS, values(v0=1.096), sens)
+    assert not changed and events == [] and sens.calls == 1       # refreshed only every 1 s
+
+
+def test_release_needs_the_release_level_for_the_release_time() -> None:
+    """Hysteresis: below the engaging level but above the release level (1.085) nothing is
+    released; inside it, only after release_s (2 s) without a break."""
+    g, sens = guard(), Counter()
+    g.observe(0, values(v0=1.095), sens)
+    for t_ms, v in ((100, 1.088), (3000, 1.087)):                 # between the levels
+        assert g.observe(t_ms * MS, values(v0=v), sens) == (False, [])
+    g.observe(3100 * MS, values(v0=1.08), sens)                    # inside: the clock starts
+    assert g.observe(4000 * MS, values(v0=1.09), sens)[0] is False  # a break: starts again
+    g.observe(4100 * MS, values(v0=1.08), sens)
+    assert g.observe(6000 * MS, values(v0=1.08), sens)[0] is False  # 1.9 s
+    changed, events = g.observe(6100 * MS, values(v0=1.08), sens)   # 2.0 s
+    assert changed and g.state()["p_up"] == []
+    assert [e["kind"] for e in events] == ["guard_release"]
+    assert "A, B free again for raising P" in events[0]["text"]
+
+
+def test_a_low_voltage_blocks_lowering_and_a_loading_blocks_by_its_flow() -> None:
+    g = guard()
+    g.observe(0, values(v1=0.905), Counter())          # bus Y: all three lower it equally
+    assert g.state()["p_down"] == ["A", "B", "C"] and g.state()["p_up"] == []
+    g = guard()
+    g.observe(0, values(line=97.0), Counter())         # line L: A loads it, B relieves it
+    assert g.state()["p_up"] == ["A"] and g.state()["p_down"] == ["B"]
+
+
+def test_reactive_power_is_guarded_only_with_a_q_loop() -> None:
+    g = guard(reactive=True)
+    g.observe(0, values(v0=1.095), Counter())
+    assert g.state()["q_up"] == ["A", "B"] and g.state()["p_up"] == ["A", "B"]
+    g = guard(reactive=False)
+    g.observe(0, values(v0=1.095), Counter())
+    assert g.state()["q_up"] == []
+
+
+def test_a_der_blocked_once_stays_blocked_while_the_limit_is_engaged() -> None:
+    """A refresh that finds B less sensitive does not free it before the limit is released."""
+    later = Sens(**{**SENS.__dict__, "dv_dp": np.array([[1e-8, 1e-10, 1e-9],
+                                                         [2e-9, 2e-9, 2e-9]])})
+    g = guard()
+    g.observe(0, values(v0=1.095), Counter())
+    g.observe(1000 * MS, values(v0=1.095), Counter(later))
+    assert g.state()["p_up"] == ["A", "B"]
+
+
+def test_off_only_counts_and_block_holds_the_whole_control() -> None:
+    off = guard(mode="off")
+    changed, events = off.observe(0, values(v0=1.12), Counter())
+    assert not changed and off.state()["p_up"] == [] and off.watched == {}
+    assert [e["kind"] for e in events] == ["limit_violated"]
+    block, sens = guard(mode="block"), Counter()
+    assert block.observe(0, values(v0=1.095), sens)[0] is False    # near is not violated
+    changed, events = block.observe(10 * MS, values(v0=1.101), sens)
+    assert changed and block.hold and sens.calls == 0
+    assert [e["kind"] for e in events] == ["limit_violated", "guard_hold"]
+    assert block.observe(20 * MS, values(v0=1.097), sens)[0] is False   # not 1.095 yet
+    block.observe(30 * MS, values(v0=1.094), sens)
+    changed, events = block.observe(2030 * MS, values(v0=1.094), sens)
+    assert changed and not block.hold and "guard_resume" in [e["kind"] for e in events]
+
+
+def test_a_violation_episode_is_said_with_its_worst_value_and_where() -> None:
+    g = guard(mode="off")
+    g.observe(0, values(trafo=101.0), Counter())
+    g.observe(10 * MS, values(trafo=104.5), Counter())
+    assert g.observe(20 * MS, values(trafo=103.0), Counter())[1] == []
+    (end,) = g.observe(30 * MS, values(trafo=99.0), Counter())[1]
+    assert end["kind"] == "limit_restored" and "after 0.03 s" in end["text"]
+    assert "trafo trafo T at 104.5 %" in end["text"]
+    assert g.counts["violations"] == 1
+
+
+# --- the tap changer ------------------------------------------------------------------------
+
+
+def test_the_tap_changer_steps_after_its_delay_the_way_back_into_the_band() -> None:
+    tap = TapChangerControl(1.02, 0.015, 5.0, position=0, tap_min=-2, tap_max=2,
+                            raises_voltage=-1)                       # tap on the HV side
+    assert tap.observe(0, 1.04) == (0, "")                           # outside: clock starts
+    assert tap.observe(4_990 * MS, 1.04) == (0, "")
+    assert tap.observe(5_000 * MS, 1.04) == (1, "") and tap.position == 1   # higher ratio
+    assert tap.observe(6_000 * MS, 1.03) == (0, "")                  # inside: clock stops
+    assert tap.observe(7_000 * MS, 1.00) == (0, "")                  # below: starts again
+    assert tap.observe(12_000 * MS, 1.00) == (-1, "") and tap.position == 0
+    lv = TapChangerControl(1.0, 0.01, 1.0, 0, -1, 1, raises_voltage=1)
+    lv.observe(0, 0.97)
+    assert lv.observe(1000 * MS, 0.97) == (1, "")                    # LV side: up raises
+
+
+def test_the_tap_changer_stays_at_the_end_of_its_range_and_says_so_once() -> None:
+    tap = TapChangerControl(1.0, 0.01, 1.0, position=2, tap_min=-2, tap_max=2,
+                            raises_voltage=-1)
+    tap.observe(0, 1.05)
+    step, note = tap.observe(1000 * MS, 1.05)
+    assert step == 0 and "end of its range (position 2)" in note
+    assert tap.observe(2000 * MS, 1.05) == (0, "") and tap.moves == 0
+    with pytest.raises(ValueError):
+        TapChangerControl(1.0, 0.01, 1.0, position=3, tap_min=-2, tap_max=2, raises_voltage=1)
+
+
+# --- the CPFC -------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def config(configs_dir: Path) -> Config:
+    """Two WTs (SGen1 from 0, SGen2 with a 0.5 MW schedule), a +1 MW step at 1 s."""
+    return load_config(configs_dir / "examples" / "runtime-step.yaml")
+
+
+@pytest.fixture(scope="module")
+def table(config: Config) -> SchedulingTable:
+    table = SchedulingTable(config.sha256, {}, "test", config.der_ids())
+    table.add(TableEntry(("SGen1", "SGen2"), 5e-8, 1.92e-7, {"SGen1": 1.0, "SGen2": 0.8}))
+    table.add(TableEntry(("SGen1",), 1e-7, 3.84e-7, {"SGen1": 1.0}))
+    table.add(TableEntry(("SGen2",), 1e-7, 3.84e-7, {"SGen2": 1.0}))
+    return table
+
+
+def drive(cpfc: CPFC, until_ns: int, p_meas, guard_at: dict) -> list:
+    """The CPFC's samples to ``until_ns``, a grid_guard body delivered at the times of
+    ``guard_at``; returns ``(t, key, body)`` of what it sends."""
+    keys = Keys(cpfc.config.grid)
+    out = []
+    while cpfc.next_timer_ns() < until_ns:
+        t = cpfc.next_timer_ns()
+        if t % (1000 * MS) == 0:                 # SI, as a live availability monitor sends it
+            cpfc.on_message(t, message(keys.of("si"), t, {"si": dict.fromkeys(
+                cpfc.config.der_ids(), True)}, src="availability"))
+        if t in guard_at:
+            for o in cpfc.on_message(t, message(keys.of("grid_guard"), t, guard_at[t],
+                                                src="measurement")):
+                out.append((t, o.key, o.body))
+        cpfc.on_message(t, message(keys.of("p_ip"), t, {"p_ip_w": p_meas(t)},
+                                   src="measurement"))
+        out += [(t, o.key, o.body) for o in cpfc.on_timer(t)]
+    return out
+
+
+def outputs(out, config) -> list:
+    key = Keys(config.grid).of("p_y")
+    return [(t, b) for t, k, b in out if k == key]
+
+
+def test_the_cpfc_leaves_a_der_blocked_upwards_out_bumplessly(config, table) -> None:
+    """Moving up after the step, SGen2 is blocked up at 2 s: at the next sample the CPFC
+    switches to SGen1's entry, keeping the DERs' commanded power, and says why; when the
+    guard frees SGen2 at 3 s the entry of both returns."""
+    cpfc = CPFC(config, GainSchedule(config, table))
+    out = drive(cpfc, 3500 * MS, lambda t: -2.5e6 + 0.5e6 * (t > 1.5e9),
+                {2000 * MS: {"p_up": ["SGen2"]}, 3000 * MS: {}})
+    events = [b for t, k, b in out if k.endswith("event/cpfc")]
+    assert any("SGen2 left out moving up" in e["text"] for e in events)
+    switched = [(t, b) for t, b in outputs(out, config) if "switch" in b]
+    assert [t for t, _ in switched] == [2000 * MS, 3000 * MS]
+    t, body = switched[0]
+    assert body["w"] == {"SGen1": 1.0}
+    before = body["switch"].p_y_before * (1.0 * 2e6 + 0.8 * 2e6)   # both WTs, 2 MW each
+    assert body["p_y"] * 2e6 == pytest.approx(before, rel=1e-9)    # commanded power kept
+    assert switched[1][1]["w"] == {"SGen1": 1.0, "SGen2": 0.8}
+
+
+def test_when_every_der_is_blocked_that_way_the_output_stops_there(config, table) -> None:
+    """Both WTs blocked up: P_Y no longer rises however large the error; it may fall."""
+    cpfc = CPFC(config, GainSchedule(config, table))
+    out = drive(cpfc, 4000 * MS, lambda t: -2.5e6 if t < 3e9 else 0.0,
+                {2000 * MS: {"p_up": ["SGen1", "SGen2"]}})
+    p_y = dict(outputs(out, config))
+    held = [p_y[t]["p_y"] for t in range(2010 * MS, 3000 * MS, 10 * MS)]
+    assert held == [held[0]] * len(held) and held[0] > 0
+    assert p_y[3500 * MS]["p_y"] < held[0]                           # down is free
+
+
+def test_block_mode_holds_the_output_until_the_guard_lets_go(config, table) -> None:
+    cpfc = CPFC(config, GainSchedule(config, table))
+    out = drive(cpfc, 3000 * MS, lambda t: -2.5e6,
+                {1500 * MS: {"hold": True}, 2500 * MS: {"hold": False}})
+    p_y = dict(outputs(out, config))
+    assert p_y[1500 * MS]["hold"] == "grid" and p_y[2490 * MS]["hold"] == "grid"
+    assert p_y[1500 * MS]["p_y"] == p_y[2490 * MS]["p_y"]
+    assert "hold" not in p_y[2500 * MS]
+    one_sample = 1.92e-7 * 0.01 * 1e6                  # K_I T e: the integrator, no jump
+    assert p_y[2500 * MS]["p_y"] - p_y[2490 * MS]["p_y"] == pytest.approx(one_sample)
+    assert p_y[2510 * MS]["p_y"] - p_y[2500 * MS]["p_y"] == pytest.approx(one_sample)
