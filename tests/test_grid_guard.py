@@ -259,3 +259,46 @@ def test_block_mode_holds_the_output_until_the_guard_lets_go(config, table) -> N
     one_sample = 1.92e-7 * 0.01 * 1e6                  # K_I T e: the integrator, no jump
     assert p_y[2500 * MS]["p_y"] - p_y[2490 * MS]["p_y"] == pytest.approx(one_sample)
     assert p_y[2510 * MS]["p_y"] - p_y[2500 * MS]["p_y"] == pytest.approx(one_sample)
+
+
+# --- what the summary says ------------------------------------------------------------------
+
+
+def test_the_summary_counts_violations_the_guards_time_and_its_cost() -> None:
+    """A run of 10 s, P_ref +1 MW at 1 s; the guard blocks from 2 s to 4 s while P_IP stays
+    0.5 MW short; one violation episode of 0.3 s at bus X; the tap changer steps twice."""
+    from adnmesh.results.summary import RunSeries, grid_line, summarize
+
+    series = RunSeries()
+    env = {"src": "measurement", "seq": 0, "v": 1}
+    series.add("p_ref", {"t_send_ns": 0, "p_ref_w": 0.0, **env})
+    series.add("p_ref", {"t_send_ns": 1000 * MS, "p_ref_w": 1e6, **env})
+    for k in range(1001):
+        t = k * 10 * MS
+        p = 0.0 if t < 1000 * MS else 0.5e6 if t < 6000 * MS else 1e6
+        series.add("p_ip", {"t_send_ns": t, "p_ip_w": p, **env})
+    for k in range(1, 11):
+        series.add("grid_state", {
+            "t_send_ns": k * 1000 * MS, "v_min_pu": 1.0, "v_max_pu": 1.105 if k == 3 else 1.09,
+            "line_loading_max_pct": 50.0, "trafo_loading_max_pct": 40.0, "q_ip_var": 0.0,
+            "samples": 100, "outside_band": 30 if k == 3 else 0, "not_converged": 0,
+            "outside_s": 0.3 if k == 3 else 0.0, "v_max_at": "bus X" if k == 3 else "bus Y",
+            "tap_pos": 0 if k < 5 else -1 if k < 8 else -2, **env})
+    series.add("grid_guard", {"t_send_ns": 2000 * MS, "p_up": ["A"], **env})
+    series.add("grid_guard", {"t_send_ns": 3000 * MS, "p_up": ["A"], **env})
+    series.add("grid_guard", {"t_send_ns": 4000 * MS, **env})
+    for t, kind in ((2000, "guard_block"), (2700, "limit_violated"), (3000, "limit_restored"),
+                    (5000, "tap"), (8000, "tap")):
+        series.add("event", {"t_send_ns": t * MS, "level": "INFO", "kind": kind, "text": "x",
+                             **env})
+    grid = summarize(series, end_ns=10_000 * MS).grid
+    assert (grid.violations, grid.outside_s, grid.v_max_pu, grid.v_max_at) == (
+        1, 0.3, 1.105, "bus X")
+    assert grid.guard_blocks == 1 and grid.guarded_s == pytest.approx(2.0)
+    assert grid.energy_short_kwh == pytest.approx(0.5e6 * 2.0 / 3.6e6, rel=1e-3)
+    assert grid.steps_short == ()                      # settled at 6 s, inside its window
+    assert (grid.tap_moves, grid.tap_range) == (2, (-2, 0))
+    text = grid_line(grid)
+    assert "1 violation(s), 0.30 s outside the band; extremes 1.1050 p.u. at bus X" in text
+    assert "grid guard: acted 1 time(s), 2.00 s" in text and "0.278 kWh" in text
+    assert "tap changer: 2 step(s), positions -2 to 0" in text

@@ -124,7 +124,9 @@ def blueprint(run: RunData):
             plot("grid: bus voltages and the band [p.u.]", "grid_v_min", "grid_v_max",
                  paths=sorted(limits - set(loading_limit))),
             plot("grid: highest loadings and the limit [%]", "grid_line_loading",
-                 "grid_trafo_loading", paths=loading_limit)))
+                 "grid_trafo_loading", paths=loading_limit),
+            *([plot("tap changer: position", "tap_pos")] if run.one("tap_pos") is not None
+              else [])))
     return rrb.Blueprint(
         rrb.Vertical(
             rrb.Horizontal(plot("P_IP and P_ref [MW]", "p_ref", "p_ip"),

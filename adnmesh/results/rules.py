@@ -95,7 +95,7 @@ COLORS: dict[str, tuple[int, int, int]] = {
     "grid_v_max": (60, 60, 200), "grid_line_loading": (90, 90, 90),
     "grid_trafo_loading": (160, 110, 50), "q_ip": (200, 80, 160), "grid_q_ip": (200, 80, 160),
     "q_ref": (120, 40, 100), "q_y": (20, 120, 60),
-    "available_count": (80, 80, 80), "grid_limit": (230, 30, 30),
+    "available_count": (80, 80, 80), "grid_limit": (230, 30, 30), "tap_pos": (0, 130, 130),
 }
 """Role -> the RGB colour of its line in Rerun (the others: Rerun's choice; a DER's series:
 :func:`series_color`). ``grid_limit`` is the configured band and loading limit drawn with the

@@ -47,7 +47,7 @@ from __future__ import annotations
 
 import math
 from array import array
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import msgspec
 import numpy as np
@@ -73,7 +73,7 @@ __all__ = [
 ]
 
 SUMMARY_TYPES = frozenset({"p_ip", "p_ref", "q_ref", "p_y", "q_y", "heartbeat", "si",
-                           "fault", "event", "grid_state"})
+                           "fault", "event", "grid_state", "grid_guard"})
 """The message types :meth:`RunSeries.add` takes (of ``p_y`` only those with a ``switch``):
 the few the summary reads, not every message type of the wire."""
 
@@ -100,6 +100,9 @@ class GridFold:
     def __init__(self) -> None:
         self._figures: list | None = None      # v_min, v_max, line, trafo, samples, out, nc
         self._outside: list[float] = []
+        self.outside_s = 0.0
+        self.at = {"v_min_at": "", "v_max_at": "", "line_max_at": "", "trafo_max_at": ""}
+        self.taps: list[int] = []              # the tap positions reported, min and max
 
     def add(self, body: dict) -> None:
         """Fold one ``grid_state`` body (KeyError if a field is missing)."""
@@ -107,10 +110,20 @@ class GridFold:
                   body["trafo_loading_max_pct"], body["samples"], body["outside_band"],
                   body["not_converged"]]
         t_s = body["t_send_ns"] * 1e-9
+        self.outside_s += body.get("outside_s", 0.0)
+        if "tap_pos" in body:
+            tap = body["tap_pos"]
+            self.taps = [tap, tap] if not self.taps else [min(self.taps[0], tap),
+                                                           max(self.taps[1], tap)]
+        f = self._figures
+        for i, name in ((0, "v_min_at"), (1, "v_max_at"), (2, "line_max_at"),
+                        (3, "trafo_max_at")):
+            better = f is None or (values[i] < f[i] if i == 0 else values[i] > f[i])
+            if better and body.get(name):
+                self.at[name] = body[name]
         if self._figures is None:
             self._figures = values
         else:
-            f = self._figures
             f[0] = min(f[0], values[0])
             f[1], f[2], f[3] = max(f[1], values[1]), max(f[2], values[2]), max(f[3], values[3])
             f[4], f[5], f[6] = f[4] + values[4], f[5] + values[5], f[6] + values[6]
@@ -124,7 +137,8 @@ class GridFold:
         """The run's grid figures, None before the first body."""
         if self._figures is None:
             return None
-        return GridFigures(*self._figures, tuple(self._outside))
+        return GridFigures(*self._figures, tuple(self._outside), outside_s=self.outside_s,
+                           **self.at, tap_range=tuple(self.taps))
 
 
 @dataclass
@@ -184,6 +198,7 @@ class RunSeries:
     events: list = field(default_factory=list)
     alarms: list = field(default_factory=list)
     grid: GridFold = field(default_factory=lambda: GridFold())
+    guard_changes: list = field(default_factory=list)   # (t_ns, acting) of the grid guard
     lost: list = field(default_factory=list)
     rejoined: list = field(default_factory=list)
     entries: list = field(default_factory=list)
@@ -258,6 +273,11 @@ class RunSeries:
                     (body["t_send_ns"], body.get("subject") or "?"))
         elif message_type == "grid_state":
             self.grid.add(body)
+        elif message_type == "grid_guard":
+            acting = bool(body.get("hold") or any(body.get(k) for k in
+                                                  ("p_up", "p_down", "q_up", "q_down")))
+            if not self.guard_changes or self.guard_changes[-1][1] != acting:
+                self.guard_changes.append((body["t_send_ns"], acting))
 
     def _window_event(self, message_type: str, body: dict) -> None:
         """Find the event in a message by the rules of :mod:`adnmesh.results.rules` (the
@@ -316,6 +336,29 @@ class GridFigures:
     outside_band: int
     not_converged: int
     periods_outside_s: tuple[float, ...]
+    outside_s: float = 0.0
+    """Time outside the band, s (samples outside times the measurement period)."""
+    v_min_at: str = ""
+    v_max_at: str = ""
+    line_max_at: str = ""
+    trafo_max_at: str = ""
+    """Where the extremes were (bus, line, transformer names; "" if not recorded)."""
+    violations: int = 0
+    """Episodes of violation: times a limit was crossed with none crossed before."""
+    guard_blocks: int = 0
+    """Times the grid guard blocked DERs (``guard_block`` events) or held the control."""
+    guarded_s: float = 0.0
+    """Time the guard had DERs blocked or the control held, s."""
+    energy_short_kwh: float | None = None
+    """``∫ |P_ref - P_IP| dt`` while the guard acted, kWh: what the guard cost the control
+    (None if it never acted)."""
+    steps_short: tuple[float, ...] = ()
+    """The P_ref steps (their times, s) whose window saw the guard act and that P_IP did not
+    settle in (not fully delivered)."""
+    tap_moves: int = 0
+    """Steps of the tap changer (``tap`` events)."""
+    tap_range: tuple[int, ...] = ()
+    """The lowest and highest tap position reported (empty without a tap changer)."""
 
 
 @dataclass(frozen=True)
@@ -455,7 +498,8 @@ def summarize(series: RunSeries, *, end_ns: int, band_pct: float = 5.0,
     sim_s = end_ns * 1e-9
     speed = sim_s / wall_time_s if wall_time_s else None
     return RunSummary(steps, tuple(switches), band_pct, sim_s, wall_time_s, speed,
-                      dict(extra or {}), _faults(series, sim_s, band_pct), _grid(series),
+                      dict(extra or {}), _faults(series, sim_s, band_pct),
+                      _grid(series, steps, end_ns),
                       realtime, scenario_steps(series, planned_steps, end_ns, sample_s,
                                                (extra or {}).get("ended")),
                       design_checks(steps, series.entries), q_steps, coupling,
@@ -562,8 +606,41 @@ def _faults(series: RunSeries, end_s: float, band_pct: float) -> tuple[FaultFigu
                                end_s=end_s, band_w=band_w, events_s=scenario))
 
 
-def _grid(series: RunSeries) -> GridFigures | None:
-    return series.grid.figures()
+def _grid(series: RunSeries, steps, end_ns: int) -> GridFigures | None:
+    """The grid figures with the violations, the guard's actions and their cost, and the
+    tap changer's steps."""
+    figures = series.grid.figures()
+    if figures is None:
+        return None
+    kinds = [kind for _, _, kind in series.events]
+    intervals, start = [], None
+    for t_ns, acting in series.guard_changes:
+        if acting and start is None:
+            start = t_ns
+        elif not acting and start is not None:
+            intervals.append((start, t_ns))
+            start = None
+    if start is not None:
+        intervals.append((start, end_ns))
+    guarded_s = sum(b - a for a, b in intervals) * 1e-9
+    energy, short = None, ()
+    if intervals:
+        t = np.asarray(series.p_ip_t_ns, dtype=np.int64)
+        error = np.abs(np.asarray(series.p_ip_w, dtype=float) - _p_ref_at(series, t))
+        joules = 0.0
+        for a, b in intervals:          # each sample holds until the next (or the end)
+            inside = (t >= a) & (t < b)
+            held_s = np.diff(np.append(t[inside], b)) * 1e-9
+            joules += float(np.nansum(error[inside] * held_s))
+        energy = joules / 3.6e6
+        short = tuple(s.t_s for s in steps
+                      if s.figures is not None and not math.isfinite(s.figures.settling_time_s)
+                      and any(a < (s.t_s + s.window_s) * 1e9 and b > s.t_s * 1e9
+                              for a, b in intervals))
+    return replace(figures, violations=kinds.count("limit_violated"),
+                   guard_blocks=kinds.count("guard_block") + kinds.count("guard_hold"),
+                   guarded_s=guarded_s, energy_short_kwh=energy, steps_short=short,
+                   tap_moves=kinds.count("tap"))
 
 
 def format_summary(summary: RunSummary):
@@ -678,7 +755,8 @@ def fault_table(faults):
 
 
 def grid_line(grid: GridFigures) -> str:
-    """One line on the grid's extremes and the samples outside the band."""
+    """The grid's extremes and the samples outside the band (one line); with violations, a
+    guard that acted or a tap changer, a line on each."""
     text = (f"grid: bus voltages {grid.v_min_pu:.4f} to {grid.v_max_pu:.4f} p.u., highest "
             f"loading {grid.line_loading_max_pct:.1f} % (lines), {grid.trafo_loading_max_pct:.1f}"
             f" % (transformers); {grid.outside_band} of {grid.samples} samples outside the band")
@@ -687,7 +765,24 @@ def grid_line(grid: GridFigures) -> str:
         text += f" (periods ending at {shown} s{', ...' if len(grid.periods_outside_s) > 5 else ''})"
     if grid.not_converged:
         text += f"; {grid.not_converged} power flows did not converge (last value kept)"
-    return text
+    lines = [text]
+    if grid.violations or grid.outside_s:
+        worst = [f"{grid.v_max_pu:.4f} p.u. at {grid.v_max_at or '?'}",
+                 f"{grid.v_min_pu:.4f} p.u. at {grid.v_min_at or '?'}",
+                 f"line {grid.line_max_at or '?'} {grid.line_loading_max_pct:.1f} %",
+                 f"trafo {grid.trafo_max_at or '?'} {grid.trafo_loading_max_pct:.1f} %"]
+        lines.append(f"grid limits: {grid.violations} violation(s), {grid.outside_s:.2f} s "
+                     f"outside the band; extremes {'; '.join(worst)}")
+    if grid.guard_blocks or grid.guarded_s:
+        short = (", ".join(f"{t:g} s" for t in grid.steps_short) or "none")
+        lines.append(f"grid guard: acted {grid.guard_blocks} time(s), {grid.guarded_s:.2f} s "
+                     f"with DERs blocked or the control held; cost: "
+                     f"{grid.energy_short_kwh or 0.0:.3f} kWh of |P_ref - P_IP| meanwhile, "
+                     f"steps not fully delivered: {short}")
+    if grid.tap_range:
+        lines.append(f"tap changer: {grid.tap_moves} step(s), positions {grid.tap_range[0]} "
+                     f"to {grid.tap_range[1]}")
+    return "\n".join(lines)
 
 
 def _fmt(value) -> str:

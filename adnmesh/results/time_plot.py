@@ -242,6 +242,12 @@ def _voltage_panel(ax, run: RunData, t_end: float, limits) -> None:
                        label=f"band: {which} allowed ({value:g} p.u.)")
     ax.set_ylabel("bus voltage [p.u.]")
     _legend(ax, ncols=4)
+    tap = run.one("tap_pos")
+    if tap is not None and tap.t_ns.size:             # the tap changer's steps, on the right
+        right = ax.twinx()
+        _step(right, run, tap, t_end, color="tab:cyan", lw=1.0, label=tap.name)
+        right.set_ylabel("tap position")
+        right.yaxis.get_major_locator().set_params(integer=True)
 
 
 def _loading_panel(ax, run: RunData, t_end: float, limits) -> None:
