@@ -302,3 +302,15 @@ def test_the_summary_counts_violations_the_guards_time_and_its_cost() -> None:
     assert "1 violation(s), 0.30 s outside the band; extremes 1.1050 p.u. at bus X" in text
     assert "grid guard: acted 1 time(s), 2.00 s" in text and "0.278 kWh" in text
     assert "tap changer: 2 step(s), positions -2 to 0" in text
+
+
+def test_the_gate_refuses_a_guard_state_naming_a_der_the_run_lacks() -> None:
+    from adnmesh.wire.envelope import decode
+    from adnmesh.wire.gate import names_known_ders
+    from payloads import payload
+
+    key = Keys("g").of("grid_guard")
+    known = frozenset({"SGen1", "SGen2"})
+    good = decode(key, payload(key, {"p_up": ["SGen1"], "q_down": ["SGen2"]}))
+    bad = decode(key, payload(key, {"p_down": ["SGen1", "SGen9"]}))
+    assert names_known_ders(good, known) and not names_known_ders(bad, known)

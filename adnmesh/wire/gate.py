@@ -9,7 +9,8 @@ accept rules are one set, in this order:
 2. the payload decodes and validates as the key's kind, from the key's one legitimate sender,
    delivered no earlier than sent (:func:`~adnmesh.wire.envelope.decode`: ``too_large``,
    ``malformed``, ``invalid``, ``wrong_sender``, ``time_order``);
-3. it names no DER the run does not have (SI, the CPFC's weights) — else ``unknown_der``;
+3. it names no DER the run does not have (SI, the CPFC's weights, the grid guard's lists) —
+   else ``unknown_der``;
 4. its sender is not cut off: an agent ``up`` quarantined sends nothing genuine from the
    quarantine on (but the clock protocol of its process, which ends it) — else
    ``quarantined``;
@@ -80,11 +81,15 @@ def count_reject(rejected: dict[str, dict[str, int]], key: str, reason: str,
 
 
 def names_known_ders(message: Envelope, der_ids: frozenset[str]) -> bool:
-    """False if ``message`` names a DER the run does not have (SI, the CPFC's weights)."""
+    """False if ``message`` names a DER the run does not have (SI, the CPFC's weights, the
+    grid guard's blocked DERs)."""
     if message.type == "si":
         return message.si.keys() <= der_ids
-    if message.type == "p_y" and message.w is not UNSET:
+    if message.type in ("p_y", "q_y") and message.w is not UNSET:
         return message.w.keys() <= der_ids
+    if message.type == "grid_guard":
+        return all(set(ders) <= der_ids for ders in (message.p_up, message.p_down,
+                                                       message.q_up, message.q_down))
     return True
 
 
