@@ -46,7 +46,8 @@ from adnmesh.grid.data import GridData, from_arrays, to_arrays
 __all__ = ["FORMAT_VERSION", "default_cache_dir", "cache_key", "net_cache_key", "cache_path",
            "is_cached", "model_path", "arrays_digest", "cached", "load_grid", "load_net_grid"]
 
-FORMAT_VERSION = 5          # 5: switches, taps, several ext grids; 4: sgen types and ratings;
+FORMAT_VERSION = 6          # 6: names of buses, lines, trafos and the trafos' tap changers;
+                            # 5: switches, taps, several ext grids; 4: sgen types and ratings;
                             # 3: the arrays digest (older files are not read, nor removed)
 
 _DIGEST = "digest"

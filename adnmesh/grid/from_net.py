@@ -21,6 +21,11 @@ The converter's transformer formula (``pp_orig_file``) is the first of ``"pandap
 transformers (150° shift) it is ``"pandapower_v2"``, to 1 mW; ``"pandapower_v3"`` is off by 68 W
 at lW.
 
+**Names and taps.** Every reported bus, line and transformer keeps its name in the net (else
+``bus <index>``, ``line <index>``, ``trafo <index>``), and every transformer its ratio tap
+changer (side, neutral, range, % per step) with the position the model is at
+(:class:`~adnmesh.grid.data.GridData`), for :meth:`adnmesh.grid.GridSolver.set_tap`.
+
 Supported nets: external grids (at one voltage), lines, two-winding transformers (ratio taps),
 switches of every kind, shunts, loads, static generators and storages (constant power). Anything
 else in service (gen, ward, trafo3w, ...) is a :class:`GridError`.
@@ -35,7 +40,7 @@ import numpy as np
 
 from adnmesh.grid.data import GridData
 from adnmesh.errors import GridError
-from adnmesh.grid.model_net import model_net
+from adnmesh.grid.model_net import IGNORED_TAP_TYPES, model_net
 from adnmesh.grid.solver import GridSolver
 
 __all__ = ["build_grid_data", "UNSUPPORTED", "CONVERTERS"]
@@ -123,6 +128,7 @@ def _convert(model, reference, bus_map, code, case, load_model, converter) -> Gr
     on = sgen.in_service.to_numpy(dtype=bool) * sgen.scaling.fillna(1.0).to_numpy()
     buses = reference.bus.index[_supplied(reference)]
     report = np.array([bus_map[int(b)] for b in buses], dtype=np.int64)
+    taps = _taps(reference.trafo)
     report = np.where(np.isin(report, list(slack_bus)), next(iter(slack_bus.values())),
                       report)
     return GridData(
@@ -136,7 +142,48 @@ def _convert(model, reference, bus_map, code, case, load_model, converter) -> Gr
         slack_gen=slack_gen, report_bus=report,
         line_i_max_ka=(line.max_i_ka * line.df * line.parallel).to_numpy(dtype=float),
         trafo_vn_hv_kv=vn_hv, trafo_vn_lv_kv=vn_lv,
-        trafo_rating_mva=(trafo.sn_mva * trafo.parallel * trafo.df).to_numpy(dtype=float))
+        trafo_rating_mva=(trafo.sn_mva * trafo.parallel * trafo.df).to_numpy(dtype=float),
+        bus_names=_names(reference.bus.loc[buses], "bus"), line_names=_names(line, "line"),
+        trafo_names=_names(trafo, "trafo"), **taps)
+
+
+def _names(table, kind: str) -> tuple[str, ...]:
+    """Each row's ``name``, else ``"<kind> <index>"``."""
+    names = table.name if "name" in table else [None] * len(table)
+    return tuple(f"{kind} {index}" if _missing(name) else str(name)
+                 for index, name in zip(table.index, names))
+
+
+def _missing(value) -> bool:
+    return value is None or value != value or str(value).strip() == ""
+
+
+def _taps(trafo) -> dict:
+    """Each transformer's ratio tap changer as :class:`GridData` keeps it (see there): side,
+    neutral, range, step and the position the model is at (``trafo`` is the net's table)."""
+    n = len(trafo)
+
+    def column(name: str, default) -> np.ndarray:
+        if name not in trafo:
+            return np.full(n, default, dtype=object)
+        return trafo[name].to_numpy(dtype=object)
+
+    side = np.array([str(s) if s in ("hv", "lv") else "none" for s in column("tap_side", None)],
+                    dtype=object)
+    numbers = {key: np.array(column(key, np.nan), dtype=float)
+               for key in ("tap_neutral", "tap_min", "tap_max", "tap_step_percent", "tap_pos")}
+    degree = np.nan_to_num(np.array(column("tap_step_degree", np.nan), dtype=float))
+    step = numbers["tap_step_percent"]
+    has = ((side != "none") & np.isfinite(step) & (step != 0.0) & (degree == 0.0)
+           & np.isfinite(numbers["tap_neutral"]) & np.isfinite(numbers["tap_min"])
+           & np.isfinite(numbers["tap_max"]) & (numbers["tap_min"] <= numbers["tap_max"]))
+    kind = column("tap_changer_type", None)
+    applied = np.array([k not in IGNORED_TAP_TYPES and k == k for k in kind], dtype=bool)
+    pos = numbers["tap_pos"]
+    numbers["tap_pos"] = np.where(applied & np.isfinite(pos), pos, numbers["tap_neutral"])
+    out = {key: np.where(has, value, np.nan) for key, value in numbers.items()}
+    out["tap_side"] = tuple(str(s) if h else "none" for s, h in zip(side, has))
+    return out
 
 
 def _one_slack(grid, model, first: int) -> dict:

@@ -18,6 +18,19 @@ and at the reference case it would be the lowest, a flat line); loadings as
 ``res_trafo.loading_percent`` (pandapower's default ``trafo_loading="current"``: the larger of
 ``i_hv · vn_hv_kv`` and ``i_lv · vn_lv_kv``, times √3, over ``sn_mva · parallel · df``).
 
+Each extreme says where it is: the name of the bus, line or transformer (:class:`GridSample`,
+names from :class:`~adnmesh.grid.data.GridData`).
+
+**Taps.** :meth:`GridSolver.set_tap` moves a transformer's ratio tap changer as ``runpp`` moves
+it for ``net.trafo.tap_pos = pos`` (pandapower's ratio model): the ratio by
+``1 + (pos - tap_neutral) · tap_step_percent / 100`` on the tap's side and, for a tap on the
+lv side, the transformer's series impedance by that factor squared and its magnetising
+admittance by its inverse square (pandapower refers them to the tapped lv voltage). Where the
+net names no ``tap_changer_type`` (SimBench's nets under pandapower 3) ``runpp`` ignores
+``tap_pos``; the model starts at neutral and :meth:`GridSolver.set_tap` moves it as ``runpp``
+does with ``tap_changer_type = "Ratio"`` (the kind SimBench's data describe: a step in %, none
+in degrees). Exact to the power flow's tolerance (tests against ``runpp``).
+
 Accuracy: Newton-Raphson to a power mismatch below ``tol_pu`` (default 1e-8 p.u. of the model's
 1 MVA base, i.e. 0.01 W / 0.01 var), the tolerance pandapower's ``runpp`` uses by default.
 """
@@ -32,7 +45,7 @@ import numpy as np
 from adnmesh.grid.data import GridData
 from adnmesh.errors import GridError
 
-__all__ = ["GridSample", "GridSolver", "available_power_w"]
+__all__ = ["Branches", "GridSample", "GridSolver", "available_power_w"]
 
 _SQRT3 = math.sqrt(3.0)
 
@@ -54,6 +67,10 @@ class GridSample:
         Whether Newton-Raphson converged; if not, every number is NaN.
     iterations : int
         Newton-Raphson iterations of the (last) attempt.
+    vm_min_at, vm_max_at : str
+        Name of the bus with the lowest and the highest voltage ("" if not converged).
+    line_max_at, trafo_max_at : str
+        Name of the most loaded line and transformer ("" if none or not converged).
     """
 
     p_ip_w: float
@@ -64,6 +81,47 @@ class GridSample:
     trafo_loading_max_pct: float
     converged: bool
     iterations: int
+    vm_min_at: str = ""
+    vm_max_at: str = ""
+    line_max_at: str = ""
+    trafo_max_at: str = ""
+
+
+@dataclass(frozen=True, eq=False)
+class Branches:
+    """The lines or the transformers of the solver's model as π models (its taps applied).
+
+    Side 1 is a line's from bus and a transformer's hv bus. The currents into the branch are
+    ``I₁ = y11·V₁ + y12·V₂`` and ``I₂ = y21·V₁ + y22·V₂`` (p.u. of the model's base).
+
+    Attributes
+    ----------
+    bus1, bus2 : ndarray of int
+        Model bus of each side.
+    y11, y12, y21, y22 : ndarray of complex
+        Admittances, p.u. (zero where the branch is out of service).
+    connected : ndarray of bool
+        Whether the branch is in service.
+    """
+
+    bus1: np.ndarray
+    bus2: np.ndarray
+    y11: np.ndarray
+    y12: np.ndarray
+    y21: np.ndarray
+    y22: np.ndarray
+    connected: np.ndarray
+
+    @classmethod
+    def of(cls, container) -> "Branches":
+        """The branches of a lightsim2grid line or transformer container."""
+        items = list(container)
+        ints = {k: np.array([getattr(b, k) for b in items], dtype=np.int64)
+                for k in ("bus1_id", "bus2_id")}
+        ys = {k: np.array([getattr(b, f"yac_eff_{k[1:]}") for b in items], dtype=complex)
+              for k in ("y11", "y12", "y21", "y22")}
+        connected = np.array([bool(b.connected_global) for b in items], dtype=bool)
+        return cls(ints["bus1_id"], ints["bus2_id"], **ys, connected=connected)
 
 
 def available_power_w(data: GridData, sgen_names) -> np.ndarray:
@@ -110,7 +168,17 @@ class GridSolver:
         _single_slack_nr(self._grid)
         self._max_iter, self._tol = int(max_iter), float(tol_pu)
         self._v = data.v_init.astype(complex).copy()
-        self._report_bus = _without_slack(data.report_bus, self._grid, data.slack_gen)
+        reported = _without_slack(data.report_bus, self._grid, data.slack_gen)
+        self._report_bus = data.report_bus[reported]
+        self._bus_names = tuple(data.bus_names[i] for i in np.flatnonzero(reported))
+        self._tap = data.tap_pos.copy()
+        trafos = list(self._grid.get_trafos())
+        self._ratio0 = np.array([t.ratio for t in trafos], dtype=float)
+        self._r0 = np.array([t.r_pu for t in trafos], dtype=float)
+        self._x0 = np.array([t.x_pu for t in trafos], dtype=float)
+        self._b0 = np.array([t.h1_pu + t.h2_pu for t in trafos], dtype=complex)
+        self._impedance_scale = np.ones(len(trafos))     # of r, x (1/it of b) since the case
+        self._branches: tuple[Branches, Branches] | None = None
         self._line_factor = 100.0 / data.line_i_max_ka
         self._hv_factor = _SQRT3 * 100.0 * data.trafo_vn_hv_kv / data.trafo_rating_mva
         self._lv_factor = _SQRT3 * 100.0 * data.trafo_vn_lv_kv / data.trafo_rating_mva
@@ -140,6 +208,87 @@ class GridSolver:
     def reported_buses(self) -> np.ndarray:
         """The model buses :meth:`bus_vm_pu` reports, in its order."""
         return self._report_bus.copy()
+
+    @property
+    def bus_names(self) -> tuple[str, ...]:
+        """Names of the buses :meth:`bus_vm_pu` reports, in its order."""
+        return self._bus_names
+
+    @property
+    def line_names(self) -> tuple[str, ...]:
+        """Names of the lines, in :meth:`line_loading_pct`'s order."""
+        return self.data.line_names
+
+    @property
+    def trafo_names(self) -> tuple[str, ...]:
+        """Names of the transformers, in :meth:`trafo_loading_pct`'s order."""
+        return self.data.trafo_names
+
+    def branches(self) -> tuple[Branches, Branches]:
+        """The lines and the transformers as π models, taps as set (:class:`Branches`)."""
+        if self._branches is None:
+            self._branches = (Branches.of(self._grid.get_lines()),
+                              Branches.of(self._grid.get_trafos()))
+        return self._branches
+
+    def loading_pct_per_ka(self) -> tuple[tuple[np.ndarray, np.ndarray],
+                                          tuple[np.ndarray, np.ndarray]]:
+        """What turns side 1's and side 2's current (kA) into loading (%): ``((line side 1,
+        line side 2), (trafo hv, trafo lv))``, % per kA; the loading is the larger side's."""
+        return ((self._line_factor, self._line_factor), (self._hv_factor, self._lv_factor))
+
+    def tap_pos(self, trafo: int) -> int:
+        """The tap position transformer ``trafo`` (model order) is at; :class:`GridError` if it
+        has no tap changer."""
+        self._tap_changer(trafo)
+        return int(round(float(self._tap[trafo])))
+
+    def set_tap(self, trafo: int, pos: int) -> None:
+        """Put transformer ``trafo``'s tap at ``pos`` (see the module docstring); the next
+        :meth:`solve` solves with it (the last solution's results are not changed).
+
+        Raises
+        ------
+        GridError
+            The transformer has no tap changer, or ``pos`` is no integer in
+            ``[tap_min, tap_max]``.
+        """
+        data = self.data
+        name = self._tap_changer(trafo)
+        low, high = data.tap_min[trafo], data.tap_max[trafo]
+        try:
+            whole = float(pos).is_integer()
+        except (TypeError, ValueError):
+            whole = False
+        if not whole or not low <= float(pos) <= high:
+            raise GridError(f"grid solver: tap position {pos!r} of transformer {trafo} "
+                            f"({name}) is not an integer in its range [{low:g}, {high:g}]")
+        factor = self._tap_factor(trafo, float(pos)) / self._tap_factor(trafo,
+                                                                         data.tap_pos[trafo])
+        self._grid.change_ratio_trafo(trafo, float(self._ratio0[trafo] * factor))
+        if data.tap_side[trafo] == "lv":             # impedances referred to the tapped side
+            self._impedance_scale[trafo] = factor ** 2
+            scale = self._impedance_scale
+            self._grid.update_trafos_parameters(self._r0 * scale, self._x0 * scale,
+                                                self._b0 / scale)
+        self._tap[trafo] = float(pos)
+        self._branches = None
+
+    def _tap_changer(self, trafo: int) -> str:
+        """The name of transformer ``trafo``; :class:`GridError` unless it has a tap changer."""
+        names = self.data.trafo_names
+        if not isinstance(trafo, (int, np.integer)) or not 0 <= trafo < len(names):
+            raise GridError(f"grid solver: no transformer {trafo!r} (the grid has "
+                            f"{len(names)})")
+        if self.data.tap_side[trafo] == "none":
+            raise GridError(f"grid solver: transformer {trafo} ({names[trafo]}) has no ratio "
+                            f"tap changer in the net")
+        return names[trafo]
+
+    def _tap_factor(self, trafo: int, pos: float) -> float:
+        """pandapower's voltage factor of the tap's side at ``pos``, 1 at neutral."""
+        data = self.data
+        return 1.0 + (pos - data.tap_neutral[trafo]) * data.tap_step_percent[trafo] / 100.0
 
     def line_loading_pct(self) -> np.ndarray:
         """Every line's loading at the last solve (pandapower's definition), %."""
@@ -190,23 +339,32 @@ class GridSolver:
         vm = self.bus_vm_pu()
         line = self.line_loading_pct()
         trafo = self.trafo_loading_pct()
+        low, high = int(np.argmin(vm)), int(np.argmax(vm))
         return GridSample(p_ip_w=float(-p_gen[d.slack_gen] * 1e6),
                           q_ip_var=float(-q_gen[d.slack_gen] * 1e6),
-                          vm_min_pu=float(vm.min()), vm_max_pu=float(vm.max()),
+                          vm_min_pu=float(vm[low]), vm_max_pu=float(vm[high]),
                           line_loading_max_pct=_max(line), trafo_loading_max_pct=_max(trafo),
-                          converged=True, iterations=iterations)
+                          converged=True, iterations=iterations,
+                          vm_min_at=self._bus_names[low], vm_max_at=self._bus_names[high],
+                          line_max_at=_at_max(line, d.line_names),
+                          trafo_max_at=_at_max(trafo, d.trafo_names))
 
 
 def _without_slack(report_bus: np.ndarray, grid, slack_gen: int) -> np.ndarray:
-    """The model buses whose voltages are reported: ``report_bus`` but the slack's (all of
-    them if the slack's is the only one)."""
+    """Which entries of ``report_bus`` are reported: all but the slack's (all of them if the
+    slack's is the only one); a boolean mask."""
     slack_bus = grid.get_generators()[slack_gen].bus_id
-    buses = report_bus[report_bus != slack_bus]
-    return buses if buses.size else report_bus
+    keep = report_bus != slack_bus
+    return keep if keep.any() else np.ones(report_bus.shape, dtype=bool)
 
 
 def _max(values: np.ndarray) -> float:
     return float(values.max()) if values.size else math.nan
+
+
+def _at_max(values: np.ndarray, names) -> str:
+    """The name of the largest of ``values`` ("" if there are none)."""
+    return names[int(np.argmax(values))] if values.size else ""
 
 
 def _not_converged(iterations: int) -> GridSample:
