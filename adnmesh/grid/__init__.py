@@ -8,8 +8,10 @@ Pure numerics plus one disk cache; no bus, no agents. The measurement agent need
 
 and :func:`available_power_w` gives each actuator's available power at the study case.
 
-Modules: :mod:`~adnmesh.grid.data` (the lightsim2grid model and arrays),
-:mod:`~adnmesh.grid.solver` (the solver), :mod:`~adnmesh.grid.cache` (the cache),
+Modules: :mod:`~adnmesh.grid.data` (the lightsim2grid model and arrays, the names of its buses,
+lines and transformers, their tap changers), :mod:`~adnmesh.grid.solver` (the solver, where the
+extremes are, taps), :mod:`~adnmesh.grid.sensitivity` (how P_IP and Q_IP, the bus voltages and
+the branch loadings move with each actuator's P and Q), :mod:`~adnmesh.grid.cache` (the cache),
 :mod:`~adnmesh.grid.simbench_net` and :mod:`~adnmesh.grid.from_net` (the only users of simbench and
 pandapower, imported on a cache miss only).
 """
