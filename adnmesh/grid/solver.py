@@ -245,7 +245,9 @@ class GridSolver:
 
     def set_tap(self, trafo: int, pos: int) -> None:
         """Put transformer ``trafo``'s tap at ``pos`` (see the module docstring); the next
-        :meth:`solve` solves with it (the last solution's results are not changed).
+        :meth:`solve` solves with it (the last solution's results are not changed). Parallel
+        transformers (SimBench's HV/MV substations have two) move one by one: a tap on one
+        alone drives a circulating current between them.
 
         Raises
         ------
