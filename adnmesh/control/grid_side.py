@@ -86,7 +86,7 @@ class GridSide:
         self._levels = self.guard._levels()
         self.tap = None
         if model.tap_changer is not None:
-            self.tap, self.tap_trafo, self._tap_bus = _tap_changer(model.tap_changer, solver)
+            self.tap, self.tap_trafos, self._tap_bus = _tap_changer(model.tap_changer, solver)
         self._last_p: list[float] | None = None
         self._last_q: list[float] | None = None
 
@@ -152,7 +152,8 @@ class GridSide:
                      "text": note}]
         if not step:
             return []
-        self.solver.set_tap(self.tap_trafo, tap.position)
+        for trafo in self.tap_trafos:             # parallel transformers step together
+            self.solver.set_tap(trafo, tap.position)
         return [{"level": "INFO", "kind": "tap", "subject": "tap_changer",
                  "text": f"tap changer: position {tap.position - step} -> {tap.position} "
                          f"(MV busbar at {v_pu:.4f} p.u., band {tap.v_set_pu:.4f} ± "
@@ -164,8 +165,10 @@ def _names(solver, attribute: str):
 
 
 def _tap_changer(settings, solver):
-    """``(TapChangerControl, trafo, busbar)`` for the config's tap changer: the transformer
-    (the config's, else the one at the slack), its MV bus in the model, the regulator."""
+    """``(TapChangerControl, trafos, busbar)`` for the config's tap changer: the regulator,
+    the transformers it steps (the config's, else those at the slack: parallel transformers
+    step together, or a circulating current flows between them) and their MV bus in the
+    model."""
     from adnmesh.control.tap_changer import TapChangerControl
     from adnmesh.errors import GridError
 
@@ -177,22 +180,29 @@ def _tap_changer(settings, solver):
             raise GridError(f"grid_model.tap_changer.trafo: the net has {len(trafos)} "
                             f"transformer(s), no {settings.trafo}")
         index = settings.trafo
+        stepped = [index]
     else:
         at_slack = [i for i, t in enumerate(trafos) if slack_bus in (t.bus1_id, t.bus2_id)]
         if not at_slack:
             raise GridError("grid_model.tap_changer: no transformer at the interconnection "
                             "point; name one with grid_model.tap_changer.trafo")
         index = at_slack[0]
+        stepped = at_slack
     trafo = trafos[index]
     mv_bus = trafo.bus2_id if trafo.bus1_id == slack_bus else trafo.bus1_id
     tap_min, tap_max = data.tap_min[index], data.tap_max[index]
     if not (tap_min == tap_min and tap_max == tap_max) or tap_min >= tap_max:
         raise GridError(f"grid_model.tap_changer: transformer {index} has no tap changer in "
                         "the net (no tap range)")
+    stepped = [i for i in stepped                         # the same busbar, the same taps
+               if {trafos[i].bus1_id, trafos[i].bus2_id} == {trafo.bus1_id, trafo.bus2_id}
+               and data.tap_min[i] == data.tap_min[index]
+               and data.tap_max[i] == data.tap_max[index]
+               and solver.tap_pos(i) == solver.tap_pos(index)]
     v_set = settings.v_set_pu
     if v_set is None:
         v_set = float(abs(solver.voltages_pu[mv_bus]))
     raises = 1 if str(data.tap_side[index]) == "lv" else -1
     control = TapChangerControl(v_set, settings.dead_band_pu, settings.delay_s,
                                 int(solver.tap_pos(index)), int(tap_min), int(tap_max), raises)
-    return control, index, mv_bus
+    return control, stepped, mv_bus
