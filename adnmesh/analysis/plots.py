@@ -14,12 +14,13 @@ from matplotlib.patches import Patch
 from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
 from adnmesh.analysis.coupling import CouplingResult
+from adnmesh.analysis.pq_region import PQRegion, binding_words, q_range_var
 from adnmesh.analysis.robustness import METRICS, RobustnessResult
 from adnmesh.analysis.solution_space import REASONS, SolutionSpace
 from adnmesh.analysis.uncertainty import B_RANGE, MODEL_LABELS, QUANTITY_LABELS, UncertaintyResult
 
-__all__ = ["plot_coupling", "plot_robustness", "plot_uncertainty", "plot_solution_space",
-           "COLOURS"]
+__all__ = ["plot_coupling", "plot_pq_region", "plot_robustness", "plot_uncertainty",
+           "plot_solution_space", "COLOURS"]
 
 COLOURS = {"adaptive": "#1f77b4", "static": "#ff7f0e"}
 _LOG_METRICS = {"rise_time_s", "settling_time_s", "gain_margin", "delay_margin_s"}
@@ -238,3 +239,73 @@ def plot_coupling(result: CouplingResult, path, covers: str = "") -> Path:
     fig.suptitle("P and Q loops together: the coupled 2×2 loop, exact delays"
                  + (f"\n{covers}" if covers else ""), fontsize=10)
     return _save(fig, path)
+
+
+_BINDING_STYLE = {"v_max": ("^", "tab:red"), "v_min": ("v", "tab:purple"),
+                  "loading": ("s", "tab:orange")}
+
+
+def plot_pq_region(region: PQRegion, path, operating_point: tuple[float, float] | None = None,
+                   covers: str = "") -> Path:
+    """The feasible P-Q region at the interconnection point (:mod:`adnmesh.analysis.pq_region`)
+    beside the region under DER capability alone; support points where a grid limit binds
+    marked by kind, with the elements named; ``operating_point`` (P_IP W, Q_IP var) with the
+    region's Q range there; ``covers``: the config and grid, for the title. Axes in MW and
+    Mvar."""
+    fig = Figure(figsize=(8.5, 8.0), layout="constrained")
+    ax = fig.add_subplot()
+    bare = region.without_limits
+    if bare is not None:
+        _polygon(ax, bare.vertices, dict(fc="0.92", ec="0.35", ls="--", lw=1.2,
+                                         label="DER capability only"))
+    limits = region.limits
+    label = "with grid limits" + ("" if limits is None else
+                                   f" (v in [{limits.v_min_pu:g}, {limits.v_max_pu:g}] p.u., "
+                                   f"loading ≤ {limits.loading_max_pct:g} %)")
+    _polygon(ax, region.vertices, dict(fc="tab:blue", alpha=0.35, ec="tab:blue", lw=1.5,
+                                       label=label))
+    binding = region.binding_limits()
+    for kind, elements in binding.items():
+        marker, colour = _BINDING_STYLE.get(kind, ("o", "black"))
+        at = np.array([[s.p_ip_w, s.q_ip_var] for s in region.support
+                       if any(b.startswith(kind + " ") for b in s.binding)]) / 1e6
+        ax.plot(at[:, 0], at[:, 1], marker, ls="none", color=colour, mec="black", mew=0.5,
+                ms=6, zorder=5, label=f"{binding_words({kind: elements})} binds")
+    if operating_point is not None:
+        p, q = operating_point
+        span = q_range_var(region, p)
+        if span is not None:
+            ax.plot([p / 1e6] * 2, np.array(span) / 1e6, color="black", lw=1.5,
+                    marker="_", ms=12, zorder=4,
+                    label=f"Q range at the operating P: {span[0] / 1e6:.3f} to "
+                          f"{span[1] / 1e6:.3f} Mvar")
+        ax.plot(p / 1e6, q / 1e6, "X", ms=11, color="gold", mec="black", zorder=6,
+                label=f"operating point (DERs at their schedules): {p / 1e6:.3f} MW, "
+                      f"{q / 1e6:.3f} Mvar")
+    ax.set_xlabel("P_IP [MW] (MV → HV positive)")
+    ax.set_ylabel("Q_IP [Mvar] (MV → HV positive)")
+    ax.grid(True, alpha=0.3)
+    ax.margins(0.06)
+    fig.legend(*ax.get_legend_handles_labels(), loc="outside lower center", fontsize=8)
+    lo, hi = region.p_span_w()
+    qlo, qhi = region.q_span_var()
+    lines = [f"P_IP {lo / 1e6:.3f} to {hi / 1e6:.3f} MW, Q_IP {qlo / 1e6:.3f} to "
+             f"{qhi / 1e6:.3f} Mvar; {len(region.support)} support points, edges within "
+             f"{region.boundary_error_w / 1e3:.2g} kW (kvar)", *region.notes]
+    fig.suptitle("Feasible P-Q region at the interconnection point"
+                 + (f"\n{covers}" if covers else ""), fontsize=11)
+    ax.set_title("\n".join(lines), fontsize=8)
+    return _save(fig, path)
+
+
+def _polygon(ax, vertices: np.ndarray, style: dict) -> None:
+    """A region's polygon in MW and Mvar (a segment or a point as a line or a marker)."""
+    from matplotlib.patches import Polygon
+
+    xy = np.asarray(vertices, float) / 1e6
+    if len(xy) >= 3:
+        ax.add_patch(Polygon(xy, closed=True, **style))
+        ax.autoscale_view()
+    else:
+        ax.plot(xy[:, 0], xy[:, 1], "o-", color=style.get("ec", "black"),
+                label=style.get("label"))

@@ -5,7 +5,9 @@ and writes every output of one run into one folder (``--out``, default
 ``out/analyze-<config stem>-<timestamp>/``) with an ``index.md`` that links them all. The
 numerics are in :mod:`adnmesh.analysis` and :mod:`adnmesh.dermodels`; this module only parses,
 reports progress and writes. ``--der-models`` adds the detailed DER models' step responses beside
-the reference PT1 (``--only der-models``: that part alone, which needs no table).
+the reference PT1 (``--only der-models``: that part alone, which needs no table). ``--pq-region``
+computes the feasible P-Q region at the interconnection point (:mod:`adnmesh.analysis.pq_region`;
+no table; without ``--only`` the table analyses are left out).
 """
 from __future__ import annotations
 
@@ -36,7 +38,7 @@ from adnmesh.tuning.table import default_table_path, load_table
 
 __all__ = ["add_parser", "run", "PARTS", "parse_subset", "default_out_dir"]
 
-PARTS = ("robustness", "uncertainty", "solution-space", "der-models", "coupling")
+PARTS = ("robustness", "uncertainty", "solution-space", "der-models", "coupling", "pq-region")
 _TABLE_PARTS = ("robustness", "uncertainty", "solution-space")
 
 
@@ -49,7 +51,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "merit of every "
         "subset, adaptive vs static (box plots, CSV); stability and doubling limits of the "
         "actuator time-constant factor b for the PT1, PT2 and RHPZ models (table, JSON, "
-        "figure); optionally the (K_P, K_I) solution space of one subset. All outputs go to "
+        "figure); optionally the (K_P, K_I) solution space of one subset, or the feasible P-Q "
+        "region at the interconnection point (--pq-region, no table). All outputs go to "
         "one folder with an index.md. Exit code 0 when written, 2 for a user error (config, "
         "table, options, an unwritable folder).",
     )
@@ -71,6 +74,17 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         "2x2 loop on the power flow linearised at the DERs' schedules, exact "
                         "delays (coupling.md, .png, .json; both tables, tuned on demand where "
                         "they lack the set of all DERs)")
+    parser.add_argument("--pq-region", action="store_true",
+                        help="the feasible P-Q region at the interconnection point under the "
+                        "grid limits and the DERs' capability, beside the region without grid "
+                        "limits (pq-region.png, .csv; needs a grid_model and no table; without "
+                        "--only it runs without the table analyses)")
+    parser.add_argument("--available", metavar="IDS",
+                        help="--pq-region for these DERs available, e.g. SGen5,SGen6 (the "
+                        "others at their schedules; default all)")
+    parser.add_argument("--directions", type=int, metavar="N",
+                        help="--pq-region: evenly spread directions before the refinement "
+                        "(default 24)")
     parser.add_argument("--grid", type=int, default=60, metavar="N",
                         help="solution-space grid points per axis (default 60)")
     parser.add_argument("--models", default=",".join(MODELS), metavar="LIST",
@@ -360,6 +374,91 @@ def _coupling(config, table, out: Path, console: Console) -> str:
     return text
 
 
+def _pq_options(args: argparse.Namespace, parts: tuple[str, ...]) -> None:
+    """``--available`` and ``--directions`` only with the P-Q region, N in range."""
+    if "pq-region" not in parts:
+        for option, value in (("--available", args.available),
+                              ("--directions", args.directions)):
+            if value is not None:
+                raise UsageError(f"{option} is an option of --pq-region")
+    if args.directions is not None and not 4 <= args.directions <= 360:
+        raise UsageError(f"--directions must be between 4 and 360, got {args.directions}")
+
+
+def _pq_config(config, args: argparse.Namespace) -> None:
+    """The P-Q region is of the config as written and needs its grid model."""
+    if config.quantity == "Q":
+        raise UsageError("--pq-region is of the config as written (P and Q together); leave "
+                         "out --quantity q")
+    if config.grid_model is None:
+        raise UsageError(f"--pq-region: {args.config} has no grid_model: the P-Q region "
+                         "needs the grid (its voltages and loadings from the power flow)")
+    if args.available is not None:
+        der_id_list(config, args.available, "--available")
+
+
+def _pq_region(config, args: argparse.Namespace, out: Path, console: Console,
+               err: Console) -> str:
+    """The feasible P-Q region (:mod:`adnmesh.analysis.pq_region`): pq-region.png, .csv."""
+    from adnmesh.analysis.pq_region import (DEFAULT_DIRECTIONS, binding_words, pq_region,
+                                            q_range_var)
+    from adnmesh.control.operating_point import (available_power_w, grid_label, grid_solver,
+                                                 initial_p_ip_w, initial_q_ip_var)
+
+    ids = None if args.available is None else der_id_list(config, args.available,
+                                                          "--available")
+    directions = args.directions or DEFAULT_DIRECTIONS
+    t0 = time.perf_counter()
+    with _progress(err) as bar:
+        task = bar.add_task("P-Q region: optimising directions", total=2 * directions)
+        region = pq_region(grid_solver(config), config.ders, available_power_w(config),
+                           config.grid_model.limits, config.reactive, available=ids,
+                           directions=directions,
+                           progress=lambda k, n: bar.update(task, completed=k, total=n))
+    took = time.perf_counter() - t0
+    point = (initial_p_ip_w(config), initial_q_ip_var(config))
+    who = "all DERs" if ids is None else f"available: {', '.join(region.moving)}"
+    plots.plot_pq_region(region, out / "pq-region.png", point,
+                         covers=f"{Path(config.path).name}; {grid_label(config)}; {who}")
+    _write_csv(out / "pq-region.csv", *_pq_rows(region))
+    lo, hi = region.p_span_w()
+    span = q_range_var(region, point[0])
+    at_point = ("outside the region" if span is None else
+                f"{span[0] / 1e6:.3f} to {span[1] / 1e6:.3f} Mvar")
+    binding = binding_words(region.binding_limits())
+    lines = [f"P-Q region ({grid_label(config)}; {who}): P_IP {lo / 1e6:.3f} to "
+             f"{hi / 1e6:.3f} MW",
+             f"Q_IP at the operating point (P_IP {point[0] / 1e6:.3f} MW, DERs at their "
+             f"schedules): {at_point}",
+             f"binding grid limits: {binding}" + ("" if region.binding_limits() else
+                                                   " (the DERs' capability bounds it)"),
+             f"{len(region.support)} support points, edges within "
+             f"{region.boundary_error_w / 1e3:.2g} kW (kvar) of the region; "
+             f"{region.power_flows:,} power flows in {took:.1f} s",
+             *(f"note: {n}" for n in region.notes)]
+    for line in lines:
+        console.print(line)
+    return "\n".join(f"- {line}" for line in lines)
+
+
+def _pq_rows(region) -> tuple[list[str], list[list]]:
+    """The CSV of a region and its comparison: one row per support point."""
+    ids = region.der_ids
+    header = (["region", "direction_deg", "p_ip_w", "q_ip_var", "vertex", "binding",
+               "vm_min_pu", "vm_max_pu", "loading_max_pct"]
+              + [f"p_{d}_w" for d in ids] + [f"q_{d}_var" for d in ids])
+    rows = []
+    for name, part in (("grid_limits", region), ("der_capability", region.without_limits)):
+        corners = {(float(p), float(q)) for p, q in part.vertices}
+        for s in part.support:
+            rows.append([name, f"{np.degrees(s.direction_rad):.6g}", f"{s.p_ip_w:.6f}",
+                         f"{s.q_ip_var:.6f}", int((s.p_ip_w, s.q_ip_var) in corners),
+                         "; ".join(s.binding), f"{s.vm_min_pu:.8f}", f"{s.vm_max_pu:.8f}",
+                         report.csv_number(s.loading_max_pct),
+                         *(f"{v:.3f}" for v in s.der_p_w), *(f"{v:.3f}" for v in s.der_q_var)])
+    return header, rows
+
+
 def _der_handover(config, out: Path) -> None:
     """The re-entry transient of the detailed models, open loop (der-handover.png;
     docs/method.md#returning-ders-handover)."""
@@ -429,6 +528,17 @@ def _index(config, table_path: Path, table, out: Path, parts: dict, times: dict,
                   "- [der-models.csv](der-models.csv) — rise and reaction time per DER and step",
                   "- [der-models.json](der-models.json) — the same with every model parameter",
                   "", parts["der-models"], ""]
+    if "pq-region" in parts:
+        lines += ["## Feasible P-Q region", "",
+                  "The (P_IP, Q_IP) the DERs can reach under the grid limits and their "
+                  "capability, beside the region without grid limits "
+                  "(docs/method.md#feasible-p-q-region).", "",
+                  "![P-Q region](pq-region.png)", "",
+                  "- [pq-region.png](pq-region.png) — the regions, binding limits and the "
+                  "operating point",
+                  "- [pq-region.csv](pq-region.csv) — one row per support point: direction, "
+                  "P_IP, Q_IP, binding limits, every DER's set-points", "",
+                  parts["pq-region"], ""]
     if "coupling" in parts:
         lines += ["## P and Q together", "",
                   "The coupled 2×2 loop on the linearised grid, exact delays "
@@ -448,11 +558,18 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--grid must be between 5 and 400, got {args.grid}")
     models = _parse_list(args.models, MODELS, "--models")
     parts = _parse_list(args.only, PARTS, "--only") if args.only else PARTS
-    parts = tuple(p for p in parts if p not in ("der-models", "coupling") or args.only)
-    for flag, part in ((args.der_models, "der-models"), (args.coupling, "coupling")):
-        if flag and part not in parts:       # these two only on request
+    on_request = ("der-models", "coupling", "pq-region")
+    parts = tuple(p for p in parts if p not in on_request or args.only)
+    if args.pq_region and not args.only:     # the region alone: no table analyses
+        parts = tuple(p for p in parts if p not in ("robustness", "uncertainty"))
+    for flag, part in ((args.der_models, "der-models"), (args.coupling, "coupling"),
+                       (args.pq_region, "pq-region")):
+        if flag and part not in parts:       # these only on request
             parts += (part,)
+    _pq_options(args, parts)
     config = load_loop_config(args)
+    if "pq-region" in parts:
+        _pq_config(config, args)
     if config.quantity == "Q" and ("der-models" in parts or "coupling" in parts):
         raise UsageError("--der-models and --coupling are of the config as written (the "
                          "coupling analysis takes both loops); leave out --quantity q")
@@ -507,6 +624,10 @@ def run(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         done["coupling"] = _coupling(config, table, out, console)
         times["coupling"] = time.perf_counter() - t0
+    if "pq-region" in parts:
+        t0 = time.perf_counter()
+        done["pq-region"] = _pq_region(config, args, out, console, err)
+        times["P-Q region"] = time.perf_counter() - t0
     total = time.perf_counter() - t_start
     index = _index(config, table_path, table, out, done, times, total, args.outliers)
     (out / "index.md").write_text(index)
