@@ -634,6 +634,10 @@ class ConfigFile(Section):
     t_rise_is: Literal["rise_time", "time_constant"] = "rise_time"
     """What the DERs' t_rise_s is: their 10-90 % rise time (the reference model's time constant
     is then t_rise_s / ln 9, as the paper has it) or the time constant itself."""
+    extends: _Name | None = None
+    """A config this one is a variant of (a file name relative to this file): its keys are
+    taken, and this file's keys replace them (mappings merged key by key, lists and values
+    replaced). File names in either are relative to this file."""
 
     @property
     def design_t_com_s(self) -> float:
@@ -949,6 +953,48 @@ def _read(path: Path) -> bytes:
         raise ConfigError(unreadable(path, exc, "config file")) from None
 
 
+MAX_EXTENDS = 8
+"""The longest chain of configs extending one another."""
+
+
+def _document(path: Path, chain: tuple[Path, ...]) -> tuple[object, bytes]:
+    """The YAML document of ``path`` with the configs it extends merged in, and the bytes of
+    every file read (the base's first), for the config's hash."""
+    data = _read(path)
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not UTF-8 text (byte {exc.start})") from None
+    document = _parse_yaml(path, text)
+    if not isinstance(document, dict) or "extends" not in document:
+        return document, data
+    base = document.pop("extends")
+    if not isinstance(base, str) or not base.strip():
+        raise ConfigError(f"{path}: extends: must be the file name of a config, got {base!r}")
+    base_path = path.parent / base
+    if base_path.resolve() in chain:
+        raise ConfigError(f"{path}: extends: {base} leads back to this file (a circle)")
+    if len(chain) > MAX_EXTENDS:
+        raise ConfigError(f"{path}: extends: more than {MAX_EXTENDS} configs extend one "
+                          "another")
+    parent, parent_data = _document(base_path, (*chain, base_path.resolve()))
+    if not isinstance(parent, dict):
+        raise ConfigError(f"{base_path}: a config extended by {path} must be a mapping")
+    return _merged(parent, document), parent_data + data
+
+
+def _merged(base: dict, over: dict) -> dict:
+    """``base`` with ``over``'s keys put in: mappings merged key by key, everything else
+    (values, lists, a mapping over a non-mapping) replaced."""
+    out = dict(base)
+    for key, value in over.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _merged(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
 def json_schema() -> dict[str, Any]:
     """Return the JSON Schema (draft 2020-12) of a config file, with units in the descriptions."""
     return {"$schema": "https://json-schema.org/draft/2020-12/schema",
@@ -974,12 +1020,7 @@ def load_config(path: str | Path) -> Config:
         For the first problem found; the message is one line naming the file and the key path.
     """
     path = Path(path)
-    data = _read(path)
-    try:
-        text = data.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        raise ConfigError(f"{path}: not UTF-8 text (byte {exc.start})") from None
-    document = _parse_yaml(path, text)
+    document, data = _document(path, (path.resolve(),))
     if document is None:
         keys = ", ".join(ConfigFile.model_fields)
         raise ConfigError(f"{path}: empty config (expected a mapping with keys: {keys})")

@@ -328,7 +328,7 @@ INVALID = {
     "unknown section": (
         _set("power_flow", {"solver": "nr"}),
         "power_flow: unknown key (valid keys: grid, simbench_code, t_com_s, t_meas_s, "
-        "constraints, ders, scenario, runtime, grid_model, reactive, t_rise_is)",
+        "constraints, ders, scenario, runtime, grid_model, reactive, t_rise_is, extends)",
     ),
     "disk margin out of range": (
         _set("constraints.disk_margin_min", 2.5),
@@ -374,7 +374,7 @@ INVALID = {
     "key that is not a string": (
         lambda doc: doc.update({5: 1}),
         "5: unknown key (valid keys: grid, simbench_code, t_com_s, t_meas_s, constraints, ders, "
-        "scenario, runtime, grid_model, reactive, t_rise_is)",
+        "scenario, runtime, grid_model, reactive, t_rise_is, extends)",
     ),
     # upper bounds
     "more than 1000 DERs": (
@@ -705,3 +705,32 @@ def test_invalid_runtime_section_is_one_line(case: str, tmp_path: Path, simbench
     assert err.startswith(f"adnmesh: error: {path}: {expected}"), err
     assert err.count("\n") == 1
     assert not any(word in err for word in ("pydantic", "Input should", "http")), err
+
+
+def test_a_config_extends_another_key_by_key(tmp_path, configs_dir) -> None:
+    """extends: the base's keys, this file's replacing them (mappings merged, lists replaced);
+    a circle, a chain too long and a bad value are one-line errors."""
+    import shutil
+
+    base = tmp_path / "base.yaml"
+    shutil.copy(configs_dir / "examples" / "runtime-step.yaml", base)
+    variant = tmp_path / "sub" / "variant.yaml"
+    variant.parent.mkdir()
+    variant.write_text("extends: ../base.yaml\nruntime: {seed: 11}\n"
+                       "scenario: {p_ref_steps: [{t_s: 2, delta_w: -1.0e+5}]}\n")
+    original, config = load_config(base), load_config(variant)
+    assert config.runtime.seed == 11
+    assert config.runtime.pi_period_s == original.runtime.pi_period_s     # merged
+    assert [(s.t_s, s.delta_w) for s in config.scenario.p_ref_steps] == [(2.0, -1e5)]
+    assert config.scenario.availability == original.scenario.availability
+    assert config.ders == original.ders and config.extends is None
+    assert config.sha256 != original.sha256
+    variant.write_text("extends: variant.yaml\n")
+    with pytest.raises(ConfigError, match="leads back to this file"):
+        load_config(variant)
+    variant.write_text("extends: [a]\n")
+    with pytest.raises(ConfigError, match="extends: must be the file name of a config"):
+        load_config(variant)
+    variant.write_text("extends: nothing.yaml\n")
+    with pytest.raises(ConfigError, match="nothing.yaml"):
+        load_config(variant)
