@@ -275,11 +275,18 @@ class Guard(Section):
 
 class TapChanger(Section):
     """The on-load tap changer of the HV/MV transformer (docs/models.md#tap-changer): it keeps
-    the voltage of its MV busbar within v_set_pu +- dead_band_pu, one tap step after the
-    voltage has been outside for delay_s. Tap range and step come from the net's data."""
+    the voltage of its MV busbar (or the grid's extreme voltages) within a band, one tap step
+    after the voltage has been outside for delay_s. Tap range and step come from the net's
+    data."""
 
+    regulates: Literal["busbar", "extremes"] = "busbar"
+    """busbar: its MV busbar's voltage within v_set_pu +- dead_band_pu (the usual regulator);
+    extremes: every bus voltage within the limits less extremes_margin_pu (wide-area control
+    from feeder measurements)."""
     v_set_pu: _PerUnitVoltage | None = None
     """The busbar voltage it keeps, p.u. (default: the study case's, so it starts at rest)."""
+    extremes_margin_pu: Annotated[float, Field(ge=0, le=0.2)] = 0.01
+    """regulates extremes: the band is the voltage limits moved inwards by this, p.u."""
     dead_band_pu: Annotated[float, Field(gt=0, le=0.2)] = 0.015
     """Half width of its dead band, p.u. (more than half a tap step, or it hunts)."""
     delay_s: _Period = 30.0

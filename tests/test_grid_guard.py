@@ -314,3 +314,27 @@ def test_the_gate_refuses_a_guard_state_naming_a_der_the_run_lacks() -> None:
     good = decode(key, payload(key, {"p_up": ["SGen1"], "q_down": ["SGen2"]}))
     bad = decode(key, payload(key, {"p_down": ["SGen1", "SGen9"]}))
     assert names_known_ders(good, known) and not names_known_ders(bad, known)
+
+
+def test_the_tap_changer_on_the_extremes_lowers_for_the_highest_raises_for_the_lowest() -> None:
+    tap = TapChangerControl(1.0, 0.015, 1.0, position=0, tap_min=-3, tap_max=3,
+                            raises_voltage=-1)
+    assert tap.observe_extremes(0, 0.95, 1.095, 0.91, 1.09) == (0, "")
+    assert tap.observe_extremes(1000 * MS, 0.95, 1.095, 0.91, 1.09) == (1, "")  # lower
+    assert tap.observe_extremes(1500 * MS, 0.95, 1.08, 0.91, 1.09) == (0, "")
+    tap.observe_extremes(2000 * MS, 0.905, 1.08, 0.91, 1.09)
+    assert tap.observe_extremes(3000 * MS, 0.905, 1.08, 0.91, 1.09) == (-1, "")  # raise
+    tap.observe_extremes(4000 * MS, 0.905, 1.095, 0.91, 1.09)                    # both out:
+    assert tap.observe_extremes(5000 * MS, 0.905, 1.095, 0.91, 1.09)[0] == 1      # lower
+
+
+def test_block_mode_still_follows_a_move_back_towards_the_schedules(config, table) -> None:
+    """While the guard holds, an error that would move the DERs further up is held against,
+    one that moves them back down (relieving the limit) is followed."""
+    cpfc = CPFC(config, GainSchedule(config, table))
+    out = drive(cpfc, 3000 * MS, lambda t: -2.5e6 if t < 2e9 else -1.0e6,
+                {1500 * MS: {"hold": True}})
+    p_y = dict(outputs(out, config))
+    assert p_y[1990 * MS]["p_y"] == p_y[1500 * MS]["p_y"]           # up: held
+    assert p_y[2500 * MS]["p_y"] < p_y[2000 * MS]["p_y"] < p_y[1990 * MS]["p_y"]   # down
+    assert p_y[2500 * MS]["hold"] == "grid"

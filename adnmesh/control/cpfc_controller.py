@@ -536,9 +536,16 @@ class CPFC(Agent):
         self._watch_measurement(t_ns, error_w, out)
         rolled_back = self._rollback_to is not None and self._roll_back()
         self._watch_guard_hold(error_w, out)
-        if self.hold is None and not rolled_back:
-            stop = self.actuators_held * error_w > 0 or self._guard_stop() * error_w > 0
+        if self.hold in (None, "grid") and not rolled_back:
+            stop = (self.actuators_held * error_w > 0 or self._guard_stop() * error_w > 0
+                    or (self.hold == "grid" and (self.direction or 1) * error_w > 0
+                        if self.direction else self.hold == "grid"))
             p_y = self.pi.update(error_w, freeze=stop)
+            if stop and self.hold == "grid":      # held, K_P's part too, without wind-up
+                self.pi.output = self._p_y_sent
+                self.pi.reenter(error_w)
+                p_y = self.pi.output
+                self.counts["held_samples"] += 1
             self._watch_direction(t_ns, p_y)
         else:
             p_y = self.pi.output
@@ -647,12 +654,15 @@ class CPFC(Agent):
                                    f"from P_Y {self.pi.output:.6g} without a jump"))
 
     def _watch_guard_hold(self, error_w: float, out: list) -> None:
-        """Guard mode ``block``: hold output and integrator while the guard holds; resume
-        without a jump when it lets go."""
+        """Guard mode ``block``: while the guard holds, output and integrator hold against
+        every error that would move the DERs further in their direction (all errors before
+        they first moved); the other way, back towards their schedules, they follow (a step
+        back relieves the limit). Resume without a jump when the guard lets go."""
         if self.guard_hold and self.hold is None:
             self.hold = "grid"
             out.append(self._event("WARNING", "hold", "grid limit violated: output and "
-                                   "integrator held until the band is restored"))
+                                   "integrator held until the band is restored (a move back "
+                                   "towards the schedules is still followed)"))
         elif not self.guard_hold and self.hold == "grid":
             self.hold = None if self.weights else "actuators"
             self.pi.reenter(error_w)

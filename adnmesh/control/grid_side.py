@@ -87,6 +87,10 @@ class GridSide:
         self.tap = None
         if model.tap_changer is not None:
             self.tap, self.tap_trafos, self._tap_bus = _tap_changer(model.tap_changer, solver)
+            settings, limits = model.tap_changer, model.limits
+            self._tap_band = None if settings.regulates == "busbar" else (
+                limits.v_min_pu + settings.extremes_margin_pu,
+                limits.v_max_pu - settings.extremes_margin_pu)
         self._last_p: list[float] | None = None
         self._last_q: list[float] | None = None
 
@@ -108,7 +112,7 @@ class GridSide:
                                  _names(solver, "line_names"), _names(solver, "trafo_names"))
             changed, events = self.guard.observe(t_ns, values, self._sensitivities)
         if self.tap is not None:
-            events += self._tap_step(t_ns)
+            events += self._tap_step(t_ns, sample)
         body = self.guard.state() if changed and self.sends_guard else None
         if body is not None:
             self._guard_said = True
@@ -143,10 +147,14 @@ class GridSide:
                 self.solver.data.sgen_index(self.solver.actuator_sgens)] * 1e6]
         return limit_sensitivities(self.solver, self._last_p, q)
 
-    def _tap_step(self, t_ns: int) -> list[dict]:
+    def _tap_step(self, t_ns: int, sample) -> list[dict]:
         tap = self.tap
         v_pu = abs(self.solver.voltages_pu[self._tap_bus])
-        step, note = tap.observe(t_ns, v_pu)
+        if self._tap_band is None:
+            step, note = tap.observe(t_ns, v_pu)
+        else:
+            step, note = tap.observe_extremes(t_ns, sample.vm_min_pu, sample.vm_max_pu,
+                                              *self._tap_band)
         if note:
             return [{"level": "WARNING", "kind": "tap_limit", "subject": "tap_changer",
                      "text": note}]
@@ -154,10 +162,14 @@ class GridSide:
             return []
         for trafo in self.tap_trafos:             # parallel transformers step together
             self.solver.set_tap(trafo, tap.position)
+        if self._tap_band is None:
+            why = f"MV busbar at {v_pu:.4f} p.u., band {tap.v_set_pu:.4f} ± {tap.dead_band_pu:g}"
+        else:
+            why = (f"bus voltages {sample.vm_min_pu:.4f} to {sample.vm_max_pu:.4f} p.u., band "
+                   f"{self._tap_band[0]:g} to {self._tap_band[1]:g}")
         return [{"level": "INFO", "kind": "tap", "subject": "tap_changer",
                  "text": f"tap changer: position {tap.position - step} -> {tap.position} "
-                         f"(MV busbar at {v_pu:.4f} p.u., band {tap.v_set_pu:.4f} ± "
-                         f"{tap.dead_band_pu:g} p.u.)"}]
+                         f"({why} p.u.)"}]
 
 
 def _names(solver, attribute: str):
