@@ -49,6 +49,14 @@ schedules; a DER at ``p_sched_w: 0`` cannot go down). The direction is decided o
 each step of P_ref, from where the DERs' commanded power will be after it; a change of the DERs
 in use is a switch then (``direction`` in its record), with the loop at rest.
 
+**The grid guard** (docs/method.md#grid-guard): the measurement's ``grid_guard`` messages name
+the DERs blocked per direction near a grid limit. Moving in a direction the CPFC leaves those
+blocked that way out of the DERs it uses (a switch at the next sample, bumpless, with
+handover); if every DER that can move that way is blocked, its output stops moving that way
+(the integrator freezes as at a limit). In guard mode ``block`` it holds (``hold: grid``)
+against every error that would move the DERs further in their direction, and follows one
+that moves them back.
+
 **Said when over**: the first P_Y of every entry with certified figures carries them
 (``design``: docs/method.md#said-when-over), so a recording knows what each step's entry was
 certified for.
