@@ -558,7 +558,7 @@ class _Search:
                 break
             a, b = max(todo, key=lambda e: _corner_gap(*e))
             normal = math.atan2(-(b.p_ip_w - a.p_ip_w), b.q_ip_var - a.q_ip_var)
-            point = self.toward(normal, _variables(self.problem, a))
+            point = self.toward(normal, _between(self.problem, a, b))
             gap = max(point.value - (math.cos(normal) * a.p_ip_w
                                      + math.sin(normal) * a.q_ip_var), 0.0)
             self.gaps[_key(a, b)] = gap
@@ -619,6 +619,19 @@ def _within_limits(problem: _Problem, loose: Sequence[SupportPoint], gaps: dict,
                    if key[:2] in kept and key[2:] in kept}
     support, error = search.refine(points)
     return support, error
+
+
+def _between(problem: _Problem, a: SupportPoint, b: SupportPoint) -> np.ndarray:
+    """Where the optimum toward the normal of the edge ``a``–``b`` starts: halfway between
+    their set-points, each DER that is on its circle at both taken out onto it (the arc
+    between them)."""
+    p = (a.der_p_w + b.der_p_w) / 2
+    q = (a.der_q_var + b.der_q_var) / 2
+    s = problem.rating
+    on = (np.hypot(a.der_p_w, a.der_q_var) > s * (1 - 1e-6)) & \
+        (np.hypot(b.der_p_w, b.der_q_var) > s * (1 - 1e-6)) & (np.hypot(p, q) > 0)
+    scale = np.where(on, s / np.maximum(np.hypot(p, q), 1e-300), 1.0)
+    return problem.on_capability(problem.start(np.concatenate([p * scale, q * scale])))
 
 
 def _variables(problem: _Problem, point: SupportPoint) -> np.ndarray:
