@@ -35,8 +35,10 @@ grid: small
 t_com_s: 0.1
 t_meas_s: 0.1
 ders:
-  - {id: WT, type: WT, p_inst_w: 4.0e+6, t_delay_s: 0.01, t_rise_s: 0.5, sgen: WT, p_sched_w: 2.0e+6}
-  - {id: PV, type: PV, p_inst_w: 1.0e+6, t_delay_s: 0.01, t_rise_s: 0.1, sgen: PV, p_sched_w: 0.3e+6}
+  - {id: WT, type: WT, p_inst_w: 4.0e+6, t_delay_s: 0.01, t_rise_s: 0.5, sgen: WT,
+     p_sched_w: 2.0e+6}
+  - {id: PV, type: PV, p_inst_w: 1.0e+6, t_delay_s: 0.01, t_rise_s: 0.1, sgen: PV,
+     p_sched_w: 0.3e+6}
 scenario:
   duration_s: 10
 grid_model:

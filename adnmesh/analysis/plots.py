@@ -14,7 +14,7 @@ from matplotlib.patches import Patch
 from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
 from adnmesh.analysis.coupling import CouplingResult
-from adnmesh.analysis.pq_region import PQRegion, binding_words, q_range_var
+from adnmesh.analysis.pq_region import PQRegion, binding_words, edge_words, q_range_var
 from adnmesh.analysis.robustness import METRICS, RobustnessResult
 from adnmesh.analysis.solution_space import REASONS, SolutionSpace
 from adnmesh.analysis.uncertainty import B_RANGE, MODEL_LABELS, QUANTITY_LABELS, UncertaintyResult
@@ -291,7 +291,8 @@ def plot_pq_region(region: PQRegion, path, operating_point: tuple[float, float] 
     qlo, qhi = region.q_span_var()
     lines = [f"P_IP {lo / 1e6:.3f} to {hi / 1e6:.3f} MW, Q_IP {qlo / 1e6:.3f} to "
              f"{qhi / 1e6:.3f} Mvar; {len(region.support)} support points, edges within "
-             f"{region.boundary_error_w / 1e3:.2g} kW (kvar)", *region.notes]
+             f"{region.boundary_error_w / 1e3:.2g} kW (kvar)", edge_words(region),
+             *region.notes]
     fig.suptitle("Feasible P-Q region at the interconnection point"
                  + (f"\n{covers}" if covers else ""), fontsize=11)
     ax.set_title("\n".join(lines), fontsize=8)

@@ -61,8 +61,8 @@ from adnmesh.reactive import capability_of
 
 __all__ = ["BINDING_TOL", "BOUNDARY_TOL_W", "DEFAULT_DIRECTIONS", "DER_CAPABILITY",
            "LOADING_TOL_PCT", "MAX_SUPPORT", "PRIORITIES", "SCREEN_BAND", "VOLTAGE_TOL_PU",
-           "PQRegion", "SupportPoint", "binding_words", "clip_reference", "p_range_w",
-           "pq_region", "q_range_var"]
+           "PQRegion", "SupportPoint", "binding_words", "clip_reference", "edge_words",
+           "p_range_w", "pq_region", "q_range_var"]
 
 DEFAULT_DIRECTIONS = 24
 """Evenly spread directions of the support function (every 15°) before the refinement."""
@@ -201,6 +201,12 @@ class PQRegion:
                 out.setdefault(kind, []).append(element)
         return {kind: tuple(elements) for kind, elements in out.items()}
 
+    def extremes(self) -> tuple[float, float, float]:
+        """Lowest and highest bus voltage (p.u.) and highest loading (%) over the support
+        points: how close to its limits the grid comes at the region's edge."""
+        return (min(s.vm_min_pu for s in self.support), max(s.vm_max_pu for s in self.support),
+                max(s.loading_max_pct for s in self.support))
+
     def contains(self, p_w: float, q_var: float, tol_w: float = 1e-3) -> bool:
         """Whether ``(p_w, q_var)`` lies in the polygon, to ``tol_w`` (W and var alike)."""
         return _distance_outside(self.vertices, np.array([p_w, q_var], float)) <= tol_w
@@ -213,14 +219,25 @@ def _label_order(label: str) -> tuple:
 
 
 def binding_words(binding: dict[str, tuple[str, ...]], most: int = 4) -> str:
-    """:meth:`PQRegion.binding_limits` in words: ``v_max at bus 13, 45, 64 and 2 more;
-    loading at line 0`` (``none`` if empty)."""
+    """:meth:`PQRegion.binding_limits` in words: ``v_max at bus 13, bus 45, bus 64, bus 65 and
+    1 more; loading at line 0`` (``none`` if empty)."""
     parts = []
     for kind, elements in binding.items():
         shown = ", ".join(elements[:most]) + (f" and {len(elements) - most} more"
                                                if len(elements) > most else "")
         parts.append(f"{kind} at {shown}")
     return "; ".join(parts) or "none"
+
+
+def edge_words(region: PQRegion) -> str:
+    """The binding limits and how close the grid comes to its limits at the region's edge,
+    in words (one line; the summary of ``analyze --pq-region`` and its figure)."""
+    vm_lo, vm_hi, loading = region.extremes()
+    binding = region.binding_limits()
+    return (f"binding grid limits: {binding_words(binding)}"
+            + ("" if binding else " (the DERs' capability bounds it)")
+            + f"; at the edge voltages {vm_lo:.4f} to {vm_hi:.4f} p.u., loading up to "
+              f"{loading:.1f} %")
 
 
 # --- the optimisation ---------------------------------------------------------------------------
@@ -549,9 +566,9 @@ class _Search:
     def refine(self, points: list) -> tuple[tuple[SupportPoint, ...], float]:
         """For every edge of the polygon, the support point toward its outward normal; one
         more than :data:`BOUNDARY_TOL_W` beyond the edge becomes a vertex (up to
-        :data:`MAX_SUPPORT` points, the widest gaps first). Returns the points by direction and the widest distance the region reaches
-        beyond an edge: the normal's support value where an edge was checked, else the corner
-        of its end points' support lines."""
+        :data:`MAX_SUPPORT` points, the widest gaps first). Returns the points by direction
+        and the widest distance the region reaches beyond an edge: the normal's support value
+        where an edge was checked, else the corner of its end points' support lines."""
         while len(points) < MAX_SUPPORT:
             todo = [e for e in _hull_edges(points) if _key(*e) not in self.gaps]
             if not todo:

@@ -400,8 +400,7 @@ def _pq_config(config, args: argparse.Namespace) -> None:
 def _pq_region(config, args: argparse.Namespace, out: Path, console: Console,
                err: Console) -> str:
     """The feasible P-Q region (:mod:`adnmesh.analysis.pq_region`): pq-region.png, .csv."""
-    from adnmesh.analysis.pq_region import (DEFAULT_DIRECTIONS, binding_words, pq_region,
-                                            q_range_var)
+    from adnmesh.analysis.pq_region import DEFAULT_DIRECTIONS, edge_words, pq_region, q_range_var
     from adnmesh.control.operating_point import (available_power_w, grid_label, grid_solver,
                                                  initial_p_ip_w, initial_q_ip_var)
 
@@ -419,19 +418,18 @@ def _pq_region(config, args: argparse.Namespace, out: Path, console: Console,
     point = (initial_p_ip_w(config), initial_q_ip_var(config))
     who = "all DERs" if ids is None else f"available: {', '.join(region.moving)}"
     plots.plot_pq_region(region, out / "pq-region.png", point,
-                         covers=f"{Path(config.path).name}; {grid_label(config)}; {who}")
+                         covers=f"{Path(config.path).name}; {grid_label(config)}\n{who}")
     _write_csv(out / "pq-region.csv", *_pq_rows(region))
     lo, hi = region.p_span_w()
     span = q_range_var(region, point[0])
     at_point = ("outside the region" if span is None else
                 f"{span[0] / 1e6:.3f} to {span[1] / 1e6:.3f} Mvar")
-    binding = binding_words(region.binding_limits())
+    qlo, qhi = region.q_span_var()
     lines = [f"P-Q region ({grid_label(config)}; {who}): P_IP {lo / 1e6:.3f} to "
-             f"{hi / 1e6:.3f} MW",
+             f"{hi / 1e6:.3f} MW, Q_IP {qlo / 1e6:.3f} to {qhi / 1e6:.3f} Mvar",
              f"Q_IP at the operating point (P_IP {point[0] / 1e6:.3f} MW, DERs at their "
              f"schedules): {at_point}",
-             f"binding grid limits: {binding}" + ("" if region.binding_limits() else
-                                                   " (the DERs' capability bounds it)"),
+             edge_words(region),
              f"{len(region.support)} support points, edges within "
              f"{region.boundary_error_w / 1e3:.2g} kW (kvar) of the region; "
              f"{region.power_flows:,} power flows in {took:.1f} s",
