@@ -271,6 +271,10 @@ class Guard(Section):
     refresh_s: _Period = 1.0
     """The sensitivities of an engaged limit are refreshed this often as the operating point
     moves, s."""
+    clip_references: bool = True
+    """A P_ref (Q_ref) beyond what the DERs can reach within the grid limits and their
+    capability (the feasible region's extent, computed when the CPFC starts) is clipped to it
+    and said, not chased into wind-up; also in mode off."""
 
 
 class TapChanger(Section):

@@ -338,3 +338,38 @@ def test_block_mode_still_follows_a_move_back_towards_the_schedules(config, tabl
     assert p_y[1990 * MS]["p_y"] == p_y[1500 * MS]["p_y"]           # up: held
     assert p_y[2500 * MS]["p_y"] < p_y[2000 * MS]["p_y"] < p_y[1990 * MS]["p_y"]   # down
     assert p_y[2500 * MS]["hold"] == "grid"
+
+
+def test_a_reference_beyond_reach_is_clipped_and_said_not_wound_up(config, table) -> None:
+    """P_ref steps to -1.5 MW but the DERs can reach only -2.0 MW within the grid limits: the
+    CPFC controls to -2.0 MW (at P_IP -2.0 MW its output stays put), records the P_ref asked
+    for, and says so once."""
+    cpfc = CPFC(config, GainSchedule(config, table), reachable=(-3.0e6, -2.0e6))
+    out = drive(cpfc, 3000 * MS, lambda t: -2.5e6 if t < 1e9 else -2.0e6, {})
+    refs = [b["p_ref_w"] for t, k, b in out if k.endswith("scenario/p_ref")]
+    assert refs == [-2.5e6, -1.5e6]
+    clipped = [b for t, k, b in out if k.endswith("event/cpfc")
+               and b["kind"] == "reference_clipped"]
+    assert len(clipped) == 1 and "controlled to -2.0000 MW" in clipped[0]["text"]
+    p_y = dict(outputs(out, config))
+    assert p_y[2990 * MS]["p_y"] == p_y[1000 * MS]["p_y"]       # no error, no wind-up
+    free = CPFC(config, GainSchedule(config, table))
+    p_y_free = dict(outputs(drive(free, 3000 * MS, lambda t: -2.5e6 if t < 1e9 else -2.0e6,
+                                  {}), config))
+    assert p_y_free[2990 * MS]["p_y"] > p_y_free[1000 * MS]["p_y"] + 0.1   # chases it
+
+
+def test_the_reachable_range_of_the_reference_case(configs_dir) -> None:
+    """The extent of 1-MV-rural's feasible region at lW with the DERs' Q at 0 (a P-only run):
+    P_IP 10.95 to 23.19 MW (no grid limit binds: every DER between 0 and its available
+    power), against the power flows at those ends."""
+    from adnmesh.control.operating_point import grid_solver, reachable_ranges
+
+    config = load_config(configs_dir / "simbench.yaml")
+    (p_min, p_max), _ = reachable_ranges(config)
+    solver = grid_solver(config)
+    from adnmesh.control.operating_point import available_power_w
+    top = solver.solve([available_power_w(config)[d.id] for d in config.ders],
+                       [0.0] * len(config.ders)).p_ip_w
+    bottom = solver.solve([0.0] * len(config.ders), [0.0] * len(config.ders)).p_ip_w
+    assert p_max == pytest.approx(top, abs=1e3) and p_min == pytest.approx(bottom, abs=1e3)

@@ -42,7 +42,9 @@ feasible operating points. Its edges are as accurate as the optimiser's optima a
 non-convex part of the true region would be bridged by an edge.
 
 Run-time helpers, pure functions of a region: :func:`clip_reference` (the rule: see there),
-:func:`p_range_w` and :func:`q_range_var`.
+:func:`p_range_w` and :func:`q_range_var`. What the CPFC clips its references to at run time
+is cheaper: :func:`reference_bounds`, the region's extent in P and in Q (its support in the
+four directions ±P, ±Q, no refinement: a fraction of a second).
 
 Signs: ``P_IP``, ``Q_IP`` MV → HV positive (as :class:`~adnmesh.grid.GridSample`); DER P and Q
 are injections (generator convention).
@@ -62,7 +64,7 @@ from adnmesh.reactive import capability_of
 __all__ = ["BINDING_TOL", "BOUNDARY_TOL_W", "DEFAULT_DIRECTIONS", "DER_CAPABILITY",
            "LOADING_TOL_PCT", "MAX_SUPPORT", "PRIORITIES", "SCREEN_BAND", "VOLTAGE_TOL_PU",
            "PQRegion", "SupportPoint", "binding_words", "clip_reference", "edge_words",
-           "p_range_w", "pq_region", "q_range_var"]
+           "p_range_w", "pq_region", "q_range_var", "reference_bounds"]
 
 DEFAULT_DIRECTIONS = 24
 """Evenly spread directions of the support function (every 15°) before the refinement."""
@@ -717,6 +719,34 @@ def pq_region(solver, ders: Sequence[DER], p_avail_w: Mapping[str, float],
     kept = tuple(i for i in ids if i in moving)
     bare = _region(ids, kept, loose, loose_error, None, None, notes, 0)
     return _region(ids, kept, with_limits, error, limits, bare, notes, problem.power_flows)
+
+
+def reference_bounds(solver, ders: Sequence[DER], p_avail_w: Mapping[str, float],
+                     limits: GridLimits, reactive: Reactive | None = None
+                     ) -> tuple[tuple[float, float], tuple[float, float]]:
+    """The region's extent: ``((P_min, P_max), (Q_min, Q_max))`` of ``(P_IP, Q_IP)`` the DERs
+    can reach within the grid limits and their capability (W, var), each the validated
+    support point toward ±P or ±Q (as :func:`pq_region` finds them, without the refinement).
+    A reference beyond it cannot be reached by any set-points; the CPFC clips to it. The
+    solver is left at the schedules.
+
+    Raises
+    ------
+    GridError
+        No set-points keep the grid within its limits, or the power flow does not converge.
+    """
+    if tuple(solver.actuator_sgens) != tuple(d.sgen for d in ders):
+        raise ValueError("the solver's actuators are not the DERs' sgens in their order")
+    problem = _Problem(solver, ders, p_avail_w, reactive, {d.id for d in ders})
+    schedules = np.array([d.p_sched_w for d in ders] + [d.q_sched_var for d in ders], float)
+    x0 = problem.start(schedules)
+    search = _Search(problem, limits, x0, _Progress(4, None))
+    points = [search.toward(theta) for theta in (0.0, 0.5 * math.pi, math.pi, 1.5 * math.pi)]
+    search.consistent(points)
+    solver.solve(schedules[:problem.n], schedules[problem.n:])   # left at the schedules
+    p = [point.p_ip_w for point in points]
+    q = [point.q_ip_var for point in points]
+    return (min(p), max(p)), (min(q), max(q))
 
 
 def _notes(ders: Sequence[DER], reactive: Reactive | None, moving: set[str]) -> tuple[str, ...]:

@@ -329,13 +329,21 @@ class CPFC(Agent):
         ``(t_ns, change)`` of the reference (default the scenario's P_ref steps).
     known_ids : iterable of str, optional
         Every DER an SI may name (default the config's); the loop uses those of the config.
+    reachable : (float, float), optional
+        The range of the controlled quantity the DERs can reach within the grid limits and
+        their capability (:func:`adnmesh.analysis.pq_region.reference_bounds`); a reference
+        beyond it is clipped to it and said (default: none, nothing is clipped).
+    reachable_note : str, optional
+        Why there is no range although clipping is on (said as a warning at the first sample).
     """
 
     agent_id = "cpfc"
 
     def __init__(self, config: Config, schedule: GainSchedule, loop: LoopQuantity = P_LOOP,
                  start_ref: float | None = None, available: dict[str, float] | None = None,
-                 steps: list[tuple[int, float]] | None = None, known_ids=None) -> None:
+                 steps: list[tuple[int, float]] | None = None, known_ids=None,
+                 reachable: tuple[float, float] | None = None,
+                 reachable_note: str = "") -> None:
         self.config = config
         self.loop = loop
         self.keys = Keys(config.grid)
@@ -357,6 +365,9 @@ class CPFC(Agent):
         self.weights_period_ns = ns(rt.weights_period_s)
         self.p_ref_w = initial_p_ref_w(config) if start_ref is None else start_ref
         self.p_meas_w = self.p_ref_w          # the run starts in the operating point
+        self.reachable = reachable
+        self._note = reachable_note
+        self.target_w = self._p_ref_before_clip = self.p_ref_w   # P_ref within reach
         self.meas_timeout_ns = ns(rt.measurement_timeout_s)
         self.ack_timeout_ns = ns(rt.heartbeat_timeout_s)
         self.si_timeout_ns = ns(rt.heartbeat_timeout_s + rt.links.availability_to_cpfc.jitter_s)
@@ -536,11 +547,14 @@ class CPFC(Agent):
 
     def on_timer(self, t_ns: int) -> list[Outgoing]:
         out = self._reference()
+        if self._note:
+            out.append(self._event("WARNING", "reference_clipping_off", self._note))
+            self._note = ""
         self.next_sample_ns += self.period_ns
         self._watch_si(t_ns, out)
         if self.hold == "resuming" and not self._try_resume(t_ns, out):
             return out
-        error_w = self.p_ref_w - self.p_meas_w
+        error_w = self.target_w - self.p_meas_w
         self._watch_measurement(t_ns, error_w, out)
         rolled_back = self._rollback_to is not None and self._roll_back()
         self._watch_guard_hold(error_w, out)
@@ -607,7 +621,28 @@ class CPFC(Agent):
             return []
         self._p_ref_sent = self.p_ref_w
         loop = self.loop
-        return [Outgoing(self.keys.of(loop.reference_kind), {loop.reference_field: self.p_ref_w})]
+        return [Outgoing(self.keys.of(loop.reference_kind), {loop.reference_field: self.p_ref_w}),
+                *self._clip()]
+
+    def _clip(self) -> list[Outgoing]:
+        """The reference the loop controls to: P_ref within the reachable range; a change of
+        whether it is clipped is said (the recorded P_ref stays the one asked for)."""
+        was = self.target_w != self._p_ref_before_clip
+        low, high = self.reachable or (-math.inf, math.inf)
+        self._p_ref_before_clip = self.p_ref_w
+        self.target_w = min(max(self.p_ref_w, low), high)
+        unit = "var" if self.loop.name == "Q" else "W"
+        name = f"{self.loop.name}_ref"
+        if self.target_w != self.p_ref_w:
+            return [self._event("WARNING", "reference_clipped", (
+                f"{name} {self.p_ref_w / 1e6:.4f} M{unit} lies outside what the DERs can "
+                f"reach within the grid limits and their capability ({low / 1e6:.4f} to "
+                f"{high / 1e6:.4f} M{unit}): controlled to {self.target_w / 1e6:.4f} M{unit} "
+                "instead of winding up"))]
+        if was:
+            return [self._event("INFO", "reference_reachable",
+                                f"{name} {self.p_ref_w / 1e6:.4f} M{unit} is reachable again")]
+        return []
 
     def _watch_direction(self, t_ns: int, p_y: float) -> None:
         """Directional availability (docs/method.md#directional-availability): at the sample
@@ -717,7 +752,7 @@ class CPFC(Agent):
         self.pi.output = self._p_y_sent = acked
         record = self._switch(t_ns, available)
         self.hold = None if record is not None else "actuators"
-        self.pi.reenter(self.p_ref_w - self.p_meas_w)
+        self.pi.reenter(self.target_w - self.p_meas_w)
         self._next_weights_ns = t_ns
         out.append(self._event("INFO", "resume", f"restarted: resumed from the P_Y {acked:.6g} "
                                f"the DERs acknowledged ({len(fresh)} heartbeat(s))"))

@@ -22,9 +22,10 @@ from adnmesh.wire.units import ns
 __all__ = ["CPFCPair", "reactive_cpfc"]
 
 
-def reactive_cpfc(config: Config, schedule: GainSchedule | None = None) -> CPFC:
+def reactive_cpfc(config: Config, schedule: GainSchedule | None = None,
+                  reachable: tuple[float, float] | None = None) -> CPFC:
     """The Q loop of ``config`` (its reactive view; ``schedule`` default: the Q gains tuned
-    on demand, no table)."""
+    on demand, no table; ``reachable``: the Q_IP range Q_ref is clipped to, var)."""
     view = reactive_view(config)
     if schedule is None:
         schedule = GainSchedule(view, None)
@@ -32,7 +33,7 @@ def reactive_cpfc(config: Config, schedule: GainSchedule | None = None) -> CPFC:
     top = {der.id: der.p_inst_w for der in view.ders}      # C_d^Q: the whole reactive range
     return CPFC(view, schedule, Q_LOOP, start_ref=start, available=top,
                 steps=[(ns(t_s), change) for t_s, change in steps],
-                known_ids=config.der_ids())
+                known_ids=config.der_ids(), reachable=reachable)
 
 
 class CPFCPair(Agent):

@@ -16,7 +16,7 @@ import os
 from adnmesh.config import Config
 
 __all__ = ["available_power_w", "grid_label", "grid_solver", "grid_source", "initial_p_ip_w",
-           "initial_q_ip_var",
+           "initial_q_ip_var", "reachable_ranges",
            "sgen_problem"]
 
 
@@ -109,6 +109,30 @@ def _operating_point(config: Config) -> tuple[float, float]:
     if not sample.converged:
         raise ValueError("the power flow at the DERs' schedules does not converge")
     return float(sample.p_ip_w), float(sample.q_ip_var)
+
+
+@functools.lru_cache(maxsize=8)
+def reachable_ranges(config: Config):
+    """``((P_min, P_max), (Q_min, Q_max))`` of P_IP and Q_IP the DERs can reach within the
+    grid limits and their capability, W and var (:func:`adnmesh.analysis.pq_region.
+    reference_bounds`), or a one-line reason why not (a str): no grid model, clipping off in
+    the config, or the optimisation failed. Without reactive power control every DER's Q
+    stays at 0 (its sgen's at the study case, SimBench's), so the P range is at that Q."""
+    model = config.grid_model
+    if model is None:
+        return "no grid model"
+    if not model.guard.clip_references:
+        return "grid_model.guard.clip_references is off"
+    from adnmesh.analysis.pq_region import reference_bounds
+    ders = config.ders
+    if config.reactive is None:
+        ders = tuple(d.model_copy(update={"q_capability": "unity", "q_sched_var": 0.0})
+                     for d in ders)
+    try:
+        return reference_bounds(grid_solver(config), ders, available_power_w(config),
+                                model.limits, config.reactive)
+    except Exception as exc:          # noqa: BLE001 - any failure leaves the references as asked
+        return f"the reachable range could not be found ({type(exc).__name__}: {exc})"
 
 
 def initial_p_ip_w(config: Config) -> float:

@@ -38,10 +38,18 @@ def build_agent(agent_id: str, config: Config, schedule: GainSchedule | None = N
         if schedule is None:
             raise ValueError("the CPFC needs a gain schedule")
         from adnmesh.control.cpfc_controller import CPFC
+        from adnmesh.control.operating_point import reachable_ranges
+        ranges = reachable_ranges(config)
+        found = not isinstance(ranges, str)
+        note = "" if found or "could not" not in ranges else \
+            f"references are not clipped: {ranges}"
+        p_cpfc = CPFC(config, schedule, reachable=ranges[0] if found else None,
+                      reachable_note=note)
         if config.reactive is None:
-            return CPFC(config, schedule)
+            return p_cpfc
         from adnmesh.control.cpfc_pair import CPFCPair, reactive_cpfc
-        return CPFCPair(CPFC(config, schedule), reactive_cpfc(config, q_schedule))
+        return CPFCPair(p_cpfc, reactive_cpfc(config, q_schedule,
+                                              reachable=ranges[1] if found else None))
     if agent_id == "measurement":
         from adnmesh.control.measurement_point import Measurement
         return Measurement(config)
