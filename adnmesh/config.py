@@ -1008,8 +1008,11 @@ def _merged(base: dict, over: dict) -> dict:
 
 def json_schema() -> dict[str, Any]:
     """Return the JSON Schema (draft 2020-12) of a config file, with units in the descriptions."""
-    return {"$schema": "https://json-schema.org/draft/2020-12/schema",
-            **ConfigFile.model_json_schema()}
+    schema = ConfigFile.model_json_schema()
+    required = schema.pop("required")       # a config that extends another may leave them out
+    schema["if"] = {"not": {"required": ["extends"]}}
+    schema["then"] = {"required": required}
+    return {"$schema": "https://json-schema.org/draft/2020-12/schema", **schema}
 
 
 def load_config(path: str | Path) -> Config:
