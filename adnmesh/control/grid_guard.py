@@ -287,7 +287,7 @@ class GridGuard:
             x = self._values(values, kind)
             if x.size == 0:
                 continue
-            excess = sigma * (x - limit) / abs(limit)
+            excess = np.nan_to_num(sigma * (x - limit) / abs(limit), nan=-np.inf)
             i = int(np.argmax(excess))
             if best is None or excess[i] > best[0]:
                 best = (float(excess[i]), kind, i, float(x[i]))

@@ -293,15 +293,20 @@ class GridSolver:
         return 1.0 + (pos - data.tap_neutral[trafo]) * data.tap_step_percent[trafo] / 100.0
 
     def line_loading_pct(self) -> np.ndarray:
-        """Every line's loading at the last solve (pandapower's definition), %."""
+        """Every line's loading at the last solve (pandapower's definition), %; NaN after a
+        solve that did not converge."""
         grid = self._grid
-        return np.maximum(grid.get_line_res1()[3], grid.get_line_res2()[3]) * self._line_factor
+        with np.errstate(invalid="ignore"):
+            return (np.maximum(grid.get_line_res1()[3], grid.get_line_res2()[3])
+                    * self._line_factor)
 
     def trafo_loading_pct(self) -> np.ndarray:
-        """Every transformer's loading at the last solve (pandapower's definition), %."""
+        """Every transformer's loading at the last solve (pandapower's definition), %; NaN
+        after a solve that did not converge."""
         grid = self._grid
-        return np.maximum(grid.get_trafo_res1()[3] * self._hv_factor,
-                          grid.get_trafo_res2()[3] * self._lv_factor)
+        with np.errstate(invalid="ignore"):
+            return np.maximum(grid.get_trafo_res1()[3] * self._hv_factor,
+                              grid.get_trafo_res2()[3] * self._lv_factor)
 
     def solve(self, p_actuator_w, q_actuator_var=None) -> GridSample:
         """Solve the power flow with the actuators at ``p_actuator_w`` (W, construction order)
