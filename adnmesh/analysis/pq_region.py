@@ -215,7 +215,7 @@ class PQRegion:
 
 
 def _label_order(label: str) -> tuple:
-    """``v_max bus 45`` before ``v_max bus 64``: kind, element kind, number."""
+    """``v_max MV1.101 Bus 45`` before ``v_max MV1.101 Bus 64``: kind, element, number."""
     words = label.split()
     return (*words[:-1], int(words[-1])) if words[-1].isdigit() else (label, 0)
 
@@ -395,9 +395,10 @@ def _constraint_rows(solver):
     buses, first = np.unique(solver.reported_buses, return_index=True)
     n_line = solver.line_loading_pct().size
     n_trafo = solver.trafo_loading_pct().size
-    labels = ([f"v_max bus {b}" for b in buses] + [f"v_min bus {b}" for b in buses]
-              + [f"loading line {i}" for i in range(n_line)]
-              + [f"loading trafo {i}" for i in range(n_trafo)])
+    names = [solver.bus_names[i] for i in first]          # the net's names (else "bus N")
+    labels = ([f"v_max {n}" for n in names] + [f"v_min {n}" for n in names]
+              + [f"loading {n}" for n in solver.line_names[:n_line]]
+              + [f"loading {n}" for n in solver.trafo_names[:n_trafo]])
     kinds = np.array([0] * (2 * buses.size) + [1] * (n_line + n_trafo))
 
     def rows(limits: GridLimits) -> np.ndarray:
