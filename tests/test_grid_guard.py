@@ -373,3 +373,23 @@ def test_the_reachable_range_of_the_reference_case(configs_dir) -> None:
                        [0.0] * len(config.ders)).p_ip_w
     bottom = solver.solve([0.0] * len(config.ders), [0.0] * len(config.ders)).p_ip_w
     assert p_max == pytest.approx(top, abs=1e3) and p_min == pytest.approx(bottom, abs=1e3)
+
+
+def test_check_says_the_limits_the_reach_and_the_tap_changer(configs_dir, tmp_path,
+                                                             capsys) -> None:
+    """``check`` (and ``up``, before any agent starts) says the guard, what is reachable and
+    the tap changer; a tap changer the net lacks is a one-line error."""
+    from adnmesh.cli import main
+
+    assert main(["check", str(configs_dir / "examples" / "stress-rural1-lW-tap.yaml")]) == 0
+    out = capsys.readouterr().out
+    assert "guard block (holds the control while a limit is violated)" in out
+    assert "reachable within the limits: P_IP 30.3" in out
+    assert ("tap changer of HV1-MV1.101-Trafo1, HV1-MV1.101-Trafo2: positions -9 to 9, at 0"
+            in out)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(f"extends: {configs_dir / 'simbench.yaml'}\n"
+                   "grid_model: {tap_changer: {trafo: 7}}\n")
+    assert main(["check", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "the net has 2 transformer(s), no 7" in err

@@ -54,6 +54,24 @@ def run(args: argparse.Namespace) -> int:
         console.print(f"grid model: {point}, {model.load_model} loads: "
                       f"P_IP {initial_p_ip_w(config) / 1e6:.4f} MW at the schedules, the DERs "
                       f"can deliver {sum(available.values()) / 1e6:.3f} MW")
+        from adnmesh.control.operating_point import reachable_ranges, tap_changer_words
+
+        lim, guard = model.limits, model.guard
+        console.print(f"grid limits: {lim.v_min_pu:g} to {lim.v_max_pu:g} p.u., loading "
+                      f"<= {lim.loading_max_pct:g} %; guard {guard.mode}"
+                      + {"off": " (watches only)",
+                         "block": " (holds the control while a limit is violated)"}.get(
+                          guard.mode, f" (blocks DERs {guard.v_margin_pu:g} p.u. / "
+                                      f"{guard.loading_margin_pct:g} % from a limit)"))
+        ranges = reachable_ranges(config)
+        if not isinstance(ranges, str):
+            (p_lo, p_hi), (q_lo, q_hi) = ranges
+            console.print(f"reachable within the limits: P_IP {p_lo / 1e6:.3f} to "
+                          f"{p_hi / 1e6:.3f} MW, Q_IP {q_lo / 1e6:.3f} to {q_hi / 1e6:.3f} "
+                          "Mvar (references beyond are clipped)")
+        tap = tap_changer_words(config)
+        if tap is not None:
+            console.print(tap)
     if config.reactive is not None:
         from adnmesh.control.operating_point import initial_q_ip_var
         from adnmesh.reactive import reactive_view

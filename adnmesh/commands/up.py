@@ -280,7 +280,7 @@ def operating_point(config: Config, log) -> dict[str, float]:
         above what the DER can deliver, a bad model override, a power flow that does not
         converge; with reactive power control what :func:`adnmesh.reactive.reactive_view`
         refuses (a reactive schedule outside its range, reactive dynamics the numerics cannot
-        hold, no DER with a reactive range).
+        hold, no DER with a reactive range); a tap changer the net does not have.
     """
     from adnmesh.control.der_model import check_der_models
     from adnmesh.control.operating_point import (available_power_w, initial_p_ip_w,
@@ -304,6 +304,13 @@ def operating_point(config: Config, log) -> dict[str, float]:
     check_der_models(config, available)
     if config.reactive is not None:
         reactive_view(config)
+    from adnmesh.control.operating_point import tap_changer_words
+    try:
+        tap = tap_changer_words(config)
+    except GridError as exc:
+        raise ConfigError(f"{config.path}: {exc}") from None
+    if tap is not None:
+        log(tap)
     try:
         p_ip_w = initial_p_ip_w(config)
     except ValueError as exc:

@@ -16,7 +16,7 @@ import os
 from adnmesh.config import Config
 
 __all__ = ["available_power_w", "grid_label", "grid_solver", "grid_source", "initial_p_ip_w",
-           "initial_q_ip_var", "reachable_ranges",
+           "initial_q_ip_var", "reachable_ranges", "tap_changer_words",
            "sgen_problem"]
 
 
@@ -133,6 +133,24 @@ def reachable_ranges(config: Config):
                                 model.limits, config.reactive)
     except Exception as exc:          # noqa: BLE001 - any failure leaves the references as asked
         return f"the reachable range could not be found ({type(exc).__name__}: {exc})"
+
+
+def tap_changer_words(config: Config) -> str | None:
+    """The config's tap changer in words (its transformers, range, position, what it keeps),
+    None without one; :class:`~adnmesh.errors.GridError` (one line) if the net has no such tap
+    changer."""
+    if config.grid_model is None or config.grid_model.tap_changer is None:
+        return None
+    from adnmesh.control.grid_side import _tap_changer
+    settings = config.grid_model.tap_changer
+    solver = grid_solver(config)
+    control, trafos, _ = _tap_changer(settings, solver)
+    names = ", ".join(solver.trafo_names[i] for i in trafos)
+    keeps = (f"its busbar at {control.v_set_pu:.4f} ± {control.dead_band_pu:g} p.u."
+             if settings.regulates == "busbar" else
+             f"every bus voltage {settings.extremes_margin_pu:g} p.u. inside the band")
+    return (f"tap changer of {names}: positions {control.tap_min} to {control.tap_max}, at "
+            f"{control.position}; keeps {keeps}, a step after {settings.delay_s:g} s outside")
 
 
 def initial_p_ip_w(config: Config) -> float:
