@@ -5,7 +5,7 @@ range, and the CPFC leaving blocked DERs out bumplessly or holding."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -15,30 +15,22 @@ from adnmesh.config import Config, GridLimits, Guard, load_config
 from adnmesh.control.cpfc_controller import CPFC, GainSchedule
 from adnmesh.control.grid_guard import GridGuard, GuardValues
 from adnmesh.control.tap_changer import TapChangerControl
+from adnmesh.grid.sensitivity import LimitSensitivities
 from adnmesh.tuning.table import SchedulingTable, TableEntry
 from adnmesh.wire.keys import Keys
 from payloads import message
+from test_control import config  # noqa: F401 - the fixture: configs/examples/runtime-step.yaml
 
 MS = 1_000_000
 DERS = ("A", "B", "C")
 
 
-@dataclass
-class Sens:
-    """Sensitivities of 2 buses, 1 line and 1 trafo to 3 DERs (p.u./W, %/W)."""
-
-    dv_dp: np.ndarray
-    dv_dq: np.ndarray
-    dline_dp: np.ndarray
-    dline_dq: np.ndarray
-    dtrafo_dp: np.ndarray
-    dtrafo_dq: np.ndarray
-
-
-SENS = Sens(dv_dp=np.array([[1e-8, 5e-9, 1e-9], [2e-9, 2e-9, 2e-9]]),
-            dv_dq=np.array([[3e-8, 1e-8, 1e-9], [1e-9, 1e-9, 1e-9]]),
-            dline_dp=np.array([[4e-6, -1e-6, 0.0]]), dline_dq=np.zeros((1, 3)),
-            dtrafo_dp=np.array([[1e-6, 1e-6, 1e-6]]), dtrafo_dq=np.zeros((1, 3)))
+SENS = LimitSensitivities(        # 2 buses, 1 line, 1 trafo, 3 DERs (p.u./W, %/W)
+    vm_pu=np.ones(2), line_pct=np.zeros(1), trafo_pct=np.zeros(1),
+    dv_dp=np.array([[1e-8, 5e-9, 1e-9], [2e-9, 2e-9, 2e-9]]),
+    dv_dq=np.array([[3e-8, 1e-8, 1e-9], [1e-9, 1e-9, 1e-9]]),
+    dline_dp=np.array([[4e-6, -1e-6, 0.0]]), dline_dq=np.zeros((1, 3)),
+    dtrafo_dp=np.array([[1e-6, 1e-6, 1e-6]]), dtrafo_dq=np.zeros((1, 3)), method="test")
 
 
 def values(v0=1.0, v1=1.0, line=50.0, trafo=40.0) -> GuardValues:
@@ -113,8 +105,7 @@ def test_reactive_power_is_guarded_only_with_a_q_loop() -> None:
 
 def test_a_der_blocked_once_stays_blocked_while_the_limit_is_engaged() -> None:
     """A refresh that finds B less sensitive does not free it before the limit is released."""
-    later = Sens(**{**SENS.__dict__, "dv_dp": np.array([[1e-8, 1e-10, 1e-9],
-                                                         [2e-9, 2e-9, 2e-9]])})
+    later = replace(SENS, dv_dp=np.array([[1e-8, 1e-10, 1e-9], [2e-9, 2e-9, 2e-9]]))
     g = guard()
     g.observe(0, values(v0=1.095), Counter())
     g.observe(1000 * MS, values(v0=1.095), Counter(later))
@@ -180,13 +171,9 @@ def test_the_tap_changer_stays_at_the_end_of_its_range_and_says_so_once() -> Non
 
 
 @pytest.fixture(scope="module")
-def config(configs_dir: Path) -> Config:
-    """Two WTs (SGen1 from 0, SGen2 with a 0.5 MW schedule), a +1 MW step at 1 s."""
-    return load_config(configs_dir / "examples" / "runtime-step.yaml")
-
-
-@pytest.fixture(scope="module")
 def table(config: Config) -> SchedulingTable:
+    """test_control's ``config``: two WTs (SGen1 from 0, SGen2 with a 0.5 MW schedule), a
+    +1 MW step at 1 s; gains for both, each alone."""
     table = SchedulingTable(config.sha256, {}, "test", config.der_ids())
     table.add(TableEntry(("SGen1", "SGen2"), 5e-8, 1.92e-7, {"SGen1": 1.0, "SGen2": 0.8}))
     table.add(TableEntry(("SGen1",), 1e-7, 3.84e-7, {"SGen1": 1.0}))
