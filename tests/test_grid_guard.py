@@ -380,3 +380,17 @@ def test_check_says_the_limits_the_reach_and_the_tap_changer(configs_dir, tmp_pa
     assert main(["check", str(bad)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "the net has 2 transformer(s), no 7" in err
+
+
+def test_no_release_while_the_loop_presses_the_way_it_blocks() -> None:
+    """Every DER in use held up: a block of raising P is kept, however far inside the release
+    level the voltage is; once they no longer press, release_s later it goes."""
+    g, sens = guard(), Counter()
+    g.observe(0, values(v0=1.095), sens)
+    up = frozenset({("p", 1)})
+    for t_ms in (100, 3000, 6000):
+        assert g.observe(t_ms * MS, values(v0=1.07), sens, up) == (False, [])
+    assert g.state()["p_up"] == ["A", "B"]
+    g.observe(6100 * MS, values(v0=1.07), sens, frozenset({("p", -1)}))   # not that way
+    changed, events = g.observe(8100 * MS, values(v0=1.07), sens)
+    assert changed and g.state()["p_up"] == [] and events[0]["kind"] == "guard_release"

@@ -7,7 +7,9 @@ the config's margin of its limit (``v_max_pu - v_margin_pu``, ``v_min_pu + v_mar
 ``loading_max_pct - loading_margin_pct``) and is **released** once it has stayed inside its
 release level (the engaging level moved inwards by ``v_release_pu`` / ``loading_release_pct``)
 for ``release_s``: hysteresis in value and in time, so that a quantity hovering at the margin
-does not toggle the control.
+does not toggle the control. Nor is it released while the loop presses the way it blocks
+(every DER still in use held at its limit that way): the blocked DERs would be asked at once
+to move that way again.
 
 For an engaged quantity x with a bad direction σ (+1 for a voltage at its upper limit and for a
 loading, −1 for a voltage at its lower limit) and the sensitivities ``s_d = ∂x/∂P_d`` of the
@@ -134,9 +136,13 @@ class GridGuard:
     # -- a sample ----------------------------------------------------------------------------
 
     def observe(self, t_ns: int, values: GuardValues,
-                sensitivities: Callable[[], object]) -> tuple[bool, list[dict]]:
+                sensitivities: Callable[[], object],
+                pressing: frozenset = frozenset()) -> tuple[bool, list[dict]]:
         """Fold one sample in. ``sensitivities()`` gives the current
-        :class:`~adnmesh.grid.sensitivity.LimitSensitivities` (called only when needed).
+        :class:`~adnmesh.grid.sensitivity.LimitSensitivities` (called only when needed);
+        ``pressing`` holds the ways (``("p", 1)``, ...) in which every DER the loop still
+        uses is held at its limit: a quantity that blocks DERs one of those ways is not
+        released (they would be asked at once to move that way and worsen it again).
 
         Returns ``(changed, events)``: whether the blocked sets or ``hold`` changed, and the
         events to say (dicts with ``level``, ``kind``, ``text``, ``subject``).
@@ -144,12 +150,12 @@ class GridGuard:
         before = (self.state(), self.hold)
         events = self._violations(t_ns, values)
         if self.mode == "directional":
-            events += self._directional(t_ns, values, sensitivities)
+            events += self._directional(t_ns, values, sensitivities, pressing)
         elif self.mode == "block":
             events += self._block(t_ns, values)
         return (self.state(), self.hold) != before, events
 
-    def _directional(self, t_ns, values, sensitivities) -> list[dict]:
+    def _directional(self, t_ns, values, sensitivities, pressing) -> list[dict]:
         levels, events = self._levels(), []
         new = []
         for kind, (_, engage, release, sigma) in levels.items():
@@ -169,14 +175,15 @@ class GridGuard:
                 if w.kind != kind or key in new:
                     continue
                 value = float(x[w.index])
-                if sigma * (value - release) <= 0:          # inside the release level
+                pressed = any(w.blocked[way] for way in pressing)
+                if sigma * (value - release) <= 0 and not pressed:   # inside the release
                     if w.inside_since_ns is None:
                         w.inside_since_ns = t_ns
                     elif t_ns - w.inside_since_ns >= self.release_ns:
                         del self.watched[key]
                         released = self._blocked_sets()
                         events += self._release_events(w, released, values)
-                elif sigma * (value - engage) <= 0:         # between release and engage
+                else:                    # between release and engage, or pressed
                     w.inside_since_ns = None
         due = (self._refreshed_ns is None
                or t_ns - self._refreshed_ns >= self.refresh_ns)

@@ -94,10 +94,12 @@ class GridSide:
         self._last_p: list[float] | None = None
         self._last_q: list[float] | None = None
 
-    def sample(self, t_ns: int, p_w: list[float], q_var: list[float] | None):
+    def sample(self, t_ns: int, p_w: list[float], q_var: list[float] | None,
+               pressing: frozenset = frozenset()):
         """Solve the power flow of one sample; returns ``(sample, guard_body, events)``: the
         :class:`~adnmesh.grid.GridSample`, the guard's new state if it changed (else None),
-        and the events (dicts) of the guard and the tap changer."""
+        and the events (dicts) of the guard and the tap changer. ``pressing``: the ways in
+        which every DER following the loops is held (:meth:`GridGuard.observe`)."""
         solver = self.solver
         sample = solver.solve(p_w, q_var)
         self.report.add(sample)
@@ -110,7 +112,7 @@ class GridSide:
             values = GuardValues(solver.bus_vm_pu(), solver.line_loading_pct(),
                                  solver.trafo_loading_pct(), _names(solver, "bus_names"),
                                  _names(solver, "line_names"), _names(solver, "trafo_names"))
-            changed, events = self.guard.observe(t_ns, values, self._sensitivities)
+            changed, events = self.guard.observe(t_ns, values, self._sensitivities, pressing)
         if self.tap is not None:
             events += self._tap_step(t_ns, sample)
         body = self.guard.state() if changed and self.sends_guard else None

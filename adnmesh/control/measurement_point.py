@@ -177,15 +177,19 @@ class Measurement(Agent):
                     q_ip += q_var
                 body["q_ip_var"] = q_ip
             return [Outgoing(self._p_ip_key, body), *events]
+        held = self._held()
+        pressing = frozenset((quantity, 1 if way == "up" else -1)
+                             for quantity, way in (("p", held.get("held")),
+                                                   ("q", held.get("q_held"))) if way)
         sample, guard, grid_events = self.grid.sample(
             t_ns, list(self.infeed_w.values()),
-            list(self.infeed_var.values()) if self.reactive else None)
+            list(self.infeed_var.values()) if self.reactive else None, pressing)
         if sample.converged:
             self.p_ip_w, self.q_ip_var = float(sample.p_ip_w), float(sample.q_ip_var)
         else:
             self.counts["not_converged"] += 1
         out = [Outgoing(self._p_ip_key, {"p_ip_w": self.p_ip_w, "q_ip_var": self.q_ip_var,
-                                         **self._held()}), *events]
+                                         **held}), *events]
         if guard is not None:
             out.append(Outgoing(self._guard_key, guard))
         out += [Outgoing(self._event_key, event) for event in grid_events]
