@@ -18,6 +18,7 @@ from adnmesh.control.tap_changer import TapChangerControl
 from adnmesh.grid.sensitivity import LimitSensitivities
 from adnmesh.tuning.table import SchedulingTable, TableEntry
 from adnmesh.wire.keys import Keys
+from msgspec import UNSET
 from payloads import message
 from test_control import config  # noqa: F401 - the fixture: configs/examples/runtime-step.yaml
 
@@ -208,8 +209,9 @@ def outputs(out, config) -> list:
 
 def test_the_cpfc_leaves_a_der_blocked_upwards_out_bumplessly(config, table) -> None:
     """Moving up after the step, SGen2 is blocked up at 2 s: at the next sample the CPFC
-    switches to SGen1's entry, keeping the DERs' commanded power, and says why; when the
-    guard frees SGen2 at 3 s the entry of both returns."""
+    switches to SGen1's entry and says why; SGen2 keeps the power it was commanded (``keep``:
+    a cap, not a return to its schedule) and SGen1 its own, so nothing moves; when the guard
+    frees SGen2 at 3 s the entry of both returns with their total commanded power kept."""
     cpfc = CPFC(config, GainSchedule(config, table))
     out = drive(cpfc, 3500 * MS, lambda t: -2.5e6 + 0.5e6 * (t > 1.5e9),
                 {2000 * MS: {"p_up": ["SGen2"]}, 3000 * MS: {}})
@@ -218,10 +220,14 @@ def test_the_cpfc_leaves_a_der_blocked_upwards_out_bumplessly(config, table) -> 
     switched = [(t, b) for t, b in outputs(out, config) if "switch" in b]
     assert [t for t, _ in switched] == [2000 * MS, 3000 * MS]
     t, body = switched[0]
-    assert body["w"] == {"SGen1": 1.0}
-    before = body["switch"].p_y_before * (1.0 * 2e6 + 0.8 * 2e6)   # both WTs, 2 MW each
-    assert body["p_y"] * 2e6 == pytest.approx(before, rel=1e-9)    # commanded power kept
-    assert switched[1][1]["w"] == {"SGen1": 1.0, "SGen2": 0.8}
+    assert body["w"] == {"SGen1": 1.0} and body["switch"].keep == ["SGen2"]
+    kept_w = body["switch"].p_y_before * 0.8 * 2e6                  # SGen2's share, kept
+    assert body["p_y"] == pytest.approx(body["switch"].p_y_before, rel=1e-9)  # SGen1's too
+    assert body["switch"].handover_s is UNSET                        # nothing moves
+    t, back = switched[1]
+    assert back["w"] == {"SGen1": 1.0, "SGen2": 0.8} and back["switch"].keep is UNSET
+    before = back["switch"].p_y_before * 2e6 + kept_w                 # SGen1 + SGen2 kept
+    assert back["p_y"] * (2e6 + 0.8 * 2e6) == pytest.approx(before, rel=1e-6)
 
 
 def test_when_every_der_is_blocked_that_way_the_output_stops_there(config, table) -> None:
@@ -394,3 +400,33 @@ def test_no_release_while_the_loop_presses_the_way_it_blocks() -> None:
     g.observe(6100 * MS, values(v0=1.07), sens, frozenset({("p", -1)}))   # not that way
     changed, events = g.observe(8100 * MS, values(v0=1.07), sens)
     assert changed and g.state()["p_up"] == [] and events[0]["kind"] == "guard_release"
+
+
+def test_a_der_the_switch_keeps_holds_its_power_until_the_next_switch(config) -> None:
+    """SGen2 at P_Y 0.5 (0.5 MW above its 0.5 MW schedule) is left out with ``keep``: it holds
+    1.3 MW whatever P_Y does; the next switch that gives it a weight hands it over."""
+    from adnmesh.control.der_controller import DERController
+    from adnmesh.wire.messages import Switch
+
+    (der_config,) = config.ders_by_id(["SGen2"])
+    der = DERController(der_config, config, 2e6)
+    key = Keys(config.grid).of("p_y")
+
+    def command(t_ms, p_y, entry, w=None, switch=None):
+        body = {"p_y": p_y, "p_ref_w": 0.0, "kp": 1e-7, "ki": 1e-7, "entry": entry}
+        if w is not None:
+            body["w"] = w
+        if switch is not None:
+            body["switch"] = switch
+        der.on_message(t_ms * MS, message(key, t_ms * MS, body, src="cpfc"))
+
+    command(0, 0.5, 0, {"SGen1": 1.0, "SGen2": 0.8})
+    assert der.setpoint_w == pytest.approx(0.5 * 0.8 * 2e6 + 0.5e6)
+    command(100, 0.5, 1, {"SGen1": 1.0}, Switch(0.5, 0.5, 1e-7, 1e-7, keep=["SGen2"]))
+    command(200, 0.9, 1)
+    command(5000, 0.1, 1)
+    assert der.setpoint_w == pytest.approx(1.3e6)
+    command(6000, 0.1, 2, {"SGen1": 1.0, "SGen2": 0.8},
+            Switch(0.1, 0.1, 1e-7, 1e-7, handover_s=10.0))
+    command(11000, 0.1, 2)                       # half way from 1.3 MW to its 0.66 MW share
+    assert der.setpoint_w == pytest.approx(0.5 * (1.3e6 + 0.1 * 0.8 * 2e6 + 0.5e6))

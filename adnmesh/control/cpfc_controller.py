@@ -51,9 +51,11 @@ in use is a switch then (``direction`` in its record), with the loop at rest.
 
 **The grid guard** (docs/method.md#grid-guard): the measurement's ``grid_guard`` messages name
 the DERs blocked per direction near a grid limit. Moving in a direction the CPFC leaves those
-blocked that way out of the DERs it uses (a switch at the next sample, bumpless, with
-handover); if every DER that can move that way is blocked, its output stops moving that way
-(the integrator freezes as at a limit). In guard mode ``block`` it holds (``hold: grid``)
+blocked that way out of the DERs it uses (a switch at the next sample); they keep the power
+they were commanded (``keep`` in the switch record: a cap) and the others go on from their own
+shares; released, they get their weights back with a handover. If every DER that can move
+that way is blocked, its output stops moving that way (the integrator freezes as at a
+limit). In guard mode ``block`` it holds (``hold: grid``)
 against every error that would move the DERs further in their direction, and follows one
 that moves them back.
 
@@ -359,6 +361,7 @@ class CPFC(Agent):
         self.direction = 0                    # +1 up, -1 down, 0 not moved yet
         # the grid guard: DERs blocked per direction (docs/method.md#grid-guard), its hold
         self._blocked: dict[int, frozenset[str]] = {1: frozenset(), -1: frozenset()}
+        self._kept: dict[str, float] = {}     # DERs left out by the guard -> their power, W
         self.guard_hold = False
         self._redirected = False              # the pending switch is one of direction
         self.period_ns = ns(rt.pi_period_s)
@@ -730,7 +733,8 @@ class CPFC(Agent):
                     switch=Switch(record.p_y_before, record.p_y_limited, record.kp_before,
                                   record.ki_before, record.scale,
                                   handover_s if handover_s > 0 else UNSET,
-                                  direction or UNSET))
+                                  direction or UNSET,
+                                  [d for d in self._ids if d in self._kept] or UNSET))
         self._next_weights_ns = t_ns
 
     def _try_resume(self, t_ns: int, out: list) -> bool:
@@ -779,23 +783,43 @@ class CPFC(Agent):
             if not self.weights:
                 self.pi.set_limits(self.pi.output, self.pi.output)
             return None
-        carried = self._commanded_gain(self.weights, available)
         weights_before = self.weights
+        kept_before, kept = self._kept, self._keep(weights_before, available, in_use)
+        self._kept = kept
+        carried = self._commanded_gain({d: w for d, w in weights_before.items()
+                                        if d not in kept}, available)
+        released_w = sum(w for d, w in kept_before.items() if d in available and d not in kept)
         self.entry = entry
         self.entry_index += 1
         self.weights = self._weights(entry, in_use)
         self.pi.set_limits(*self._limits())
         after = self._commanded_gain(self.weights, in_use)
         scale = carried / after if carried > 0 and after > 0 else 1.0
-        scale = self._continuing_scale(weights_before, available, scale)
+        scale = self._continuing_scale(weights_before, available, scale, kept, released_w)
         record = self.pi.switch(entry.kp, entry.ki, scale)
-        handover_s = self._handover_s(weights_before, scale)
+        handover_s = self._handover_s(weights_before, scale, kept_before, kept)
         direction = ("up" if self.direction > 0 else "down") if redirected else ""
         self.switches.append(SwitchEvent(t_ns, tuple(d for d in self._ids if d in in_use),
                                          source, record, handover_s, direction))
         return record
 
-    def _handover_s(self, weights_before: dict[str, float], scale: float) -> float:
+    def _keep(self, weights_before: dict[str, float], available: frozenset[str],
+              in_use: frozenset[str]) -> dict[str, float]:
+        """The DERs the grid guard leaves out that keep their commanded power (a cap, not a
+        return to their schedules: docs/method.md#grid-guard) -> that power above their
+        schedules, W: those of the old weights or already kept that are still available,
+        blocked in the DERs' direction and not in the new set."""
+        blocked = self._blocked.get(self.direction, frozenset())
+        found = {d: w for d, w in self._kept.items()}
+        for d, w in weights_before.items():
+            if d not in found:
+                found[d] = self._share_w(d, w, self.pi.output)
+        return {d: power for d, power in found.items()
+                if d in available and d in blocked and d not in in_use}
+
+    def _handover_s(self, weights_before: dict[str, float], scale: float,
+                    kept_before: dict[str, float] | None = None,
+                    kept: dict[str, float] | None = None) -> float:
         """How long the DERs take to hand over the power the switch moves between them, s
         (docs/method.md#returning-ders-handover): 0 after a hold without DERs (nothing
         carried the output; the DERs take their shares at once) and if it moves none (every
@@ -808,9 +832,13 @@ class CPFC(Agent):
             return 0.0          # nothing carried the output (a hold without DERs): at once
         held = self._p_y_sent
         slowest = None
-        for d in self.available & (set(weights_before) | set(self.weights)):
-            jump = (self._share_w(d, self.weights.get(d, 0.0), held * scale)
-                    - self._share_w(d, weights_before.get(d, 0.0), held))
+        kept_before, kept = kept_before or {}, kept or {}
+        for d in self.available & (set(weights_before) | set(self.weights) | set(kept_before)):
+            if d in kept:
+                continue                     # it keeps its power: nothing moves
+            before = (kept_before[d] if d in kept_before else
+                      self._share_w(d, weights_before.get(d, 0.0), held))
+            jump = self._share_w(d, self.weights.get(d, 0.0), held * scale) - before
             if abs(jump) > HANDOVER_TOLERANCE * self._p_inst[d]:
                 slowest = max(slowest or 0.0, self._response_s[d])
         if slowest is None:
@@ -820,18 +848,20 @@ class CPFC(Agent):
                    HANDOVER_MAX_S)
 
     def _continuing_scale(self, weights_before: dict[str, float], available: frozenset[str],
-                          scale: float) -> float:
+                          scale: float, kept=(), released_w: float = 0.0) -> float:
         """The factor on P_Y that keeps the DERs' total commanded power above their schedules
         continuous (docs/method.md#bumpless-switching), their limits included: ``scale``
         (the ratio of ``Σ w_d P_inst,d`` before and after) unless a DER's setpoint is at a
         limit (0 or its available power) before or after the switch; then the P_Y at which
         the new weights command the total the old ones command (over the DERs still
-        available) at the output of this sample, found on the piecewise-linear sum."""
+        available) at the output of this sample, found on the piecewise-linear sum. DERs the
+        guard keeps at their power (``kept``) carry their share on; those it releases bring
+        theirs (``released_w``) to the new weights."""
         p_y = self.pi.output
         if p_y == 0.0 or not self.weights or not any(d in available for d in weights_before):
             return scale            # nothing carried the output (a hold without DERs)
-        total_w = sum(self._share_w(d, w, p_y) for d, w in weights_before.items()
-                      if d in available)
+        total_w = released_w + sum(self._share_w(d, w, p_y) for d, w in weights_before.items()
+                                   if d in available and d not in kept)
         tolerance_w = HANDOVER_TOLERANCE * sum(self._p_inst[d] for d in available)
         if abs(self._total_share_w(scale * p_y) - total_w) <= tolerance_w:
             return scale

@@ -23,7 +23,8 @@ A ``P_Y`` is valid if its ``entry`` matches the entry whose weights the DER hold
 with the switch and are repeated periodically). A switch that gives a handover time
 (``handover_s``, docs/method.md#returning-ders-handover) does not move the DER's setpoint at
 once: it keeps the power it was commanded and moves to its share of the new entry linearly in
-that time, following every change of P_Y with the new weight at once. Every ``measurement_period_s`` the DER reports its
+that time, following every change of P_Y with the new weight at once. A DER the switch names
+in ``keep`` (left out by the grid guard) keeps that power until the next switch. Every ``measurement_period_s`` the DER reports its
 infeed and setpoint on ``der/<id>/state`` (exact at that instant); every ``heartbeat_period_s``,
 and at once when its availability or its mode changes, it sends a heartbeat with its
 availability flag, its mode and the last P_Y it applied with that command's entry: the
@@ -239,19 +240,24 @@ class DERController(Agent):
         sample itself is followed with the new weight at once."""
         switch = message.switch
         self._handover = None
-        if switch is UNSET or switch.handover_s is UNSET or not self.available:
+        if switch is UNSET or not self.available:
             return
         der = self.der
+        keep = switch.keep is not UNSET and der.id in switch.keep
+        if switch.handover_s is UNSET and not keep:
+            return
         weight = float(message.w.get(der.id, 0.0))
         share_w = min(max(self.p_y * switch.scale * weight * der.p_inst_w + der.p_sched_w, 0.0),
                       self.p_avail_w)
         offset_w = self.setpoint_w - share_w
-        if offset_w != 0.0:
-            self._handover = (t_ns, ns(switch.handover_s), offset_w)
+        if offset_w != 0.0:        # kept by the grid guard: for good, until the next switch
+            self._handover = (t_ns, None if keep else ns(switch.handover_s), offset_w)
 
     def _handover_offset_w(self, t_ns: int) -> float:
         """What the running handover adds to Eq. 1 at ``t_ns``, W (0 once it is over)."""
         start_ns, duration_ns, offset_w = self._handover
+        if duration_ns is None:
+            return offset_w
         left = 1.0 - (t_ns - start_ns) / duration_ns
         if left <= 0.0:
             self._handover = None

@@ -85,8 +85,10 @@ def names_known_ders(message: Envelope, der_ids: frozenset[str]) -> bool:
     grid guard's blocked DERs)."""
     if message.type == "si":
         return message.si.keys() <= der_ids
-    if message.type in ("p_y", "q_y") and message.w is not UNSET:
-        return message.w.keys() <= der_ids
+    if message.type in ("p_y", "q_y"):
+        return ((message.w is UNSET or message.w.keys() <= der_ids)
+                and (message.switch is UNSET or message.switch.keep is UNSET
+                     or set(message.switch.keep) <= der_ids))
     if message.type == "grid_guard":
         return all(set(ders) <= der_ids for ders in (message.p_up, message.p_down,
                                                        message.q_up, message.q_down))

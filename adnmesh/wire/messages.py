@@ -91,7 +91,9 @@ class Switch(Struct, forbid_unknown_fields=True, omit_defaults=True):
     of the new entry (docs/method.md#returning-ders-handover), s; ``direction`` on a switch
     made because the DERs move the other way now, the direction the new entry's DERs can move
     in (absent: a switch for a change of availability or a tuned entry;
-    docs/method.md#directional-availability)."""
+    docs/method.md#directional-availability); ``keep`` the DERs the grid guard leaves out
+    that keep the power they were commanded instead of returning to their schedules
+    (docs/method.md#grid-guard)."""
 
     p_y_before: Ratio
     p_y_limited: Ratio
@@ -100,6 +102,7 @@ class Switch(Struct, forbid_unknown_fields=True, omit_defaults=True):
     scale: Annotated[float, Meta(ge=0.0, le=1e9)] = 1.0
     handover_s: Annotated[float, Meta(gt=0.0, le=1e6)] | UnsetType = UNSET
     direction: Literal["up", "down"] | UnsetType = UNSET
+    keep: Annotated[list[DERId], Meta(max_length=MAX_DERS)] | UnsetType = UNSET
 
 
 Seconds = Annotated[float, Meta(ge=0.0, le=1e9, description="s")]
