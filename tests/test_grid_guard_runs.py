@@ -60,6 +60,8 @@ def test_with_the_guard_no_sample_leaves_the_band_and_the_cost_is_said(runs) -> 
     assert any("WT4" in t and "WT5" in t and "Line 45" in t for t in blocked)
     left_out = [text for _, src, kind, text in events if src == "cpfc" and kind == "guard"]
     assert left_out and "left out moving up" in left_out[0]
+    kept = [s.keep for s in summary.switches if s.keep]       # capped, not sent back
+    assert any({"WT4", "WT5"} <= set(k) for k in kept)
     stats = result.nodes["measurement"].agent.stats()
     assert stats["guard_sensitivity_refreshes"] > 0 and stats["not_converged"] == 0
 

@@ -260,6 +260,7 @@ class RunSeries:
                                       "scale": switch.get("scale", 1.0),
                                       "handover_s": switch.get("handover_s", 0.0),
                                       "direction": switch.get("direction"),
+                                      "keep": switch.get("keep", []),
                                       "available": sorted(body.get("w", {}))})
         elif message_type == "fault" and body["fault_id"] not in self.faults:
             self.faults[body["fault_id"]] = body
@@ -322,6 +323,8 @@ class SwitchFigures:
     scale: float = 1.0
     handover_s: float = 0.0
     direction: str | None = None
+    keep: tuple[str, ...] = ()
+    """The DERs the grid guard left out that kept their power (docs/method.md#grid-guard)."""
 
 
 @dataclass(frozen=True)
@@ -494,7 +497,8 @@ def summarize(series: RunSeries, *, end_ns: int, band_pct: float = 5.0,
                                       float(np.nanmax(deviation)) if deviation.size else None,
                                       float(s["p_y_after"] - limited),
                                       float(limited - s["p_y_before"] * scale), float(scale),
-                                      handover_s, s.get("direction")))
+                                      handover_s, s.get("direction"),
+                                      tuple(s.get("keep", ()))))
     sim_s = end_ns * 1e-9
     speed = sim_s / wall_time_s if wall_time_s else None
     return RunSummary(steps, tuple(switches), band_pct, sim_s, wall_time_s, speed,
@@ -678,6 +682,9 @@ def format_summary(summary: RunSummary):
         if s.direction:
             out.append(f"  at {s.t_s:.2f} s the DERs were to move {s.direction}: the entry of "
                        "those that can (directional availability)")
+        if s.keep:
+            out.append(f"  at {s.t_s:.2f} s the grid guard capped {', '.join(s.keep)} at the "
+                       "power they had (left out, not sent back to their schedules)")
         if s.scale != 1.0:
             out.append(f"  at {s.t_s:.2f} s P_Y was scaled by {s.scale:.4g} so that the DERs' "
                        "commanded power stayed continuous")
