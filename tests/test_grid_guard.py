@@ -196,8 +196,9 @@ def drive(cpfc: CPFC, until_ns: int, p_meas, guard_at: dict) -> list:
             for o in cpfc.on_message(t, message(keys.of("grid_guard"), t, guard_at[t],
                                                 src="measurement")):
                 out.append((t, o.key, o.body))
-        cpfc.on_message(t, message(keys.of("p_ip"), t, {"p_ip_w": p_meas(t)},
-                                   src="measurement"))
+        if p_meas(t) is not None:                # None: no measurement at that sample
+            cpfc.on_message(t, message(keys.of("p_ip"), t, {"p_ip_w": p_meas(t)},
+                                       src="measurement"))
         out += [(t, o.key, o.body) for o in cpfc.on_timer(t)]
     return out
 
@@ -212,7 +213,7 @@ def test_the_cpfc_leaves_a_der_blocked_upwards_out_bumplessly(config, table) -> 
     switches to SGen1's entry and says why; SGen2 keeps the power it was commanded (``keep``:
     a cap, not a return to its schedule) and SGen1 its own, so nothing moves; when the guard
     frees SGen2 at 3 s the entry of both returns with their total commanded power kept."""
-    cpfc = CPFC(config, GainSchedule(config, table))
+    cpfc = CPFC(config, GainSchedule(config, table), guard_mode="directional")
     out = drive(cpfc, 3500 * MS, lambda t: -2.5e6 + 0.5e6 * (t > 1.5e9),
                 {2000 * MS: {"p_up": ["SGen2"]}, 3000 * MS: {}})
     events = [b for t, k, b in out if k.endswith("event/cpfc")]
@@ -232,7 +233,7 @@ def test_the_cpfc_leaves_a_der_blocked_upwards_out_bumplessly(config, table) -> 
 
 def test_when_every_der_is_blocked_that_way_the_output_stops_there(config, table) -> None:
     """Both WTs blocked up: P_Y no longer rises however large the error; it may fall."""
-    cpfc = CPFC(config, GainSchedule(config, table))
+    cpfc = CPFC(config, GainSchedule(config, table), guard_mode="directional")
     out = drive(cpfc, 4000 * MS, lambda t: -2.5e6 if t < 3e9 else 0.0,
                 {2000 * MS: {"p_up": ["SGen1", "SGen2"]}})
     p_y = dict(outputs(out, config))
@@ -242,7 +243,7 @@ def test_when_every_der_is_blocked_that_way_the_output_stops_there(config, table
 
 
 def test_block_mode_holds_the_output_until_the_guard_lets_go(config, table) -> None:
-    cpfc = CPFC(config, GainSchedule(config, table))
+    cpfc = CPFC(config, GainSchedule(config, table), guard_mode="block")
     out = drive(cpfc, 3000 * MS, lambda t: -2.5e6,
                 {1500 * MS: {"hold": True}, 2500 * MS: {"hold": False}})
     p_y = dict(outputs(out, config))
@@ -324,7 +325,7 @@ def test_the_tap_changer_on_the_extremes_lowers_for_the_highest_raises_for_the_l
 def test_block_mode_still_follows_a_move_back_towards_the_schedules(config, table) -> None:
     """While the guard holds, an error that would move the DERs further up is held against,
     one that moves them back down (relieving the limit) is followed."""
-    cpfc = CPFC(config, GainSchedule(config, table))
+    cpfc = CPFC(config, GainSchedule(config, table), guard_mode="block")
     out = drive(cpfc, 3000 * MS, lambda t: -2.5e6 if t < 2e9 else -1.0e6,
                 {1500 * MS: {"hold": True}})
     p_y = dict(outputs(out, config))
@@ -430,3 +431,85 @@ def test_a_der_the_switch_keeps_holds_its_power_until_the_next_switch(config) ->
             Switch(0.1, 0.1, 1e-7, 1e-7, handover_s=10.0))
     command(11000, 0.1, 2)                       # half way from 1.3 MW to its 0.66 MW share
     assert der.setpoint_w == pytest.approx(0.5 * (1.3e6 + 0.1 * 0.8 * 2e6 + 0.5e6))
+
+
+def test_a_measurement_outage_in_a_grid_hold_holds_for_the_measurement(config, table) -> None:
+    """Measurements stop at 2 s while the guard holds: the CPFC holds for the measurement
+    (undoing what stale samples did), not integrating a stale error back and forth."""
+    cpfc = CPFC(config, GainSchedule(config, table), guard_mode="block")
+    out = drive(cpfc, 3000 * MS, lambda t: -2.5e6 if t < 2e9 else None,
+                {1500 * MS: {"hold": True}})
+    p_y = dict(outputs(out, config))
+    assert p_y[2990 * MS]["hold"] == "measurement"
+    assert p_y[2990 * MS]["p_y"] == p_y[1500 * MS]["p_y"]
+
+
+def test_blocking_the_last_der_keeps_the_set_the_caps_and_the_output(config, table) -> None:
+    """SGen2 blocked up at 2 s (capped), SGen1 too at 2.5 s: no switch back to both, SGen2
+    stays capped, and P_Y does not rise when the error grows (K_P's part held too); one
+    event says the output no longer moves up."""
+    cpfc = CPFC(config, GainSchedule(config, table), guard_mode="directional")
+    out = drive(cpfc, 4000 * MS, lambda t: -2.5e6 if t < 3e9 else -3.5e6,
+                {2000 * MS: {"p_up": ["SGen2"]}, 2500 * MS: {"p_up": ["SGen1", "SGen2"]}})
+    p_y = dict(outputs(out, config))
+    assert [t for t, b in p_y.items() if "switch" in b] == [2000 * MS]
+    assert cpfc._kept.keys() == {"SGen2"}
+    assert p_y[3990 * MS]["p_y"] == p_y[2500 * MS]["p_y"]
+    stops = [b["text"] for t, k, b in out if k.endswith("event/cpfc")
+             and "no longer moves up" in b["text"]]
+    assert len(stops) == 1
+
+
+def test_blocks_apply_without_a_step_once_the_ders_have_moved(config, table) -> None:
+    """No P_ref step: SGen2 blocked up at 0.5 s while the DERs stand at their schedules
+    (direction 0: nothing to leave out); P_IP drops at 2 s, the DERs move up, and SGen2 is
+    left out then."""
+    from adnmesh.config import Scenario
+
+    still = config.model_copy(update={"scenario": Scenario(duration_s=5.0)})
+    cpfc = CPFC(still, GainSchedule(still, table), guard_mode="directional")
+    out = drive(cpfc, 3000 * MS, lambda t: -2.5e6 if t < 2e9 else -3.0e6,
+                {500 * MS: {"p_up": ["SGen2"]}})
+    switched = [(t, b) for t, b in outputs(out, still) if "switch" in b]
+    assert switched and switched[0][0] > 2000 * MS and switched[0][1]["w"] == {"SGen1": 1.0}
+
+
+def test_the_cpfc_takes_only_what_the_configured_mode_does(config, table) -> None:
+    """A directional guard's CPFC ignores ``hold``; a block one ignores the lists; off both."""
+    for mode, body in (("directional", {"hold": True}), ("block", {"p_up": ["SGen2"]}),
+                       ("off", {"p_up": ["SGen2"], "hold": True})):
+        cpfc = CPFC(config, GainSchedule(config, table), guard_mode=mode)
+        out = drive(cpfc, 3000 * MS, lambda t: -2.5e6 + 0.5e6 * (t > 1.5e9), {2000 * MS: body})
+        p_y = dict(outputs(out, config))
+        assert not any("switch" in b for t, b in p_y.items() if t >= 2000 * MS), mode
+        assert not any("hold" in b for b in p_y.values()), mode
+
+
+def test_a_der_the_q_switch_keeps_holds_its_reactive_power(config) -> None:
+    """The Q loop's switch names SGen2 in ``keep``: its reactive set-point stays where it was
+    whatever Q_Y does, until a switch gives it a weight again."""
+    from adnmesh.config import Reactive
+    from adnmesh.control.der_controller import DERController
+    from adnmesh.wire.messages import Switch
+
+    pq = config.model_copy(update={"reactive": Reactive()})
+    (der_config,) = pq.ders_by_id(["SGen2"])
+    der = DERController(der_config, pq, 2e6)
+    key = Keys(pq.grid).of("q_y")
+
+    def command(t_ms, q_y, entry, w=None, switch=None):
+        body = {"q_y": q_y, "q_ref_var": 0.0, "kp": 1e-7, "ki": 1e-7, "entry": entry}
+        if w is not None:
+            body["w"] = w
+        if switch is not None:
+            body["switch"] = switch
+        der.on_message(t_ms * MS, message(key, t_ms * MS, body, src="cpfc"))
+
+    command(0, 0.3, 0, {"SGen1": 1.0, "SGen2": 1.0})
+    held = der.q_setpoint_var
+    assert held > 0
+    command(100, 0.3, 1, {"SGen1": 1.0}, Switch(0.3, 0.3, 1e-7, 1e-7, keep=["SGen2"]))
+    command(200, 0.6, 1)
+    assert der.q_setpoint_var == pytest.approx(held)
+    command(300, 0.45, 2, {"SGen1": 1.0, "SGen2": 1.0}, Switch(0.45, 0.45, 1e-7, 1e-7))
+    assert der.q_setpoint_var == pytest.approx(1.5 * held)   # its share of Q_Y 0.45 at once

@@ -62,6 +62,8 @@ def test_with_the_guard_no_sample_leaves_the_band_and_the_cost_is_said(runs) -> 
     assert left_out and "left out moving up" in left_out[0]
     kept = [s.keep for s in summary.switches if s.keep]       # capped, not sent back
     assert any({"WT4", "WT5"} <= set(k) for k in kept)
+    repeats = sum(key.endswith("measurement/guard") for key, _ in result.messages)
+    assert repeats >= 100                 # with every grid report, for a restarted CPFC too
     stats = result.nodes["measurement"].agent.stats()
     assert stats["guard_sensitivity_refreshes"] > 0 and stats["not_converged"] == 0
 

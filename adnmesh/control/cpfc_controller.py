@@ -337,6 +337,10 @@ class CPFC(Agent):
         beyond it is clipped to it and said (default: none, nothing is clipped).
     reachable_note : str, optional
         Why there is no range although clipping is on (said as a warning at the first sample).
+    guard_mode : str, optional
+        The grid guard's mode whose messages it follows (default the config's; ``off`` without
+        a grid model): ``directional`` takes the blocked DERs, ``block`` the hold, ``off``
+        neither.
     """
 
     agent_id = "cpfc"
@@ -345,7 +349,7 @@ class CPFC(Agent):
                  start_ref: float | None = None, available: dict[str, float] | None = None,
                  steps: list[tuple[int, float]] | None = None, known_ids=None,
                  reachable: tuple[float, float] | None = None,
-                 reachable_note: str = "") -> None:
+                 reachable_note: str = "", guard_mode: str | None = None) -> None:
         self.config = config
         self.loop = loop
         self.keys = Keys(config.grid)
@@ -362,6 +366,9 @@ class CPFC(Agent):
         # the grid guard: DERs blocked per direction (docs/method.md#grid-guard), its hold
         self._blocked: dict[int, frozenset[str]] = {1: frozenset(), -1: frozenset()}
         self._kept: dict[str, float] = {}     # DERs left out by the guard -> their power, W
+        self._stop_said = 0                   # the guard's stop last said (+1 / -1 / 0)
+        guard = config.grid_model.guard if config.grid_model is not None else None
+        self._guard_mode = guard_mode or ("off" if guard is None else guard.mode)
         self.guard_hold = False
         self._redirected = False              # the pending switch is one of direction
         self.period_ns = ns(rt.pi_period_s)
@@ -469,22 +476,41 @@ class CPFC(Agent):
         and the guard's hold. A change of the DERs the CPFC can use in its direction is a
         switch at the next sample (bumpless, with handover), said by an event."""
         q = self.loop.name.lower()
-        blocked = {1: frozenset(getattr(message, f"{q}_up")).intersection(self._p_inst),
-                   -1: frozenset(getattr(message, f"{q}_down")).intersection(self._p_inst)}
-        self.guard_hold = bool(message.hold)
+        mode = self._guard_mode
+        blocked = {1: frozenset(), -1: frozenset()} if mode != "directional" else {
+            1: frozenset(getattr(message, f"{q}_up")).intersection(self._p_inst),
+            -1: frozenset(getattr(message, f"{q}_down")).intersection(self._p_inst)}
+        self.guard_hold = mode == "block" and bool(message.hold)   # what the config's mode does
         if blocked == self._blocked:
             return []
         self._blocked = blocked
-        if self.direction == 0:         # not moved by a step yet: the way the DERs stand
+        if self.hold == "resuming":
+            return []                   # _try_resume takes the blocks in
+        return self._redirect_by_guard()
+
+    def _stand(self) -> None:
+        """Not moved by a step yet (direction 0) while the guard blocks DERs: the direction is
+        the way the DERs stand from their schedules at the last output."""
+        if self.direction == 0 and (self._blocked[1] or self._blocked[-1]):
             standing = sum(self._share_w(d, w, self._p_y_sent) for d, w in self.weights.items())
             self.direction = 1 if standing > 0 else -1 if standing < 0 else 0
-        if self._pending is not None or self.hold == "resuming":
+
+    def _redirect_by_guard(self) -> list[Outgoing]:
+        """A switch at the next sample if the guard changes the DERs the CPFC can use, said by
+        an event; an event when it blocks every DER that can move the DERs' way."""
+        self._stand()
+        stop = self._guard_stop()
+        said, self._stop_said = self._stop_said, stop
+        if self._pending is not None:
             return []
         in_use = self._in_use(self.available)
+        way = "up" if self.direction > 0 else "down"
         if in_use == self.in_use:
+            if stop and not said:
+                return [self._event("WARNING", "guard", f"grid guard: every DER that can move "
+                                    f"{way} is blocked: the output no longer moves {way}")]
             return []
         self._pending = self.available
-        way = "up" if self.direction > 0 else "down"
         left = [d for d in self._ids if d in self._blocked.get(self.direction, ())
                 and d in self.available]
         text = (f"grid guard: {', '.join(left)} left out moving {way}; the entry of "
@@ -558,6 +584,8 @@ class CPFC(Agent):
         if self.hold == "resuming" and not self._try_resume(t_ns, out):
             return out
         error_w = self.target_w - self.p_meas_w
+        if self.direction == 0 and self.hold is None and (self._blocked[1] or self._blocked[-1]):
+            out += self._redirect_by_guard()  # moved without a step: blocks apply now
         self._watch_measurement(t_ns, error_w, out)
         rolled_back = self._rollback_to is not None and self._roll_back()
         self._watch_guard_hold(error_w, out)
@@ -566,7 +594,8 @@ class CPFC(Agent):
                     or (self.hold == "grid" and (self.direction or 1) * error_w > 0
                         if self.direction else self.hold == "grid"))
             p_y = self.pi.update(error_w, freeze=stop)
-            if stop and self.hold == "grid":      # held, K_P's part too, without wind-up
+            guard_stop = self._guard_stop() * error_w > 0
+            if stop and (self.hold == "grid" or guard_stop):   # held, K_P's part too
                 self.pi.output = self._p_y_sent
                 self.pi.reenter(error_w)
                 p_y = self.pi.output
@@ -676,18 +705,21 @@ class CPFC(Agent):
     def _in_use(self, available: frozenset[str]) -> frozenset[str]:
         """The DERs whose entry the CPFC uses: the available ones that can move in the
         direction the DERs move and that the grid guard does not block that way (all
-        available ones before they first moved; those that can move if the guard blocks them
-        all: the output then stops in that direction; all available ones if none can)."""
+        available ones before they first moved; the set in use if the guard blocks every one
+        that can move: the output then stops in that direction; all available ones if none
+        can)."""
         if self.direction == 0:
             return available
         able = available & self._able[self.direction]
         usable = able - self._blocked[self.direction]
+        if not usable and able:              # all blocked: keep the set (and caps) in use
+            return (self.in_use & available) or able
         return usable or able or available
 
     def _watch_measurement(self, t_ns: int, error_w: float, out: list) -> None:
         """Hold while measurements are missing; re-enter without a jump when they return."""
         stale = t_ns - self.last_meas_ns > self.meas_timeout_ns
-        if stale and self.hold is None:
+        if stale and self.hold in (None, "grid"):      # a grid hold needs measurements too
             self.hold = "measurement"
             self._undo_after(self.last_meas_ns)
             out.append(self._event("WARNING", "hold", "no measurement for "
@@ -754,6 +786,7 @@ class CPFC(Agent):
         self._pending = None
         self.available = frozenset()      # the switch below sets gains, weights and limits
         self.pi.output = self._p_y_sent = acked
+        self._stand()                         # the guard's blocks apply from the DERs' side
         record = self._switch(t_ns, available)
         self.hold = None if record is not None else "actuators"
         self.pi.reenter(self.target_w - self.p_meas_w)

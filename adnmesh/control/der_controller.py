@@ -114,6 +114,7 @@ class DERController(Agent):
             self.q_weight, self.q_entry, self.q_y = 0.0, None, 0.0
             self.q_setpoint_var = der.q_sched_var
             self._q_clamped = 0
+            self._q_kept_var = 0.0          # reactive power the grid guard keeps, var
             self.counts.update(q_commands=0, q_stale_commands=0)
         self._plan()
 
@@ -219,6 +220,11 @@ class DERController(Agent):
     def _on_q_y(self, t_ns: int, message) -> None:
         """A Q_Y command: its weights (on a switch and repeated), then Q_Y if of that entry."""
         if message.w is not UNSET:
+            if message.entry != self.q_entry:          # a switch: kept by the guard?
+                switch = message.switch
+                keep = (switch is not UNSET and switch.keep is not UNSET
+                        and self.der.id in switch.keep)
+                self._q_kept_var = (self.q_setpoint_var - self.der.q_sched_var) if keep else 0.0
             self.q_weight = float(message.w.get(self.der.id, 0.0))
             self.q_entry = message.entry
         if message.entry != self.q_entry:
@@ -292,6 +298,7 @@ class DERController(Agent):
         with ``p_setpoint_w`` by the capability; return the active setpoint, W."""
         der = self.der
         wanted = (self.q_y * self.q_weight * self.capability.capacity_var + der.q_sched_var
+                  + self._q_kept_var
                   if control else der.q_sched_var)
         p, q, p_held, q_held = limit_pq(self.capability, p_setpoint_w, wanted, self.p_avail_w,
                                         self.reactive.priority)

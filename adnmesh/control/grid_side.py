@@ -82,7 +82,6 @@ class GridSide:
         self.reactive = config.reactive is not None
         self.guard = GridGuard(model.guard, model.limits, config.der_ids(), self.reactive)
         self.sends_guard = "guard" in config.features()
-        self._guard_said = False                # a guard state was sent: repeat it
         self._levels = self.guard._levels()
         self.tap = None
         if model.tap_changer is not None:
@@ -116,18 +115,17 @@ class GridSide:
         if self.tap is not None:
             events += self._tap_step(t_ns, sample)
         body = self.guard.state() if changed and self.sends_guard else None
-        if body is not None:
-            self._guard_said = True
         return sample, body, events
 
     def report_bodies(self, q_ip_var: float) -> tuple[dict, dict | None]:
-        """The period's ``grid_state`` body (then reset) and, once the guard has said
-        anything, its state again (so that a CPFC that missed it, or restarted, learns it)."""
+        """The period's ``grid_state`` body (then reset) and, with the guard on, its state
+        (so that a CPFC that missed a change, or a CPFC after a restarted measurement whose
+        guard starts anew, learns it)."""
         body = self.report.body(q_ip_var)
         if self.tap is not None:
             body["tap_pos"] = self.tap.position
         self.report.reset()
-        again = self.guard.state() if self._guard_said else None
+        again = self.guard.state() if self.sends_guard else None
         return body, again
 
     def _quiet(self, sample) -> bool:

@@ -296,7 +296,7 @@ class GridSolver:
         """Every line's loading at the last solve (pandapower's definition), %; NaN after a
         solve that did not converge."""
         grid = self._grid
-        with np.errstate(invalid="ignore"):
+        with np.errstate(invalid="ignore", over="ignore"):
             return (np.maximum(grid.get_line_res1()[3], grid.get_line_res2()[3])
                     * self._line_factor)
 
@@ -304,7 +304,7 @@ class GridSolver:
         """Every transformer's loading at the last solve (pandapower's definition), %; NaN
         after a solve that did not converge."""
         grid = self._grid
-        with np.errstate(invalid="ignore"):
+        with np.errstate(invalid="ignore", over="ignore"):
             return np.maximum(grid.get_trafo_res1()[3] * self._hv_factor,
                               grid.get_trafo_res2()[3] * self._lv_factor)
 
