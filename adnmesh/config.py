@@ -102,7 +102,7 @@ def _nonzero(value: float) -> float:
 
 
 _Identifier = Annotated[str, Field(pattern=_IDENTIFIER, max_length=64)]
-_Name = Annotated[str, Field(min_length=1, max_length=200)]
+_Name = Annotated[str, Field(min_length=1, max_length=200, pattern=r"^[^\x00-\x1f\x7f]+$")]
 _Power = Annotated[float, Field(gt=0, le=_MAX_W)]
 _PowerOrZero = Annotated[float, Field(ge=0, le=_MAX_W)]
 _Balance = Annotated[float, Field(ge=-_MAX_W, le=_MAX_W)]
@@ -980,7 +980,9 @@ def _document(path: Path, chain: tuple[Path, ...]) -> tuple[object, bytes]:
     if not isinstance(document, dict) or "extends" not in document:
         return document, data
     base = document.pop("extends")
-    if not isinstance(base, str) or not base.strip():
+    if base is None:
+        return document, data
+    if not isinstance(base, str) or not base.strip() or re.search(r"[\x00-\x1f\x7f]", base):
         raise ConfigError(f"{path}: extends: must be the file name of a config, got {base!r}")
     base_path = path.parent / base
     if base_path.resolve() in chain:
@@ -988,10 +990,23 @@ def _document(path: Path, chain: tuple[Path, ...]) -> tuple[object, bytes]:
     if len(chain) > MAX_EXTENDS:
         raise ConfigError(f"{path}: extends: more than {MAX_EXTENDS} configs extend one "
                           "another")
-    parent, parent_data = _document(base_path, (*chain, base_path.resolve()))
+    try:
+        parent, parent_data = _document(base_path, (*chain, base_path.resolve()))
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: extends {base}: {exc}") from None
     if not isinstance(parent, dict):
         raise ConfigError(f"{base_path}: a config extended by {path} must be a mapping")
     return _merged(parent, document), parent_data + data
+
+
+def _base_of(path: Path):
+    """The ``extends`` value of the config in ``path`` (read again: small, and only for an
+    error message), None if it has none."""
+    try:
+        document = yaml.load(_read(path).decode("utf-8"), Loader=_Loader)  # noqa: S506
+    except (ConfigError, UnicodeDecodeError, yaml.YAMLError):
+        return None
+    return document.get("extends") if isinstance(document, dict) else None
 
 
 def _merged(base: dict, over: dict) -> dict:
@@ -1041,6 +1056,7 @@ def load_config(path: str | Path) -> Config:
     try:
         content = ConfigFile.model_validate(document)
     except ValidationError as exc:
-        raise ConfigError(f"{path}: {_describe(exc.errors(include_url=False)[0])}") from None
+        where = f"{path} (with what it extends)" if isinstance(_base_of(path), str) else path
+        raise ConfigError(f"{where}: {_describe(exc.errors(include_url=False)[0])}") from None
     return Config.model_construct(**dict(content), path=path,
                                   sha256=hashlib.sha256(data).hexdigest())

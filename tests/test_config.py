@@ -734,3 +734,19 @@ def test_a_config_extends_another_key_by_key(tmp_path, configs_dir) -> None:
     variant.write_text("extends: nothing.yaml\n")
     with pytest.raises(ConfigError, match="nothing.yaml"):
         load_config(variant)
+
+
+def test_extends_errors_name_the_files(tmp_path) -> None:
+    """A missing base names the file that extends it; a bad value from a base says the
+    config extends one; a control character in a file name is a one-line error."""
+    child = tmp_path / "child.yaml"
+    child.write_text("extends: nothere.yaml\n")
+    with pytest.raises(ConfigError, match=r"child.yaml: extends nothere.yaml: .*nothere.yaml"):
+        load_config(child)
+    (tmp_path / "base.yaml").write_text("grid: g\nt_com_s: -1\n")
+    child.write_text("extends: base.yaml\n")
+    with pytest.raises(ConfigError, match=r"child.yaml \(with what it extends\): t_com_s"):
+        load_config(child)
+    child.write_text('extends: "a\\0b"\n')
+    with pytest.raises(ConfigError, match="extends: must be the file name"):
+        load_config(child)
