@@ -330,6 +330,28 @@ class GridModel(Section):
     """The HV/MV transformer's on-load tap changer in the loop (none: its tap stays)."""
 
     @model_validator(mode="after")
+    def _levels_apart(self) -> GridModel:
+        lim, g = self.limits, self.guard
+        reach = 2 * (g.v_margin_pu + g.v_release_pu)
+        if lim.v_max_pu - lim.v_min_pu <= reach:
+            raise _problem(("guard", "v_margin_pu"), (
+                f"the voltage band {lim.v_min_pu:g} to {lim.v_max_pu:g} p.u. is too narrow for "
+                f"a margin of {g.v_margin_pu:g} and a release of {g.v_release_pu:g} p.u. on "
+                "each side: the guard would block both ways for good"))
+        if lim.loading_max_pct <= g.loading_margin_pct + g.loading_release_pct:
+            raise _problem(("guard", "loading_margin_pct"), (
+                f"a margin of {g.loading_margin_pct:g} % and a release of "
+                f"{g.loading_release_pct:g} % leave no loading below the {lim.loading_max_pct:g}"
+                " % limit to release at"))
+        tap = self.tap_changer
+        if tap is not None and tap.regulates == "extremes" and \
+                lim.v_max_pu - lim.v_min_pu <= 2 * tap.extremes_margin_pu:
+            raise _problem(("tap_changer", "extremes_margin_pu"), (
+                f"{tap.extremes_margin_pu:g} p.u. inside both limits of the band "
+                f"{lim.v_min_pu:g} to {lim.v_max_pu:g} p.u. leaves no band"))
+        return self
+
+    @model_validator(mode="after")
     def _one_operating_point(self) -> GridModel:
         if self.time_step is not None and "study_case" in self.model_fields_set:
             raise _problem(("time_step",), "give a study_case or a time_step, not both")

@@ -750,3 +750,16 @@ def test_extends_errors_name_the_files(tmp_path) -> None:
     child.write_text('extends: "a\\0b"\n')
     with pytest.raises(ConfigError, match="extends: must be the file name"):
         load_config(child)
+
+
+def test_guard_and_tap_changer_levels_that_cannot_work_are_refused(tmp_path, configs_dir) -> None:
+    base = configs_dir / "simbench.yaml"
+    for extra, words in (("{guard: {v_margin_pu: 0.2}}", "too narrow"),
+                         ("{guard: {loading_margin_pct: 60, loading_release_pct: 40}}",
+                          "no loading below"),
+                         ("{tap_changer: {regulates: extremes, extremes_margin_pu: 0.11}}",
+                          "leaves no band")):
+        variant = tmp_path / "v.yaml"
+        variant.write_text(f"extends: {base}\ngrid_model: {extra}\n")
+        with pytest.raises(ConfigError, match=words):
+            load_config(variant)

@@ -64,7 +64,10 @@ def run(args: argparse.Namespace) -> int:
                           guard.mode, f" (blocks DERs {guard.v_margin_pu:g} p.u. / "
                                       f"{guard.loading_margin_pct:g} % from a limit)"))
         ranges = reachable_ranges(config)
-        if not isinstance(ranges, str):
+        if isinstance(ranges, str):
+            console.print(f"reachable within the limits: not known, references are not "
+                          f"clipped ({ranges})")
+        else:
             (p_lo, p_hi), (q_lo, q_hi) = ranges
             console.print(f"reachable within the limits: P_IP {p_lo / 1e6:.3f} to "
                           f"{p_hi / 1e6:.3f} MW, Q_IP {q_lo / 1e6:.3f} to {q_hi / 1e6:.3f} "

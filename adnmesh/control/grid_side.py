@@ -192,7 +192,7 @@ def _tap_changer(settings, solver):
             raise GridError(f"grid_model.tap_changer.trafo: the net has {len(trafos)} "
                             f"transformer(s), no {settings.trafo}")
         index = settings.trafo
-        stepped = [index]
+        stepped = list(range(len(trafos)))     # with the transformers parallel to it
     else:
         at_slack = [i for i, t in enumerate(trafos) if slack_bus in (t.bus1_id, t.bus2_id)]
         if not at_slack:
@@ -201,16 +201,31 @@ def _tap_changer(settings, solver):
         index = at_slack[0]
         stepped = at_slack
     trafo = trafos[index]
-    mv_bus = trafo.bus2_id if trafo.bus1_id == slack_bus else trafo.bus1_id
+    if trafo.bus2_id == slack_bus:
+        mv_bus = trafo.bus1_id
+    else:                               # the side away from the slack, else side 2: the LV
+        mv_bus = trafo.bus2_id          # side (pandapower's lv_bus)
     tap_min, tap_max = data.tap_min[index], data.tap_max[index]
     if not (tap_min == tap_min and tap_max == tap_max) or tap_min >= tap_max:
         raise GridError(f"grid_model.tap_changer: transformer {index} has no tap changer in "
                         "the net (no tap range)")
-    stepped = [i for i in stepped                         # the same busbar, the same taps
-               if {trafos[i].bus1_id, trafos[i].bus2_id} == {trafo.bus1_id, trafo.bus2_id}
-               and data.tap_min[i] == data.tap_min[index]
+    parallel = [i for i in stepped
+                if {trafos[i].bus1_id, trafos[i].bus2_id} == {trafo.bus1_id, trafo.bus2_id}]
+    stepped = [i for i in parallel                        # the same taps: they step together
+               if data.tap_min[i] == data.tap_min[index]
                and data.tap_max[i] == data.tap_max[index]
+               and data.tap_step_percent[i] == data.tap_step_percent[index]
+               and str(data.tap_side[i]) == str(data.tap_side[index])
                and solver.tap_pos(i) == solver.tap_pos(index)]
+    if len(stepped) != len(parallel):
+        names = ", ".join(solver.trafo_names[i] for i in parallel)
+        raise GridError(f"grid_model.tap_changer: the parallel transformers {names} differ in "
+                        "their tap changers (range, step, side or position): one tap changer "
+                        "cannot step them together")
+    step_pu = abs(float(data.tap_step_percent[index])) / 100.0
+    if settings.regulates == "busbar" and settings.dead_band_pu < step_pu / 2:
+        raise GridError(f"grid_model.tap_changer.dead_band_pu: {settings.dead_band_pu:g} p.u. "
+                        f"is less than half a tap step ({step_pu:g} p.u.): it would hunt")
     v_set = settings.v_set_pu
     if v_set is None:
         v_set = float(abs(solver.voltages_pu[mv_bus]))

@@ -356,8 +356,8 @@ class GridFigures:
     """``∫ |P_ref - P_IP| dt`` while the guard acted, kWh: what the guard cost the control
     (None if it never acted)."""
     steps_short: tuple[float, ...] = ()
-    """The P_ref steps (their times, s) whose window saw the guard act and that P_IP did not
-    settle in (not fully delivered)."""
+    """The P_ref steps (their times, s) not fully delivered while the guard acted: P_IP off by
+    more than the settling band of the step when P_ref changed again (or the run ended)."""
     tap_moves: int = 0
     """Steps of the tap changer (``tap`` events)."""
     tap_range: tuple[int, ...] = ()
@@ -503,7 +503,7 @@ def summarize(series: RunSeries, *, end_ns: int, band_pct: float = 5.0,
     speed = sim_s / wall_time_s if wall_time_s else None
     return RunSummary(steps, tuple(switches), band_pct, sim_s, wall_time_s, speed,
                       dict(extra or {}), _faults(series, sim_s, band_pct),
-                      _grid(series, steps, end_ns),
+                      _grid(series, steps, end_ns, band_pct),
                       realtime, scenario_steps(series, planned_steps, end_ns, sample_s,
                                                (extra or {}).get("ended")),
                       design_checks(steps, series.entries), q_steps, coupling,
@@ -610,7 +610,27 @@ def _faults(series: RunSeries, end_s: float, band_pct: float) -> tuple[FaultFigu
                                end_s=end_s, band_w=band_w, events_s=scenario))
 
 
-def _grid(series: RunSeries, steps, end_ns: int) -> GridFigures | None:
+def _steps_short(series: RunSeries, t: np.ndarray, error: np.ndarray, intervals,
+                 end_ns: int, band_pct: float) -> tuple[float, ...]:
+    """The P_ref steps (their times, s) not fully delivered while the guard acted: at the
+    last P_IP sample before P_ref changes again (or the run ends), ``|P_ref - P_IP|`` is
+    more than ``band_pct`` % of the step, and the guard acted after the step."""
+    ref_t = list(series.p_ref_t_ns)
+    ref_v = list(series.p_ref_w)
+    out = []
+    for k in range(1, len(ref_t)):
+        start, stop = ref_t[k], ref_t[k + 1] if k + 1 < len(ref_t) else end_ns
+        step = abs(ref_v[k] - ref_v[k - 1])
+        last = np.flatnonzero((t >= start) & (t < stop))
+        if not step or not last.size or not any(a < stop and b > start for a, b in intervals):
+            continue
+        if error[last[-1]] > band_pct / 100.0 * step:
+            out.append(start * 1e-9)
+    return tuple(out)
+
+
+def _grid(series: RunSeries, steps, end_ns: int, band_pct: float = 5.0
+          ) -> GridFigures | None:
     """The grid figures with the violations, the guard's actions and their cost, and the
     tap changer's steps."""
     figures = series.grid.figures()
@@ -637,10 +657,7 @@ def _grid(series: RunSeries, steps, end_ns: int) -> GridFigures | None:
             held_s = np.diff(np.append(t[inside], b)) * 1e-9
             joules += float(np.nansum(error[inside] * held_s))
         energy = joules / 3.6e6
-        short = tuple(s.t_s for s in steps
-                      if s.figures is not None and not math.isfinite(s.figures.settling_time_s)
-                      and any(a < (s.t_s + s.window_s) * 1e9 and b > s.t_s * 1e9
-                              for a, b in intervals))
+        short = _steps_short(series, t, error, intervals, end_ns, band_pct)
     return replace(figures, violations=kinds.count("limit_violated"),
                    guard_blocks=kinds.count("guard_block") + kinds.count("guard_hold"),
                    guarded_s=guarded_s, energy_short_kwh=energy, steps_short=short,
