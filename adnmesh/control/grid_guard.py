@@ -104,6 +104,7 @@ class GridGuard:
         self._hold_inside_since: int | None = None
         self._refreshed_ns: int | None = None
         self.violation: dict | None = None      # the episode under way: start, worst, where
+        self._version = 0                       # counts the changes of the blocked sets
         self.counts = {"sensitivity_refreshes": 0, "engaged": 0, "violations": 0}
 
     # -- levels ----------------------------------------------------------------------------
@@ -147,13 +148,13 @@ class GridGuard:
         Returns ``(changed, events)``: whether the blocked sets or ``hold`` changed, and the
         events to say (dicts with ``level``, ``kind``, ``text``, ``subject``).
         """
-        before = (self.state(), self.hold)
+        before = (self._version, self.hold)
         events = self._violations(t_ns, values)
         if self.mode == "directional":
             events += self._directional(t_ns, values, sensitivities, pressing)
         elif self.mode == "block":
             events += self._block(t_ns, values)
-        return (self.state(), self.hold) != before, events
+        return (self._version, self.hold) != before, events
 
     def _directional(self, t_ns, values, sensitivities, pressing) -> list[dict]:
         levels, events = self._levels(), []
@@ -181,6 +182,7 @@ class GridGuard:
                         w.inside_since_ns = t_ns
                     elif t_ns - w.inside_since_ns >= self.release_ns:
                         del self.watched[key]
+                        self._version += any(w.blocked.values())
                         released = self._blocked_sets()
                         events += self._release_events(w, released, values)
                 else:                    # between release and engage, or pressed
@@ -219,6 +221,7 @@ class GridGuard:
                             w.blocked[(quantity, direction)].add(self.der_ids[d])
                             cause.setdefault((quantity, direction, self.der_ids[d]), key)
         after = self._blocked_sets()
+        self._version += after != before
         events = []
         for way in DIRECTIONS:
             added = [d for d in self.der_ids if d in after[way] and d not in before[way]]
