@@ -20,7 +20,7 @@ from adnmesh.tuning.table import SchedulingTable, TableEntry
 from adnmesh.wire.keys import Keys
 from msgspec import UNSET
 from payloads import message
-from test_control import config  # noqa: F401 - the fixture: configs/examples/runtime-step.yaml
+from test_control import config, der_grid  # noqa: F401 - config: the fixture (runtime-step.yaml)
 
 MS = 1_000_000
 DERS = ("A", "B", "C")
@@ -403,6 +403,18 @@ def test_no_release_while_the_loop_presses_the_way_it_blocks() -> None:
     assert changed and g.state()["p_up"] == [] and events[0]["kind"] == "guard_release"
 
 
+def output(der, kind: str, t_ms: int, fields: dict, entry: int, w=None, switch=None) -> None:
+    """Deliver a P_Y or Q_Y (``kind``) of table entry ``entry`` to ``der`` at ``t_ms``, with
+    the weights ``w`` and the switch record ``switch`` if given."""
+    body = {**fields, "kp": 1e-7, "ki": 1e-7, "entry": entry}
+    if w is not None:
+        body["w"] = w
+    if switch is not None:
+        body["switch"] = switch
+    der.on_message(t_ms * MS, message(Keys(der_grid(der)).of(kind), t_ms * MS, body,
+                                      src="cpfc"))
+
+
 def test_a_der_the_switch_keeps_holds_its_power_until_the_next_switch(config) -> None:
     """SGen2 at P_Y 0.5 (0.5 MW above its 0.5 MW schedule) is left out with ``keep``: it holds
     1.3 MW whatever P_Y does; the next switch that gives it a weight hands it over."""
@@ -411,15 +423,9 @@ def test_a_der_the_switch_keeps_holds_its_power_until_the_next_switch(config) ->
 
     (der_config,) = config.ders_by_id(["SGen2"])
     der = DERController(der_config, config, 2e6)
-    key = Keys(config.grid).of("p_y")
 
     def command(t_ms, p_y, entry, w=None, switch=None):
-        body = {"p_y": p_y, "p_ref_w": 0.0, "kp": 1e-7, "ki": 1e-7, "entry": entry}
-        if w is not None:
-            body["w"] = w
-        if switch is not None:
-            body["switch"] = switch
-        der.on_message(t_ms * MS, message(key, t_ms * MS, body, src="cpfc"))
+        output(der, "p_y", t_ms, {"p_y": p_y, "p_ref_w": 0.0}, entry, w, switch)
 
     command(0, 0.5, 0, {"SGen1": 1.0, "SGen2": 0.8})
     assert der.setpoint_w == pytest.approx(0.5 * 0.8 * 2e6 + 0.5e6)
@@ -495,15 +501,9 @@ def test_a_der_the_q_switch_keeps_holds_its_reactive_power(config) -> None:
     pq = config.model_copy(update={"reactive": Reactive()})
     (der_config,) = pq.ders_by_id(["SGen2"])
     der = DERController(der_config, pq, 2e6)
-    key = Keys(pq.grid).of("q_y")
 
     def command(t_ms, q_y, entry, w=None, switch=None):
-        body = {"q_y": q_y, "q_ref_var": 0.0, "kp": 1e-7, "ki": 1e-7, "entry": entry}
-        if w is not None:
-            body["w"] = w
-        if switch is not None:
-            body["switch"] = switch
-        der.on_message(t_ms * MS, message(key, t_ms * MS, body, src="cpfc"))
+        output(der, "q_y", t_ms, {"q_y": q_y, "q_ref_var": 0.0}, entry, w, switch)
 
     command(0, 0.3, 0, {"SGen1": 1.0, "SGen2": 1.0})
     held = der.q_setpoint_var
