@@ -6,7 +6,6 @@ range, and the CPFC leaving blocked DERs out bumplessly or holding."""
 from __future__ import annotations
 
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
