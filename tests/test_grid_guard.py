@@ -512,3 +512,32 @@ def test_a_der_the_q_switch_keeps_holds_its_reactive_power(config) -> None:
     assert der.q_setpoint_var == pytest.approx(held)
     command(300, 0.45, 2, {"SGen1": 1.0, "SGen2": 1.0}, Switch(0.45, 0.45, 1e-7, 1e-7))
     assert der.q_setpoint_var == pytest.approx(1.5 * held)   # its share of Q_Y 0.45 at once
+
+
+def test_blocking_a_der_again_mid_handover_moves_no_der(config, table) -> None:
+    """SGen2 blocked up at 2 s, released at 3 s (a handover of ~29 s starts), blocked again
+    at 5 s: at that switch neither DER's set-point jumps (ideal plants: P_IP is the sum of
+    the set-points), the other DER's running handover goes on."""
+    from adnmesh.control.der_controller import DERController
+
+    keys = Keys(config.grid)
+    cpfc = CPFC(config, GainSchedule(config, table), guard_mode="directional")
+    ders = {d.id: DERController(d, config, 2e6) for d in config.ders}
+    guard_at = {2000 * MS: {"p_up": ["SGen2"]}, 3000 * MS: {}, 5000 * MS: {"p_up": ["SGen2"]}}
+    setpoints = {}
+    while cpfc.next_timer_ns() < 6000 * MS:
+        t = cpfc.next_timer_ns()
+        if t % (1000 * MS) == 0:
+            cpfc.on_message(t, message(keys.of("si"), t, {"si": {"SGen1": True, "SGen2": True}},
+                                       src="availability"))
+        if t in guard_at:
+            cpfc.on_message(t, message(keys.of("grid_guard"), t, guard_at[t], src="measurement"))
+        p_ip = config.runtime.rest_of_grid_w + sum(d.setpoint_w for d in ders.values())
+        cpfc.on_message(t, message(keys.of("p_ip"), t, {"p_ip_w": p_ip}, src="measurement"))
+        for o in cpfc.on_timer(t):
+            if o.key == keys.of("p_y"):
+                for der in ders.values():
+                    der.on_message(t, message(o.key, t, o.body, src="cpfc"))
+        setpoints[t] = {d: der.setpoint_w for d, der in ders.items()}
+    for d in ("SGen1", "SGen2"):                       # one integrator step, no more
+        assert abs(setpoints[5000 * MS][d] - setpoints[4990 * MS][d]) < 2e3, d

@@ -243,15 +243,18 @@ class DERController(Agent):
         The offset is the DER's setpoint above its schedule less its share by the new weight
         of the P_Y it last applied, scaled as the switch scaled it (``switch.scale``), both
         limited: what the switch moves between DERs. The change of P_Y of the switching
-        sample itself is followed with the new weight at once."""
+        sample itself is followed with the new weight at once. A switch without a handover
+        time moves no DER's power (the CPFC found none to move): a handover still running
+        goes on, or the DER would jump by what it has yet to hand over."""
         switch = message.switch
-        self._handover = None
         if switch is UNSET or not self.available:
+            self._handover = None
             return
         der = self.der
         keep = switch.keep is not UNSET and der.id in switch.keep
         if switch.handover_s is UNSET and not keep:
-            return
+            return        # the switch moves no DER's power: a running handover goes on
+        self._handover = None
         weight = float(message.w.get(der.id, 0.0))
         share_w = min(max(self.p_y * switch.scale * weight * der.p_inst_w + der.p_sched_w, 0.0),
                       self.p_avail_w)
