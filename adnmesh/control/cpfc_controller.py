@@ -590,12 +590,13 @@ class CPFC(Agent):
         rolled_back = self._rollback_to is not None and self._roll_back()
         self._watch_guard_hold(error_w, out)
         if self.hold in (None, "grid") and not rolled_back:
-            stop = (self.actuators_held * error_w > 0 or self._guard_stop() * error_w > 0
-                    or (self.hold == "grid" and (self.direction or 1) * error_w > 0
-                        if self.direction else self.hold == "grid"))
+            # the grid guard stops the output that way (all blocked, or its hold: every way
+            # before the DERs first moved), K_P's part too; the DERs' limits stop the integrator
+            held_by_grid = (self._guard_stop() * error_w > 0 or self.hold == "grid"
+                            and (self.direction * error_w > 0 or not self.direction))
+            stop = held_by_grid or self.actuators_held * error_w > 0
             p_y = self.pi.update(error_w, freeze=stop)
-            guard_stop = self._guard_stop() * error_w > 0
-            if stop and (self.hold == "grid" or guard_stop):   # held, K_P's part too
+            if held_by_grid or (stop and self.hold == "grid"):
                 self.pi.output = self._p_y_sent
                 self.pi.reenter(error_w)
                 p_y = self.pi.output
@@ -843,7 +844,7 @@ class CPFC(Agent):
         schedules, W: those of the old weights or already kept that are still available,
         blocked in the DERs' direction and not in the new set."""
         blocked = self._blocked.get(self.direction, frozenset())
-        found = {d: w for d, w in self._kept.items()}
+        found = dict(self._kept)
         for d, w in weights_before.items():
             if d not in found:
                 found[d] = self._share_w(d, w, self.pi.output)

@@ -106,11 +106,12 @@ class GridGuard:
         self.violation: dict | None = None      # the episode under way: start, worst, where
         self._version = 0                       # counts the changes of the blocked sets
         self.counts = {"sensitivity_refreshes": 0, "engaged": 0, "violations": 0}
+        self.levels = self._levels()
 
     # -- levels ----------------------------------------------------------------------------
 
     def _levels(self) -> dict[str, tuple[float, float, float, int]]:
-        """kind -> (limit, engaging level, release level, bad direction σ)."""
+        """kind -> (limit, engaging level, release level, bad direction σ): :attr:`levels`."""
         s, lim = self.settings, self.limits
         return {
             "v_high": (lim.v_max_pu, lim.v_max_pu - s.v_margin_pu,
@@ -149,15 +150,16 @@ class GridGuard:
         events to say (dicts with ``level``, ``kind``, ``text``, ``subject``).
         """
         before = (self._version, self.hold)
-        events = self._violations(t_ns, values)
+        worst = self._worst(values)
+        events = self._violations(t_ns, values, worst)
         if self.mode == "directional":
             events += self._directional(t_ns, values, sensitivities, pressing)
         elif self.mode == "block":
-            events += self._block(t_ns, values)
+            events += self._block(t_ns, values, worst)
         return (self._version, self.hold) != before, events
 
     def _directional(self, t_ns, values, sensitivities, pressing) -> list[dict]:
-        levels, events = self._levels(), []
+        levels, events = self.levels, []
         new = []
         for kind, (_, engage, release, sigma) in levels.items():
             x = self._values(values, kind)
@@ -204,7 +206,7 @@ class GridGuard:
                 "line": (sens.dline_dp, sens.dline_dq), "trafo": (sens.dtrafo_dp,
                                                                    sens.dtrafo_dq)}
         share = self.settings.share
-        sigmas = {k: v[3] for k, v in self._levels().items()}
+        sigmas = {k: v[3] for k, v in self.levels.items()}
         cause: dict[tuple, tuple[str, int]] = {}
         for key, w in self.watched.items():
             sigma = sigmas[w.kind]
@@ -249,15 +251,15 @@ class GridGuard:
         return events
 
     def _describe(self, values: GuardValues, kind: str, index: int, x: float) -> str:
-        limit = self._levels()[kind][0]
+        limit = self.levels[kind][0]
         name = self._name(values, kind, index)
         if kind in ("v_high", "v_low"):
             return f"{name} at {x:.4f} p.u. (limit {limit:g} p.u.)"
         return f"{kind} {name} at {x:.1f} % (limit {limit:g} %)"
 
-    def _block(self, t_ns: int, values: GuardValues) -> list[dict]:
-        """Mode block: hold while anything is beyond its limit, released with hysteresis."""
-        worst = self._worst(values)
+    def _block(self, t_ns: int, values: GuardValues, worst) -> list[dict]:
+        """Mode block: hold while anything is beyond its limit (``worst``:
+        :meth:`_worst`), released with hysteresis."""
         if worst is not None and worst[0] > 0:
             self._hold_inside_since = None
             if not self.hold:
@@ -268,7 +270,7 @@ class GridGuard:
             return []
         if not self.hold:
             return []
-        levels, inside = self._levels(), True
+        levels, inside = self.levels, True
         s = self.settings
         for kind, (limit, _, _, sigma) in levels.items():
             x = self._values(values, kind)
@@ -293,7 +295,7 @@ class GridGuard:
         """(excess beyond the limit in the limit's unit per unit of limit, kind, index,
         value) of the quantity furthest beyond its limit (excess ≤ 0: none is)."""
         best = None
-        for kind, (limit, _, _, sigma) in self._levels().items():
+        for kind, (limit, _, _, sigma) in self.levels.items():
             x = self._values(values, kind)
             if x.size == 0:
                 continue
@@ -303,8 +305,7 @@ class GridGuard:
                 best = (float(excess[i]), kind, i, float(x[i]))
         return best
 
-    def _violations(self, t_ns: int, values: GuardValues) -> list[dict]:
-        worst = self._worst(values)
+    def _violations(self, t_ns: int, values: GuardValues, worst) -> list[dict]:
         beyond = worst is not None and worst[0] > 0
         episode = self.violation
         if beyond:

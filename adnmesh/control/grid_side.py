@@ -17,7 +17,7 @@ import math
 from adnmesh.config import Config
 from adnmesh.control.grid_guard import GridGuard, GuardValues
 
-__all__ = ["GridReport", "GridSide"]
+__all__ = ["GridReport", "GridSide", "tap_changer_of"]
 
 
 class GridReport:
@@ -82,10 +82,10 @@ class GridSide:
         self.reactive = config.reactive is not None
         self.guard = GridGuard(model.guard, model.limits, config.der_ids(), self.reactive)
         self.sends_guard = "guard" in config.features()
-        self._levels = self.guard._levels()
         self.tap = None
         if model.tap_changer is not None:
-            self.tap, self.tap_trafos, self._tap_bus = _tap_changer(model.tap_changer, solver)
+            self.tap, self.tap_trafos, self._tap_bus = tap_changer_of(model.tap_changer,
+                                                                      solver)
             settings, limits = model.tap_changer, model.limits
             self._tap_band = None if settings.regulates == "busbar" else (
                 limits.v_min_pu + settings.extremes_margin_pu,
@@ -109,8 +109,8 @@ class GridSide:
         changed = False
         if not self._quiet(sample):
             values = GuardValues(solver.bus_vm_pu(), solver.line_loading_pct(),
-                                 solver.trafo_loading_pct(), _names(solver, "bus_names"),
-                                 _names(solver, "line_names"), _names(solver, "trafo_names"))
+                                 solver.trafo_loading_pct(), solver.bus_names,
+                                 solver.line_names, solver.trafo_names)
             changed, events = self.guard.observe(t_ns, values, self._sensitivities, pressing)
         if self.tap is not None:
             events += self._tap_step(t_ns, sample)
@@ -134,7 +134,7 @@ class GridSide:
         guard = self.guard
         if guard.watched or guard.hold or guard.violation is not None:
             return False
-        lv = self._levels
+        lv = guard.levels
         return (sample.vm_max_pu <= lv["v_high"][1] and sample.vm_min_pu >= lv["v_low"][1]
                 and not sample.line_loading_max_pct > lv["line"][1]
                 and not sample.trafo_loading_max_pct > lv["trafo"][1])
@@ -172,11 +172,7 @@ class GridSide:
                          f"({why} p.u.)"}]
 
 
-def _names(solver, attribute: str):
-    return getattr(solver, attribute, ())
-
-
-def _tap_changer(settings, solver):
+def tap_changer_of(settings, solver):
     """``(TapChangerControl, trafos, busbar)`` for the config's tap changer: the regulator,
     the transformers it steps (the config's, else those at the slack: parallel transformers
     step together, or a circulating current flows between them) and their MV bus in the

@@ -141,10 +141,10 @@ def tap_changer_words(config: Config) -> str | None:
     changer."""
     if config.grid_model is None or config.grid_model.tap_changer is None:
         return None
-    from adnmesh.control.grid_side import _tap_changer
+    from adnmesh.control.grid_side import tap_changer_of
     settings = config.grid_model.tap_changer
     solver = grid_solver(config)
-    control, trafos, _ = _tap_changer(settings, solver)
+    control, trafos, _ = tap_changer_of(settings, solver)
     names = ", ".join(solver.trafo_names[i] for i in trafos)
     keeps = (f"its busbar at {control.v_set_pu:.4f} ± {control.dead_band_pu:g} p.u."
              if settings.regulates == "busbar" else

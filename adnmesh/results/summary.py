@@ -503,7 +503,7 @@ def summarize(series: RunSeries, *, end_ns: int, band_pct: float = 5.0,
     speed = sim_s / wall_time_s if wall_time_s else None
     return RunSummary(steps, tuple(switches), band_pct, sim_s, wall_time_s, speed,
                       dict(extra or {}), _faults(series, sim_s, band_pct),
-                      _grid(series, steps, end_ns, band_pct),
+                      _grid(series, end_ns, band_pct),
                       realtime, scenario_steps(series, planned_steps, end_ns, sample_s,
                                                (extra or {}).get("ended")),
                       design_checks(steps, series.entries), q_steps, coupling,
@@ -629,8 +629,7 @@ def _steps_short(series: RunSeries, t: np.ndarray, error: np.ndarray, intervals,
     return tuple(out)
 
 
-def _grid(series: RunSeries, steps, end_ns: int, band_pct: float = 5.0
-          ) -> GridFigures | None:
+def _grid(series: RunSeries, end_ns: int, band_pct: float = 5.0) -> GridFigures | None:
     """The grid figures with the violations, the guard's actions and their cost, and the
     tap changer's steps."""
     figures = series.grid.figures()
