@@ -26,9 +26,15 @@ Measures, each printed as it comes:
    run the PSS of every process (``/proc/PID/smaps_rollup``) when all agents are ready and at
    half the run, and the start-up time to "agents ready"; with ``--baseline-rev REV[,REV...]``
    the same for those commits (a ``git worktree`` each, run with ``PYTHONPATH`` set to it),
-   alternating run by run with this tree.
+   alternating run by run with this tree;
+8. with ``--compare``: the SimBench scenario as ``python -m adnmesh up`` of this tree and of
+   every ``--baseline-rev``, and the HELICS baseline, in a rotating order, repeated: speed
+   factor, wall time, CPU of every process (``RUSAGE_CHILDREN``), start-up, the clock
+   protocol's Zenoh samples per DER and window (from each recording), and the ratios of the
+   medians to HELICS's.
 
-It measures; it asserts nothing (targets: speed factor >= 30, ratio >= 3). Every measurement
+It measures; it asserts nothing (targets, issue 41: speed factor >= 30 on a quiet machine,
+>= 6x HELICS's in the same run, summed CPU -40 %, start-up <= HELICS's). Every measurement
 is repeated (``--repeat``, default 3) and reported as min / median / max, with the load average
 before each run: the machine has 2 cores shared with 14+ processes and whatever else runs. The
 most robust figure is the CPU time summed over all processes (``cpu_s_total``), next to the wall
@@ -44,6 +50,8 @@ time. Usage::
         --view-table CASE.table.json --skip-simbench --agents '' --skip-helics
     .venv/bin/python benchmarks/bench_runtime.py --memory --baseline-rev e63e162 \
         --only-pairs --agents '' --skip-helics
+    .venv/bin/python benchmarks/bench_runtime.py --compare --baseline-rev 2a8b912 \
+        --only-pairs --agents ''   # this tree, the baseline and HELICS in turn
 
 The gain table for the SimBench config is ``configs/tables/simbench.<design hash>.json`` if ``adnmesh tune``
 made one that holds the subsets the scenario needs; otherwise those two entries (all DERs; CHPs
@@ -480,6 +488,126 @@ def memory_compare(args, table: Path, workdir: Path) -> dict:
     return {"probes": probes, "runs": runs, "summary": summary}
 
 
+def clock_traffic(recording: Path) -> dict:
+    """Zenoh samples of the clock protocol per DER per window (a window: one grant), from a
+    recording of any revision: in, the grants plus start and stop; out, the reports put on
+    their own key plus the goodbye. A DER that reports its stats (``samples_clock_out``:
+    reports that rode a data sample are not on their own key) is counted from them; an older
+    one put every report on its own key, so its recorded reports are its samples out."""
+    from adnmesh.recording import read_recording
+
+    grants: dict[str, int] = {}
+    reports: dict[str, int] = {}
+    stats: dict[str, dict] = {}
+    data_out: dict[str, int] = {}
+    for m in read_recording(recording).messages:
+        parts = m.topic.split("/clock/", 1)
+        if len(parts) == 2 and "/der/" in "/" + parts[1]:
+            kind, agent = parts[1].split("/", 1)
+            if kind == "grant":
+                grants[agent] = grants.get(agent, 0) + 1
+            elif kind == "report":
+                reports[agent] = reports.get(agent, 0) + 1
+            elif kind == "bye":
+                stats[agent] = json.loads(m.data)["stats"]
+    per_der = []
+    for agent, windows in grants.items():
+        st = stats.get(agent, {})
+        if "samples_clock_out" in st:
+            out = st["samples_clock_out"] + 1
+            clock_in = st["samples_clock_in"]
+            data_out[agent] = st["samples_data_out"]
+        else:
+            out, clock_in = reports.get(agent, 0) + 1, windows + 2
+        per_der.append({"windows": windows, "out": out / windows, "in": clock_in / windows,
+                        "data_out": data_out[agent] / windows if agent in data_out else None})
+    def mean(k):
+        values = [d[k] for d in per_der if d[k] is not None]
+        return round(statistics.mean(values), 3) if values else None
+    return {"ders": len(per_der), "windows_per_der": mean("windows"),
+            "clock_out_per_window": mean("out"), "clock_in_per_window": mean("in"),
+            "data_out_per_window": mean("data_out")}
+
+
+def speed_run(tree: Path, config_path: Path, table: Path, workdir: Path) -> dict:
+    """One ``python -m adnmesh up CONFIG`` of ``tree`` on the sim clock, in a subprocess: its
+    wall time and speed factor (as it prints them), start-up, the CPU time of ``up`` and every
+    agent (``RUSAGE_CHILDREN``: ``up`` reaps its agents) and the clock's samples per DER and
+    window (:func:`clock_traffic`)."""
+    import resource
+
+    out = workdir / "speed.mcap"
+    argv = [sys.executable, "-m", "adnmesh", "up", str(config_path), "--table", str(table),
+            "--out", str(out)]
+    load_before = load()
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    done = subprocess.run(argv, env=tree_env(tree), cwd=tree, capture_output=True, text=True,
+                          timeout=1800, check=False)
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    found = re.search(r"run: ([0-9.]+) s simulated in ([0-9.]+) s wall", done.stdout)
+    ready = re.search(r"agents ready in ([0-9.]+) s", done.stderr)
+    if done.returncode != 0 or not found:
+        raise SystemExit(f"adnmesh up ({tree}) failed with exit code {done.returncode}: "
+                         f"{done.stderr[-2000:]}")
+    sim_s, wall_s = float(found.group(1)), float(found.group(2))
+    return {"speed_factor": round(sim_s / wall_s, 2), "wall_s": wall_s,
+            "startup_s": float(ready.group(1)) if ready else None,
+            "cpu_s_total": round(after.ru_utime + after.ru_stime - before.ru_utime
+                                 - before.ru_stime, 2),
+            "clock": clock_traffic(out), "load_before": load_before, "load": load()}
+
+
+def speed_compare(args, table: Path, workdir: Path) -> dict:
+    """``--compare``: the SimBench scenario with this tree, every ``--baseline-rev`` and (unless
+    ``--skip-helics``) the HELICS baseline, one after the other in a rotating order, repeated;
+    per contestant the speed factor, wall time, summed CPU and start-up as ranges, and the
+    ratios to HELICS's median speed factor."""
+    config_path = Path(args.config).resolve()
+    trees = {"this tree": REPO}
+    for rev in [r.strip() for r in (args.baseline_rev or "").split(",") if r.strip()]:
+        trees[rev] = worktree(rev)
+    names = list(trees) + ([] if args.skip_helics else ["HELICS"])
+    runs: dict[str, list] = {name: [] for name in names}
+    for i in range(args.repeat):
+        order = names[i % len(names):] + names[:i % len(names)]
+        for name in order:
+            if name == "HELICS":
+                r = run_helics(args.helics_python, args.helics_steps, 14, args.helics_core)
+                r["wall_s"], r["cpu_s_total"] = r["wall_exec_s"], r["cpu_all_children_s"]
+                print(f"  {name:>12}: speed factor {r['speed_factor']}x, wall {r['wall_s']} s, "
+                      f"CPU {r['cpu_s_total']} s, start-up {r['startup_s']} s "
+                      f"(load {r['load_before']})", flush=True)
+            else:
+                r = speed_run(trees[name], config_path, table, workdir)
+                c = r["clock"]
+                print(f"  {name:>12}: speed factor {r['speed_factor']}x, wall {r['wall_s']} s, "
+                      f"CPU {r['cpu_s_total']} s, start-up {r['startup_s']} s; per DER and "
+                      f"window: clock samples in {c['clock_in_per_window']}, out "
+                      f"{c['clock_out_per_window']} (load {r['load_before']})", flush=True)
+            runs[name].append(r)
+    summary = {}
+    for name, found in runs.items():
+        out = summary[name] = {k: spread(found, k) for k in
+                               ("speed_factor", "wall_s", "cpu_s_total", "startup_s")}
+        print(f"  {name}: " + ", ".join(
+            f"{k} {v['min']:g}..{v['max']:g} (median {v['median']:g})"
+            for k, v in out.items()), flush=True)
+    if "HELICS" in summary:
+        theirs = summary["HELICS"]
+        for name in trees:
+            ours = summary[name]
+            ratio = {"speed": round(ours["speed_factor"]["median"]
+                                    / theirs["speed_factor"]["median"], 2),
+                     "cpu": round(ours["cpu_s_total"]["median"]
+                                  / theirs["cpu_s_total"]["median"], 2),
+                     "startup": round(ours["startup_s"]["median"]
+                                      / theirs["startup_s"]["median"], 2)}
+            summary[name]["to_helics"] = ratio
+            print(f"  {name} / HELICS (medians): speed {ratio['speed']}x, CPU "
+                  f"{ratio['cpu']}x, start-up {ratio['startup']}x", flush=True)
+    return {"runs": runs, "summary": summary}
+
+
 def run_helics(python: str, steps: int, nfeds: int, core: str) -> dict:
     """One run of the HELICS baseline: the JSON line of ``run_helics.py``."""
     load_before = load()
@@ -556,7 +684,12 @@ def main() -> int:
                         help="also modules, import time and PSS per agent kind and start-up "
                         "to agents ready (SimBench scenario), alternating with --baseline-rev")
     parser.add_argument("--baseline-rev", metavar="REV[,REV...]",
-                        help="with --memory: also measure these commits (a git worktree each)")
+                        help="with --memory or --compare: also measure these commits (a git "
+                        "worktree each)")
+    parser.add_argument("--compare", action="store_true",
+                        help="the SimBench scenario of this tree, every --baseline-rev and "
+                        "HELICS in a rotating order (speed, CPU, start-up, clock samples per "
+                        "DER and window), then the ratios to HELICS")
     parser.add_argument("--json", metavar="PATH", help="also write every figure as JSON")
     args = parser.parse_args()
 
@@ -576,6 +709,11 @@ def main() -> int:
                 show_pairs(security, ("open", "secure"))
             if args.view and not args.view_config:
                 view_pairs(figures, args, config_path, table, workdir)
+            if args.compare:
+                print(f"SimBench scenario, this tree, {args.baseline_rev or 'no baseline'} "
+                      f"{'' if args.skip_helics else 'and HELICS '}in a rotating order, "
+                      f"{args.repeat} rounds ...", flush=True)
+                figures["compare"] = speed_compare(args, table, workdir)
             if args.memory:
                 print(f"memory and start-up per agent kind, {args.repeat} runs per tree, "
                       "alternating ...", flush=True)

@@ -234,3 +234,43 @@ def test_a_quarantined_agents_clock_reports_are_still_heard(tmp_path, simbench_c
         again = payload(report_key, {"next_ns": None, "granted_ns": 0, "received": 0,
                                      "sent": {state: (1, 0)}}, seq=2, t_send_ns=1)
         assert tap.take(report_key, again) == []
+
+
+def test_a_report_attached_to_a_data_sample_is_taken_as_the_keys_sender_s_report(
+        tmp_path, simbench_config):
+    """An agent's clock report rides its window's last sample (issue 41): up takes it as if it
+    had come on the report key of the data key's sender -- recorded there, checked by the same
+    gate, so an attachment cannot speak for another agent -- and refuses one on a key no agent
+    of the run sends."""
+    from payloads import payload
+
+    from adnmesh.recording import Recorder, read_recording
+    from adnmesh.runtime.tap import RecorderTap, recording_schemas
+    from adnmesh.sim.topology import Topology
+
+    topology = Topology.from_config(simbench_config)
+    der_id, other = sorted(topology.der_ids)[:2]
+    der = "der/" + der_id
+    state = topology.keys.of("der_state", der_id)
+    body = {"p_w": 1e5, "setpoint_w": 1e5, "mode": "control"}
+
+    def report(agent: str, seq: int) -> bytes:
+        return payload(topology.keys.of("clock_report", agent),
+                       {"next_ns": 10, "granted_ns": 0, "received": 0,
+                        "sent": {state: (1, 0)}}, seq=seq)
+
+    path = tmp_path / "tap.mcap"
+    with Recorder(path, metadata={"run_id": "tap"}, schemas=recording_schemas()) as recorder:
+        tap = RecorderTap(recorder, topology, RunSeries(), lambda: 0)
+        assert len(tap.take(state, payload(state, body, seq=0, t_send_ns=0))) == 1
+        (heard,) = tap.take_attached(state, report(der, 1))
+        assert (heard.type, heard.src, heard.next_ns) == ("clock_report", der, 10)
+        # another DER's report on this DER's sample: refused by the report key's sender rule
+        assert tap.take_attached(state, report("der/" + other, 2)) == []
+        # an attachment on up's own key, or on a key of nobody in the run
+        assert tap.take_attached(topology.keys.of("clock_start"), report(der, 3)) == []
+        assert tap.take_attached(f"{topology.keys.root}/nobody/x", report(der, 4)) == []
+        assert tap.rejected_total() == 3
+    topics = [m.topic for m in read_recording(path).messages]
+    assert topics.count(topology.keys.of("clock_report", der)) == 1
+    assert topics.count(state) == 1

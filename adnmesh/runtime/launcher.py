@@ -336,7 +336,12 @@ class _Launch:
     def on_sample(self, sample: zenoh.Sample) -> None:
         """Every sample an agent sends: through the tap; reports, goodbyes and fault requests
         onwards."""
-        for message in self.tap.take(str(sample.key_expr), sample.payload.to_bytes()):
+        key = str(sample.key_expr)
+        messages = self.tap.take(key, sample.payload.to_bytes())
+        attachment = sample.attachment     # an agent's clock report rides its last sample
+        if attachment is not None:
+            messages += self.tap.take_attached(key, attachment.to_bytes())
+        for message in messages:
             if message.type == "clock_report":
                 self.roster.note_report(message.src, message.seq)
                 if self.clock is not None:

@@ -207,6 +207,8 @@ class AgentProcess:
         self.kill_acked = False              # ... and up has the last report
         self.reported = False                # the first report is sent (up was seen)
         self.window_cpu_s = 0.0              # CPU time spent processing grants
+        # Zenoh samples put and taken: data, and the clock protocol's own (reports, grants)
+        self.samples = {"data_out": 0, "clock_out": 0, "data_in": 0, "clock_in": 0}
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._own = Outbox(node.agent_id)    # what this wrapper sends itself (clock protocol)
         self._handles: list = []
@@ -325,7 +327,8 @@ class AgentProcess:
                      "window_cpu_s": self.window_cpu_s, "late": float(counts.late),
                      "received": float(counts.received),
                      "overruns": float(self.overruns.count if self.overruns else 0),
-                     "reconnects": float(self.reconnects)}
+                     "reconnects": float(self.reconnects),
+                     **{f"samples_{k}": float(v) for k, v in self.samples.items()}}
             self._send_own(bye_key, published=published, rejected=counts.rejected,
                            lost=counts.lost, stats=stats, latency=node.latency.to_wire())
             deadline = time.monotonic() + _BYE_WAIT_S
@@ -350,6 +353,7 @@ class AgentProcess:
         # only processes events (the node orders them by delivery time, not by arrival)
         key = str(sample.key_expr)
         data = sample.payload.to_bytes()
+        self.samples["data_in"] += 1
         if self.mode == "realtime":
             # never wait for the main thread while it processes (Zenoh's receive thread would
             # back up behind it): queue the sample; wake the main thread only if it sleeps
@@ -383,6 +387,7 @@ class AgentProcess:
 
     def _on_clock(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
+        self.samples["clock_in"] += 1
         for payload in split_frame(sample.payload.to_bytes()):
             try:
                 message = decode(key, payload)
@@ -439,15 +444,18 @@ class AgentProcess:
 
     # -- internals (with the lock held) --------------------------------------------------------
 
-    def _publish(self, key: str, payload: bytes) -> None:
+    def _publish(self, key: str, payload: bytes, attachment: bytes | None = None,
+                 clock: bool = False) -> None:
+        self.samples["clock_out" if clock else "data_out"] += 1
         if not self.publishers:
-            self.session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
+            self.session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK,
+                             attachment=attachment)
             return
         publisher = self._publishers.get(key)
         if publisher is None:
             publisher = self._publishers[key] = self.session.declare_publisher(
                 key, congestion_control=zenoh.CongestionControl.BLOCK)
-        publisher.put(payload)
+        publisher.put(payload, attachment=attachment)
 
     def _publish_all(self, out: list[tuple[str, bytes]]) -> None:
         for key, frame in frames(out):
@@ -455,20 +463,46 @@ class AgentProcess:
 
     def _send_own(self, key: str, **body) -> None:
         """Send a clock-protocol message of this wrapper (report, goodbye) at the node's time."""
-        self._publish(key, encode(self._own.send(key, self.node.now_ns, body)))
+        self._publish(key, self._own_payload(key, body), clock=True)
+
+    def _own_payload(self, key: str, body: dict) -> bytes:
+        return encode(self._own.send(key, self.node.now_ns, body))
+
+    def _report_payload(self) -> bytes:
+        """The clock report of the window just processed, encoded (sent at the node's time)."""
+        r = self.node.report()
+        body = {"next_ns": r.next_ns, "granted_ns": self.node.granted_ns,
+                "received": r.received, "sent": {k: tuple(v) for k, v in r.sent.items()}}
+        if r.killed_ns is not None:
+            body["killed_ns"] = r.killed_ns
+        return self._own_payload(self.keys.of("clock_report", self.agent), body)
 
     def _report(self) -> None:
-        r = self.node.report()
-        extra = {} if r.killed_ns is None else {"killed_ns": r.killed_ns}
-        self._send_own(self.keys.of("clock_report", self.agent), next_ns=r.next_ns,
-                       granted_ns=self.node.granted_ns, received=r.received,
-                       sent={k: tuple(v) for k, v in r.sent.items()}, **extra)
+        """Send the clock report on its own key (the first one, a kill in realtime)."""
+        self._publish(self.keys.of("clock_report", self.agent), self._report_payload(),
+                      clock=True)
 
-    def _run_until(self, until_ns: int) -> None:
-        self._publish_all(self.node.advance(until_ns))
+    def _run_window(self, until_ns: int) -> None:
+        """Process every event before ``until_ns``, publish what the window sent and report.
+
+        The report rides as the Zenoh attachment of the window's last sample (``up``, which
+        records every sample, takes it from there: :meth:`RecorderTap.take_attached
+        <adnmesh.runtime.tap.RecorderTap.take_attached>`): one sample a window fewer for the
+        agent, the router and ``up``; receivers of the sample ignore the attachment. The samples of a session reach
+        ``up`` in the order they were put, so the report still comes after the data it counts.
+        A window that sent nothing reports on the report's own key."""
+        out = frames(self.node.advance(until_ns))
         if self.node.killed:
             self.dying = True
             self.lock.notify()
+        report = self._report_payload()
+        if not out:
+            self._publish(self.keys.of("clock_report", self.agent), report, clock=True)
+            return
+        for key, frame in out[:-1]:
+            self._publish(key, frame)
+        key, frame = out[-1]
+        self._publish(key, frame, attachment=report)
 
     def _run_granted(self) -> None:
         """Every grant whose expected messages are all here: process its window, report."""
@@ -476,8 +510,7 @@ class AgentProcess:
         while (self.mode == "sim" and grants and self.stop is None and not self.dying
                and self.node.counts.received >= grants[0].expect):
             cpu = time.thread_time()
-            self._run_until(grants.popleft().until_ns)
-            self._report()
+            self._run_window(grants.popleft().until_ns)
             self.window_cpu_s += time.thread_time() - cpu
 
     def _run_realtime(self) -> None:

@@ -95,6 +95,8 @@ class RecorderTap:
         self._now_ns = now_ns
         self._on_suspect = on_suspect
         self.rejected_key = f"{topology.keys.root}/rejected"
+        self._agents = frozenset(topology.agents)
+        self._report_key = lambda agent: topology.keys.of("clock_report", agent)
         # every key a party of the run sends, but up's own (recorded as it sends them)
         self._gate = Gate({r.key for r in topology.routes if r.sender != LAUNCHER},
                           topology.der_ids, outside_reason="unknown_key",
@@ -127,6 +129,19 @@ class RecorderTap:
             for agent, why in suspects:
                 self._on_suspect(agent, why)
         return [message for _, message in accepted]
+
+    def take_attached(self, key: str, attachment: bytes) -> list[Envelope]:
+        """Take the clock report an agent attached to its window's last sample on ``key``
+        (:meth:`adnmesh.runtime.process.AgentProcess._run_window`): checked, recorded and
+        returned exactly as if it had come on the report key of the key's sender, which is
+        the only party the gate lets send it. An attachment on a key no agent of the run
+        sends is rejected on that key (``unknown_key``)."""
+        found = route(key)
+        if found is None or found.sender not in self._agents:
+            with self._lock:
+                count_reject(self._gate.rejected, key, "unknown_key")
+            return []
+        return self.take(self._report_key(found.sender), attachment)
 
     def record_own(self, key: str, message: Envelope, payload: bytes) -> None:
         """Record a message ``up`` sent itself."""
