@@ -28,8 +28,9 @@ def lookahead_reference(agents, links, receivers) -> dict[tuple[str, str], int]:
 
 def coordinator_sources_reference(agents, lookahead_ns) -> list[tuple[tuple[int, int], ...]]:
     """For each receiver ``b``: ``(index of p, lookahead(p, b))`` over the agents ``p`` that
-    reach it, as :class:`adnmesh.sim.clock.Coordinator` built them before (a pass over every
-    pair per receiver: cubic)."""
+    reach it, nearest first (then by index), as :class:`adnmesh.sim.clock.Coordinator` built
+    them before (a pass over every pair per receiver: cubic)."""
     index = {a: i for i, a in enumerate(agents)}
-    return [tuple((index[p], d) for (p, q), d in lookahead_ns.items() if q == b)
+    return [tuple(sorted(((index[p], d) for (p, q), d in lookahead_ns.items() if q == b),
+                         key=lambda pd: (pd[1], pd[0])))
             for b in agents]

@@ -557,10 +557,29 @@ def test_agents_still_closing_after_their_goodbye_are_ended_and_that_is_no_probl
     from adnmesh.recording import read_recording
     from adnmesh.runtime.children import AgentProcesses
 
+    import gc
+    import weakref
+
+    from adnmesh.runtime import launcher
+
     monkeypatch.setattr(AgentProcesses, "wait_all", lambda self, timeout_s: None)
+    launches = []
+    born = launcher._Launch.__init__
+
+    def remember(self, options) -> None:
+        born(self, options)
+        launches.append(weakref.ref(self))
+
+    monkeypatch.setattr(launcher._Launch, "__init__", remember)
     config, table = write_case(tmp_path, "closing")
     out = tmp_path / "closing.mcap"
+    frozen = gc.get_freeze_count()
     assert main(["up", str(config), "--table", str(table), "--out", str(out)]) == 0
+    # nothing of the run is kept once it returned (issue 41: an in-process run grew the
+    # process by ~280 MB each; the run's heap was frozen for the run and never thawed)
+    gc.collect()
+    assert gc.get_freeze_count() <= frozen
+    assert [ref() for ref in launches] == [None]
     err = capsys.readouterr().err
     assert "killed after the shutdown timeout" not in err
     assert " s after the shutdown timeout were ended (their goodbyes, and everything before " \

@@ -153,6 +153,40 @@ def test_lookahead_is_the_floyd_warshall_dict_on_random_graphs(seed: int) -> Non
     assert all(type(d) is int for d in got.values())
 
 
+@pytest.mark.parametrize("seed", range(30))
+def test_the_coordinators_lbts_search_stops_early_and_finds_the_minimum(seed: int) -> None:
+    """The LBTS of every agent equals the full minimum over its sources (min_p E_p +
+    lookahead(p, b), bounded by the horizon) for E with infinities, ties, far and near
+    times, on random message graphs: the search stops at the first source too far away."""
+    from adnmesh.sim import topology
+
+    rng = np.random.default_rng(seed)
+    agents = tuple(f"a{i}" for i in range(int(rng.integers(1, 30))))
+    links, receivers = {}, {}
+    for k in range(int(rng.integers(0, 3 * len(agents) + 1))):
+        key = f"k{k}"
+        delay = int(rng.choice([0, 1, 10**8, int(rng.integers(0, 10**10))]))
+        links[(str(rng.choice(agents)), key)] = LinkParams("l", delay_ns=delay)
+        size = int(rng.integers(0, len(agents) + 1))
+        receivers[key] = tuple(str(a) for a in rng.choice(agents, size, replace=False))
+    lookahead = topology._lookahead(agents, links, receivers)
+    coordinator = Coordinator.__new__(Coordinator)
+    index = {a: i for i, a in enumerate(agents)}
+    sources = [[] for _ in agents]
+    for (p, q), d in lookahead.items():
+        sources[index[q]].append((index[p], d))
+    coordinator._sources = [tuple(sorted(s, key=lambda pd: (pd[1], pd[0]))) for s in sources]
+    for _ in range(20):
+        e = [rng.choice([math.inf, -math.inf, int(rng.integers(0, 10**10)), 5 * 10**9])
+             for _ in agents]
+        e = [x if math.isinf(x) else int(x) for x in e]
+        horizon = int(rng.choice([10**10, 2 * 10**10, 3 * 10**9]))
+        e_min = min(e)
+        for b in range(len(agents)):
+            want = min([horizon] + [e[p] + d for p, d in sources[b]])
+            assert coordinator._lbts(b, e, e_min, horizon) == want
+
+
 def test_topology_of_1000_ders_takes_seconds(tmp_path: Path, configs_dir: Path) -> None:
     """The documented maximum, 1,000 DERs: the topology (every agent computes it, and up
     before it starts any) and the coordinator in seconds (the Floyd-Warshall loop and the

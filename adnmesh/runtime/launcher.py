@@ -42,6 +42,7 @@ directly or through a site router named in ``routers``) as long as it waits for 
 from __future__ import annotations
 
 import contextlib
+import gc
 import json
 import os
 import signal
@@ -767,6 +768,7 @@ def run(options: UpOptions) -> UpResult:
         _close_recording(launch)
         for signum, handler in previous.items():
             signal.signal(signum, handler)
+        gc.unfreeze()     # run_clock froze the run's objects: collectable again once it ends
     result.byes = dict(launch.roster.byes)
     result.rejected = launch.tap.rejected
     result.sessions = launch.sessions.report()

@@ -130,12 +130,13 @@ class Coordinator:
         index = {a: i for i, a in enumerate(self.agents)}
         self._index = index
         n = len(self.agents)
-        # for each receiver b: [(p, lookahead(p, b))] over the agents that can reach it, in
-        # the lookahead's order (one pass over the pairs: 1,003 agents have a million)
+        # for each receiver b: [(p, lookahead(p, b))] over the agents that can reach it,
+        # nearest first (one pass over the pairs: 1,003 agents have a million), so that the
+        # search for b's LBTS can stop at the first source too far away to lower it (_grants)
         sources: list[list[tuple[int, int]]] = [[] for _ in range(n)]
         for (p, q), d in topology.lookahead_ns.items():
             sources[index[q]].append((index[p], d))
-        self._sources = [tuple(s) for s in sources]
+        self._sources = [tuple(sorted(s, key=lambda pd: (pd[1], pd[0]))) for s in sources]
         self._receivers = {key: tuple(index[a] for a in to)
                            for key, to in topology.receivers.items()}
         # a grant should let an agent advance by its cycle's lookahead (see _grants)
@@ -344,11 +345,30 @@ class Coordinator:
         kind = max((self._kind[b] for b, _, _ in first), key=self._kind_rank.__getitem__)
         return [c for c in first if self._kind[c[0]] == kind]
 
+    def _lbts(self, b: int, e: list, e_min: float, horizon: int) -> float:
+        """``min(horizon, min_p (E_p + lookahead(p, b)))``, ns, given every agent's ``E`` and
+        their least ``e_min``.
+
+        No source ``p`` gives less than ``e_min + lookahead(p, b)``, and the sources come
+        nearest first: the search stops at the first one with ``e_min + lookahead`` at or
+        beyond the bound found so far. Exact; with hundreds of agents each has hundreds of
+        sources, and this runs for every idle agent at every report (300 DERs: 13 ms a call
+        before, 44.6 of 53 s of an in-process run)."""
+        lbts = horizon
+        for p, d in self._sources[b]:
+            if e_min + d >= lbts:
+                break
+            t = e[p] + d
+            if t < lbts:
+                lbts = t
+        return lbts
+
     def _grants(self) -> list[Grant]:
         e = self._effective()
         barrier = self._barrier()
         horizon = int(min(self.end_ns + 1, barrier))
         granted, dead = self._granted, self._dead
+        e_min = min(e, default=_INF)
         candidates = []
         for b, idle in enumerate(self._idle):
             if not idle or dead[b]:
@@ -356,11 +376,7 @@ class Coordinator:
             eb = e[b]
             if eb >= horizon:
                 continue
-            lbts = horizon
-            for p, d in self._sources[b]:
-                t = e[p] + d
-                if t < lbts:
-                    lbts = t
+            lbts = self._lbts(b, e, e_min, horizon)
             if eb < lbts and lbts > granted[b]:
                 candidates.append((b, int(lbts), lbts - eb >= self._min_window[b]
                                    or lbts == horizon))
