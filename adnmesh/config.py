@@ -580,6 +580,13 @@ class Runtime(Section):
     overrun (the machine does not keep up with --speed), s of sim time; the measurement, whose
     inputs have no delay, also processes each instant this much later. Default: 5 % of the
     shortest ICT link delay."""
+    ders_per_process: Annotated[int, Field(ge=1, le=1000)] = 1
+    """How many DER agents ``adnmesh up`` runs in one process (scale mode, open profile only):
+    1, the default, gives every DER its own process, as a plant has its own controller; more
+    hosts up to that many DERs, in config order, on one Zenoh session per process, for
+    hundreds of DERs on one machine. The messages and the recording are the same either way;
+    a process is then a failure domain: an internal error in one DER's code ends its
+    process and every DER in it (an injected kill still ends one DER only)."""
     links: Links = Links()
     """ICT channel model per link."""
     faults: _Events[Fault] = ()

@@ -4,6 +4,10 @@
 
 Receives P_Y (and the weights W) from the CPFC, sets P_ref,d = P_Y w_d P_inst,d + P_sched,d, and
 reports its infeed and heartbeats. Logic: adnmesh.control.der_controller.DERController.
+
+With ``--der`` given several times the process hosts that many DER agents on one Zenoh session
+(``runtime.ders_per_process``, scale mode: :mod:`adnmesh.runtime.host`); ``--p-avail-w`` and
+``--model-params``, if given, then come once per ``--der``, in the same order.
 """
 
 import argparse
@@ -11,6 +15,7 @@ import sys
 
 from adnmesh.control.der_model import params_from_json
 from adnmesh.control.registry import build_agent
+from adnmesh.runtime.host import serve_hosted
 from adnmesh.runtime.process import (AgentProcess, add_agent_arguments, load_config_or_exit,
                                      open_session)
 from adnmesh.sim.node import Node
@@ -20,30 +25,47 @@ from adnmesh.names import der_agent_id
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="der", description="adnmesh DER agent")
     parser.add_argument("config", metavar="CONFIG", help="adnmesh config file (YAML)")
-    parser.add_argument("--der", required=True, metavar="ID", help="id of the DER in the config")
-    parser.add_argument("--p-avail-w", type=float, metavar="W",
+    parser.add_argument("--der", required=True, action="append", metavar="ID",
+                        help="id of the DER in the config (again for each DER this process "
+                        "hosts)")
+    parser.add_argument("--p-avail-w", type=float, action="append", metavar="W",
                         help="its available power, W (default: from the config's grid model)")
-    parser.add_argument("--model-params", metavar="JSON",
+    parser.add_argument("--model-params", action="append", metavar="JSON",
                         help="its model's parameters (default: calibrated from the config; "
                         "adnmesh up calibrates them once and passes them)")
     add_agent_arguments(parser)
     args = parser.parse_args(argv)
 
     config = load_config_or_exit(args.config)
-    if args.der not in config.der_ids():
-        parser.error(f"unknown DER id {args.der!r} (known: {', '.join(config.der_ids())})")
-    params = None
-    if args.model_params is not None:
-        try:
-            params = params_from_json(args.model_params)
-        except ValueError as exc:
-            parser.error(f"--model-params: {exc}")
-    agent = build_agent(der_agent_id(args.der), config, p_avail_w=args.p_avail_w,
-                        der_params=params)
-    node = Node.for_config(agent, config,
-                          start_ns=args.resume_at_ns)
-    with open_session(args, der_agent_id(args.der)) as session:
-        return AgentProcess(session, node, config.grid,
+    ders = args.der
+    for name in ("p_avail_w", "model_params"):
+        given = getattr(args, name)
+        if given is not None and len(given) != len(ders):
+            parser.error(f"--{name.replace('_', '-')} must be given once per --der "
+                         f"({len(ders)}), got {len(given)}")
+    if len(set(ders)) != len(ders):
+        parser.error("a DER is named twice in --der")
+    if len(ders) > 1 and args.certs is not None:
+        parser.error("several --der need the open profile: a certificate is one DER's "
+                     "identity")
+    nodes = []
+    for i, der in enumerate(ders):
+        if der not in config.der_ids():
+            parser.error(f"unknown DER id {der!r} (known: {', '.join(config.der_ids())})")
+        params = None
+        if args.model_params is not None:
+            try:
+                params = params_from_json(args.model_params[i])
+            except ValueError as exc:
+                parser.error(f"--model-params of {der}: {exc}")
+        p_avail_w = None if args.p_avail_w is None else args.p_avail_w[i]
+        agent = build_agent(der_agent_id(der), config, p_avail_w=p_avail_w,
+                            der_params=params)
+        nodes.append(Node.for_config(agent, config, start_ns=args.resume_at_ns))
+    with open_session(args, der_agent_id(ders[0])) as session:
+        if len(nodes) > 1:
+            return serve_hosted(session, nodes, config.grid)
+        return AgentProcess(session, nodes[0], config.grid,
                             publishers=args.certs is None).serve()
 
 

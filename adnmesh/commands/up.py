@@ -381,6 +381,10 @@ def run(args: argparse.Namespace) -> int:
     def log(line: str) -> None:
         err.print(f"adnmesh up: {line}")
 
+    if (args.secure or args.certs) and config.runtime.ders_per_process > 1:
+        raise UsageError(f"runtime.ders_per_process {config.runtime.ders_per_process} is for "
+                         "the open profile: in the secure profile every DER process has its "
+                         "own certificate (set it to 1, or run without --secure/--certs)")
     certs = _certs(args)
     external = external_agents(args.external, config)
     routers = tuple(comma_list(args.routers))

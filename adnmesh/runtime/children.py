@@ -30,7 +30,7 @@ and the agent lives on without ever reporting its window -- the sim clock then w
 until ``up``'s stall timeout ends the whole run; a dead agent is noted and the run goes on."""
 
 __all__ = ["AGENT_PACKAGE", "AGENT_ZENOH_RUNTIME", "EXIT_INTERNAL_ERROR", "PARENT_ENV",
-           "SESSION_GRACE_S", "AgentProcesses", "agent_argv"]
+           "SESSION_GRACE_S", "AgentProcesses", "agent_argv", "hosted_ders_argv"]
 
 AGENT_PACKAGE = "adnmesh.agents"
 """Where the agent programs are: ``python -m adnmesh.agents.<kind>``, one module per kind."""
@@ -82,6 +82,25 @@ def agent_argv(agent_id: str, config_path: Path, endpoint: str, table_path: Path
     return argv
 
 
+def hosted_ders_argv(ders: list[tuple[str, float | None, str | None]], config_path: Path,
+                     endpoint: str) -> list[str]:
+    """Command line of one process hosting several DER agents (``runtime.ders_per_process``,
+    :mod:`adnmesh.runtime.host`): ``ders`` is ``(DER id, available power W or None, model
+    parameters JSON or None)`` each; the powers and parameters go along only if every DER has
+    them (the program takes them once per DER or not at all)."""
+    argv = [sys.executable, "-m", f"{AGENT_PACKAGE}.der", str(config_path),
+            "--connect", endpoint, "--connect-timeout", f"{CONNECT_TIMEOUT_S:g}"]
+    with_power = all(p is not None for _, p, _ in ders)
+    with_params = with_power and all(m is not None for _, _, m in ders)
+    for der_id, p_avail_w, model_params in ders:
+        argv += ["--der", der_id]
+        if with_power:
+            argv += ["--p-avail-w", repr(float(p_avail_w))]
+        if with_params:
+            argv += ["--model-params", model_params]
+    return argv
+
+
 class AgentProcesses:
     """The agent processes of a run, by agent id (tracked and stopped by PID only), and the
     external agents (see the module docstring)."""
@@ -93,6 +112,7 @@ class AgentProcesses:
         self._ended: dict[str, float] = {}   # external agent -> when its session ended (mono s)
         self._lock = threading.Lock()        # _ended: changed by Zenoh callbacks
         self.env: dict[str, str] = {}        # more environment for the processes
+        self.left: set[str] = set()          # hosted agents that left their running process
 
     def session_ended(self, agent_id: str) -> None:
         """An agent's session ended without a goodbye: an external one is dead unless it is
@@ -121,14 +141,35 @@ class AgentProcesses:
 
     def spawn(self, agent_id: str, argv: list[str]) -> None:
         """Start ``argv`` as the process of ``agent_id``."""
+        self.spawn_hosting([agent_id], argv)
+
+    def spawn_hosting(self, agent_ids: list[str], argv: list[str]) -> None:
+        """Start ``argv`` as the one process of every agent of ``agent_ids``."""
         env = dict(os.environ, **self.env, **{PARENT_ENV: str(os.getpid())})
         env.setdefault("ZENOH_RUNTIME", AGENT_ZENOH_RUNTIME)
-        self.procs[agent_id] = subprocess.Popen(argv, env=env, start_new_session=True,
-                                                stdin=subprocess.DEVNULL)
+        proc = subprocess.Popen(argv, env=env, start_new_session=True, stdin=subprocess.DEVNULL)
+        for agent_id in agent_ids:
+            self.procs[agent_id] = proc
+            self.left.discard(agent_id)
+
+    def shares_process(self, agent_id: str) -> bool:
+        """``agent_id``'s process hosts other agents that have not left it."""
+        proc = self.procs.get(agent_id)
+        return proc is not None and any(
+            p is proc and a != agent_id and a not in self.left for a, p in self.procs.items())
+
+    def leave(self, agent_id: str) -> None:
+        """A hosted agent ended (an injected kill) while its process goes on: it no longer
+        runs, and its process is not waited for on its account."""
+        self.left.add(agent_id)
+
+    def _processes(self) -> list[subprocess.Popen]:
+        """Every process once (a hosting process is the process of several agents)."""
+        return list({id(p): p for p in self.procs.values()}.values())
 
     def pids(self) -> str:
         """The PIDs, space-separated."""
-        return " ".join(str(p.pid) for p in self.procs.values())
+        return " ".join(str(p.pid) for p in self._processes())
 
     def dead(self) -> list[tuple[str, int | None]]:
         """``(agent id, exit code)`` of every process that has ended (negative: signal; None:
@@ -139,8 +180,8 @@ class AgentProcesses:
     def running(self) -> set[str]:
         """The agents whose process still runs (external ones: whose session has not ended
         for longer than the grace)."""
-        return {a for a, p in self.procs.items() if p.poll() is None} | \
-            (self.external - self.gone())
+        return {a for a, p in self.procs.items() if p.poll() is None and a not in self.left} \
+            | (self.external - self.gone())
 
     def gone(self) -> set[str]:
         """External agents whose session ended longer than the grace ago."""
@@ -163,7 +204,7 @@ class AgentProcesses:
     def wait_all(self, timeout_s: float) -> None:
         """Wait until every process has ended, at most ``timeout_s`` in all."""
         deadline = time.monotonic() + timeout_s
-        for proc in self.procs.values():
+        for proc in self._processes():
             try:
                 proc.wait(timeout=max(0.0, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
@@ -171,14 +212,13 @@ class AgentProcesses:
 
     def kill_all(self) -> list[str]:
         """SIGKILL every process still running (by PID); return their agent ids."""
-        killed = []
-        for agent_id, proc in self.procs.items():
+        killed = [a for a, p in self.procs.items() if p.poll() is None and a not in self.left]
+        for proc in self._processes():
             if proc.poll() is None:
                 try:
                     os.kill(proc.pid, signal.SIGKILL)
                 except ProcessLookupError:
                     pass
-                killed.append(agent_id)
-        for proc in self.procs.values():
+        for proc in self._processes():
             proc.wait()
         return killed

@@ -104,6 +104,8 @@ class FaultInjector:
         launch = self.launch
         if restart is None:
             self.gone_at[agent] = message.killed_ns
+        if launch.children.shares_process(agent):   # a hosted agent leaves; its process stays
+            launch.children.leave(agent)
         launch.outbox.send(self.keys.of("clock_kill", agent), message.killed_ns, reason="killed")
         self._event(message.killed_ns, "WARNING", "killed", f"{agent} killed at "
                     f"{message.killed_ns / 1e9:g} s (injected fault)", subject=agent)
@@ -211,7 +213,8 @@ class FaultInjector:
     def _respawn(self, agent: str, at_ns: int) -> None:
         launch = self.launch
         old = launch.children.procs.get(agent)
-        if old is not None and old.poll() is None:   # it should have killed itself
+        if old is not None and old.poll() is None and agent not in launch.children.left:
+            # it should have killed itself (a hosted agent has left its process instead)
             try:
                 old.wait(timeout=3.0)
             except subprocess.TimeoutExpired:   # still there: kill it by PID

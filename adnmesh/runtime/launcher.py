@@ -61,7 +61,7 @@ from adnmesh.recording import PUBLISHED_METADATA, UNCOUNTED_METADATA, Recorder
 from adnmesh.runtime import acl
 from adnmesh.runtime.accounting import account_agents
 from adnmesh.runtime.bus import DEFAULT_HOST, free_port, router_config
-from adnmesh.runtime.children import AgentProcesses, agent_argv
+from adnmesh.runtime.children import AgentProcesses, agent_argv, hosted_ders_argv
 from adnmesh.runtime.identity import router_identity
 from adnmesh.runtime.injector import FaultInjector
 from adnmesh.runtime.launcher_bus import LauncherOutbox, SimClockDriver
@@ -396,6 +396,27 @@ class _Launch:
             argv += ["--resume-at-ns", str(resume_ns)]
         self.children.spawn(agent_id, argv)
 
+    def process_groups(self, agents: list[str]) -> list[list[str]]:
+        """The agents of each process to start: one each, but the DERs in groups of
+        ``runtime.ders_per_process`` in config order (:mod:`adnmesh.runtime.host`)."""
+        size = self.config.runtime.ders_per_process
+        ders = [a for a in agents if der_id_of(a) is not None]
+        groups = [[a] for a in agents if der_id_of(a) is None]
+        return groups + [ders[i:i + size] for i in range(0, len(ders), size)]
+
+    def spawn_hosting(self, group: list[str]) -> None:
+        """Start one process for the agents of ``group`` (several DERs: a hosting process)."""
+        if len(group) == 1:
+            self.spawn(group[0])
+            return
+        ders = []
+        for agent_id in group:
+            der_id = der_id_of(agent_id)
+            p_avail_w = self.options.available_w.get(der_id)
+            ders.append((der_id, p_avail_w, self._model_params(der_id, p_avail_w)))
+        self.children.spawn_hosting(group, hosted_ders_argv(ders, Path(self.config.path),
+                                                            self.endpoint))
+
     def _model_params(self, der_id: str | None, p_avail_w: float | None) -> str | None:
         """A DER's model parameters as JSON, calibrated here (the WT and CHP models by a root
         finder: the DER process then loads no scipy); None for another agent or a DER whose
@@ -496,8 +517,8 @@ def startup(launch: _Launch) -> str | None:
     options, t0 = launch.options, time.monotonic()
     _raise_priority(launch)
     local = [a for a in launch.topology.agents if a not in options.external]
-    for agent_id in local:
-        launch.spawn(agent_id)
+    for group in launch.process_groups(local):
+        launch.spawn_hosting(group)
     profile = "" if options.certs is None else " (secure: mutual TLS, access control)"
     options.log(f"router on {launch.endpoint}{profile}; started {len(local)} agents "
                 f"(pids {launch.children.pids()})")

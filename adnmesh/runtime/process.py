@@ -185,8 +185,10 @@ class AgentProcess:
     """
 
     def __init__(self, session: zenoh.Session, node: Node, grid: str,
-                 publishers: bool = True) -> None:
+                 publishers: bool = True, hosted: bool = False) -> None:
         self.session = session
+        self.hosted = hosted                 # one of several agents of a process (runtime.host)
+        self.left = False                    # hosted: ended by an injected kill
         self.publishers = publishers
         self.node = node
         self.keys = Keys(grid)
@@ -222,13 +224,22 @@ class AgentProcess:
         die_with_parent()
         self.startup()
         try:
-            self.run()
-            self.goodbye()
-        except Exception as exc:   # the agent's own code (realtime: on this thread)
-            self._crash(exc)
+            self.run_to_end()
         finally:
             self.close()
         return 0
+
+    def run_to_end(self) -> None:
+        """Run, then the goodbye -- or, after an injected kill, the end of the agent (the
+        process is SIGKILLed; a hosted agent leaves its process, which goes on)."""
+        try:
+            self.run()
+            if self.dying:
+                self._die()
+            else:
+                self.goodbye()
+        except Exception as exc:   # the agent's own code (realtime: on this thread)
+            self._crash(exc)
 
     def _guarded(self, callback):
         """``callback`` for Zenoh: an exception in it ends the process (:meth:`_crash`)."""
@@ -262,24 +273,38 @@ class AgentProcess:
         except Exception:   # closing a session mid-callback: whatever left, left
             pass
 
-    def startup(self) -> None:
-        """Subscribe, declare liveliness and send the first report (see the module docstring)."""
-        if threading.current_thread() is threading.main_thread():  # Ctrl-C stops it too
-            self._signals = {s: signal.signal(s, self._on_signal)
+    def routes(self) -> dict[str, object]:
+        """What the agent subscribes to: key -> its Zenoh callback (data, then the clock's)."""
+        keys = self.keys
+        on_data, on_clock = self._guarded(self._on_data), self._guarded(self._on_clock)
+        found = {key: on_data for key in self.node.subscriptions}
+        found.update({key: on_clock for key in (
+            keys.of("clock_grant", self.agent), keys.of("clock_start"), keys.of("clock_stop"),
+            keys.of("clock_kill", self.agent))})
+        return found
+
+    def on_up_alive(self, sample: zenoh.Sample) -> None:
+        """Zenoh callback for the liveliness of ``adnmesh up`` (see :meth:`startup`)."""
+        self._guarded(self._on_up_alive)(sample)
+
+    def startup(self, subscribe: bool = True) -> None:
+        """Subscribe, declare liveliness and send the first report (see the module docstring).
+        Hosted (``subscribe`` False), the host subscribes for it (:meth:`routes`,
+        :meth:`on_up_alive`) and the agent only declares its liveliness."""
+        if not self.hosted and threading.current_thread() is threading.main_thread():
+            self._signals = {s: signal.signal(s, self._on_signal)   # Ctrl-C stops it too
                              for s in (signal.SIGTERM, signal.SIGINT)}
         keys, session = self.keys, self.session
-        on_data, on_clock = self._guarded(self._on_data), self._guarded(self._on_clock)
-        self._handles = [session.declare_subscriber(key, on_data)
-                         for key in self.node.subscriptions]
-        self._handles += [session.declare_subscriber(key, on_clock)
-                          for key in (keys.of("clock_grant", self.agent), keys.of("clock_start"),
-                                      keys.of("clock_stop"), keys.of("clock_kill", self.agent))]
+        if subscribe:
+            self._handles = [session.declare_subscriber(key, callback)
+                             for key, callback in self.routes().items()]
         self._handles.append(session.liveliness().declare_token(keys.liveliness(self.agent)))
         # up declares its token after its recorder's subscriber, but behind a site router the
         # token can still arrive before the route: reports before the first one up hears are
         # re-sent until the start and left out of up's counts (launcher.verify)
-        self._handles.append(session.liveliness().declare_subscriber(
-            keys.liveliness("up"), self._guarded(self._on_up_alive), history=True))
+        if subscribe:
+            self._handles.append(session.liveliness().declare_subscriber(
+                keys.liveliness("up"), self.on_up_alive, history=True))
         freeze_heap()     # what startup built lives to the end: no collection walks it again
 
     def run(self) -> None:
@@ -302,16 +327,20 @@ class AgentProcess:
                 self.node.strict = False
         if self.mode == "realtime":
             self._run_realtime()
-        if self.dying:
-            self._die()
 
     def _die(self) -> None:
-        """The injected kill: wait (bounded) until ``up`` has the last report, then SIGKILL."""
+        """The injected kill: wait (bounded) until ``up`` has the last report, then SIGKILL
+        the process -- or, hosted, leave it: withdraw the agent's liveliness and take nothing
+        more (its process goes on with the other agents)."""
         deadline = time.monotonic() + _KILL_WAIT_S
         with self.lock:
             while not self.kill_acked and time.monotonic() < deadline:
                 self.lock.wait(max(0.0, deadline - time.monotonic()))
-        os.kill(os.getpid(), signal.SIGKILL)
+            if self.hosted:
+                self.left = True
+        if not self.hosted:
+            os.kill(os.getpid(), signal.SIGKILL)
+        self.close()
 
     def goodbye(self) -> None:
         """Send the agent's last messages and the goodbye; wait (bounded) for ``up``'s ack."""
@@ -351,6 +380,8 @@ class AgentProcess:
     def _on_data(self, sample: zenoh.Sample) -> None:
         # decoded and queued in the node at once, while other agents still run: a window later
         # only processes events (the node orders them by delivery time, not by arrival)
+        if self.left:
+            return
         key = str(sample.key_expr)
         data = sample.payload.to_bytes()
         self.samples["data_in"] += 1
@@ -386,6 +417,8 @@ class AgentProcess:
         return next_ns is not None and next_ns < wake
 
     def _on_clock(self, sample: zenoh.Sample) -> None:
+        if self.left:
+            return
         key = str(sample.key_expr)
         self.samples["clock_in"] += 1
         for payload in split_frame(sample.payload.to_bytes()):
@@ -415,6 +448,8 @@ class AgentProcess:
         # the first sight of up's token: the first report (ready). up's token goes when up
         # ends -- or when this session lost the router under load and reconnects: the agent
         # goes on, and stops only if up stays away (_UP_GRACE_S)
+        if self.left:
+            return
         with self.lock:
             if sample.kind == zenoh.SampleKind.DELETE:
                 if not self.up_gone:             # a repeated DELETE: away since the first
