@@ -90,6 +90,8 @@ BEFORE_CONTACT_METADATA = "adnmesh.reports_before_contact"
 first one (they had no route to the recorder yet; not in the published counts)."""
 
 _POLL_S = 0.1   # longest wait between checks of the processes, s
+_BUS_QUEUE = 65536    # samples from the agents queued for up's bus thread (then senders wait)
+_BATCH = 4096         # most samples the bus thread takes in one go
 _STOP_AGAIN_S = 1.0   # realtime: the stop is said again this often to agents without goodbye
 _LATE_BYES = 3        # ... and up to this many shutdown timeouts waited for them, not kept up
 _EXIT_GRACE_S = 3.0   # agents with their goodbye in get at least this long to exit, s (103
@@ -274,6 +276,8 @@ class _Launch:
         self.killed_at_shutdown: set[str] = set()
         self._overrun_log = [0.0, 0]              # next wall time to say one, how many unsaid
         self._start_body: dict | None = None
+        self._bus: threading.Thread | None = None
+        self.bus_error: str | None = None         # the bus thread failed (a bug: the run stops)
         self._handles: list = []
         self._token = None
 
@@ -288,9 +292,13 @@ class _Launch:
             self.clock = SimClockDriver(coordinator, self.keys, self.outbox,
                                         self.roster.changed.set,
                                         on_violation=self.injector.quarantine)
+        bus = session.declare_subscriber(self.keys.all, zenoh.handlers.FifoChannel(_BUS_QUEUE),
+                                         allowed_origin=zenoh.Locality.REMOTE)
+        self._bus = threading.Thread(target=self._take_bus, args=(bus.handler,),
+                                     name="adnmesh-up-bus", daemon=True)
+        self._bus.start()
         self._handles = [
-            session.declare_subscriber(self.keys.all, self.on_sample,
-                                       allowed_origin=zenoh.Locality.REMOTE),
+            bus,
             session.liveliness().declare_subscriber(f"{self.keys.root}/alive/**",
                                                     self.on_alive, history=True),
         ]
@@ -322,6 +330,8 @@ class _Launch:
         for handle in self._handles:
             handle.undeclare()
         self._handles = []
+        if self._bus is not None:      # the channel is closed: the thread ends once it is empty
+            self._bus.join(10.0)
 
     def on_alive(self, sample: zenoh.Sample) -> None:
         """Liveliness: to the roster; an external agent whose session ended (and does not come
@@ -334,20 +344,51 @@ class _Launch:
             self.dropped.add(agent)
             self.children.session_ended(agent)
 
-    def on_sample(self, sample: zenoh.Sample) -> None:
-        """Every sample an agent sends: through the tap; reports, goodbyes and fault requests
-        onwards."""
-        key = str(sample.key_expr)
-        messages = self.tap.take(key, sample.payload.to_bytes())
-        attachment = sample.attachment     # an agent's clock report rides its last sample
-        if attachment is not None:
-            messages += self.tap.take_attached(key, attachment.to_bytes())
+    def _take_bus(self, channel) -> None:
+        """The bus thread: every sample the agents send, in order, taken in batches of what
+        has queued (:meth:`on_samples`); ends when the subscriber is undeclared and its queue
+        is empty. A failure here is a bug: said, and the run stops (:meth:`failure`)."""
+        try:
+            while True:
+                try:
+                    batch = [channel.recv()]
+                except zenoh.ZError:             # closed and empty
+                    return
+                while len(batch) < _BATCH and (sample := channel.try_recv()) is not None:
+                    batch.append(sample)
+                self.on_samples(batch)
+        except Exception as exc:
+            self.bus_error = f"{type(exc).__name__}: {exc}"
+            self.roster.changed.set()
+
+    def on_samples(self, samples) -> None:
+        """Samples from the agents, in the order they came: each through the tap (and a clock
+        report that rides it, :meth:`RecorderTap.take_attached`); the batch's clock reports
+        to the sim clock at once, after the rest."""
+        reports = []
+        for sample in samples:
+            key = str(sample.key_expr)
+            messages = self.tap.take(key, sample.payload.to_bytes())
+            attachment = sample.attachment     # an agent's clock report rides its last sample
+            if attachment is not None:
+                messages += self.tap.take_attached(key, attachment.to_bytes())
+            reports += self._take_messages(messages)
+        if reports and self.clock is not None:
+            self.clock.on_reports(reports)
+            for message in reports:
+                if message.killed_ns is not msgspec.UNSET:
+                    self.injector.on_killed(message)
+
+    def _take_messages(self, messages) -> list:
+        """What ``up`` does with the agents' messages; return the clock reports (for the sim
+        clock; on the realtime clock a kill's last report is taken here)."""
+        reports = []
         for message in messages:
             if message.type == "clock_report":
                 self.roster.note_report(message.src, message.seq)
                 if self.clock is not None:
-                    self.clock.on_report(message)
-                if message.killed_ns is not msgspec.UNSET:
+                    reports.append(message)
+                elif message.killed_ns is not msgspec.UNSET:
                     self.injector.on_killed(message)
             elif message.type == "agent_bye":
                 self.roster.note_bye(message)
@@ -355,6 +396,7 @@ class _Launch:
                 self.injector.on_request(message)
             elif message.type == "event" and message.kind == "overrun":
                 self.on_overrun(message)
+        return reports
 
     def on_overrun(self, message) -> None:
         """An agent cannot keep up: say so at once (at most once a second, with the count of
@@ -461,6 +503,8 @@ class _Launch:
             return "SIGINT" if self.interrupted[0] == signal.SIGINT else "SIGTERM"
         if self.recorder.failure is not None:
             return f"{RECORDING_FAILED}: {recording_failure(self.recorder)}"
+        if self.bus_error is not None:
+            return f"internal error: up's bus thread failed: {self.bus_error}"
         if self.clock is not None and self.clock.error:
             return f"clock: {self.clock.error}"
         if self.not_realtime is not None:

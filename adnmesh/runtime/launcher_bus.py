@@ -86,23 +86,31 @@ class SimClockDriver:
 
     def on_report(self, message) -> None:
         """Take an agent's clock report; publish the grants that follow."""
-        killed = None if message.killed_ns is UNSET else message.killed_ns
-        report = Report(message.src, message.next_ns, message.received,
-                        {k: (v[0], v[1]) for k, v in message.sent.items()}, killed,
-                        message.granted_ns)
+        self.on_reports([message])
+
+    def on_reports(self, messages) -> None:
+        """Take clock reports (in the order they came); publish the grants that follow from
+        all of them (one search for a batch: ``up`` takes what has queued on the bus at once)."""
         with self.lock:
-            if self.error is not None:
-                return
-            try:
-                grants = self.coordinator.on_report(report)
-                if self._started:
-                    self._send(grants)
-            except ClockError as exc:
-                if self._on_violation is not None and der_id_of(message.src) is not None:
-                    self._on_violation(message.src, f"clock report out of protocol: {exc}")
+            changed = False
+            for message in messages:
+                if self.error is not None:
                     return
-                self.error = str(exc)
-                self._on_change()
+                killed = None if message.killed_ns is UNSET else message.killed_ns
+                report = Report(message.src, message.next_ns, message.received,
+                                {k: (v[0], v[1]) for k, v in message.sent.items()}, killed,
+                                message.granted_ns)
+                try:
+                    changed = self.coordinator.take_report(report) or changed
+                except ClockError as exc:
+                    if self._on_violation is not None and der_id_of(message.src) is not None:
+                        self._on_violation(message.src, f"clock report out of protocol: {exc}")
+                        continue
+                    self.error = str(exc)
+                    self._on_change()
+                    return
+            if changed and self._started:
+                self._send(self.coordinator.grants())
 
     def start(self) -> None:
         """Begin granting (every agent has reported)."""

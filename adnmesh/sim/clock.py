@@ -171,17 +171,36 @@ class Coordinator:
 
     def on_report(self, report: Report) -> list[Grant]:
         """Take a report; return the grants that follow from it (none before :meth:`start`)."""
+        if self.take_report(report):
+            return self.grants()
+        return []
+
+    def grants(self) -> list[Grant]:
+        """The grants that follow from everything taken so far (none before :meth:`start`).
+        Taking several reports (:meth:`take_report`) before asking gives the grants of all of
+        them at once: fewer searches, and no grant the later reports would have bettered."""
+        return self._after_change()
+
+    def take_report(self, report: Report) -> bool:
+        """Take a report without granting; return whether it changed anything (False: a
+        repeated first report that crossed a grant, or a dead process's late one).
+
+        Raises
+        ------
+        ClockError
+            A report from an unknown agent, or a second report without a grant.
+        """
         i = self._index.get(report.agent)
         if i is None:
             raise ClockError(f"report from unknown agent {report.agent!r}")
         if report.killed_ns is None and report.granted_ns is not None \
                 and report.granted_ns < self._granted[i]:
-            return []                             # a repeated first report, crossed a grant
+            return False                          # a repeated first report, crossed a grant
         if self._dead[i]:
             if i in self._restarts and i not in self._rejoining:
                 self._rejoining[i] = report      # the restarted process: taken at the barrier
-                return self._after_change()
-            return []                             # a dead process's late report
+                return True
+            return False                          # a dead process's late report
         if self._reported[i] and self._idle[i] and not (self._hello[i] and not report.sent):
             raise ClockError(f"{report.agent}: second report without a grant")
         self._hello[i] = not self._reported[i] or self._hello[i]   # a first report, or again
@@ -208,7 +227,7 @@ class Coordinator:
                     pending_new[r] = earliest
         if report.killed_ns is not None:
             self._die(i, report.killed_ns)
-        return self._after_change()
+        return True
 
     def kill(self, agent: str, at_ns: int | None = None) -> list[Grant]:
         """Declare ``agent`` dead (its process ended without a last report); return grants."""
