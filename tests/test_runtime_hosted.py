@@ -100,3 +100,16 @@ def test_hosting_is_refused_in_the_secure_profile(tmp_path, capsys) -> None:
     err = capsys.readouterr().err
     assert err.count("\n") == 1
     assert "runtime.ders_per_process 2 is for the open profile" in err
+
+
+def test_the_keys_of_every_der_of_a_kind_are_one_wildcard_subscriber() -> None:
+    """Open profile: the measurement's 1,000 ``der/<id>/state`` keys are one subscriber whose
+    callback takes only those keys; a key alone, or the secure profile, stays exact."""
+    from adnmesh.runtime.process import subscription_patterns
+
+    keys = ["adn/g/der/A/state", "adn/g/der/B/state", "adn/g/der/A/heartbeat", "adn/g/faults",
+            "adn/g/cpfc/p_y"]
+    assert subscription_patterns(keys) == {
+        "adn/g/der/*/state": frozenset({"adn/g/der/A/state", "adn/g/der/B/state"}),
+        "adn/g/der/A/heartbeat": None, "adn/g/faults": None, "adn/g/cpfc/p_y": None}
+    assert subscription_patterns(keys, wildcards=False) == {k: None for k in keys}

@@ -19,6 +19,7 @@ from adnmesh.runtime.host import serve_hosted
 from adnmesh.runtime.process import (AgentProcess, add_agent_arguments, load_config_or_exit,
                                      open_session)
 from adnmesh.sim.node import Node
+from adnmesh.sim.topology import Topology
 from adnmesh.names import der_agent_id
 
 
@@ -49,6 +50,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("several --der need the open profile: a certificate is one DER's "
                      "identity")
     nodes = []
+    topology = Topology.from_config(config)     # one for every DER of the process
     for i, der in enumerate(ders):
         if der not in config.der_ids():
             parser.error(f"unknown DER id {der!r} (known: {', '.join(config.der_ids())})")
@@ -61,7 +63,8 @@ def main(argv: list[str] | None = None) -> int:
         p_avail_w = None if args.p_avail_w is None else args.p_avail_w[i]
         agent = build_agent(der_agent_id(der), config, p_avail_w=p_avail_w,
                             der_params=params)
-        nodes.append(Node.for_config(agent, config, start_ns=args.resume_at_ns))
+        nodes.append(Node.for_config(agent, config, start_ns=args.resume_at_ns,
+                                     topology=topology))
     with open_session(args, der_agent_id(ders[0])) as session:
         if len(nodes) > 1:
             return serve_hosted(session, nodes, config.grid)

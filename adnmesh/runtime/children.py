@@ -174,13 +174,15 @@ class AgentProcesses:
     def dead(self) -> list[tuple[str, int | None]]:
         """``(agent id, exit code)`` of every process that has ended (negative: signal; None:
         an external agent whose session ended)."""
-        return [(a, p.returncode) for a, p in self.procs.items() if p.poll() is not None] + \
+        ended = {id(p) for p in self._processes() if p.poll() is not None}   # once each
+        return [(a, p.returncode) for a, p in self.procs.items() if id(p) in ended] + \
             [(a, None) for a in sorted(self.gone())]
 
     def running(self) -> set[str]:
         """The agents whose process still runs (external ones: whose session has not ended
         for longer than the grace)."""
-        return {a for a, p in self.procs.items() if p.poll() is None and a not in self.left} \
+        ended = {id(p) for p in self._processes() if p.poll() is not None}
+        return {a for a, p in self.procs.items() if id(p) not in ended and a not in self.left} \
             | (self.external - self.gone())
 
     def gone(self) -> set[str]:

@@ -261,7 +261,7 @@ class _Launch:
                                  events=EventLog().observe)
         self.clock: SimClockDriver | None = None
         self.tap = RecorderTap(self.recorder, self.topology, self.result.series,
-                               lambda: self.clock.now_ns() if self.clock else 0,
+                               lambda: self.clock.recent_ns if self.clock else 0,
                                view=options.view, clock_reach_ns=self._clock_reach_ns,
                                on_suspect=lambda agent, why: self.injector.quarantine(agent,
                                                                                       why))

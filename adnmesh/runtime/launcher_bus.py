@@ -83,6 +83,7 @@ class SimClockDriver:
         self.finished = False
         self.error: str | None = None
         self.last_grant_s = time.monotonic()   # when the clock last moved, monotonic s
+        self.recent_ns = 0       # now_ns at the last grants: read without the lock (the tap)
 
     def on_report(self, message) -> None:
         """Take an agent's clock report; publish the grants that follow."""
@@ -155,9 +156,10 @@ class SimClockDriver:
             return time.monotonic() - self.last_grant_s if self._started else 0.0
 
     def _send(self, grants) -> None:   # with the lock held
+        t = 0
         if grants:
             self.last_grant_s = time.monotonic()
-        t = self.coordinator.now_ns() if grants else 0
+            t = self.recent_ns = self.coordinator.now_ns()
         for g in grants:
             self._outbox.send(self._keys.of("clock_grant", g.agent), t, until_ns=g.until_ns,
                               expect=g.expect)

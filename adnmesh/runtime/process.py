@@ -45,6 +45,7 @@ from __future__ import annotations
 import ctypes
 import gc
 import os
+import re
 import signal
 import sys
 import sysconfig
@@ -66,7 +67,7 @@ from adnmesh.wire.keys import Keys
 from adnmesh.wire.outbox import Outbox
 
 __all__ = ["AgentProcess", "add_agent_arguments", "die_with_parent", "load_config_or_exit",
-           "open_session"]
+           "open_session", "subscription_patterns"]
 
 _WAIT_S = 1.0       # longest sleep between checks of the stop flag, s
 _BYE_WAIT_S = 5.0   # longest wait after the goodbye for `up` to confirm it, s
@@ -162,6 +163,38 @@ def die_with_parent() -> None:
         return
     if os.getppid() != int(parent):
         os._exit(1)
+
+
+_DER_KEY = re.compile(r"^(.+/der/)[^/*$]+(/[^*$]+)$")
+
+
+def subscription_patterns(keys, wildcards: bool = True) -> dict[str, frozenset | None]:
+    """The key expressions to subscribe to for ``keys``: key expression -> the keys it stands
+    for (None: the key itself). With ``wildcards``, two or more keys that differ only in the
+    DER id (``.../der/<id>/state``) become one ``.../der/*/state``."""
+    groups: dict[tuple[str, str], list[str]] = {}
+    out: dict[str, frozenset | None] = {}
+    for key in keys:
+        found = _DER_KEY.match(key) if wildcards else None
+        if found is None:
+            out[key] = None
+        else:
+            groups.setdefault(found.groups(), []).append(key)
+    for (head, tail), members in groups.items():
+        if len(members) == 1:
+            out[members[0]] = None
+        else:
+            out[f"{head}*{tail}"] = frozenset(members)
+    return out
+
+
+def _only(members: frozenset, callback):
+    """``callback`` for the samples of a wildcard subscriber on the keys of ``members``
+    only (a key of the pattern that is not one of the agent's is not its message)."""
+    def on(sample: zenoh.Sample) -> None:
+        if str(sample.key_expr) in members:
+            callback(sample)
+    return on
 
 
 class AgentProcess:
@@ -274,10 +307,17 @@ class AgentProcess:
             pass
 
     def routes(self) -> dict[str, object]:
-        """What the agent subscribes to: key -> its Zenoh callback (data, then the clock's)."""
+        """What the agent subscribes to: key expression -> its Zenoh callback (data, then the
+        clock's). In the open profile the keys of every DER of one kind (``der/<id>/state``
+        for the measurement: 1,000 keys with 1,000 DERs) are one wildcard subscriber whose
+        callback passes on only those keys (:func:`subscription_patterns`): one Zenoh delivery
+        thread instead of one per key. The secure profile's access control names exact keys."""
         keys = self.keys
         on_data, on_clock = self._guarded(self._on_data), self._guarded(self._on_clock)
-        found = {key: on_data for key in self.node.subscriptions}
+        found = {}
+        for expr, members in subscription_patterns(self.node.subscriptions,
+                                                   self.publishers).items():
+            found[expr] = on_data if members is None else _only(members, on_data)
         found.update({key: on_clock for key in (
             keys.of("clock_grant", self.agent), keys.of("clock_start"), keys.of("clock_stop"),
             keys.of("clock_kill", self.agent))})

@@ -146,9 +146,12 @@ class Node:
             agent.resume(self.start_ns)
 
     @classmethod
-    def for_config(cls, agent: Agent, config, start_ns: int = 0) -> Node:
-        """A node for ``agent`` with the topology and seed of ``config``."""
-        return cls(agent, Topology.from_config(config), config.runtime.seed, start_ns=start_ns)
+    def for_config(cls, agent: Agent, config, start_ns: int = 0,
+                   topology: Topology | None = None) -> Node:
+        """A node for ``agent`` with the topology (``topology``, if given: one for the agents
+        of a process) and seed of ``config``."""
+        return cls(agent, topology or Topology.from_config(config), config.runtime.seed,
+                   start_ns=start_ns)
 
     def reseed(self, seed: int) -> None:
         """Restart the ICT random streams with ``seed`` (before the first event only)."""
