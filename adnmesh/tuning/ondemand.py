@@ -93,7 +93,8 @@ class OnDemandTuner:
         if key not in self.cache:
             if len(key) > MAX_DERS:
                 raise UsageError(f"a subset of {len(key)} DERs is too large to tune on demand "
-                                 f"(at most {MAX_DERS})")
+                                 f"(at most {MAX_DERS}); 'adnmesh tune {self.config.path} "
+                                 "--subsets scenario' makes a table with it (--table)")
             entry = self.cache[key] = self._tune(der_ids)
             if entry.feasible:
                 self._learn(entry)
