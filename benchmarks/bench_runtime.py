@@ -739,7 +739,7 @@ def main() -> int:
                   f"{g['min']:g} .. {g['max']:g} grants/s (median {g['median']:g}), speed factor "
                   f"median {v['median']:g} (load {point['runs'][-1]['load']})", flush=True)
         figures["grants_vs_agents"] = sweep
-        if not args.skip_helics:
+        if not args.skip_helics and not args.compare:   # --compare ran HELICS in its turns
             print(f"HELICS baseline: 14 federates, {args.helics_steps} steps of 10 ms, "
                   f"core {args.helics_core}, {args.repeat} runs ...", flush=True)
             figures["helics"] = repeated(
