@@ -16,6 +16,12 @@ shorter scenario. Per repeat it measures, in this order:
 Ranges over the repeats are printed with the 1-minute load average before and after each run.
 
     .venv/bin/python benchmarks/bench_scale.py --ders 25,50,100 --repeats 2
+    .venv/bin/python benchmarks/bench_scale.py --source configs/examples/scale/adn-1000.yaml \
+        --table T1000.json --ders 1000 --duration 60 --repeats 1    # scale mode, its table
+
+With ``--source`` another config is cut (and ``--table`` spares the tuning: a table tuned for
+the source's whole scenario serves its cuts to fewer seconds, not to fewer DERs);
+``--ders-per-process N`` runs every cut in scale mode.
 """
 from __future__ import annotations
 
@@ -126,12 +132,13 @@ def tuning_cpu_per_subset(config_path: Path) -> list[float]:
     return out
 
 
-def run_up(config_path: Path, work: Path, timeout_s: float) -> dict:
-    """One ``adnmesh up`` run (sim clock, no table) with its figures."""
+def run_up(config_path: Path, work: Path, timeout_s: float, table: Path | None = None) -> dict:
+    """One ``adnmesh up`` run (sim clock; without ``table`` it tunes on demand) with its
+    figures."""
     summary = work / "summary.json"
     argv = ["nice", "-n", "5", sys.executable, "-m", "adnmesh", "up", str(config_path),
             "--out", str(work / "run.mcap"), "--summary-json", str(summary),
-            "--table", str(work / "absent.table.json"), "--startup-timeout", "900"]
+            "--table", str(table or work / "absent.table.json"), "--startup-timeout", "900"]
     load0 = os.getloadavg()[0]
     t0 = time.monotonic()
     proc = subprocess.Popen(argv, cwd=work, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
@@ -186,16 +193,28 @@ def main(argv=None) -> int:
                         help="cut the scenario to S s of sim time (default: all 300 s)")
     parser.add_argument("--timeout", type=float, default=3600.0, metavar="S",
                         help="longest wall time of one up run")
+    parser.add_argument("--source", type=Path, default=SOURCE, metavar="CONFIG",
+                        help="the config to cut (default: configs/examples/adn-100.yaml)")
+    parser.add_argument("--table", type=Path, metavar="JSON",
+                        help="a table for the source's scenario (then nothing is tuned: e.g. "
+                        "configs/examples/scale/adn-1000.yaml, tuned with 'adnmesh tune "
+                        "CONFIG --subsets scenario')")
+    parser.add_argument("--ders-per-process", type=int, metavar="N",
+                        help="set runtime.ders_per_process (scale mode) in every cut")
     args = parser.parse_args(argv)
     try:
         counts = [int(x) for x in args.ders.split(",")]
     except ValueError:
         parser.error(f"--ders must be a comma-separated list of integers, got {args.ders!r}")
-    if any(not 1 <= n <= 100 for n in counts) or args.repeats < 1:
-        parser.error("--ders must be within 1..100 and --repeats at least 1")
-    document = yaml.safe_load(SOURCE.read_text())
-    limit = document["constraints"]["overshoot_max_pct"]
-    band = document["constraints"]["settling_band_pct"] / 100.0
+    document = yaml.safe_load(args.source.read_text())
+    most = len(document["ders"])
+    if any(not 1 <= n <= most for n in counts) or args.repeats < 1:
+        parser.error(f"--ders must be within 1..{most} and --repeats at least 1")
+    if args.ders_per_process is not None:
+        document.setdefault("runtime", {})["ders_per_process"] = args.ders_per_process
+    from adnmesh.config import load_config
+    constraints = load_config(args.source).constraints      # with the defaults
+    limit, band = constraints.overshoot_max_pct, constraints.settling_band_pct / 100.0
     print(f"{'DERs':>4} {'procs':>5} {'wall s':>13} {'startup s':>11} {'speed x':>9} "
           f"{'PSS sum MB':>11} {'RSS max MB':>10} {'tune CPU s/subset':>18} {'steps ok':>8} "
           f"{'load':>9}")
@@ -206,8 +225,9 @@ def main(argv=None) -> int:
             cfg.write_text(yaml.safe_dump(cut_down(document, n, args.duration), sort_keys=False))
             runs, cpu = [], []
             for _ in range(args.repeats):
-                cpu += tuning_cpu_per_subset(cfg)
-                runs.append(run_up(cfg, work, args.timeout))
+                if args.table is None:
+                    cpu += tuning_cpu_per_subset(cfg)
+                runs.append(run_up(cfg, work, args.timeout, args.table))
                 for r in runs[-1:]:
                     if r["exit"] != 0:
                         print(f"  up exited {r['exit']}: {' '.join(r['stderr_tail'])}")
