@@ -19,16 +19,15 @@ import numpy as np
 import yaml
 
 ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from gen_adn1000 import BASE, der_types  # noqa: E402  (the same types, drawn the same way)
+
 out = Path(sys.argv[1]) if len(sys.argv) > 1 else ROOT / "configs/examples/scale/adn-1000.yaml"
 n = int(sys.argv[2]) if len(sys.argv) > 2 else 1000
 rng = np.random.default_rng(1000)
-kinds = ["PV"] * (n * 6 // 10) + ["WT"] * (n * 2 // 10)
-kinds += ["CHP"] * (n - len(kinds))
-rng.shuffle(kinds)
-base = {"WT": (0.01, 0.515, 2.0e6), "CHP": (1.0, 24.57, 0.5e6), "PV": (0.01, 0.1, 0.3e6)}
 ders = []
-for i, kind in enumerate(kinds):
-    delay, rise, power = base[kind]
+for i, kind in enumerate(der_types(n, rng)):
+    delay, rise, power = BASE[kind]
     der = {"id": f"D{i:04d}", "type": kind,
            "p_inst_w": float(round(power * rng.uniform(0.8, 1.25), -3)),
            "t_delay_s": delay, "t_rise_s": rise, "sgen": f"sgen {i}"}
