@@ -55,6 +55,12 @@ before the agents start, but on a saturated machine (100 agents connecting at on
 attempt can fail, and the agent exited on it."""
 
 
+def _program_argv(kind: str, config_path: Path, endpoint: str) -> list[str]:
+    """The agent program of ``kind`` on ``config_path``, connecting to ``endpoint``."""
+    return [sys.executable, "-m", f"{AGENT_PACKAGE}.{kind}", str(config_path),
+            "--connect", endpoint, "--connect-timeout", f"{CONNECT_TIMEOUT_S:g}"]
+
+
 def agent_argv(agent_id: str, config_path: Path, endpoint: str, table_path: Path,
                p_avail_w: float | None = None, certs: Path | None = None,
                model_params: str | None = None, q_table_path: Path | None = None
@@ -65,8 +71,7 @@ def agent_argv(agent_id: str, config_path: Path, endpoint: str, table_path: Path
     table; secure profile: with ``--certs``)."""
     der_id = der_id_of(agent_id)
     kind = "der" if der_id is not None else agent_id
-    argv = [sys.executable, "-m", f"{AGENT_PACKAGE}.{kind}", str(config_path),
-            "--connect", endpoint, "--connect-timeout", f"{CONNECT_TIMEOUT_S:g}"]
+    argv = _program_argv(kind, config_path, endpoint)
     if der_id is not None:
         argv += ["--der", der_id]
         if p_avail_w is not None:
@@ -88,8 +93,7 @@ def hosted_ders_argv(ders: list[tuple[str, float | None, str | None]], config_pa
     :mod:`adnmesh.runtime.host`): ``ders`` is ``(DER id, available power W or None, model
     parameters JSON or None)`` each; the powers and parameters go along only if every DER has
     them (the program takes them once per DER or not at all)."""
-    argv = [sys.executable, "-m", f"{AGENT_PACKAGE}.der", str(config_path),
-            "--connect", endpoint, "--connect-timeout", f"{CONNECT_TIMEOUT_S:g}"]
+    argv = _program_argv("der", config_path, endpoint)
     with_power = all(p is not None for _, p, _ in ders)
     with_params = with_power and all(m is not None for _, _, m in ders)
     for der_id, p_avail_w, model_params in ders:
@@ -167,6 +171,10 @@ class AgentProcesses:
         """Every process once (a hosting process is the process of several agents)."""
         return list({id(p): p for p in self.procs.values()}.values())
 
+    def _ended_processes(self) -> set[int]:
+        """``id()`` of every process that has ended (each polled once)."""
+        return {id(p) for p in self._processes() if p.poll() is not None}
+
     def pids(self) -> str:
         """The PIDs, space-separated."""
         return " ".join(str(p.pid) for p in self._processes())
@@ -174,14 +182,14 @@ class AgentProcesses:
     def dead(self) -> list[tuple[str, int | None]]:
         """``(agent id, exit code)`` of every process that has ended (negative: signal; None:
         an external agent whose session ended)."""
-        ended = {id(p) for p in self._processes() if p.poll() is not None}   # once each
+        ended = self._ended_processes()
         return [(a, p.returncode) for a, p in self.procs.items() if id(p) in ended] + \
             [(a, None) for a in sorted(self.gone())]
 
     def running(self) -> set[str]:
         """The agents whose process still runs (external ones: whose session has not ended
         for longer than the grace)."""
-        ended = {id(p) for p in self._processes() if p.poll() is not None}
+        ended = self._ended_processes()
         return {a for a, p in self.procs.items() if id(p) not in ended and a not in self.left} \
             | (self.external - self.gone())
 

@@ -85,10 +85,6 @@ class SimClockDriver:
         self.last_grant_s = time.monotonic()   # when the clock last moved, monotonic s
         self.recent_ns = 0       # now_ns at the last grants: read without the lock (the tap)
 
-    def on_report(self, message) -> None:
-        """Take an agent's clock report; publish the grants that follow."""
-        self.on_reports([message])
-
     def on_reports(self, messages) -> None:
         """Take clock reports (in the order they came); publish the grants that follow from
         all of them (one search for a batch: ``up`` takes what has queued on the bus at once)."""

@@ -249,6 +249,8 @@ class AgentProcess:
         self._handles: list = []
         self._signals: dict = {}
         self.overruns: OverrunWatch | None = None
+        # the Zenoh callback for the liveliness of adnmesh up (see startup)
+        self.on_up_alive = self._guarded(self._on_up_alive)
 
     # -- phases ------------------------------------------------------------------------------
 
@@ -323,14 +325,10 @@ class AgentProcess:
             keys.of("clock_kill", self.agent))})
         return found
 
-    def on_up_alive(self, sample: zenoh.Sample) -> None:
-        """Zenoh callback for the liveliness of ``adnmesh up`` (see :meth:`startup`)."""
-        self._guarded(self._on_up_alive)(sample)
-
     def startup(self, subscribe: bool = True) -> None:
         """Subscribe, declare liveliness and send the first report (see the module docstring).
         Hosted (``subscribe`` False), the host subscribes for it (:meth:`routes`,
-        :meth:`on_up_alive`) and the agent only declares its liveliness."""
+        :attr:`on_up_alive`) and the agent only declares its liveliness."""
         if not self.hosted and threading.current_thread() is threading.main_thread():
             self._signals = {s: signal.signal(s, self._on_signal)   # Ctrl-C stops it too
                              for s in (signal.SIGTERM, signal.SIGINT)}

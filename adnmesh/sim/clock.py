@@ -132,7 +132,7 @@ class Coordinator:
         n = len(self.agents)
         # for each receiver b: [(p, lookahead(p, b))] over the agents that can reach it,
         # nearest first (one pass over the pairs: 1,003 agents have a million), so that the
-        # search for b's LBTS can stop at the first source too far away to lower it (_grants)
+        # search for b's LBTS can stop at the first source too far away to lower it (_lbts)
         sources: list[list[tuple[int, int]]] = [[] for _ in range(n)]
         for (p, q), d in topology.lookahead_ns.items():
             sources[index[q]].append((index[p], d))
