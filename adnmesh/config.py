@@ -39,7 +39,7 @@ __all__ = [
     "Constraints", "DER", "Fault", "GridLimits", "GridModel", "Guard", "TapChanger", "LinkSettings", "Links", "Outage",
     "MAX_CONFIG_BYTES", "MAX_DELAY_PER_LAG", "MAX_IN_FLIGHT", "MAX_SPAN_PER_DELAY", "PRefStep",
     "CAPABILITY_PRESETS", "QRefStep", "QU", "Reactive", "Runtime", "VoltageStep",
-    "Scenario", "Section", "json_schema", "load_config",
+    "Scenario", "Section", "Study", "Maintenance", "MinOutputShare", "json_schema", "load_config",
 ]
 
 DERType = Literal["WT", "CHP", "PV", "HYDRO", "GEN"]
@@ -644,6 +644,80 @@ class Reactive(Section):
     """Constant part of Q_IP besides the DERs' reactive infeeds without a grid model, var."""
 
 
+def _iso_time(value: Any) -> Any:
+    """A YAML date or time (read as ``datetime.date``/``datetime``) as its ISO text."""
+    import datetime
+    if isinstance(value, (datetime.date, datetime.datetime)):
+        return value.isoformat(sep="T", timespec="minutes") if isinstance(
+            value, datetime.datetime) else value.isoformat()
+    return value
+
+
+_IsoTime = Annotated[str, BeforeValidator(_iso_time),
+                     Field(pattern=r"^\d{4}-\d{2}-\d{2}([T ]\d{2}:\d{2})?$", max_length=16)]
+"""A date (``2016-06-01``) or a time (``2016-06-01T12:00``), in the profiles' local time."""
+
+
+class Maintenance(Section):
+    """A maintenance window: the DERs are out of service (no infeed, not available) from start
+    (inclusive) to end (exclusive)."""
+
+    ders: Annotated[tuple[_Identifier, ...], Field(strict=False, min_length=1,
+                                                   max_length=_MAX_DERS)]
+    """The DERs in maintenance."""
+    start: _IsoTime
+    """First day or time of the window (a date is its 00:00)."""
+    end: _IsoTime
+    """Day or time the window ends (exclusive; a date is its 00:00)."""
+
+    @model_validator(mode="after")
+    def _order(self) -> "Maintenance":
+        if self.end.replace(" ", "T").ljust(16, "0") <= self.start.replace(" ", "T").ljust(16, "0"):
+            raise _problem(("end",), f"must be after start ({self.start}), got {self.end}")
+        return self
+
+
+_Share = Annotated[float, Field(ge=0, lt=1)]
+
+
+class MinOutputShare(Section):
+    """The least available power at which a DER counts as available, per type, as a share of
+    its p_inst_w (below it a wind turbine is near cut-in, a PV plant near dark)."""
+
+    WT: _Share = 0.01
+    """Wind turbines."""
+    CHP: _Share = 0.01
+    """Combined heat and power plants."""
+    PV: _Share = 0.01
+    """Photovoltaic plants."""
+    HYDRO: _Share = 0.01
+    """Hydro plants."""
+    GEN: _Share = 0.01
+    """Generators of another kind."""
+
+
+class Study(Section):
+    """How ``adnmesh study`` reads a year of profiles (docs/study.md): which DERs are
+    available, at which schedule, and the service it checks."""
+
+    min_output_share: MinOutputShare = MinOutputShare()
+    """Per DER type: a DER is available only while its available power exceeds this share of
+    its p_inst_w."""
+    maintenance: _Events[Maintenance] = ()
+    """Maintenance windows (a calendar)."""
+    ict_availability: Annotated[float, Field(gt=0, le=1)] = 1.0
+    """Probability that a DER's link to the CPFC works in an interval (independent draws from
+    runtime.seed; 1: always)."""
+    schedule: Literal["share", "config"] = "share"
+    """A DER's schedule in an interval: share - the share of its available power that its
+    p_sched_w is at the config's operating point; config - its p_sched_w (at most what it can
+    deliver)."""
+    service_w: _Power = 1.0e+6
+    """Size of the service checked both ways (a step of P_ref up and one down), W."""
+    service_s: _Lag = 10.0
+    """Within this time (the step's settling time), s."""
+
+
 class ConfigFile(Section):
     """An adnmesh configuration: the content of a config file (YAML)."""
 
@@ -671,6 +745,8 @@ class ConfigFile(Section):
     reactive: Reactive | None = None
     """Control Q_IP too (docs/method.md#reactive-power); without it every DER runs at its
     q_sched_var."""
+    study: Study = Study()
+    """How the year study reads the profiles (adnmesh study)."""
     t_rise_is: Literal["rise_time", "time_constant"] = "rise_time"
     """What the DERs' t_rise_s is: their 10-90 % rise time (the reference model's time constant
     is then t_rise_s / ln 9, as the paper has it) or the time constant itself."""
@@ -799,6 +875,11 @@ class ConfigFile(Section):
             at = ("scenario", "availability", i, "ders")
             _unique(change.ders, lambda j, at=at: (*at, j), "DER id")
             for j, der_id in enumerate(change.ders):
+                _known(der_id, known, (*at, j))
+        for i, window in enumerate(self.study.maintenance):
+            at = ("study", "maintenance", i, "ders")
+            _unique(window.ders, lambda j, at=at: (*at, j), "DER id")
+            for j, der_id in enumerate(window.ders):
                 _known(der_id, known, (*at, j))
         for i, fault in enumerate(self.runtime.faults):
             at = ("runtime", "faults", i)

@@ -333,6 +333,26 @@ class GridSolver:
         self._v = np.array(v, dtype=complex)
         return self._sample(iterations)
 
+    def set_injections(self, injections: dict) -> None:
+        """Move the rest of the grid to another operating point: ``injections`` maps a kind
+        (``sgen_p``, ``load_p``, ``load_q``, ``shunt_p``, ``shunt_q``, ``storage_p``,
+        ``gen_p``; :meth:`adnmesh.grid.profiles.YearProfiles.injections`) to one value per
+        element of that kind in the model's order, MW or Mvar. The actuators' own sgens take
+        the value too, until :meth:`solve` gives them theirs. The next :meth:`solve` solves
+        with them, from the last solution."""
+        grid = self._grid
+        setters = {"sgen_p": grid.change_p_sgen, "load_p": grid.change_p_load,
+                   "load_q": grid.change_q_load, "shunt_p": grid.change_p_shunt,
+                   "shunt_q": grid.change_q_shunt, "storage_p": grid.change_p_storage,
+                   "gen_p": grid.change_p_gen}
+        for kind, values in injections.items():
+            change = setters.get(kind)
+            if change is None:
+                raise GridError(f"grid solver: no injection kind {kind!r} (one of "
+                                f"{', '.join(setters)})")
+            for i, value in enumerate(np.asarray(values, dtype=float).tolist()):
+                change(i, value)
+
     def _powers(self, values, what: str) -> np.ndarray:
         out = np.asarray(values, dtype=float)
         if out.shape != (self.n_actuators,) or not np.all(np.isfinite(out)):

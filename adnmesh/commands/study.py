@@ -1,0 +1,201 @@
+"""``adnmesh study CONFIG``: what the ADN can deliver over a year of profiles (docs/study.md)."""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from rich.console import Console
+
+from adnmesh.commands import add_config_argument, output_path
+from adnmesh.errors import UsageError
+
+__all__ = ["add_parser", "run", "interval_range", "TABLE_DERS"]
+
+#: without a table, every subset is tuned first up to this many DERs (4,095 subsets, seconds
+#: with the global search); beyond, the subsets the year meets are tuned on demand
+TABLE_DERS = 12
+
+
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    """Add the ``study`` subparser."""
+    parser = subparsers.add_parser(
+        "study",
+        help="a year of profiles: range, speed, margins and limits per interval",
+        description="Go through the grid's year of quarter-hour profiles (SimBench's): per "
+        "interval each DER's available power and availability (config: study), the table "
+        "entry of the available DERs and its figures, P_IP and Q_IP from the power flow, the "
+        "extreme voltages and loadings and the directions the grid guard would block; the "
+        "controllable range up and down and whether the service (study.service_w within "
+        "study.service_s) is deliverable. Writes intervals.csv, ders.csv, summary.json and "
+        "PNG figures to --out. Exit code 0 when they are written, 2 for a user error.",
+    )
+    add_config_argument(parser)
+    parser.add_argument("--start", help="first day or time (e.g. 2016-03-01); default: the "
+                        "profiles' first interval")
+    parser.add_argument("--end", help="day or time to stop before (exclusive); default: "
+                        "after the last interval")
+    parser.add_argument("--table", help="gain table (JSON); default: the config's "
+                        "(tables/ beside it), tuned now for every subset if there is none")
+    parser.add_argument("--service-mw", type=float,
+                        help="service size both ways, MW (default: study.service_w)")
+    parser.add_argument("--service-s", type=float,
+                        help="within this settling time, s (default: study.service_s)")
+    parser.add_argument("--out", help="folder of the results (default: logs/study-<config>)")
+    parser.add_argument("--no-figures", action="store_true", help="write no PNG figures")
+    parser.add_argument("--verify", type=int, metavar="N", default=0,
+                        help="run the distributed system on the sim clock for the N most "
+                        "demanding intervals with a step of the service size and compare "
+                        "its step figures with the study's")
+    return parser
+
+
+def interval_range(times: np.ndarray, start: str | None, end: str | None) -> tuple[int, int]:
+    """``(first, stop)`` indices of ``times`` in ``[start, end)``; one-line error for a bad
+    date or an empty range."""
+    from adnmesh.study.availability import parse_time
+
+    def when(text: str, option: str):
+        try:
+            return parse_time(text)
+        except ValueError:
+            raise UsageError(f"{option} {text!r}: not a date or time (e.g. 2016-03-01 or "
+                             "2016-03-01T12:00)") from None
+    first, stop = 0, len(times)
+    if start is not None:
+        first = int(np.searchsorted(times, when(start, "--start"), side="left"))
+    if end is not None:
+        stop = int(np.searchsorted(times, when(end, "--end"), side="left"))
+    if stop <= first:
+        raise UsageError(f"--start/--end: no interval of the profiles ({times[0]} to "
+                         f"{times[-1]}) lies in [{start or times[0]}, {end or 'end'})")
+    return first, stop
+
+
+def _config(args):
+    from adnmesh.config import load_config
+
+    config = load_config(args.config)
+    if config.grid_model is None:
+        raise UsageError(f"{args.config}: the study needs a grid model (grid_model: with a "
+                         "SimBench code) for its profiles")
+    if config.pandapower_net_path() is not None:
+        raise UsageError(f"{args.config}: the study reads SimBench's profiles; a pandapower "
+                         "net file's own time series are not supported yet")
+    update = {}
+    if args.service_mw is not None:
+        if not 0 < args.service_mw <= 1e4:
+            raise UsageError(f"--service-mw must be in (0, 10000], got {args.service_mw:g}")
+        update["service_w"] = args.service_mw * 1e6
+    if args.service_s is not None:
+        if not 0 < args.service_s <= 3600:
+            raise UsageError(f"--service-s must be in (0, 3600], got {args.service_s:g}")
+        update["service_s"] = args.service_s
+    if not 0 <= args.verify <= 20:
+        raise UsageError(f"--verify must be 0 to 20, got {args.verify}")
+    if update:
+        config = config.model_copy(update={"study": config.study.model_copy(update=update)})
+    return config
+
+
+def _table(args, config, console):
+    """The table the study looks subsets up in (see ``--table``)."""
+    from adnmesh.tuning.table import default_table_path, load_table
+
+    if args.table:
+        return load_table(args.table, config)
+    path = default_table_path(config)
+    if path.exists():
+        return load_table(path, config)
+    from adnmesh.tuning import tune_table
+    if len(config.ders) > TABLE_DERS:
+        console.print(f"no gain table at {path}: {len(config.ders)} DERs are too many for a "
+                      "table of every subset; tuning the subsets the year meets on demand")
+        return None
+    output_path(path, "the gain table")
+    console.print(f"no gain table at {path}: tuning every subset now (adnmesh tune)")
+    return tune_table(config, "global", os.cpu_count() or 1, path)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Study the year, write the files, print the headline figures."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, \
+        TimeElapsedColumn
+
+    from adnmesh.control.operating_point import available_power_w
+    from adnmesh.grid import load_grid
+    from adnmesh.grid.profiles import load_profiles
+    from adnmesh.study.figures import write_figures
+    from adnmesh.study.outputs import summary, write_ders, write_intervals, write_summary
+    from adnmesh.study.year import study_year
+
+    config = _config(args)
+    out_dir = output_path(Path(args.out) if args.out else
+                          Path("logs") / f"study-{Path(config.path).stem}", "--out",
+                          directory=True)
+    console = Console(stderr=True, highlight=False)
+    code, load_model = config.simbench_code, config.grid_model.load_model
+    t0 = time.perf_counter()
+    profiles = load_profiles(code, load_model)
+    first, stop = interval_range(profiles.times, args.start, args.end)
+    profiles = profiles.window(first, stop)
+    data = load_grid(code, "time step 0", load_model)
+    power = available_power_w(config)
+    p_op = np.array([power[d] for d in config.der_ids()], dtype=float)
+    table = _table(args, config, console)
+    t1 = time.perf_counter()
+    with Progress(TextColumn("studying"), BarColumn(), MofNCompleteColumn(),
+                  TextColumn("intervals"), TimeElapsedColumn(), console=console,
+                  transient=False) as bar:
+        task = bar.add_task("study", total=len(profiles))
+        result = study_year(config, profiles, data, p_op, table, first,
+                            lambda done, total: bar.update(task, completed=done))
+    t2 = time.perf_counter()
+    files = [write_intervals(result, out_dir / "intervals.csv"),
+             write_ders(result, out_dir / "ders.csv")]
+    if not args.no_figures:
+        files += write_figures(result, config, out_dir)
+    figures = summary(result, config, {"config": str(config.path), "grid": code,
+                                       "load_model": load_model,
+                                       "seconds": {"setup": round(t1 - t0, 3),
+                                                   "study": round(t2 - t1, 3)}})
+    if args.verify:
+        from adnmesh.study.verify import verify
+        figures["verify"] = verify(config, result, args.verify, out_dir, console)
+    files.append(write_summary(figures, out_dir / "summary.json"))
+    _print(figures, config, files, console)
+    return 0
+
+
+def _print(s: dict, config, files, console) -> None:
+    out = Console(highlight=False, markup=False, soft_wrap=True)
+    svc = s["service"]
+    up, down = s["linear_up_mw"], s["linear_down_mw"]
+    out.print(f"{s['intervals']} intervals ({s['first']} to {s['last']}) of {s['grid']} in "
+              f"{s['seconds']['study']:.1f} s (+{s['seconds']['setup']:.1f} s setup); "
+              f"{s['subsets']} subsets, {s['tuned_on_demand']} tuned on demand")
+    out.print(f"service ±{svc['size_mw']:g} MW within {svc['within_s']:g} s: deliverable in "
+              f"{svc['share'] * 100:.1f} % of the intervals (up {svc['share_up'] * 100:.1f} %, "
+              f"down {svc['share_down'] * 100:.1f} %)")
+    if up and down:
+        out.print(f"linear range up   MW p5/p50/p95: {up['p5']:.3f} / {up['p50']:.3f} / "
+                  f"{up['p95']:.3f}")
+        out.print(f"linear range down MW p5/p50/p95: {down['p5']:.3f} / {down['p50']:.3f} / "
+                  f"{down['p95']:.3f}")
+    if s["rise_s"]:
+        out.print(f"rise time s p5/p50/p95: {s['rise_s']['p5']:.3g} / {s['rise_s']['p50']:.3g} "
+                  f"/ {s['rise_s']['p95']:.3g}")
+    out.print(f"grid: limited (guard acts) in {s['limited_share'] * 100:.2f} %, a limit "
+              f"violated in {s['violated_share'] * 100:.2f} % of the intervals"
+              + (f"; {s['not_converged']} power flows did not converge"
+                 if s["not_converged"] else ""))
+    if "verify" in s:
+        for row in s["verify"]["rows"]:
+            out.print(f"verify {row['time']}: settling predicted {row['predicted_settling_s']:.3g}"
+                      f" s, measured {row['measured_settling_s']}, overshoot measured "
+                      f"{row['measured_overshoot_pct']} %")
+    out.print(f"wrote {len(files)} files to {Path(files[0]).parent}")
+    sys.stdout.flush()
