@@ -102,22 +102,22 @@ def _config(args):
 
 
 def _table(args, config, console):
-    """The table the study looks subsets up in (see ``--table``)."""
+    """The table the study looks subsets up in (see ``--table``) and its path."""
     from adnmesh.tuning.table import default_table_path, load_table
 
     if args.table:
-        return load_table(args.table, config)
+        return load_table(args.table, config), Path(args.table)
     path = default_table_path(config)
     if path.exists():
-        return load_table(path, config)
+        return load_table(path, config), path
     from adnmesh.tuning import tune_table
     if len(config.ders) > TABLE_DERS:
         console.print(f"no gain table at {path}: {len(config.ders)} DERs are too many for a "
                       "table of every subset; tuning the subsets the year meets on demand")
-        return None
+        return None, None
     output_path(path, "the gain table")
     console.print(f"no gain table at {path}: tuning every subset now (adnmesh tune)")
-    return tune_table(config, "global", os.cpu_count() or 1, path)
+    return tune_table(config, "global", os.cpu_count() or 1, path), path
 
 
 def run(args: argparse.Namespace) -> int:
@@ -145,7 +145,7 @@ def run(args: argparse.Namespace) -> int:
     data = load_grid(code, "time step 0", load_model)
     power = available_power_w(config)
     p_op = np.array([power[d] for d in config.der_ids()], dtype=float)
-    table = _table(args, config, console)
+    table, table_path = _table(args, config, console)
     t1 = time.perf_counter()
     with Progress(TextColumn("studying"), BarColumn(), MofNCompleteColumn(),
                   TextColumn("intervals"), TimeElapsedColumn(), console=console,
@@ -164,10 +164,16 @@ def run(args: argparse.Namespace) -> int:
                                                    "study": round(t2 - t1, 3)}})
     if args.verify:
         from adnmesh.study.verify import verify
-        figures["verify"] = verify(config, result, args.verify, out_dir, console)
+        if table_path is None:
+            raise UsageError("--verify: needs a gain table (--table)")
+        figures["verify"] = verify(config, result, args.verify, out_dir, table_path, console)
     files.append(write_summary(figures, out_dir / "summary.json"))
     _print(figures, config, files, console)
     return 0
+
+
+def _num(value) -> str:
+    return "—" if value is None or value != value else f"{value:.3g}"
 
 
 def _print(s: dict, config, files, console) -> None:
@@ -194,8 +200,11 @@ def _print(s: dict, config, files, console) -> None:
                  if s["not_converged"] else ""))
     if "verify" in s:
         for row in s["verify"]["rows"]:
-            out.print(f"verify {row['time']}: settling predicted {row['predicted_settling_s']:.3g}"
-                      f" s, measured {row['measured_settling_s']}, overshoot measured "
-                      f"{row['measured_overshoot_pct']} %")
+            out.print(f"verify {row['time']} ({row['available']}): rise / settling / "
+                      f"overshoot predicted {_num(row['predicted_rise_s'])} s / "
+                      f"{_num(row['predicted_settling_s'])} s / "
+                      f"{_num(row['predicted_overshoot_pct'])} %, measured "
+                      f"{_num(row['measured_rise_s'])} s / {_num(row['measured_settling_s'])} s"
+                      f" / {_num(row['measured_overshoot_pct'])} %")
     out.print(f"wrote {len(files)} files to {Path(files[0]).parent}")
     sys.stdout.flush()

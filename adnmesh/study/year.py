@@ -26,7 +26,7 @@ Deterministic: the same config, profiles and interval range give the same result
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -58,6 +58,8 @@ class StudyResult:
         Distinct subsets the year went through; of them tuned on demand.
     step_s : float
         Length of an interval, s.
+    service_w : float
+        The service size the ranges were checked against, W.
     """
 
     columns: dict
@@ -69,7 +71,7 @@ class StudyResult:
     subsets: int
     tuned: int
     step_s: float
-    notes: list = field(default_factory=list)
+    service_w: float = 0.0
 
     def __len__(self) -> int:
         return int(self.p_avail_w.shape[0])
@@ -165,7 +167,7 @@ def study_year(config, profiles, data, p_avail_op_w: np.ndarray, table=None,
     return StudyResult(columns=columns, der_ids=ids, p_avail_w=p_avail, p_sched_w=sched,
                        reason=reason, contribution=contribution,
                        subsets=len(entries._cache), tuned=entries.tuned,
-                       step_s=profiles.step_s)
+                       step_s=profiles.step_s, service_w=config.study.service_w)
 
 
 _GRID_FLOAT = ("p_ip_w", "q_ip_var", "vm_min_pu", "vm_max_pu", "line_max_pct",
@@ -244,7 +246,8 @@ def _ranges(config, entries: EntryFigures, available, use_up, use_down, head_up,
     head_down = np.where(available, np.maximum(head_down, 0.0), 0.0)
     cols = {name: np.full(total, np.nan) for name in (
         "range_up_w", "range_down_w", "linear_up_w", "linear_down_w", "rise_s", "settling_s",
-        "overshoot_pct", "disk_margin", "settling_up_s", "settling_down_s")}
+        "overshoot_pct", "disk_margin", "settling_up_s", "settling_down_s", "rise_up_s",
+        "overshoot_up_pct")}
     for name in ("feasible", "service_up", "service_down", "service", "tuned_on_demand"):
         cols[name] = np.zeros(total, dtype=bool)
     contribution = {name: np.zeros(n) for name in (
@@ -275,6 +278,8 @@ def _ranges(config, entries: EntryFigures, available, use_up, use_down, head_up,
         cols["tuned_on_demand"][rows] = f_all.tuned or f_up.tuned or f_down.tuned
         cols["settling_up_s"][rows], cols["settling_down_s"][rows] = (f_up.settling_s,
                                                                      f_down.settling_s)
+        cols["rise_up_s"][rows], cols["overshoot_up_pct"][rows] = (f_up.rise_s,
+                                                                 f_up.overshoot_pct)
         for d in np.flatnonzero(mask_all):
             without = [m.copy() for m in (mask_all, mask_up, mask_down)]
             for m in without:
