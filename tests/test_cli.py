@@ -140,7 +140,7 @@ def test_schema_config_is_a_json_schema_with_units(capsys) -> None:
     assert schema["additionalProperties"] is False
     assert list(schema["properties"]) == ["grid", "simbench_code", "t_com_s", "t_meas_s",
                                           "constraints", "ders", "scenario", "runtime",
-                                          "grid_model", "reactive", "t_rise_is", "extends"]
+                                          "grid_model", "reactive", "study", "t_rise_is", "extends"]
     der = schema["$defs"]["DER"]["properties"]
     assert der["p_inst_w"]["description"].endswith(", W; the controller's C_d.")
     assert (der["p_inst_w"]["exclusiveMinimum"], der["p_inst_w"]["maximum"]) == (0, 1e10)

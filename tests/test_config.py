@@ -328,7 +328,7 @@ INVALID = {
     "unknown section": (
         _set("power_flow", {"solver": "nr"}),
         "power_flow: unknown key (valid keys: grid, simbench_code, t_com_s, t_meas_s, "
-        "constraints, ders, scenario, runtime, grid_model, reactive, t_rise_is, extends)",
+        "constraints, ders, scenario, runtime, grid_model, reactive, study, t_rise_is, extends)",
     ),
     "disk margin out of range": (
         _set("constraints.disk_margin_min", 2.5),
@@ -374,7 +374,7 @@ INVALID = {
     "key that is not a string": (
         lambda doc: doc.update({5: 1}),
         "5: unknown key (valid keys: grid, simbench_code, t_com_s, t_meas_s, constraints, ders, "
-        "scenario, runtime, grid_model, reactive, t_rise_is, extends)",
+        "scenario, runtime, grid_model, reactive, study, t_rise_is, extends)",
     ),
     # upper bounds
     "more than 1000 DERs": (

@@ -28,7 +28,7 @@ LAYERS = (
     ("control",),
     ("sim",),
     ("recording",),
-    ("results",),
+    ("results", "study"),
     ("runtime",),
     ("cli", "__main__", "commands", "agents"),
 )

@@ -306,3 +306,106 @@ def test_the_profile_cache_is_read_back_and_a_damaged_one_is_rebuilt(tmp_path, s
     with pytest.warns(RuntimeWarning, match="profile cache .* rebuilding it"):
         rebuilt = load_profiles(CODE, "power", cache_dir=tmp_path)
     assert (rebuilt.sgen_p == first.sgen_p).all()
+
+
+# -- a user's own time series ---------------------------------------------------------------------
+
+def _write_series(path: Path, rows: list[dict]) -> Path:
+    with path.open("w", newline="") as fh:
+        out = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        out.writeheader()
+        out.writerows(rows)
+    return path
+
+
+def test_your_own_time_series_match_pandapower_runpp(study_inputs, tmp_path):
+    import pandapower as pp
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from adnmesh.grid import load_grid
+    from adnmesh.grid.profile_file import read_profile_table
+    from adnmesh.grid.profiles import profiles_of_table
+    from adnmesh.grid.simbench_net import apply_study_case, load_simbench_net, loads_as_impedances
+    from adnmesh.study.year import study_year
+
+    config, _, _, p_op = study_inputs
+    net = load_simbench_net(CODE)
+    apply_study_case(net, "lW")
+    wind = "MV1.101 SGen 1"
+    load = str(net.load.name.iloc[3])
+    rows = [{"time": "2024-03-01T00:00", f"sgen.p_mw:{wind}": 0.4, f"load.p_mw:{load}": 0.9,
+             f"load.q_mvar:{load}": 0.2},
+            {"time": "2024-03-01 00:15", f"sgen.p_mw:{wind}": 1.6, f"load.p_mw:{load}": 0.1,
+             f"load.q_mvar:{load}": -0.05}]
+    times, series = read_profile_table(_write_series(tmp_path / "series.csv", rows))
+    parquet = tmp_path / "series.parquet"
+    pq.write_table(pa.table({"time": pa.array(times.astype("datetime64[ms]")),
+                             **{f"sgen.p_mw:{wind}": [0.4, 1.6],
+                                f"load.p_mw:{load}": [0.9, 0.1],
+                                f"load.q_mvar:{load}": [0.2, -0.05]}}), parquet)
+    times_pq, series_pq = read_profile_table(parquet)
+    assert (times_pq == times).all() and str(times[1]) == "2024-03-01T00:15"
+    profiles = profiles_of_table(net, times, series, "impedance")
+    twin = profiles_of_table(net, times_pq, series_pq, "impedance")
+    assert (twin.shunt_p == profiles.shunt_p).all() and (twin.sgen_p == profiles.sgen_p).all()
+    data = load_grid(CODE, "lW", "impedance")
+    result = study_year(config, profiles, data, p_op)
+    for k, row in enumerate(rows):
+        check = copy.deepcopy(net)
+        check.sgen.loc[check.sgen.name == wind, "p_mw"] = row[f"sgen.p_mw:{wind}"]
+        check.load.loc[check.load.name == load, ["p_mw", "q_mvar"]] = (
+            row[f"load.p_mw:{load}"], row[f"load.q_mvar:{load}"])
+        sched = result.p_sched_w[k]
+        reason = result.reason[k]
+        for der, p_w, why, avail in zip(config.ders, sched, reason, result.p_avail_w[k]):
+            check.sgen.loc[check.sgen.name == der.sgen, "p_mw"] = (
+                p_w if why == AVAILABLE else avail) / 1e6
+        loads_as_impedances(check)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            pp.runpp(check)
+        assert result.columns["p_ip_w"][k] == pytest.approx(
+            -check.res_ext_grid.p_mw.sum() * 1e6, abs=1.0)
+        assert result.columns["q_ip_var"][k] == pytest.approx(
+            -check.res_ext_grid.q_mvar.sum() * 1e6, abs=1.0)
+    assert result.p_avail_w[1, 0] == pytest.approx(1.6e6)
+
+
+@pytest.mark.parametrize("rows, words", [
+    ([{"when": "2024-03-01T00:00", "sgen.p_mw:x": 1}, {"when": "2024-03-01T00:15",
+                                                      "sgen.p_mw:x": 1}], "no 'time' column"),
+    ([{"time": "01.03.2024 00:00", "sgen.p_mw:x": 1}, {"time": "x", "sgen.p_mw:x": 1}],
+     "row 2: time '01.03.2024 00:00' is not"),
+    ([{"time": "2024-03-01T00:15", "sgen.p_mw:x": 1}, {"time": "2024-03-01T00:00",
+                                                      "sgen.p_mw:x": 1}],
+     "times must increase in equal steps"),
+    ([{"time": "2024-03-01T00:00", "sgen.q:x": 1}, {"time": "2024-03-01T00:15",
+                                                   "sgen.q:x": 1}], "column 'sgen.q:x' is none"),
+    ([{"time": "2024-03-01T00:00", "sgen.p_mw:x": 1}, {"time": "2024-03-01T00:15",
+                                                      "sgen.p_mw:x": "nan"}],
+     "column 'sgen.p_mw:x', row 3: no finite number"),
+    ([{"time": "2024-03-01T00:00", "sgen.p_mw:x": 1}, {"time": "2024-03-01T00:15",
+                                                      "sgen.p_mw:x": "a lot"}],
+     "holds string, not numbers"),
+])
+def test_bad_profile_files_are_one_line_errors(tmp_path, capsys, rows, words):
+    from adnmesh.cli import main
+
+    path = _write_series(tmp_path / "bad.csv", rows)
+    assert main(["study", str(CONFIG), "--profiles", str(path), "--out",
+                 str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert words in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_a_series_of_an_element_the_net_lacks_is_a_one_line_error(tmp_path, capsys):
+    from adnmesh.cli import main
+
+    path = _write_series(tmp_path / "unknown.csv", [
+        {"time": "2024-03-01T00:00", "sgen.p_mw:MV1.101 SGen 99": 1},
+        {"time": "2024-03-01T00:15", "sgen.p_mw:MV1.101 SGen 99": 1}])
+    assert main(["study", str(CONFIG), "--profiles", str(path), "--out",
+                 str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "the net has no sgen named 'MV1.101 SGen 99'" in err

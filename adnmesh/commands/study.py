@@ -34,6 +34,10 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "PNG figures to --out. Exit code 0 when they are written, 2 for a user error.",
     )
     add_config_argument(parser)
+    parser.add_argument("--profiles", metavar="FILE",
+                        help="your own time series of the net's generators and loads (CSV or "
+                        "Parquet: a time column and one per series, docs/study.md); default: "
+                        "the grid's own profiles (SimBench's year)")
     parser.add_argument("--start", help="first day or time (e.g. 2016-03-01); default: the "
                         "profiles' first interval")
     parser.add_argument("--end", help="day or time to stop before (exclusive); default: "
@@ -82,9 +86,6 @@ def _config(args):
     if config.grid_model is None:
         raise UsageError(f"{args.config}: the study needs a grid model (grid_model: with a "
                          "SimBench code) for its profiles")
-    if config.pandapower_net_path() is not None:
-        raise UsageError(f"{args.config}: the study reads SimBench's profiles; a pandapower "
-                         "net file's own time series are not supported yet")
     update = {}
     if args.service_mw is not None:
         if not 0 < args.service_mw <= 1e4:
@@ -120,14 +121,49 @@ def _table(args, config, console):
     return tune_table(config, "global", os.cpu_count() or 1, path), path
 
 
+def _year(config, profile_file: str | None):
+    """``(profiles, grid data, grid name)``: SimBench's year of the config's grid (cached),
+    or a user's time series (``--profiles``) of the config's net at its operating point; a
+    pandapower net file without ``--profiles`` uses the profiles it carries (a SimBench net
+    saved to a file), if any."""
+    from adnmesh.control.operating_point import grid_source
+    from adnmesh.grid.cache import load_grid, load_net_grid
+    from adnmesh.grid.profiles import load_profiles, profiles_of_net, profiles_of_table
+
+    source, name, case = grid_source(config)
+    load_model = config.grid_model.load_model
+    if source == "simbench" and profile_file is None:
+        return (load_profiles(name, load_model), load_grid(name, "time step 0", load_model),
+                name)
+    if profile_file is not None:                  # the file's problems first: no net loaded
+        from adnmesh.grid.profile_file import read_profile_table
+        times, series = read_profile_table(profile_file)
+    if source == "simbench":
+        from adnmesh.grid.simbench_net import apply_operating_point, load_simbench_net
+        net = load_simbench_net(name)
+        apply_operating_point(net, case)
+        data = load_grid(name, case, load_model)
+    else:
+        from adnmesh.grid.net_file import net_at_case, read_net
+        net, _ = read_net(name)
+        used = net_at_case(net, case, "power")      # loads as they are; the model turns them
+        data = load_net_grid(name, case, load_model)
+        name = f"{Path(name).name} ({used})"
+    if profile_file is not None:
+        return profiles_of_table(net, times, series, load_model), data, name
+    from adnmesh.grid.simbench_net import time_steps
+    if not time_steps(net):
+        raise UsageError(f"{config.path}: the net {name} carries no profiles: give its time "
+                         "series with --profiles FILE (CSV or Parquet; docs/study.md)")
+    return profiles_of_net(net, load_model), data, name
+
+
 def run(args: argparse.Namespace) -> int:
     """Study the year, write the files, print the headline figures."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, \
         TimeElapsedColumn
 
     from adnmesh.control.operating_point import available_power_w
-    from adnmesh.grid import load_grid
-    from adnmesh.grid.profiles import load_profiles
     from adnmesh.study.figures import write_figures
     from adnmesh.study.outputs import summary, write_ders, write_intervals, write_summary
     from adnmesh.study.year import study_year
@@ -137,12 +173,11 @@ def run(args: argparse.Namespace) -> int:
                           Path("logs") / f"study-{Path(config.path).stem}", "--out",
                           directory=True)
     console = Console(stderr=True, highlight=False)
-    code, load_model = config.simbench_code, config.grid_model.load_model
+    load_model = config.grid_model.load_model
     t0 = time.perf_counter()
-    profiles = load_profiles(code, load_model)
+    profiles, data, code = _year(config, args.profiles)
     first, stop = interval_range(profiles.times, args.start, args.end)
     profiles = profiles.window(first, stop)
-    data = load_grid(code, "time step 0", load_model)
     power = available_power_w(config)
     p_op = np.array([power[d] for d in config.der_ids()], dtype=float)
     table, table_path = _table(args, config, console)

@@ -32,9 +32,10 @@ from adnmesh.errors import GridError
 from adnmesh.files import write_atomic
 from adnmesh.grid.cache import _warn, arrays_digest, cache_key, default_cache_dir
 
-__all__ = ["YearProfiles", "load_profiles", "profiles_of_net", "PROFILE_FORMAT"]
+__all__ = ["YearProfiles", "load_profiles", "profiles_of_net", "profiles_of_table",
+           "PROFILE_FORMAT"]
 
-PROFILE_FORMAT = 1
+PROFILE_FORMAT = 2
 _KINDS = ("sgen_p", "load_p", "load_q", "shunt_p", "shunt_q", "storage_p", "gen_p")
 
 
@@ -109,40 +110,77 @@ def profiles_of_net(net, load_model: str) -> YearProfiles:
         raise GridError("grid: the net has no profiles (SimBench nets have a year of quarter "
                         "hours)")
     values = simbench.get_absolute_values(net, profiles_instead_of_study_cases=True)
+    series = {}
+    for (element, column), frame in values.items():
+        if frame.shape[1] and len(net[element]):
+            series[(element, column)] = frame.reindex(columns=net[element].index).to_numpy(
+                dtype=float)
+    times = _times(net.profiles["load"]["time"].to_numpy())
+    return _assemble(net, times, series, load_model)
+
+
+def profiles_of_table(net, times: np.ndarray, named: dict, load_model: str) -> YearProfiles:
+    """The :class:`YearProfiles` of a user's time series (:func:`adnmesh.grid.profile_file.
+    read_profile_table`: ``named[(table, column)][element name]``) for ``net`` at its
+    operating point, loads not yet made impedances; an element without a series keeps its
+    value there. :class:`GridError` for a name the net's table does not have or has twice."""
+    series = {}
+    for (element, column), by_name in named.items():
+        table = net[element]
+        names = table.name.astype(str).tolist() if "name" in table else []
+        position = {}
+        for i, name in enumerate(names):
+            position.setdefault(name, []).append(i)
+        matrix = np.broadcast_to(table[column].to_numpy(dtype=float),
+                                 (times.size, len(table))).copy()
+        for name, values in by_name.items():
+            rows = position.get(name, [])
+            if len(rows) != 1:
+                what = "no" if not rows else "more than one"
+                raise GridError(f"profiles: {element}.{column}:{name}: the net has {what} "
+                                f"{element} named {name!r}")
+            matrix[:, rows[0]] = values
+        series[(element, column)] = matrix
+    return _assemble(net, times, series, load_model)
+
+
+def _assemble(net, times: np.ndarray, series: dict, load_model: str) -> YearProfiles:
+    """Every injection of the model per interval from ``series[(table, column)]`` (one column
+    per row of the net's table, values before scaling; tables without a series keep their
+    values at the net's operating point)."""
+    count = times.size
 
     def scaled(element: str, column: str) -> np.ndarray | None:
-        frame = values.get((element, column))
-        table = net[element]
-        if frame is None or frame.shape[1] == 0 or len(table) == 0:
+        table = net[element] if element in net else None
+        if table is None or len(table) == 0 or column not in table:
             return None
-        matrix = frame.reindex(columns=table.index).to_numpy(dtype=float)
+        matrix = series.get((element, column))
+        if matrix is None:
+            matrix = np.broadcast_to(table[column].to_numpy(dtype=float), (count, len(table)))
         scaling = (table.scaling.fillna(1.0).to_numpy(dtype=float) if "scaling" in table
                    else np.ones(len(table)))
-        return np.nan_to_num(matrix * scaling)
+        return np.ascontiguousarray(np.nan_to_num(matrix * scaling))
 
     sgen = scaled("sgen", "p_mw")
-    if sgen is None:
-        sgen = np.zeros((count, len(net.sgen)))
-    load_p, load_q = scaled("load", "p_mw"), scaled("load", "q_mvar")
+    out = {"sgen_p": np.zeros((count, 0)) if sgen is None else sgen,
+           "storage_p": scaled("storage", "p_mw") if ("storage", "p_mw") in series else None,
+           "gen_p": scaled("gen", "p_mw") if ("gen", "p_mw") in series else None}
     n_load = len(net.load)
+    load_p = scaled("load", "p_mw")
+    load_q = scaled("load", "q_mvar")
     load_p = np.zeros((count, n_load)) if load_p is None else load_p
     load_q = np.zeros((count, n_load)) if load_q is None else load_q
-    out = {"sgen_p": sgen, "storage_p": scaled("storage", "p_mw"), "gen_p": scaled("gen", "p_mw")}
     if load_model == "impedance":
         on = net.load.in_service.to_numpy(dtype=bool)
         shunts = net.shunt
         fixed_p = np.broadcast_to(shunts.p_mw.to_numpy(dtype=float), (count, len(shunts)))
         fixed_q = np.broadcast_to(shunts.q_mvar.to_numpy(dtype=float), (count, len(shunts)))
-        out["shunt_p"] = np.hstack([fixed_p, load_p[:, on]])
-        out["shunt_q"] = np.hstack([fixed_q, load_q[:, on]])
+        out["shunt_p"] = np.ascontiguousarray(np.hstack([fixed_p, load_p[:, on]]))
+        out["shunt_q"] = np.ascontiguousarray(np.hstack([fixed_q, load_q[:, on]]))
     else:
         out["load_p"], out["load_q"] = load_p, load_q
-    times = net.profiles["load"]["time"]
-    t = _times(times.to_numpy())
-    step = float((t[1] - t[0]) / np.timedelta64(1, "s")) if len(t) > 1 else 900.0
-    return YearProfiles(times=t, step_s=step, **{k: (None if v is None else
-                                                     np.ascontiguousarray(v))
-                                                 for k, v in out.items()})
+    step = float((times[1] - times[0]) / np.timedelta64(1, "s")) if count > 1 else 900.0
+    return YearProfiles(times=times, step_s=step, **out)
 
 
 def _path(key: dict, directory: Path) -> Path:
