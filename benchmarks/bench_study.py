@@ -6,8 +6,8 @@ Per repeat, in one process and one after the other:
   quarter hours; profiles and grid from the cache, the gain table read), wall and CPU time;
 - **pandapower**: ``pandapower.timeseries.run_timeseries`` of the same net with simbench's own
   profile controllers (``apply_const_controllers``) on ``--sample`` consecutive intervals
-  starting at a random one, its time per interval and that times 35,136: the year it would
-  take; and the ratio of the two.
+  starting at a random one (after a warm-up run of 10), its time per interval and that times
+  35,136: the year it would take; and the ratio of the two.
 
 The pandapower net keeps SimBench's constant-power loads (its time series cannot turn them into
 shunts per step); the study uses the config's constant impedances. Both solve one AC power
@@ -75,6 +75,7 @@ def main() -> None:
     net = load_simbench_net(code)
     simbench.apply_const_controllers(net, simbench.get_absolute_values(net, True))
     rng = np.random.default_rng(0)
+    _pandapower_once(net, 0, 10)                  # warm-up: imports, the output writer's set-up
     print(f"year: {len(profiles)} intervals of {code}; pandapower on {args.sample} of them")
     ratios = []
     for r in range(args.repeat):
