@@ -150,6 +150,32 @@ def test_on_demand_tuning_of_unseen_plants_is_certified_and_near_the_optimum():
     assert "on demand (nearest table plant)" in used
 
 
+def test_on_demand_tuning_without_a_table_does_not_drift_from_far_or_chained_starts():
+    """Without a table, a plant far from every one tuned so far gets the global search, and
+    entries found on a ray are no starting points: the SimBench year met one WT with the three
+    CHPs, then the six WTs with them, and the ray from the first gave 24 s of rise time where
+    the optimum has 2.4 s."""
+    from adnmesh.tuning.ondemand import NEAR_L1, OnDemandTuner, tune_subset
+
+    config = load_config(CONFIGS.parent / "simbench.yaml")
+    tuner = OnDemandTuner(config)
+    chps = ["SGen5", "SGen6", "SGen11"]
+    nine = [d for d in config.der_ids() if d not in ("SGen9", "SGen10")]
+    for ders in (chps, ["SGen1", *chps], nine):
+        entry = tuner.tune(ders)
+        assert entry.feasible
+    best = tune_subset(config, nine).figures["rise_time_s"]
+    assert entry.figures["rise_time_s"] <= 1.05 * best
+    f_near, _ = tuner.design.fractions(["SGen1", "SGen2", "SGen3", "SGen4", "SGen7", *chps])
+    f_nine, _ = tuner.design.fractions(nine)
+    assert np.abs(f_near - f_nine).sum() <= NEAR_L1       # a near plant starts from its neighbour
+    near = tuner.tune(["SGen1", "SGen2", "SGen3", "SGen4", "SGen7", *chps])
+    assert near.figures["tuned_by"] == "on demand (nearest table plant)"
+    rays = len(tuner._fractions)
+    tuner.tune(["SGen1", "SGen2", "SGen3", "SGen7", *chps])
+    assert len(tuner._fractions) == rays                   # a ray's entry is no start
+
+
 def test_the_cpfc_schedule_tunes_a_subset_its_table_lacks_from_the_table():
     from adnmesh.control.cpfc_controller import GainSchedule
 

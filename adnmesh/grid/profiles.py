@@ -7,8 +7,8 @@ of every load, in the solver's model order (:class:`~adnmesh.grid.data.GridData`
 loads are the model's shunts (:func:`adnmesh.grid.simbench_net.loads_as_impedances`: the net's
 own shunts first, constant, then one per in-service load); with ``power`` they are its loads.
 Values are simbench's ``get_absolute_values(net, profiles_instead_of_study_cases=True)`` times
-each element's ``scaling``, exactly what :func:`adnmesh.grid.simbench_net.apply_time_step`
-puts into the net; static generators keep their saved reactive power (the profiles have
+each element's ``scaling`` (0 for an element out of service), what
+:func:`adnmesh.grid.simbench_net.apply_time_step` puts into the net; static generators keep their saved reactive power (the profiles have
 none), storages and generators with profiles their active power per interval.
 
 :func:`load_profiles` builds them with simbench (seconds: the net's download and parse) and
@@ -35,7 +35,7 @@ from adnmesh.grid.cache import _warn, arrays_digest, cache_key, default_cache_di
 __all__ = ["YearProfiles", "load_profiles", "profiles_of_net", "profiles_of_table",
            "PROFILE_FORMAT"]
 
-PROFILE_FORMAT = 2
+PROFILE_FORMAT = 3
 _KINDS = ("sgen_p", "load_p", "load_q", "shunt_p", "shunt_q", "storage_p", "gen_p")
 
 
@@ -159,6 +159,8 @@ def _assemble(net, times: np.ndarray, series: dict, load_model: str) -> YearProf
             matrix = np.broadcast_to(table[column].to_numpy(dtype=float), (count, len(table)))
         scaling = (table.scaling.fillna(1.0).to_numpy(dtype=float) if "scaling" in table
                    else np.ones(len(table)))
+        if "in_service" in table:               # out of service: nothing (the model's off)
+            scaling = scaling * table.in_service.fillna(False).to_numpy(dtype=bool)
         return np.ascontiguousarray(np.nan_to_num(matrix * scaling))
 
     sgen = scaled("sgen", "p_mw")
