@@ -43,7 +43,7 @@ import numpy as np
 from adnmesh.files import write_atomic
 from adnmesh.grid.data import GridData, from_arrays, to_arrays
 
-__all__ = ["FORMAT_VERSION", "default_cache_dir", "cache_key", "net_cache_key", "cache_path",
+__all__ = ["FORMAT_VERSION", "warn_cache", "default_cache_dir", "cache_key", "net_cache_key", "cache_path",
            "is_cached", "model_path", "arrays_digest", "cached", "load_grid", "load_net_grid"]
 
 FORMAT_VERSION = 6          # 6: names of buses, lines, trafos and the trafos' tap changers;
@@ -107,17 +107,17 @@ def cached(key: dict, build: Callable[[], GridData], directory=None) -> GridData
         try:
             return _read(path, key)
         except Exception as exc:          # any damage to the file: rebuild, never crash
-            _warn(f"grid cache {path} is unreadable or modified ({type(exc).__name__}: {exc}); "
+            warn_cache(f"grid cache {path} is unreadable or modified ({type(exc).__name__}: {exc}); "
                   "rebuilding it")
     data = build()
     try:
         _write(path, key, data)
     except OSError as exc:
-        _warn(f"grid cache {path} could not be written ({exc}); continuing without it")
+        warn_cache(f"grid cache {path} could not be written ({exc}); continuing without it")
     return data
 
 
-def _warn(message: str) -> None:
+def warn_cache(message: str) -> None:
     """A ``RuntimeWarning`` that prints as one line (``adnmesh:0: RuntimeWarning: ...``): no
     source line under it, whoever called."""
     warnings.warn_explicit(message, RuntimeWarning, filename="adnmesh", lineno=0,

@@ -30,7 +30,7 @@ import numpy as np
 
 from adnmesh.errors import GridError
 from adnmesh.files import write_atomic
-from adnmesh.grid.cache import _warn, arrays_digest, cache_key, default_cache_dir
+from adnmesh.grid.cache import warn_cache, arrays_digest, cache_key, default_cache_dir
 
 __all__ = ["YearProfiles", "load_profiles", "profiles_of_net", "profiles_of_table",
            "PROFILE_FORMAT"]
@@ -207,14 +207,14 @@ def load_profiles(code: str, load_model: str = "impedance", cache_dir=None) -> Y
         try:
             return _read(path, key)
         except Exception as exc:          # any damage to the file: rebuild, never crash
-            _warn(f"profile cache {path} is unreadable or modified ({type(exc).__name__}: "
+            warn_cache(f"profile cache {path} is unreadable or modified ({type(exc).__name__}: "
                   f"{exc}); rebuilding it")
     from adnmesh.grid.simbench_net import load_simbench_net
     profiles = profiles_of_net(load_simbench_net(code), load_model)
     try:
         _write(path, key, profiles)
     except OSError as exc:
-        _warn(f"profile cache {path} could not be written ({exc}); continuing without it")
+        warn_cache(f"profile cache {path} could not be written ({exc}); continuing without it")
     return profiles
 
 
