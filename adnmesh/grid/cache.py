@@ -43,8 +43,8 @@ import numpy as np
 from adnmesh.files import write_atomic
 from adnmesh.grid.data import GridData, from_arrays, to_arrays
 
-__all__ = ["FORMAT_VERSION", "warn_cache", "default_cache_dir", "cache_key", "net_cache_key", "cache_path",
-           "is_cached", "model_path", "arrays_digest", "cached", "load_grid", "load_net_grid"]
+__all__ = ["FORMAT_VERSION", "warn_cache", "default_cache_dir", "cache_key", "net_cache_key",
+           "cache_path", "is_cached", "model_path", "arrays_digest", "cached", "load_grid", "load_net_grid"]
 
 FORMAT_VERSION = 6          # 6: names of buses, lines, trafos and the trafos' tap changers;
                             # 5: switches, taps, several ext grids; 4: sgen types and ratings;
@@ -107,8 +107,8 @@ def cached(key: dict, build: Callable[[], GridData], directory=None) -> GridData
         try:
             return _read(path, key)
         except Exception as exc:          # any damage to the file: rebuild, never crash
-            warn_cache(f"grid cache {path} is unreadable or modified ({type(exc).__name__}: {exc}); "
-                  "rebuilding it")
+            warn_cache(f"grid cache {path} is unreadable or modified "
+                       f"({type(exc).__name__}: {exc}); rebuilding it")
     data = build()
     try:
         _write(path, key, data)

@@ -8,8 +8,9 @@ loads are the model's shunts (:func:`adnmesh.grid.simbench_net.loads_as_impedanc
 own shunts first, constant, then one per in-service load); with ``power`` they are its loads.
 Values are simbench's ``get_absolute_values(net, profiles_instead_of_study_cases=True)`` times
 each element's ``scaling`` (0 for an element out of service), what
-:func:`adnmesh.grid.simbench_net.apply_time_step` puts into the net; static generators keep their saved reactive power (the profiles have
-none), storages and generators with profiles their active power per interval.
+:func:`adnmesh.grid.simbench_net.apply_time_step` puts into the net; static generators keep
+their saved reactive power (the profiles have none), storages and generators with profiles
+take their active power per interval.
 
 :func:`load_profiles` builds them with simbench (seconds: the net's download and parse) and
 keeps them in the grid cache folder (:mod:`adnmesh.grid.cache`) as one ``.npz`` whose arrays
