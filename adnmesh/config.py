@@ -672,7 +672,16 @@ class Maintenance(Section):
 
     @model_validator(mode="after")
     def _order(self) -> "Maintenance":
-        if self.end.replace(" ", "T").ljust(16, "0") <= self.start.replace(" ", "T").ljust(16, "0"):
+        import datetime
+        times = {}
+        for key in ("start", "end"):
+            text = getattr(self, key)
+            try:
+                times[key] = datetime.datetime.fromisoformat(text.replace(" ", "T"))
+            except ValueError:
+                raise _problem((key,), f"must be a date or time that exists, got {text}") \
+                    from None
+        if times["end"] <= times["start"]:
             raise _problem(("end",), f"must be after start ({self.start}), got {self.end}")
         return self
 

@@ -325,6 +325,26 @@ INVALID = {
         _rename("constraints.overshoot_max_pct", "overshot_max_pct"),
         "constraints.overshot_max_pct: unknown key (did you mean 'overshoot_max_pct'?)",
     ),
+    "maintenance of an unknown DER": (
+        _set("study", {"maintenance": [{"ders": ["SGen99"], "start": "2016-01-01",
+                                        "end": "2016-01-02"}]}),
+        "study.maintenance[0].ders[0]: unknown DER id 'SGen99' (known: SGen1, SGen2, SGen3, "
+        "SGen4, SGen5, SGen6, SGen7, SGen8, SGen9, SGen10, SGen11)",
+    ),
+    "maintenance ending before it starts": (
+        _set("study", {"maintenance": [{"ders": ["SGen1"], "start": "2016-01-02",
+                                        "end": "2016-01-01T12:00"}]}),
+        "study.maintenance[0].end: must be after start (2016-01-02), got 2016-01-01T12:00",
+    ),
+    "maintenance on a day that does not exist": (
+        _set("study", {"maintenance": [{"ders": ["SGen1"], "start": "2016-02-30",
+                                        "end": "2016-03-02"}]}),
+        "study.maintenance[0].start: must be a date or time that exists, got 2016-02-30",
+    ),
+    "no ICT at all": (
+        _set("study", {"ict_availability": 0}),
+        "study.ict_availability: must be a positive number, got 0",
+    ),
     "unknown section": (
         _set("power_flow", {"solver": "nr"}),
         "power_flow: unknown key (valid keys: grid, simbench_code, t_com_s, t_meas_s, "
@@ -430,7 +450,9 @@ INVALID = {
 # matches before a final newline (ECMA 262's, which JSON Schema specifies, does not)
 NOT_IN_SCHEMA = {"duplicate DER id", "duplicate sgen", "schedule above P_inst", "NaN",
                  "scenario names an unknown DER", "scenario names a DER twice",
-                 "event after the end", "events out of order", "id with a newline"}
+                 "event after the end", "events out of order", "id with a newline",
+                 "maintenance of an unknown DER", "maintenance ending before it starts",
+                 "maintenance on a day that does not exist"}
 
 
 @pytest.mark.parametrize("case", [case for case in INVALID if case not in NOT_IN_SCHEMA])

@@ -44,7 +44,7 @@ from adnmesh.files import write_atomic
 from adnmesh.grid.data import GridData, from_arrays, to_arrays
 
 __all__ = ["FORMAT_VERSION", "warn_cache", "default_cache_dir", "cache_key", "net_cache_key",
-           "cache_path", "is_cached", "model_path", "arrays_digest", "cached", "load_grid", "load_net_grid"]
+           "cache_path", "is_cached", "read_or_build", "model_path", "arrays_digest", "cached", "load_grid", "load_net_grid"]
 
 FORMAT_VERSION = 6          # 6: names of buses, lines, trafos and the trafos' tap changers;
                             # 5: switches, taps, several ext grids; 4: sgen types and ratings;
@@ -103,17 +103,26 @@ def is_cached(code: str, case: str, load_model: str, cache_dir=None) -> bool:
 def cached(key: dict, build: Callable[[], GridData], directory=None) -> GridData:
     """The data of ``key`` from the cache in ``directory``, else ``build()`` and store it."""
     path = cache_path(key, Path(directory) if directory is not None else default_cache_dir())
+    return read_or_build(path, lambda: _read(path, key), build,
+                         lambda data: _write(path, key, data), "grid cache")
+
+
+def read_or_build(path: Path, read: Callable[[], object], build: Callable[[], object],
+                  write: Callable[[object], None], what: str):
+    """``read()`` if ``path`` exists and reads; else ``build()``, then ``write()`` it. Any
+    damage to the file is a one-line warning and a rebuild, a file that cannot be written a
+    warning: the cache never stops the caller."""
     if path.exists():
         try:
-            return _read(path, key)
+            return read()
         except Exception as exc:          # any damage to the file: rebuild, never crash
-            warn_cache(f"grid cache {path} is unreadable or modified "
+            warn_cache(f"{what} {path} is unreadable or modified "
                        f"({type(exc).__name__}: {exc}); rebuilding it")
     data = build()
     try:
-        _write(path, key, data)
+        write(data)
     except OSError as exc:
-        warn_cache(f"grid cache {path} could not be written ({exc}); continuing without it")
+        warn_cache(f"{what} {path} could not be written ({exc}); continuing without it")
     return data
 
 

@@ -31,7 +31,7 @@ import numpy as np
 
 from adnmesh.errors import GridError
 from adnmesh.files import write_atomic
-from adnmesh.grid.cache import warn_cache, arrays_digest, cache_key, default_cache_dir
+from adnmesh.grid.cache import arrays_digest, cache_key, default_cache_dir, read_or_build
 
 __all__ = ["YearProfiles", "load_profiles", "profiles_of_net", "profiles_of_table",
            "PROFILE_FORMAT"]
@@ -204,19 +204,12 @@ def load_profiles(code: str, load_model: str = "impedance", cache_dir=None) -> Y
     profiles."""
     key = _key(code, load_model)
     path = _path(key, Path(cache_dir) if cache_dir is not None else default_cache_dir())
-    if path.exists():
-        try:
-            return _read(path, key)
-        except Exception as exc:          # any damage to the file: rebuild, never crash
-            warn_cache(f"profile cache {path} is unreadable or modified ({type(exc).__name__}: "
-                  f"{exc}); rebuilding it")
-    from adnmesh.grid.simbench_net import load_simbench_net
-    profiles = profiles_of_net(load_simbench_net(code), load_model)
-    try:
-        _write(path, key, profiles)
-    except OSError as exc:
-        warn_cache(f"profile cache {path} could not be written ({exc}); continuing without it")
-    return profiles
+
+    def build() -> YearProfiles:
+        from adnmesh.grid.simbench_net import load_simbench_net
+        return profiles_of_net(load_simbench_net(code), load_model)
+    return read_or_build(path, lambda: _read(path, key), build,
+                         lambda profiles: _write(path, key, profiles), "profile cache")
 
 
 def _write(path: Path, key: dict, profiles: YearProfiles) -> None:

@@ -63,6 +63,11 @@ class EntryFigures:
         self._tuner = None
         self.tuned = 0
 
+    @property
+    def subsets(self) -> int:
+        """Distinct subsets asked for so far."""
+        return len(self._cache)
+
     def __call__(self, mask: np.ndarray) -> Figures:
         key = np.packbits(mask).tobytes()
         out = self._cache.get(key)

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from adnmesh.study.availability import AVAILABLE, ICT, LOW_OUTPUT, MAINTENANCE, availability
+from adnmesh.study.availability import AVAILABLE, ICT, LOW_OUTPUT, availability
 from adnmesh.study.entries import EntryFigures
 from adnmesh.study.ranges import direction
 from adnmesh.tuning.subset_selection import DIRECTION_HEADROOM
@@ -45,7 +45,7 @@ class StudyResult:
     Attributes
     ----------
     columns : dict of str -> ndarray
-        One value per interval (docs/study.md#intervals names and units them).
+        One value per interval (docs/study.md#files names and units them).
     der_ids : tuple of str
     p_avail_w, p_sched_w : ndarray, shape (T, n)
         Each DER's available power and schedule per interval, W.
@@ -128,7 +128,6 @@ def study_year(config, profiles, data, p_avail_op_w: np.ndarray, table=None,
     available = reason == AVAILABLE
     infeed = np.where((reason == AVAILABLE) | (reason == ICT), sched,
                       np.where(reason == LOW_OUTPUT, p_avail, 0.0))
-    infeed[reason == MAINTENANCE] = 0.0
     q_der = data.sgen_q_mvar[index] * 1e6
 
     grid = _grid_columns(total)
@@ -166,7 +165,7 @@ def study_year(config, profiles, data, p_avail_op_w: np.ndarray, table=None,
     columns["blocked_down"] = _id_lists(blocked_down & available, ids)
     return StudyResult(columns=columns, der_ids=ids, p_avail_w=p_avail, p_sched_w=sched,
                        reason=reason, contribution=contribution,
-                       subsets=len(entries._cache), tuned=entries.tuned,
+                       subsets=entries.subsets, tuned=entries.tuned,
                        step_s=profiles.step_s, service_w=config.study.service_w)
 
 
