@@ -38,6 +38,7 @@ Accuracy: Newton-Raphson to a power mismatch below ``tol_pu`` (default 1e-8 p.u.
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -350,8 +351,8 @@ class GridSolver:
             if change is None:
                 raise GridError(f"grid solver: no injection kind {kind!r} (one of "
                                 f"{', '.join(setters)})")
-            for i, value in enumerate(np.asarray(values, dtype=float).tolist()):
-                change(i, value)
+            numbers = np.asarray(values, dtype=float).tolist()
+            deque(map(change, range(len(numbers)), numbers), maxlen=0)   # no Python loop
 
     def _powers(self, values, what: str) -> np.ndarray:
         out = np.asarray(values, dtype=float)

@@ -144,7 +144,8 @@ def study_year(config, profiles, data, p_avail_op_w: np.ndarray, table=None,
             or max(sample.line_loading_max_pct, sample.trafo_loading_max_pct)
             > guard_levels[5])
         if sample.converged and model.guard.mode != "off":
-            up, down, engaged = _guard(solver, model, ids, infeed[k], q_der, guard_levels)
+            up, down, engaged = _guard(solver, sample, model, ids, infeed[k], q_der,
+                                       guard_levels)
             grid["limited"][k] = engaged
             blocked_up[k], blocked_down[k] = up, down
         if progress is not None and (k % 500 == 499 or k == total - 1):
@@ -201,14 +202,13 @@ def _engage_levels(model) -> tuple[float, ...]:
             lim.loading_max_pct)
 
 
-def _guard(solver, model, ids, p_w, q_var, levels):
-    """``(blocked up, blocked down, engaged)`` at the solver's last solution."""
-    v_low, v_high, loading, v_min, v_max, loading_max = levels
-    vm = solver.bus_vm_pu()
-    line, trafo = solver.line_loading_pct(), solver.trafo_loading_pct()
-    top = max(np.max(line, initial=0.0), np.max(trafo, initial=0.0))
-    engaged = bool(vm.min(initial=np.inf) < v_low or vm.max(initial=-np.inf) > v_high
-                   or top > loading)
+def _guard(solver, sample, model, ids, p_w, q_var, levels):
+    """``(blocked up, blocked down, engaged)`` at the solver's last solution (``sample``, whose
+    extremes tell whether any quantity is within its margin)."""
+    v_low, v_high, loading = levels[:3]
+    line, trafo = sample.line_loading_max_pct, sample.trafo_loading_max_pct
+    top = max(line if line == line else 0.0, trafo if trafo == trafo else 0.0)  # NaN: none
+    engaged = bool(sample.vm_min_pu < v_low or sample.vm_max_pu > v_high or top > loading)
     n = len(ids)
     none = np.zeros(n, dtype=bool)
     if not engaged:
@@ -217,7 +217,8 @@ def _guard(solver, model, ids, p_w, q_var, levels):
     from adnmesh.grid.sensitivity import limit_sensitivities
 
     guard = GridGuard(model.guard, model.limits, ids, reactive=False)
-    values = GuardValues(vm, line, trafo, solver.bus_names, solver.line_names,
+    values = GuardValues(solver.bus_vm_pu(), solver.line_loading_pct(),
+                         solver.trafo_loading_pct(), solver.bus_names, solver.line_names,
                          solver.trafo_names)
     guard.observe(0, values, lambda: limit_sensitivities(solver, p_w, q_var))
     state = guard.state()
