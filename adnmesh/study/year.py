@@ -8,7 +8,7 @@ and the grid model at the profiles' first interval, and for every interval:
    ``study.schedule``'s (``share``: the share of its available power its ``p_sched_w`` is at
    the config's operating point; ``config``: its ``p_sched_w``, at most what it can deliver);
 2. the **power flow** with every load and generator at its profile and each DER at what it
-   feeds in: its schedule when available or cut off by ICT (a DER without its CPFC falls back
+   feeds in (its reactive power: ``q_sched_var`` with a Q loop, else its sgen's): its schedule when available or cut off by ICT (a DER without its CPFC falls back
    to its schedule), its available power when below the minimum output (not an actuator,
    still producing), nothing in maintenance: P_IP, Q_IP, the extreme voltages and loadings;
 3. where a voltage or a loading is within the guard's margin of its limit, the **guard**
@@ -128,7 +128,8 @@ def study_year(config, profiles, data, p_avail_op_w: np.ndarray, table=None,
     available = reason == AVAILABLE
     infeed = np.where((reason == AVAILABLE) | (reason == ICT), sched,
                       np.where(reason == LOW_OUTPUT, p_avail, 0.0))
-    q_der = data.sgen_q_mvar[index] * 1e6
+    q_der = (np.array([d.q_sched_var for d in ders], dtype=float) if config.reactive is not None
+             else data.sgen_q_mvar[index] * 1e6)       # the Q schedules with a Q loop
 
     grid = _grid_columns(total)
     blocked_up = np.zeros((total, n), dtype=bool)
