@@ -48,6 +48,7 @@ import os
 import signal
 import threading
 import time
+import weakref
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -300,7 +301,8 @@ class _Launch:
         self._handles = [
             bus,
             session.liveliness().declare_subscriber(f"{self.keys.root}/alive/**",
-                                                    self.on_alive, history=True),
+                                                    _weak_callback(self.on_alive),
+                                                    history=True),
         ]
         self.sessions.declare(session)
         self._token = session.liveliness().declare_token(self.keys.liveliness("up"))
@@ -811,6 +813,20 @@ def _keys_of(launch: _Launch, agents) -> set[str]:
         found |= set(launch.topology.publishes(agent))
         found |= {keys.of("clock_report", agent), keys.of("agent_bye", agent)}
     return found
+
+
+def _weak_callback(method: Callable[[zenoh.Sample], None]) -> Callable[[zenoh.Sample], None]:
+    """``method`` as a Zenoh callback that does not keep its object alive: Zenoh may drop a
+    callback after its undeclare without the GIL, and pyo3 then defers the decref to whenever
+    it next holds the GIL, so a bound method would keep the whole run (its launch, roster,
+    clock) alive after ``run`` returned. Calls after the object is gone do nothing."""
+    ref = weakref.WeakMethod(method)
+
+    def call(sample: zenoh.Sample) -> None:
+        bound = ref()
+        if bound is not None:
+            bound(sample)
+    return call
 
 
 def run(options: UpOptions) -> UpResult:
