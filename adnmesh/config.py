@@ -88,9 +88,11 @@ that grow at most to the shortest forward delay: at the limit ~10,000 steps per 
 335 s; 3,600 s, 6x, over 240 s)."""
 _IDENTIFIER = rf"^{ID_PATTERN}$"
 _AGENT = rf"^{AGENT_PATTERN}$"
+_ISO_TIME = r"^\d{4}-\d{2}-\d{2}([T ]\d{2}:\d{2})?$"
 _PATTERNS = {
     _IDENTIFIER: "an identifier (letters, digits, '_', '-'; starting with a letter)",
     _AGENT: f"{', '.join(SINGLE_AGENT_KINDS)} or {PER_DER_KIND}/<id>",
+    _ISO_TIME: "a date (2016-06-01) or a time (2016-06-01T12:00), without a time zone",
 }
 """How a pattern reads in an error message: ``must be <words>, got ...``."""
 
@@ -644,18 +646,9 @@ class Reactive(Section):
     """Constant part of Q_IP besides the DERs' reactive infeeds without a grid model, var."""
 
 
-def _iso_time(value: Any) -> Any:
-    """A YAML date or time (read as ``datetime.date``/``datetime``) as its ISO text."""
-    import datetime
-    if isinstance(value, (datetime.date, datetime.datetime)):
-        return value.isoformat(sep="T", timespec="minutes") if isinstance(
-            value, datetime.datetime) else value.isoformat()
-    return value
-
-
-_IsoTime = Annotated[str, BeforeValidator(_iso_time),
-                     Field(pattern=r"^\d{4}-\d{2}-\d{2}([T ]\d{2}:\d{2})?$", max_length=16)]
-"""A date (``2016-06-01``) or a time (``2016-06-01T12:00``), in the profiles' local time."""
+_IsoTime = Annotated[str, Field(pattern=_ISO_TIME)]
+"""A date (``2016-06-01``) or a time (``2016-06-01T12:00``), in the profiles' local time (the
+config loader reads YAML dates as text: they are checked here, not by the YAML parser)."""
 
 
 class Maintenance(Section):
@@ -1041,8 +1034,10 @@ class _Loader(getattr(yaml, "CSafeLoader", yaml.SafeLoader)):  # libyaml's parse
 
 
 _MERGE, _FLOAT = "tag:yaml.org,2002:merge", "tag:yaml.org,2002:float"
+_TIMESTAMP = "tag:yaml.org,2002:timestamp"    # dates stay text: PyYAML's constructor raises a
+                                              # traceback for 2016-13-01; the fields check them
 _Loader.yaml_implicit_resolvers = {
-    first: [(tag, regexp) for tag, regexp in resolvers if tag != _FLOAT]
+    first: [(tag, regexp) for tag, regexp in resolvers if tag not in (_FLOAT, _TIMESTAMP)]
     for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()
 }
 _Loader.add_implicit_resolver(_FLOAT, re.compile(

@@ -250,6 +250,10 @@ def test_study_is_deterministic_and_its_service_follows_the_command_line(case, w
 
 @pytest.mark.parametrize("extra, words", [
     (("--start", "yesterday"), "--start 'yesterday': not a date"),
+    (("--start", ""), "--start '': not a date"),
+    (("--start", "20160101"), "--start '20160101': not a date"),
+    (("--start", "2016-01-01T12:00+02:00"), "--start '2016-01-01T12:00+02:00': not a date"),
+    (("--end", "2016-02-30"), "--end '2016-02-30': not a date"),
     (("--start", "2016-03-02", "--end", "2016-03-01"), "no interval of the profiles"),
     (("--service-mw", "-1"), "--service-mw must be in"),
     (("--verify", "99"), "--verify must be 0 to 20"),
@@ -384,7 +388,7 @@ def test_your_own_time_series_match_pandapower_runpp(study_inputs, tmp_path):
                                                    "sgen.q:x": 1}], "column 'sgen.q:x' is none"),
     ([{"time": "2024-03-01T00:00", "sgen.p_mw:x": 1}, {"time": "2024-03-01T00:15",
                                                       "sgen.p_mw:x": "nan"}],
-     "column 'sgen.p_mw:x', row 3: no finite number"),
+     "column 'sgen.p_mw:x', row 3: not a number within ±10000 MW or Mvar, got nan"),
     ([{"time": "2024-03-01T00:00", "sgen.p_mw:x": 1}, {"time": "2024-03-01T00:15",
                                                       "sgen.p_mw:x": "a lot"}],
      "holds string, not numbers"),
@@ -397,6 +401,78 @@ def test_bad_profile_files_are_one_line_errors(tmp_path, capsys, rows, words):
                  str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err
     assert words in err and len(err.strip().splitlines()) == 1, err
+
+
+def _study_main(path: Path, tmp_path: Path, capsys) -> str:
+    from adnmesh.cli import main
+
+    assert main(["study", str(CONFIG), "--profiles", str(path), "--out",
+                 str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+    return err
+
+
+def test_repeated_columns_an_undecodable_header_and_absurd_values_are_one_line_errors(
+        tmp_path, capsys):
+    twice = tmp_path / "twice.csv"
+    twice.write_text("time,sgen.p_mw:MV1.101 SGen 1,sgen.p_mw:MV1.101 SGen 1\n"
+                     "2024-03-01T00:00,1,1\n2024-03-01T00:15,1,1\n")
+    assert "column 'sgen.p_mw:MV1.101 SGen 1' is given 2 times" in _study_main(
+        twice, tmp_path, capsys)
+    latin = tmp_path / "latin.csv"
+    latin.write_bytes(b"time,sgen.p_mw:\xdc\x1b[31m\n2024-03-01T00:00,1\n2024-03-01T00:15,1\n")
+    assert "the column names are not UTF-8 text" in _study_main(latin, tmp_path, capsys)
+    huge = _write_series(tmp_path / "huge.csv", [
+        {"time": "2024-03-01T00:00", "load.p_mw:MV1.101 Load 2": 0.1},
+        {"time": "2024-03-01T00:15", "load.p_mw:MV1.101 Load 2": 1e300}])
+    assert "row 3: not a number within ±10000 MW or Mvar, got 1e+300" in _study_main(
+        huge, tmp_path, capsys)
+
+
+def test_parquet_times_with_a_zone_are_refused(tmp_path):
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from adnmesh.errors import GridError
+    from adnmesh.grid.profile_file import read_profile_table
+
+    path = tmp_path / "zoned.parquet"
+    times = pa.array(np.array(["2024-03-01T00:00", "2024-03-01T00:15"], dtype="datetime64[ms]"),
+                     type=pa.timestamp("ms", tz="Europe/Berlin"))
+    pq.write_table(pa.table({"time": times, "sgen.p_mw:x": [1.0, 2.0]}), path)
+    with pytest.raises(GridError, match="the times carry a time zone"):
+        read_profile_table(path)
+
+
+def test_the_profile_file_is_never_overwritten_by_the_results(tmp_path, capsys):
+    from adnmesh.cli import main
+
+    out = tmp_path / "out"
+    out.mkdir()
+    mine = _write_series(out / "intervals.csv", [
+        {"time": "2024-03-01T00:00", "sgen.p_mw:MV1.101 SGen 1": 1},
+        {"time": "2024-03-01T00:15", "sgen.p_mw:MV1.101 SGen 1": 1}])
+    before = mine.read_bytes()
+    assert main(["study", str(CONFIG), "--profiles", str(mine), "--out", str(out)]) == 2
+    assert "is one of the files the study writes" in capsys.readouterr().err
+    assert mine.read_bytes() == before
+
+
+def test_verify_without_a_table_fails_before_anything_is_written(tmp_path, capsys):
+    from adnmesh.cli import main
+    from adnmesh.commands.study import TABLE_DERS
+
+    document = yaml.safe_load(CONFIG.read_text())
+    base = document["ders"][0]
+    document["ders"] += [dict(base, id=f"Extra{i}", sgen=f"MV1.101 SGen {13 + i}",
+                              p_sched_w=0.0) for i in range(TABLE_DERS + 1 - 11)]
+    path = tmp_path / "many.yaml"
+    path.write_text(yaml.safe_dump(document, sort_keys=False))
+    out = tmp_path / "out"
+    assert main(["study", str(path), "--out", str(out), "--verify", "1"]) == 2
+    assert "--verify: needs a gain table" in capsys.readouterr().err
+    assert not (out / "intervals.csv").exists()
 
 
 def test_a_series_of_an_element_the_net_lacks_is_a_one_line_error(tmp_path, capsys):

@@ -13,7 +13,7 @@ from rich.console import Console
 from adnmesh.commands import add_config_argument, output_path
 from adnmesh.errors import UsageError
 
-__all__ = ["add_parser", "run", "interval_range", "TABLE_DERS"]
+__all__ = ["add_parser", "run", "interval_range", "parse_when", "TABLE_DERS", "OUTPUTS"]
 
 #: without a table, every subset is tuned first up to this many DERs (4,095 subsets, seconds
 #: with the global search); beyond, the subsets the year meets are tuned on demand
@@ -57,26 +57,52 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     return parser
 
 
+def parse_when(text: str | None, option: str):
+    """``--start`` / ``--end`` as datetime64[m] (None for None): a date ``2016-03-01`` or a
+    time ``2016-03-01T12:00`` (or with a space) that exists, no time zone; one-line error
+    otherwise."""
+    import datetime
+    import re
+
+    if text is None:
+        return None
+    words = f"{option} {text!r}: not a date or time (e.g. 2016-03-01 or 2016-03-01T12:00)"
+    if not re.fullmatch(r"\d{4}-\d{2}-\d{2}([T ]\d{2}:\d{2})?", text.strip()):
+        raise UsageError(words)
+    try:
+        moment = datetime.datetime.fromisoformat(text.strip().replace(" ", "T"))
+    except ValueError:
+        raise UsageError(words) from None
+    return np.datetime64(moment.strftime("%Y-%m-%dT%H:%M"), "m")
+
+
 def interval_range(times: np.ndarray, start: str | None, end: str | None) -> tuple[int, int]:
     """``(first, stop)`` indices of ``times`` in ``[start, end)``; one-line error for a bad
     date or an empty range."""
-    from adnmesh.study.availability import parse_time
-
-    def when(text: str, option: str):
-        try:
-            return parse_time(text)
-        except ValueError:
-            raise UsageError(f"{option} {text!r}: not a date or time (e.g. 2016-03-01 or "
-                             "2016-03-01T12:00)") from None
     first, stop = 0, len(times)
     if start is not None:
-        first = int(np.searchsorted(times, when(start, "--start"), side="left"))
+        first = int(np.searchsorted(times, parse_when(start, "--start"), side="left"))
     if end is not None:
-        stop = int(np.searchsorted(times, when(end, "--end"), side="left"))
+        stop = int(np.searchsorted(times, parse_when(end, "--end"), side="left"))
     if stop <= first:
         raise UsageError(f"--start/--end: no interval of the profiles ({times[0]} to "
                          f"{times[-1]}) lies in [{start or times[0]}, {end or 'end'})")
     return first, stop
+
+
+#: the files the study writes into --out
+OUTPUTS = ("intervals.csv", "ders.csv", "summary.json", "duration.png", "heatmap_rise.png",
+           "heatmap_range.png", "limits.png", "contribution.png")
+
+
+def _not_an_output(profiles: str | None, out_dir: Path) -> None:
+    """Refuse a ``--profiles`` file that the study would overwrite with its results."""
+    if profiles is None:
+        return
+    given = Path(profiles).resolve()
+    if any(given == (out_dir / name).resolve() for name in OUTPUTS):
+        raise UsageError(f"--profiles {profiles}: is one of the files the study writes into "
+                         f"--out {out_dir}; keep it elsewhere or choose another --out")
 
 
 def _config(args):
@@ -168,19 +194,27 @@ def run(args: argparse.Namespace) -> int:
     from adnmesh.study.outputs import summary, write_ders, write_intervals, write_summary
     from adnmesh.study.year import study_year
 
+    parse_when(args.start, "--start")             # the command line's problems first
+    parse_when(args.end, "--end")
     config = _config(args)
     out_dir = output_path(Path(args.out) if args.out else
                           Path("logs") / f"study-{Path(config.path).stem}", "--out",
                           directory=True)
+    _not_an_output(args.profiles, out_dir)
+    if args.verify:
+        output_path(out_dir / "verify", "--out (its verify folder)", directory=True)
     console = Console(stderr=True, highlight=False)
     load_model = config.grid_model.load_model
     t0 = time.perf_counter()
+    table, table_path = _table(args, config, console)
+    if args.verify and table_path is None:        # before the study writes anything
+        raise UsageError("--verify: needs a gain table (--table; a config of more than "
+                         f"{TABLE_DERS} DERs has none of its own)")
     profiles, data, code = _year(config, args.profiles)
     first, stop = interval_range(profiles.times, args.start, args.end)
     profiles = profiles.window(first, stop)
     power = available_power_w(config)
     p_op = np.array([power[d] for d in config.der_ids()], dtype=float)
-    table, table_path = _table(args, config, console)
     t1 = time.perf_counter()
     with Progress(TextColumn("studying"), BarColumn(), MofNCompleteColumn(),
                   TextColumn("intervals"), TimeElapsedColumn(), console=console,
@@ -197,12 +231,11 @@ def run(args: argparse.Namespace) -> int:
                                        "load_model": load_model,
                                        "seconds": {"setup": round(t1 - t0, 3),
                                                    "study": round(t2 - t1, 3)}})
-    if args.verify:
-        from adnmesh.study.verify import verify
-        if table_path is None:
-            raise UsageError("--verify: needs a gain table (--table)")
-        figures["verify"] = verify(config, result, args.verify, out_dir, table_path, console)
     files.append(write_summary(figures, out_dir / "summary.json"))
+    if args.verify:                              # the summary again, with the runs' figures
+        from adnmesh.study.verify import verify
+        figures["verify"] = verify(config, result, args.verify, out_dir, table_path, console)
+        write_summary(figures, out_dir / "summary.json")
     _print(figures, config, files, console)
     return 0
 

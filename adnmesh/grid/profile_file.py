@@ -24,10 +24,12 @@ import numpy as np
 from adnmesh.errors import GridError
 from adnmesh.files import read_regular, unreadable
 
-__all__ = ["MAX_PROFILE_BYTES", "SERIES", "read_profile_table"]
+__all__ = ["MAX_PROFILE_BYTES", "MAX_SERIES_MW", "SERIES", "read_profile_table"]
 
 #: the largest profile file read, bytes
 MAX_PROFILE_BYTES = 1024 * 2**20
+#: the largest power a series may give, MW or Mvar (the config's bound on a DER, 10 GW)
+MAX_SERIES_MW = 1e4
 #: column prefixes: (element table, column of it)
 SERIES = {"sgen.p_mw": ("sgen", "p_mw"), "load.p_mw": ("load", "p_mw"),
           "load.q_mvar": ("load", "q_mvar"), "storage.p_mw": ("storage", "p_mw"),
@@ -46,19 +48,31 @@ def _table(path: Path):
             import pyarrow.parquet as pq
             return pq.read_table(pa.BufferReader(data))
         import pyarrow.csv as pcsv
-        return pcsv.read_csv(pa.BufferReader(data), convert_options=pcsv.ConvertOptions(
-            column_types={"time": pa.string()}))
-    except (pa.ArrowException, ValueError, OSError) as exc:
-        text = " ".join(str(exc).split())[:160]
+        block = min(max(len(data) + 1, 1 << 20), (1 << 31) - 1)   # the header fits one block
+        return pcsv.read_csv(pa.BufferReader(data),
+                             read_options=pcsv.ReadOptions(block_size=block),
+                             convert_options=pcsv.ConvertOptions(
+                                 column_types={"time": pa.string()}))
+    except (pa.ArrowException, ValueError, OSError, KeyError) as exc:
+        text = _printable(" ".join(str(exc).split())[:160])
         raise GridError(f"profiles: {path} cannot be read as "
                         f"{'Parquet' if path.suffix.lower() in ('.parquet', '.pq') else 'CSV'}"
                         f": {text}") from None
+
+
+def _printable(text: str) -> str:
+    """``text`` with every character a terminal would act on shown as ``?``."""
+    return "".join(c if c.isprintable() else "?" for c in text)
 
 
 def _times(path: Path, column) -> np.ndarray:
     import pyarrow as pa
 
     if pa.types.is_timestamp(column.type):
+        if column.type.tz is not None:
+            raise GridError(f"profiles: {path}: the times carry a time zone "
+                            f"({_printable(column.type.tz)}); give local times without one, "
+                            "as the profiles' own")
         return column.to_numpy(zero_copy_only=False).astype("datetime64[m]")
     out = np.empty(len(column), dtype="datetime64[m]")
     for i, text in enumerate(column.to_pylist()):
@@ -78,12 +92,20 @@ def read_profile_table(path: str | Path) -> tuple[np.ndarray, dict[tuple[str, st
     """``(times, series)`` of a profile file: times as datetime64[m]; ``series[(table,
     column)]`` maps element names to their values per interval (float arrays). One-line
     :class:`GridError` for a file that cannot be read, a missing or bad time column, a
-    column of no known kind, a repeated column, or a value that is no finite number."""
+    column of no known kind, a repeated column, or a value that is no number within
+    ±:data:`MAX_SERIES_MW`."""
     import pyarrow as pa
 
     path = Path(path)
     table = _table(path)
-    names = table.column_names
+    try:
+        names = table.column_names
+    except UnicodeDecodeError:
+        raise GridError(f"profiles: {path}: the column names are not UTF-8 text") from None
+    repeated = sorted({n for n in names if names.count(n) > 1})
+    if repeated:
+        raise GridError(f"profiles: {path}: column {_printable(repeated[0])!r} is given "
+                        f"{names.count(repeated[0])} times")
     if "time" not in names:
         raise GridError(f"profiles: {path}: no 'time' column (columns: "
                         f"{', '.join(names[:5])}{', ...' if len(names) > 5 else ''})")
@@ -95,26 +117,28 @@ def read_profile_table(path: str | Path) -> tuple[np.ndarray, dict[tuple[str, st
     if not (steps > np.timedelta64(0, "m")).all() or (steps != steps[0]).any():
         bad = int(np.flatnonzero((steps <= np.timedelta64(0, "m")) | (steps != steps[0]))[0])
         raise GridError(f"profiles: {path}: row {bad + 3}: times must increase in equal steps "
-                        f"({times[bad]} then {times[bad + 1]})")
+                        f"of whole minutes ({times[bad]} then {times[bad + 1]}; times are read "
+                        "to the minute)")
     series: dict[tuple[str, str], dict] = {}
     for name in names:
         if name == "time":
             continue
         prefix, colon, element = name.partition(":")
         if not colon or prefix not in SERIES or not element:
-            raise GridError(f"profiles: {path}: column {name!r} is none of "
+            raise GridError(f"profiles: {path}: column {_printable(name)!r} is none of "
                             f"{', '.join(k + ':<name>' for k in SERIES)}")
         column = table.column(name)
         if not (pa.types.is_floating(column.type) or pa.types.is_integer(column.type)):
-            raise GridError(f"profiles: {path}: column {name!r} holds {column.type}, not "
-                            "numbers")
+            raise GridError(f"profiles: {path}: column {_printable(name)!r} holds "
+                            f"{column.type}, not numbers")
         values = column.to_numpy(zero_copy_only=False).astype(float)
-        bad = np.flatnonzero(~np.isfinite(values))
+        bad = np.flatnonzero(~(np.abs(values) <= MAX_SERIES_MW))
         if bad.size:
-            raise GridError(f"profiles: {path}: column {name!r}, row {int(bad[0]) + 2}: no "
-                            "finite number")
+            raise GridError(f"profiles: {path}: column {_printable(name)!r}, row "
+                            f"{int(bad[0]) + 2}: not a number within ±{MAX_SERIES_MW:g} MW or "
+                            f"Mvar, got {float(values[bad[0]])!r}")
         target = series.setdefault(SERIES[prefix], {})
         if element in target:
-            raise GridError(f"profiles: {path}: column {name!r} is given twice")
+            raise GridError(f"profiles: {path}: column {_printable(name)!r} is given twice")
         target[element] = values
     return times, series

@@ -158,6 +158,8 @@ def study_year(config, profiles, data, p_avail_op_w: np.ndarray, table=None,
     use_down = available & ~blocked_down & (sched >= margin)
     columns, contribution = _ranges(config, entries, available, use_up, use_down,
                                     p_avail - sched, sched)
+    for name in ("service", "service_up", "service_down"):   # no grid, no service
+        columns[name] &= grid["converged"]
     columns.update(grid)
     columns["interval"] = np.arange(first_interval, first_interval + total)
     columns["time"] = profiles.times
