@@ -206,13 +206,13 @@ def run(args: argparse.Namespace) -> int:
     console = Console(stderr=True, highlight=False)
     load_model = config.grid_model.load_model
     t0 = time.perf_counter()
+    profiles, data, code = _year(config, args.profiles)   # a bad profile file: before a table
+    first, stop = interval_range(profiles.times, args.start, args.end)
+    profiles = profiles.window(first, stop)
     table, table_path = _table(args, config, console)
     if args.verify and table_path is None:        # before the study writes anything
         raise UsageError("--verify: needs a gain table (--table; a config of more than "
                          f"{TABLE_DERS} DERs has none of its own)")
-    profiles, data, code = _year(config, args.profiles)
-    first, stop = interval_range(profiles.times, args.start, args.end)
-    profiles = profiles.window(first, stop)
     power = available_power_w(config)
     p_op = np.array([power[d] for d in config.der_ids()], dtype=float)
     t1 = time.perf_counter()
