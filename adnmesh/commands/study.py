@@ -61,19 +61,15 @@ def parse_when(text: str | None, option: str):
     """``--start`` / ``--end`` as datetime64[m] (None for None): a date ``2016-03-01`` or a
     time ``2016-03-01T12:00`` (or with a space) that exists, no time zone; one-line error
     otherwise."""
-    import datetime
-    import re
+    from adnmesh.study.availability import parse_time
 
     if text is None:
         return None
-    words = f"{option} {text!r}: not a date or time (e.g. 2016-03-01 or 2016-03-01T12:00)"
-    if not re.fullmatch(r"\d{4}-\d{2}-\d{2}([T ]\d{2}:\d{2})?", text.strip()):
-        raise UsageError(words)
     try:
-        moment = datetime.datetime.fromisoformat(text.strip().replace(" ", "T"))
+        return parse_time(text)
     except ValueError:
-        raise UsageError(words) from None
-    return np.datetime64(moment.strftime("%Y-%m-%dT%H:%M"), "m")
+        raise UsageError(f"{option} {text!r}: not a date or time (e.g. 2016-03-01 or "
+                         "2016-03-01T12:00)") from None
 
 
 def interval_range(times: np.ndarray, start: str | None, end: str | None) -> tuple[int, int]:

@@ -167,6 +167,11 @@ class GridSolver:
         self._act = [int(i) for i in data.sgen_index(self.actuator_sgens)]
         self._grid = data.lsgrid.copy()
         _single_slack_nr(self._grid)
+        grid = self._grid
+        self._setters = {"sgen_p": grid.change_p_sgen, "load_p": grid.change_p_load,
+                         "load_q": grid.change_q_load, "shunt_p": grid.change_p_shunt,
+                         "shunt_q": grid.change_q_shunt, "storage_p": grid.change_p_storage,
+                         "gen_p": grid.change_p_gen}     # set_injections' kinds
         self._max_iter, self._tol = int(max_iter), float(tol_pu)
         self._v = data.v_init.astype(complex).copy()
         reported = _without_slack(data.report_bus, self._grid, data.slack_gen)
@@ -341,11 +346,7 @@ class GridSolver:
         element of that kind in the model's order, MW or Mvar. The actuators' own sgens take
         the value too, until :meth:`solve` gives them theirs. The next :meth:`solve` solves
         with them, from the last solution."""
-        grid = self._grid
-        setters = {"sgen_p": grid.change_p_sgen, "load_p": grid.change_p_load,
-                   "load_q": grid.change_q_load, "shunt_p": grid.change_p_shunt,
-                   "shunt_q": grid.change_q_shunt, "storage_p": grid.change_p_storage,
-                   "gen_p": grid.change_p_gen}
+        setters = self._setters
         for kind, values in injections.items():
             change = setters.get(kind)
             if change is None:

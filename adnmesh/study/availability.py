@@ -26,8 +26,15 @@ REASONS = {AVAILABLE: "available", LOW_OUTPUT: "low output", MAINTENANCE: "maint
 
 
 def parse_time(text: str) -> np.datetime64:
-    """``2016-06-01`` or ``2016-06-01T12:00`` (or with a space) as datetime64[m]."""
-    return np.datetime64(text.strip().replace(" ", "T"), "m")
+    """``2016-06-01`` or ``2016-06-01T12:00`` (or with a space) as datetime64[m];
+    ``ValueError`` for anything else (a zone, another format, a day that does not exist)."""
+    import datetime
+    import re
+
+    if not re.fullmatch(r"\d{4}-\d{2}-\d{2}([T ]\d{2}:\d{2})?", text.strip()):
+        raise ValueError(f"not a date or time: {text!r}")
+    moment = datetime.datetime.fromisoformat(text.strip().replace(" ", "T"))
+    return np.datetime64(moment.strftime("%Y-%m-%dT%H:%M"), "m")
 
 
 def window_mask(times: np.ndarray, start: str, end: str) -> np.ndarray:

@@ -1,7 +1,9 @@
 """The gain table's entry for each subset the year goes through, and its figures.
 
-:class:`EntryFigures` looks a subset up in the table (``adnmesh tune``'s, if there is one) and
-tunes the subsets the table lacks on demand (:class:`adnmesh.tuning.ondemand.OnDemandTuner`,
+:class:`EntryFigures` asks the CPFC's own gain schedule
+(:class:`adnmesh.control.cpfc_controller.GainSchedule`) for a subset's entry, so the study
+uses the entry the CPFC would: the table's (``adnmesh tune``'s, if there is one) where it is
+feasible, else one tuned on demand (:class:`adnmesh.tuning.ondemand.OnDemandTuner`,
 warm-started from the table; certified like a table entry), once per subset. A subset's
 figures are those of the as-deployed loop (weights applied): rise time, settling time,
 overshoot, disk margin, and the weights that share a step among its DERs.
@@ -55,18 +57,22 @@ class EntryFigures:
     """
 
     def __init__(self, config, table=None) -> None:
-        self.config = config
-        self.table = table
+        from adnmesh.control.cpfc_controller import GainSchedule
+
         self.ids = config.der_ids()
         self.p_inst = np.array([d.p_inst_w for d in config.ders], dtype=float)
+        self._schedule = GainSchedule(config, table)
         self._cache: dict[bytes, Figures] = {}
-        self._tuner = None
-        self.tuned = 0
 
     @property
     def subsets(self) -> int:
         """Distinct subsets asked for so far."""
         return len(self._cache)
+
+    @property
+    def tuned(self) -> int:
+        """Of them, those tuned on demand (the table lacked them or had no feasible entry)."""
+        return sum(f.tuned for f in self._cache.values())
 
     def __call__(self, mask: np.ndarray) -> Figures:
         key = np.packbits(mask).tobytes()
@@ -75,22 +81,13 @@ class EntryFigures:
             out = self._cache[key] = self._figures(mask)
         return out
 
-    def _entry(self, ders: tuple[str, ...]):
-        entry = self.table.lookup(ders) if self.table is not None else None
-        if entry is not None and entry.kp == entry.kp:
-            return entry, False
-        if self._tuner is None:
-            from adnmesh.tuning.ondemand import OnDemandTuner
-            self._tuner = OnDemandTuner(self.config, self.table)
-        self.tuned += 1
-        return self._tuner.tune(ders), True
-
     def _figures(self, mask: np.ndarray) -> Figures:
         n = len(self.ids)
         if not mask.any():
             return Figures(False, NONE, NONE, NONE, NONE, np.zeros(n))
-        ders = tuple(d for d, m in zip(self.ids, mask) if m)
-        entry, tuned = self._entry(ders)
+        entry, source = self._schedule.lookup(
+            frozenset(d for d, m in zip(self.ids, mask) if m))
+        tuned = source == "tuned"
         f = entry.figures
         weights = np.array([entry.w.get(d, 0.0) if m else 0.0
                             for d, m in zip(self.ids, mask)], dtype=float)

@@ -12,6 +12,7 @@ the headline figures.
 from __future__ import annotations
 
 import csv
+import io
 import json
 import math
 from pathlib import Path
@@ -61,21 +62,23 @@ def _cells(values: np.ndarray, scale) -> list[str]:
     return ["" if v != v else repr(v) for v in scaled.tolist()]
 
 
+def _write_csv(path: Path, header: list[str], rows) -> Path:
+    """``header`` and ``rows`` (sequences of cells) as a CSV file, written atomically."""
+    def write(fh) -> None:
+        text = io.TextIOWrapper(fh, encoding="utf-8", newline="")
+        out = csv.writer(text, lineterminator="\n")
+        out.writerow(header)
+        out.writerows(rows)
+        text.flush()
+        text.detach()
+    return write_atomic(path, write)
+
+
 def write_intervals(result, path: Path) -> Path:
     """``intervals.csv`` of ``result`` (:class:`adnmesh.study.year.StudyResult`)."""
     columns = [_cells(np.asarray(result.columns[key]), scale)
                for _, key, scale in INTERVAL_COLUMNS]
-    header = [name for name, _, _ in INTERVAL_COLUMNS]
-
-    def write(fh) -> None:
-        import io
-        text = io.TextIOWrapper(fh, encoding="utf-8", newline="")
-        out = csv.writer(text, lineterminator="\n")
-        out.writerow(header)
-        out.writerows(zip(*columns))
-        text.flush()
-        text.detach()
-    return write_atomic(path, write)
+    return _write_csv(path, [name for name, _, _ in INTERVAL_COLUMNS], zip(*columns))
 
 
 def der_rows(result) -> list[dict]:
@@ -110,17 +113,8 @@ def der_rows(result) -> list[dict]:
 def write_ders(result, path: Path) -> Path:
     """``ders.csv`` (:func:`der_rows`)."""
     rows = der_rows(result)
-
-    def write(fh) -> None:
-        import io
-        text = io.TextIOWrapper(fh, encoding="utf-8", newline="")
-        out = csv.DictWriter(text, fieldnames=list(rows[0]), lineterminator="\n")
-        out.writeheader()
-        out.writerows({k: (repr(v) if isinstance(v, float) else v) for k, v in r.items()}
-                      for r in rows)
-        text.flush()
-        text.detach()
-    return write_atomic(path, write)
+    return _write_csv(path, list(rows[0]), ([repr(v) if isinstance(v, float) else v
+                                             for v in r.values()] for r in rows))
 
 
 def _percentiles(values: np.ndarray, scale: float) -> dict:

@@ -140,10 +140,6 @@ def study_year(config, profiles, data, p_avail_op_w: np.ndarray, table=None,
         solver.set_injections(profiles.injections(k))
         sample = solver.solve(infeed[k], q_der)
         _store(grid, k, sample)
-        grid["violated"][k] = sample.converged and (
-            sample.vm_min_pu < guard_levels[3] or sample.vm_max_pu > guard_levels[4]
-            or max(sample.line_loading_max_pct, sample.trafo_loading_max_pct)
-            > guard_levels[5])
         if sample.converged and model.guard.mode != "off":
             up, down, engaged = _guard(solver, sample, model, ids, infeed[k], q_der,
                                        guard_levels)
@@ -152,6 +148,12 @@ def study_year(config, profiles, data, p_avail_op_w: np.ndarray, table=None,
         if progress is not None and (k % 500 == 499 or k == total - 1):
             progress(k + 1, total)
 
+    limits = model.limits
+    with np.errstate(invalid="ignore"):             # NaN where not converged: not violated
+        grid["violated"] = ((grid["vm_min_pu"] < limits.v_min_pu)
+                            | (grid["vm_max_pu"] > limits.v_max_pu)
+                            | (np.fmax(grid["line_max_pct"], grid["trafo_max_pct"])
+                               > limits.loading_max_pct))
     entries = EntryFigures(config, table)
     margin = DIRECTION_HEADROOM * p_inst[None, :]
     use_up = available & ~blocked_up & (p_avail - sched >= margin)
@@ -183,7 +185,6 @@ def _grid_columns(total: int) -> dict:
     out.update({name: np.empty(total, dtype=object) for name in _GRID_TEXT})
     out["converged"] = np.zeros(total, dtype=bool)
     out["limited"] = np.zeros(total, dtype=bool)
-    out["violated"] = np.zeros(total, dtype=bool)
     return out
 
 
@@ -197,18 +198,17 @@ def _store(grid: dict, k: int, s) -> None:
     grid["converged"][k] = s.converged
 
 
-def _engage_levels(model) -> tuple[float, ...]:
-    """(v low engage, v high engage, loading engage, v min, v max, loading max)."""
+def _engage_levels(model) -> tuple[float, float, float]:
+    """The guard's engaging levels: (low voltage, high voltage, loading), p.u. and %."""
     lim, g = model.limits, model.guard
     return (lim.v_min_pu + g.v_margin_pu, lim.v_max_pu - g.v_margin_pu,
-            lim.loading_max_pct - g.loading_margin_pct, lim.v_min_pu, lim.v_max_pu,
-            lim.loading_max_pct)
+            lim.loading_max_pct - g.loading_margin_pct)
 
 
 def _guard(solver, sample, model, ids, p_w, q_var, levels):
     """``(blocked up, blocked down, engaged)`` at the solver's last solution (``sample``, whose
     extremes tell whether any quantity is within its margin)."""
-    v_low, v_high, loading = levels[:3]
+    v_low, v_high, loading = levels
     line, trafo = sample.line_loading_max_pct, sample.trafo_loading_max_pct
     top = max(line if line == line else 0.0, trafo if trafo == trafo else 0.0)  # NaN: none
     engaged = bool(sample.vm_min_pu < v_low or sample.vm_max_pu > v_high or top > loading)
