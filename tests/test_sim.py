@@ -225,7 +225,9 @@ def test_coordinator_starts_one_stage_and_rejects_protocol_errors(config: Config
     assert clock.on_report(Report("measurement", 0, 0, {})) == []
     with pytest.raises(ClockError, match="second report"):       # one that sent something is not
         clock.on_report(Report("measurement", 0, 0, {"adn/x/measurement/p_ip": (1, 5)}))
-    clock.on_report(Report("der/SGen1", ns(0.1), 0, {}))
+    with pytest.raises(ClockError, match="granted only to"):     # under a grant never given:
+        clock.on_report(Report("der/SGen1", ns(0.1), 0, {}, granted_ns=ns(5)))   # a forger's
+    clock.on_report(Report("der/SGen1", ns(0.1), 0, {}, granted_ns=ns(0.1)))
     with pytest.raises(ClockError, match="second report"):       # after a grant: one report
         clock.on_report(Report("der/SGen1", ns(0.1), 0, {}))
     with pytest.raises(ClockError, match="unknown agent"):

@@ -74,25 +74,51 @@ class FaultInjector:
 
     def quarantine(self, agent: str, why: str) -> None:
         """Someone else sends with ``agent``'s identity (the recorder found traffic of its that
-        no genuine agent sends: :data:`~adnmesh.wire.gate.SUSPICIOUS`): cut it off in every
-        receiver and end it at the earliest instant no agent has reached, as a kill without
-        restart (origin ``quarantine``); its DER counts as unavailable from then on and the
-        run goes on without it."""
+        no genuine agent sends: :data:`~adnmesh.wire.gate.SUSPICIOUS`, or a clock report out
+        of the protocol): cut it off in every receiver and end it at the earliest instant no
+        agent has reached, as a kill without restart (origin ``quarantine``); its DER counts
+        as unavailable from then on and the run goes on without it.
+
+        On the sim clock the agent is dead for the clock at once, and its process (one of its
+        own) is killed by PID: from now on a report in its name may be the forger's, so the
+        clock must not wait for one (a forged report taken while the genuine agent was busy
+        once left the clock waiting for a window that never came)."""
         with self._lock:
             if agent in self.quarantined:
                 return
             self.quarantined.add(agent)
             self.killed.add(agent)              # its counts cannot be verified
-        with self.launch.clock_lock():
+        launch = self.launch
+        with launch.clock_lock():
             at = self._earliest_ns()
             planned = self.plan.add("kill", at, None, earliest_ns=at, origin="quarantine",
                                     agent=agent)
-            self.launch.tap.cut_off(agent, at)
+            launch.tap.cut_off(agent, at)
             self._send(planned, at)
+            if launch.clock is not None:
+                with self._lock:
+                    self.dying[agent] = at      # its process's end is ours, not a loss
+                    self.gone_at[agent] = at
+                launch.clock.kill(agent, at)
+        if launch.clock is not None:
+            self._end_process(agent)
         text = (f"{agent} quarantined at {at / 1e9:g} s: {why}; nothing it sends from then on "
                 "is taken, the run goes on without it")
         self.launch.options.log(text)
         self._event(at, "ERROR", "quarantined", text[:500], subject=agent)
+
+    def _end_process(self, agent: str) -> None:
+        """SIGKILL ``agent``'s process by PID if it is its own and still runs (a process that
+        hosts other agents goes on: the agent is dead for the clock and never granted
+        again; an external agent is not ours to end)."""
+        children = self.launch.children
+        proc = children.procs.get(agent)
+        if proc is None or children.shares_process(agent) or proc.poll() is not None:
+            return
+        try:
+            os.kill(proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
 
     def on_killed(self, message) -> None:
         """An agent's last report before its injected kill."""

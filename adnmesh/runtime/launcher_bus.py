@@ -133,10 +133,11 @@ class SimClockDriver:
         with self.lock:
             self.coordinator.inject(agents)
 
-    def kill(self, agent: str) -> None:
-        """``agent``'s process ended without a last report: it is dead; grants follow."""
+    def kill(self, agent: str, at_ns: int | None = None) -> None:
+        """``agent``'s process ended without a last report (or is quarantined, at ``at_ns``):
+        it is dead; grants follow."""
         with self.lock:
-            self._send(self.coordinator.kill(agent))
+            self._send(self.coordinator.kill(agent, at_ns))
 
     def cancel_restart(self, agent: str) -> None:
         with self.lock:

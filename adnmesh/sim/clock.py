@@ -188,7 +188,8 @@ class Coordinator:
         Raises
         ------
         ClockError
-            A report from an unknown agent, or a second report without a grant.
+            A report from an unknown agent, a second report without a grant, or one under a
+            grant the agent was never given (none of which a genuine agent sends).
         """
         i = self._index.get(report.agent)
         if i is None:
@@ -203,6 +204,9 @@ class Coordinator:
             return False                          # a dead process's late report
         if self._reported[i] and self._idle[i] and not (self._hello[i] and not report.sent):
             raise ClockError(f"{report.agent}: second report without a grant")
+        if report.granted_ns is not None and report.granted_ns > self._granted[i]:
+            raise ClockError(f"{report.agent}: report under a grant to {report.granted_ns} ns, "
+                             f"but it was granted only to {self._granted[i]} ns")
         self._hello[i] = not self._reported[i] or self._hello[i]   # a first report, or again
         self.reports_received += 1
         self._next[i] = _INF if report.next_ns is None else report.next_ns
