@@ -36,7 +36,7 @@ from adnmesh.names import (AGENT_PATTERN, FAULT_KINDS, ICT_LINKS, ID_PATTERN, PE
 
 __all__ = [
     "DER_TYPES", "PT1_RISE_TIME_FACTOR", "AvailabilityChange", "Config", "ConfigFile",
-    "Constraints", "DER", "Fault", "GridLimits", "GridModel", "Guard", "TapChanger", "LinkSettings", "Links", "Outage",
+    "Constraints", "DER", "DeviceTLS", "Fault", "IEC104Plant", "SunSpecPlant", "GridLimits", "GridModel", "Guard", "TapChanger", "LinkSettings", "Links", "Outage",
     "MAX_CONFIG_BYTES", "MAX_DELAY_PER_LAG", "MAX_IN_FLIGHT", "MAX_SPAN_PER_DELAY", "PRefStep",
     "CAPABILITY_PRESETS", "QRefStep", "QU", "Reactive", "Runtime", "VoltageStep",
     "Scenario", "Section", "Study", "Maintenance", "MinOutputShare", "json_schema", "load_config",
@@ -88,11 +88,15 @@ that grow at most to the shortest forward delay: at the limit ~10,000 steps per 
 335 s; 3,600 s, 6x, over 240 s)."""
 _IDENTIFIER = rf"^{ID_PATTERN}$"
 _AGENT = rf"^{AGENT_PATTERN}$"
+_SUNSPEC_POINT = r"^[0-9]{1,5}\.[A-Za-z][A-Za-z0-9_]{0,39}$"
+_HOST = r"^[A-Za-z0-9]([A-Za-z0-9.:-]*[A-Za-z0-9])?$"
 _ISO_TIME = r"^\d{4}-\d{2}-\d{2}([T ]\d{2}:\d{2})?$"
 _PATTERNS = {
     _IDENTIFIER: "an identifier (letters, digits, '_', '-'; starting with a letter)",
     _AGENT: f"{', '.join(SINGLE_AGENT_KINDS)} or {PER_DER_KIND}/<id>",
     _ISO_TIME: "a date (2016-06-01) or a time (2016-06-01T12:00), without a time zone",
+    _SUNSPEC_POINT: "MODEL.POINT of a SunSpec model (704.WSet)",
+    _HOST: "a host name or IP address",
 }
 """How a pattern reads in an error message: ``must be <words>, got ...``."""
 
@@ -168,6 +172,148 @@ class Section(BaseModel):
         return data
 
 
+_Host = Annotated[str, Field(min_length=1, max_length=253, pattern=_HOST)]
+_Port = Annotated[int, Field(ge=1, le=65535)]
+_SunSpecPoint = Annotated[str, Field(pattern=_SUNSPEC_POINT)]
+_Ioa = Annotated[int, Field(ge=1, le=16_777_215)]
+_DeviceTimeout = Annotated[float, Field(ge=0.01, le=60.0)]
+
+
+class DeviceTLS(Section):
+    """TLS on the link to a plant device (Modbus/TCP Security for SunSpec, IEC 62351-3 for
+    104); paths relative to the config file."""
+
+    ca: _Name
+    """The CA certificate (PEM) the device's certificate must chain to."""
+    cert: _Name | None = None
+    """The gateway's own certificate (PEM), if the device asks for one."""
+    key: _Name | None = None
+    """The gateway's private key (PEM), with cert."""
+    server_cert: _Name | None = None
+    """The device simulator's certificate (PEM; ``adnmesh device`` and up's simulators)."""
+    server_key: _Name | None = None
+    """The device simulator's private key (PEM), with server_cert."""
+
+    @model_validator(mode="after")
+    def _pairs(self) -> DeviceTLS:
+        for cert, key in (("cert", "key"), ("server_cert", "server_key")):
+            if (getattr(self, cert) is None) != (getattr(self, key) is None):
+                raise _problem((key if getattr(self, key) is None else cert,),
+                               f"{cert} and {key} come together")
+        return self
+
+
+class SunSpecPointNames(Section):
+    """Which SunSpec points the gateway uses, as ``model.point`` of the SunSpec DER
+    information models (checked against the model definitions by ``check`` and ``up``)."""
+
+    p_set: _SunSpecPoint = "704.WSet"
+    """Active power set-point, W."""
+    q_set: _SunSpecPoint = "704.VarSet"
+    """Reactive power set-point, var."""
+    p_meas: _SunSpecPoint = "701.W"
+    """Measured active power, W."""
+    q_meas: _SunSpecPoint = "701.Var"
+    """Measured reactive power, var."""
+    status: _SunSpecPoint = "701.ConnSt"
+    """Connection status (1: connected)."""
+    stamp: _SunSpecPoint | None = "122.Tms"
+    """Time stamp of the measurement, s (null: the device has none; no staleness check)."""
+
+
+class IEC104Addresses(Section):
+    """Information object addresses of the DER's points on its RTU."""
+
+    p_set: _Ioa = 100
+    """Active power set-point command (C_SE_NC_1, short float, W)."""
+    q_set: _Ioa = 101
+    """Reactive power set-point command (C_SE_NC_1, short float, var)."""
+    p_meas: _Ioa = 200
+    """Measured active power (M_ME_TF_1, short float with time tag, W)."""
+    q_meas: _Ioa = 201
+    """Measured reactive power (M_ME_TF_1, var)."""
+    status: _Ioa = 300
+    """Connected and operating (M_SP_TB_1, single point with time tag)."""
+
+    @model_validator(mode="after")
+    def _distinct(self) -> IEC104Addresses:
+        seen: dict[int, str] = {}
+        for name, address in self.model_dump().items():
+            if address in seen:
+                raise _problem((name,), f"duplicate information object address {address} "
+                                        f"(also {seen[address]})")
+            seen[address] = name
+        return self
+
+
+class _Device(Section):
+    """What every plant device link has (see SunSpecPlant, IEC104Plant)."""
+
+    host: _Host = "127.0.0.1"
+    """Host name or IP address of the device."""
+    port: _Port
+    """TCP port of the device."""
+    timeout_s: _DeviceTimeout = 0.5
+    """Longest wait for one answer of the device, s: beyond it the device counts as silent."""
+    poll_period_s: _Period | None = None
+    """How often the gateway reads the measurement, s (default runtime.measurement_period_s)."""
+    stale_after_s: _Duration = 2.0
+    """The measurement counts as stale when its time stamp has not advanced for this long, s."""
+    retry_s: _Duration = 1.0
+    """After an error, the gateway tries the device again this often, s."""
+    simulator: bool = False
+    """adnmesh up starts ``adnmesh device`` for this DER on host:port (a device simulator
+    running the DER's model in real time) before the agents, and ends it after them."""
+    tls: DeviceTLS | None = None
+    """TLS on the link (see DeviceTLS)."""
+
+
+class SunSpecPlant(_Device):
+    """A plant device on Modbus TCP with the SunSpec DER models (docs/devices.md)."""
+
+    protocol: Literal["sunspec"]
+    """Modbus TCP with the SunSpec DER information models 701/704."""
+    unit_id: Annotated[int, Field(ge=0, le=255)] = 1
+    """Modbus unit id of the device."""
+    points: SunSpecPointNames = SunSpecPointNames()
+    """The points used (see SunSpecPointNames)."""
+
+
+class IEC104Plant(_Device):
+    """A plant device (an RTU) on IEC 60870-5-104 (docs/devices.md)."""
+
+    protocol: Literal["iec104"]
+    """IEC 60870-5-104."""
+    common_address: Annotated[int, Field(ge=1, le=65534)] = 1
+    """Common address (station) of the DER's points."""
+    addresses: IEC104Addresses = IEC104Addresses()
+    """Information object addresses (see IEC104Addresses)."""
+
+    @model_validator(mode="after")
+    def _no_tls(self) -> IEC104Plant:
+        if self.tls is not None:
+            raise _problem(("tls",), "not supported for iec104: the IEC 104 library (c104 "
+                                     "2.2) cannot verify a server over TLS; keep the link on a "
+                                     "trusted network (docs/devices.md#security)")
+        return self
+
+
+DevicePlant = Annotated[SunSpecPlant | IEC104Plant, Field(discriminator="protocol")]
+
+
+def _simulated_is_none(value: Any) -> Any:
+    """``plant: simulated`` is the default, no device; a mapping must name its protocol."""
+    if value == "simulated" or value is None:
+        return None
+    if not isinstance(value, dict):
+        raise _problem((), f"must be simulated or a device (a mapping with protocol: sunspec "
+                           f"or iec104), got {value!r:.60}")
+    if value.get("protocol") not in ("sunspec", "iec104"):
+        raise _problem(("protocol",), f"must be sunspec or iec104, got "
+                                      f"{value.get('protocol')!r:.60}")
+    return value
+
+
 class DER(Section):
     """One distributed energy resource used as an actuator."""
 
@@ -206,6 +352,11 @@ class DER(Section):
     q_sched_var: _Balance = 0.0
     """Scheduled reactive power Q_sched,d, var (generator convention: positive injects,
     over-excited): its fallback and what Q_Y adds to."""
+    plant: Annotated[DevicePlant | None, BeforeValidator(_simulated_is_none)] = None
+    """Where the DER's power comes from: ``simulated`` (the default: its model, in the DER
+    agent) or a device behind a real protocol, reached by the DER agent as its gateway (a
+    mapping with ``protocol: sunspec`` or ``protocol: iec104``; wall clock only: ``up --clock
+    realtime``; docs/devices.md)."""
     model: Annotated[dict[Annotated[str, Field(pattern=r"^[a-z][a-z0-9_]*$", max_length=40)],
                           Annotated[float, Field(ge=-_MAX_W, le=_MAX_W)]] | None,
                      Field(strict=False)] = None
@@ -883,6 +1034,10 @@ class ConfigFile(Section):
             _unique(window.ders, lambda j, at=at: (*at, j), "DER id")
             for j, der_id in enumerate(window.ders):
                 _known(der_id, known, (*at, j))
+        simulated = [(i, f"{d.plant.host}:{d.plant.port}") for i, d in enumerate(self.ders)
+                     if d.plant is not None and d.plant.simulator]
+        _unique([a for _, a in simulated], lambda j: ("ders", simulated[j][0], "plant", "port"),
+                "device simulator address")
         for i, fault in enumerate(self.runtime.faults):
             at = ("runtime", "faults", i)
             if fault.der is not None:

@@ -29,6 +29,7 @@ LAYERS = (
     ("sim",),
     ("recording",),
     ("results", "study"),
+    ("devices",),
     ("runtime",),
     ("cli", "__main__", "commands", "agents"),
 )

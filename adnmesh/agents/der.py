@@ -3,7 +3,10 @@
     python -m adnmesh.agents.der CONFIG --der SGen1 --connect tcp/127.0.0.1:7447
 
 Receives P_Y (and the weights W) from the CPFC, sets P_ref,d = P_Y w_d P_inst,d + P_sched,d, and
-reports its infeed and heartbeats. Logic: adnmesh.control.der_controller.DERController.
+reports its infeed and heartbeats. Logic: adnmesh.control.der_controller.DERController. A DER
+whose plant is a device (the config's ``plant:``) is that device's gateway
+(:mod:`adnmesh.devices.gateway`): it writes the set-points and reads the infeed over the
+device's protocol.
 
 With ``--der`` given several times the process hosts that many DER agents on one Zenoh session
 (``runtime.ders_per_process``, scale mode: :mod:`adnmesh.runtime.host`); ``--p-avail-w`` and
@@ -49,11 +52,14 @@ def main(argv: list[str] | None = None) -> int:
     if len(ders) > 1 and args.certs is not None:
         parser.error("several --der need the open profile: a certificate is one DER's "
                      "identity")
-    nodes = []
+    nodes, gateways = [], []
     topology = Topology.from_config(config)     # one for every DER of the process
     for i, der in enumerate(ders):
         if der not in config.der_ids():
             parser.error(f"unknown DER id {der!r} (known: {', '.join(config.der_ids())})")
+        device = _gateway(config, der)
+        if device is not None:
+            gateways.append(device)
         params = None
         if args.model_params is not None:
             try:
@@ -62,14 +68,35 @@ def main(argv: list[str] | None = None) -> int:
                 parser.error(f"--model-params of {der}: {exc}")
         p_avail_w = None if args.p_avail_w is None else args.p_avail_w[i]
         agent = build_agent(der_agent_id(der), config, p_avail_w=p_avail_w,
-                            der_params=params)
+                            der_params=params, device=device)
         nodes.append(Node.for_config(agent, config, start_ns=args.resume_at_ns,
                                      topology=topology))
-    with open_session(args, der_agent_id(ders[0])) as session:
-        if len(nodes) > 1:
-            return serve_hosted(session, nodes, config.grid)
-        return AgentProcess(session, nodes[0], config.grid,
-                            publishers=args.certs is None).serve()
+    try:
+        with open_session(args, der_agent_id(ders[0])) as session:
+            if len(nodes) > 1:
+                return serve_hosted(session, nodes, config.grid)
+            return AgentProcess(session, nodes[0], config.grid,
+                                publishers=args.certs is None).serve()
+    finally:
+        for gateway in gateways:
+            gateway.stop()
+
+
+def _gateway(config, der_id: str):
+    """The started gateway to the DER's plant device, or None if its plant is simulated; a
+    device that cannot be described (its TLS files, its points) is a one-line error."""
+    (der,) = config.ders_by_id([der_id])
+    if der.plant is None:
+        return None
+    from adnmesh.devices.connect import gateway_for
+    from adnmesh.errors import ConfigError
+    try:
+        gateway = gateway_for(der, config)
+    except ConfigError as exc:
+        print(f"adnmesh agent: error: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
+    gateway.start(first_within_s=3 * der.plant.timeout_s)
+    return gateway
 
 
 if __name__ == "__main__":

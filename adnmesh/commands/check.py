@@ -84,6 +84,16 @@ def run(args: argparse.Namespace) -> int:
                       f"{r.priority}; {len(view.ders)} DER(s) with a reactive range of "
                       f"{sum(d.p_inst_w for d in view.ders) / 1e6:.3f} Mvar in all; Q_IP "
                       f"{initial_q_ip_var(config) / 1e6:.4f} Mvar at the schedules")
+    devices = [d for d in config.ders if d.plant is not None]
+    if devices:
+        from adnmesh.devices.connect import link_for
+
+        for der in devices:
+            link_for(der, config)          # its points and TLS files, as its gateway takes them
+        words = [f"{der.id} {der.plant.protocol} {der.plant.host}:{der.plant.port}"
+                 + (" (simulated by up)" if der.plant.simulator else "") for der in devices]
+        console.print(f"plant devices: {len(devices)} of {len(config.ders)} DERs behind a "
+                      f"protocol, wall clock only (up --clock realtime): {', '.join(words)}")
     console.print(
         f"constraints: disk margin >= {c.disk_margin_min:g}, "
         f"overshoot < {c.overshoot_max_pct:g} %, settling band {c.settling_band_pct:g} %"

@@ -348,6 +348,18 @@ def _check_arguments(args: argparse.Namespace) -> None:
                          "any router may link")
 
 
+def _check_devices(args: argparse.Namespace, config: Config) -> None:
+    """A DER behind a plant device runs on the wall clock: only ``--clock realtime`` at
+    speed 1 can drive it."""
+    device = next((d for d in config.ders if d.plant is not None), None)
+    if device is None:
+        return
+    if args.clock != "realtime" or (args.speed or 1.0) != 1.0:
+        raise UsageError(f"{config.path}: {device.id}'s plant is a {device.plant.protocol} "
+                         "device, which runs on the wall clock: run with --clock realtime "
+                         "(at --speed 1)")
+
+
 def _certs(args: argparse.Namespace) -> Path | None:
     """The certificate directory of the secure profile (checked), or None (open profile);
     the ``--listen`` endpoint must fit the profile."""
@@ -371,6 +383,7 @@ def run(args: argparse.Namespace) -> int:
     exit code."""
     config = load_config(args.config)
     _check_arguments(args)
+    _check_devices(args, config)
     from adnmesh.commands.fault import run_file_path
     from adnmesh.runtime.bus import check_listen
     from adnmesh.runtime.launcher import UpOptions

@@ -44,6 +44,14 @@ time with its reactive dynamics (``t_delay_q_s``, ``t_rise_q_s``). It reports Q 
 with its heartbeat. Outside ``control`` mode (unavailable, watchdog) it runs at ``Q_sched,d``;
 one watchdog serves both loops, whose commands come from the one CPFC over the same link. A
 switch of the Q table moves the DERs' reactive shares at once (Q is fast; no handover).
+
+**A plant device** (``device``, the config's ``plant:``; :mod:`adnmesh.control.plant_device`):
+the controller runs no model; it hands every new set-point pair to the device and reports the
+device's last measured P (and Q). A device that is not healthy (unreachable, silent, refusing
+set-points, a stale measurement, not connected to the grid) makes the DER unavailable, as a
+scenario availability change would (heartbeat at once, the schedule as set-point, the CPFC
+switches), until it is healthy again; each change is an event (``device_lost`` with the
+reason, ``device_back``). The controller looks at the device at each of its timers.
 """
 
 from __future__ import annotations
@@ -53,6 +61,7 @@ from msgspec import UNSET
 from adnmesh.config import DER, Config
 from adnmesh.control.base import Agent, Outgoing
 from adnmesh.control.der_model import der_params, usable_available_w
+from adnmesh.control.plant_device import PlantDevice
 from adnmesh.dermodels import infeed_at, reference_pt1, set_point, steady_state
 from adnmesh.dermodels.limits import held_at
 from adnmesh.reactive import capability_of, limit_pq, q_dynamics
@@ -72,7 +81,7 @@ class DERController(Agent):
     """Local controller of DER ``der`` (agent id ``der/<id>``; see the module docstring)."""
 
     def __init__(self, der: DER, config: Config, p_avail_w: float | None = None,
-                 params=None) -> None:
+                 params=None, device: PlantDevice | None = None) -> None:
         self.der = der
         self.p_avail_w = usable_available_w(der, p_avail_w)
         self.agent_id = der_agent_id(der.id)
@@ -91,6 +100,9 @@ class DERController(Agent):
                    if der.id in c.ders]
         self._availability = sorted(changes, key=lambda c: c[0])
         self.available = True
+        self._scheduled = True           # available by the scenario
+        self.device = device
+        self._device_ok = True
         self.next_sample_ns = 0
         self.next_heartbeat_ns = 0
         self.watchdog_deadline_ns = self.watchdog_ns
@@ -103,7 +115,11 @@ class DERController(Agent):
         self._inputs = (True, False)     # (available, watchdog expired) of the setpoint
         self._clamped = 0                # +1 / -1: the setpoint is at its upper / lower limit
         self._handover: tuple[int, int, float] | None = None   # (start, duration ns, offset W)
+        self._q_changed = False          # the reactive setpoint changed (for the device)
         self.counts = {"commands": 0, "stale_commands": 0, "watchdog_trips": 0}
+        if device is not None:
+            self.counts.update(device_lost=0, device_back=0)
+            self._last_device = device.status()      # healthy until the first look says not
         self.reactive = config.reactive
         if self.reactive is not None:
             self.capability = capability_of(der, self.reactive)
@@ -116,6 +132,7 @@ class DERController(Agent):
             self._q_clamped = 0
             self._q_kept_var = 0.0          # reactive power the grid guard keeps, var
             self.counts.update(q_commands=0, q_stale_commands=0)
+        self._command_device()
         self._plan()
 
     # -- agent interface -----------------------------------------------------------------------
@@ -126,7 +143,8 @@ class DERController(Agent):
     def resume(self, t_ns: int) -> None:
         """A restarted controller at ``t_ns``: the plant at its schedule, no command yet."""
         while self._availability and self._availability[0][0] < t_ns:
-            self.available = self._availability.pop(0)[1]
+            self._scheduled = self._availability.pop(0)[1]
+        self.available = self._scheduled and self._device_ok
         self.state = steady_state(self.params, self.der.p_sched_w, t_ns)
         if self.reactive is not None:
             self.q_state = steady_state(self.q_params, self.der.q_sched_var, t_ns)
@@ -134,6 +152,7 @@ class DERController(Agent):
         self.next_heartbeat_ns = t_ns
         self.watchdog_deadline_ns = t_ns + self.watchdog_ns
         self.mode = "control" if self.available else "schedule"
+        self._command_device()
         self._plan()
 
     def _plan(self) -> None:
@@ -176,7 +195,10 @@ class DERController(Agent):
         out: list[Outgoing] = []
         mode, available = self.mode, self.available
         while self._availability and self._availability[0][0] <= t_ns:
-            self.available = self._availability.pop(0)[1]
+            self._scheduled = self._availability.pop(0)[1]
+        if self.device is not None:
+            self._look_at_device(out)
+        self.available = self._scheduled and self._device_ok
         if not self.watchdog_expired and t_ns >= self.watchdog_deadline_ns:
             self.watchdog_expired = True
             self.counts["watchdog_trips"] += 1
@@ -188,12 +210,18 @@ class DERController(Agent):
         if (self.available, self.watchdog_expired) != self._inputs:
             self._update_setpoint(t_ns)   # else on_message has set it from the same inputs
         if t_ns == self.next_sample_ns:
-            p_w = infeed_at(self.params, self.state, t_ns)
+            device = self._device_status
+            p_w = infeed_at(self.params, self.state, t_ns) if device is None else \
+                self.der.p_sched_w if device.p_w is None else min(max(device.p_w, 0.0),
+                                                                  self.der.p_inst_w)
             state = {"p_w": p_w, "setpoint_w": self.setpoint_w, "mode": self.mode}
             if self.mode == "control" and self.weight > 0:
-                state["held"] = self._clamped or held_at(self.params, self.state, t_ns)
+                state["held"] = self._clamped or (0 if device is not None else
+                                                  held_at(self.params, self.state, t_ns))
             if self.reactive is not None:
-                state["q_var"] = infeed_at(self.q_params, self.q_state, t_ns)
+                state["q_var"] = infeed_at(self.q_params, self.q_state, t_ns) \
+                    if device is None else device.q_var if device.q_var is not None \
+                    else self.der.q_sched_var
                 state["q_setpoint_var"] = self.q_setpoint_var
                 if self.mode == "control" and self.q_weight > 0:
                     state["q_held"] = self._q_clamped
@@ -206,9 +234,38 @@ class DERController(Agent):
         return out
 
     def stats(self) -> dict[str, float]:
-        return {k: float(v) for k, v in self.counts.items()}
+        stats = {k: float(v) for k, v in self.counts.items()}
+        if self.device is not None:
+            stats.update(self.device.stats())
+        return stats
 
     # -- internals -----------------------------------------------------------------------------
+
+    def _command_device(self) -> None:
+        """Hand the set-points to the device, if the plant is one."""
+        if self.device is not None:
+            self.device.command(self.setpoint_w, None if self.reactive is None else
+                                self.q_setpoint_var)
+
+    @property
+    def _device_status(self):
+        """The device's status of the last look (None: the DER runs its model)."""
+        return None if self.device is None else self._last_device
+
+    def _look_at_device(self, out: list[Outgoing]) -> None:
+        """Take the device's status; a change of health is an event."""
+        status = self._last_device = self.device.status()
+        if status.ok == self._device_ok:
+            return
+        self._device_ok = status.ok
+        self.counts["device_lost" if not status.ok else "device_back"] += 1
+        text = (f"{self.der.id}: device back" if status.ok else
+                f"{self.der.id}: device {status.reason}: {status.detail}; the DER is "
+                "unavailable until it is back")
+        out.append(Outgoing(self._event_key, {
+            "level": "INFO" if status.ok else "WARNING",
+            "kind": "device_back" if status.ok else "device_lost",
+            "subject": self.agent_id, "text": text[:500]}))
 
     def _heartbeat(self) -> dict:
         beat = {"available": self.available, "mode": self.mode, "p_y": self.p_y,
@@ -292,9 +349,13 @@ class DERController(Agent):
         self.mode = mode
         if self.reactive is not None:
             setpoint = self._limit_pq(t_ns, setpoint, mode == "control")
-        if setpoint != self.setpoint_w:
+        changed = setpoint != self.setpoint_w
+        if changed:
             self.setpoint_w = setpoint
             set_point(self.params, self.state, t_ns, setpoint)
+        if changed or self._q_changed:
+            self._command_device()
+        self._q_changed = False
 
     def _limit_pq(self, t_ns: int, p_setpoint_w: float, control: bool) -> float:
         """Set the reactive setpoint (Eq. 1 for Q in control, else the schedule) and limit it
@@ -311,4 +372,5 @@ class DERController(Agent):
         if q != self.q_setpoint_var:
             self.q_setpoint_var = q
             set_point(self.q_params, self.q_state, t_ns, q)
+            self._q_changed = True
         return p

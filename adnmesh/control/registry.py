@@ -21,13 +21,14 @@ __all__ = ["build_agent"]
 
 def build_agent(agent_id: str, config: Config, schedule: GainSchedule | None = None,
                 p_avail_w: float | None = None, der_params=None,
-                q_schedule: GainSchedule | None = None) -> Agent:
+                q_schedule: GainSchedule | None = None, device=None) -> Agent:
     """The state machine of ``agent_id`` for ``config``; the CPFC needs its gain schedule (with
     reactive power control it runs a Q loop too, :mod:`adnmesh.control.cpfc_pair`, with
     ``q_schedule``, default the Q gains tuned on demand), a DER
     can be given its available power, W (default: :func:`adnmesh.control.operating_point.
     available_power_w`), and its model parameters (default: from the config,
-    :func:`adnmesh.control.der_model.der_params`).
+    :func:`adnmesh.control.der_model.der_params`) and its plant device
+    (:class:`~adnmesh.control.plant_device.PlantDevice`; default: its model runs in the agent).
 
     Raises
     ------
@@ -63,5 +64,5 @@ def build_agent(agent_id: str, config: Config, schedule: GainSchedule | None = N
         if p_avail_w is None:
             from adnmesh.control.operating_point import available_power_w
             p_avail_w = available_power_w(config)[der_id]
-        return DERController(der, config, p_avail_w, der_params)
+        return DERController(der, config, p_avail_w, der_params, device=device)
     raise ValueError(f"unknown agent id {agent_id!r}")

@@ -63,6 +63,7 @@ from adnmesh.runtime import acl
 from adnmesh.runtime.accounting import account_agents
 from adnmesh.runtime.bus import DEFAULT_HOST, free_port, router_config
 from adnmesh.runtime.children import AgentProcesses, agent_argv, hosted_ders_argv
+from adnmesh.runtime.device_simulators import DeviceSimulators
 from adnmesh.runtime.identity import router_identity
 from adnmesh.runtime.injector import FaultInjector
 from adnmesh.runtime.launcher_bus import LauncherOutbox, SimClockDriver
@@ -834,11 +835,14 @@ def run(options: UpOptions) -> UpResult:
     launch = _Launch(options)
     result = launch.result
     previous = _catch_signals(launch.interrupted, launch.roster.changed)
+    simulators = DeviceSimulators(options.config, options.log)
     try:
+        devices_down = simulators.start(options.available_w, launch._model_params,
+                                        options.startup_timeout_s)
         with zenoh.open(launch.router_config()) as session:
             launch.open(session)
             try:
-                reason = startup(launch) or run_clock(launch)
+                reason = devices_down or startup(launch) or run_clock(launch)
                 _stopped(result, reason)
                 shutdown(launch, reason)
             finally:
@@ -846,6 +850,7 @@ def run(options: UpOptions) -> UpResult:
         verify(launch)
     finally:
         launch.children.kill_all()
+        simulators.stop()
         _close_recording(launch)
         for signum, handler in previous.items():
             signal.signal(signum, handler)
