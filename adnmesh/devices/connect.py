@@ -9,6 +9,7 @@ naming the DER.
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 from adnmesh.config import DER, Config
@@ -16,6 +17,12 @@ from adnmesh.devices.gateway import Gateway
 from adnmesh.errors import ConfigError
 
 __all__ = ["gateway_for", "link_for", "server_for"]
+
+
+def _quiet() -> None:
+    """pymodbus logs every failed request with a frame dump on stderr: the gateway reports
+    each fault itself (an event, one line), so only pymodbus's own breakdowns are left."""
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
 
 
 def _where(config: Config, der: DER) -> str:
@@ -51,6 +58,7 @@ def link_for(der: DER, config: Config):
     ConfigError
         A point or TLS file of the DER's ``plant:`` that cannot be used.
     """
+    _quiet()
     plant, points = der.plant, _points(config, der)
     tls = None
     if plant.tls is not None:
@@ -84,6 +92,7 @@ def server_for(protocol: str, der: DER, config: Config, plant_model, host: str, 
     ConfigError
         As :func:`link_for`.
     """
+    _quiet()
     plant = der.plant if der.plant is not None and der.plant.protocol == protocol else None
     tls = None
     if plant is not None and plant.tls is not None and plant.tls.server_cert is not None:
