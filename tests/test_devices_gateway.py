@@ -13,6 +13,7 @@ from adnmesh.config import Config, load_config
 from adnmesh.control.der_controller import DERController
 from adnmesh.control.plant_device import DeviceStatus
 from adnmesh.devices.gateway import DeviceHealth, Gateway
+from adnmesh.dermodels.limits import held_at
 from adnmesh.devices.link import DeviceError, Reading
 from adnmesh.wire.keys import Keys
 
@@ -185,9 +186,12 @@ def test_a_der_with_a_device_commands_it_reports_its_measurement_and_leaves_whil
     assert device.commands == [(5e5, None)]                       # its schedule at the start
     command(der, 0, 0.1, w={"SGen2": 1.0})
     assert device.commands[-1] == (pytest.approx(0.1 * 2e6 + 5e5), None)
-    out = der.on_timer(der.next_timer_ns())
+    t = der.next_timer_ns()
+    out = der.on_timer(t)
     state = next(o.body for o in out if o.key.endswith("/state"))
-    assert state["p_w"] == 5e5 and state["held"] == 0              # the device's, not a model's
+    assert state["p_w"] == 5e5                                     # the device's, not a model's
+    assert state["held"] == held_at(der.params, der.state, t)     # by the model: no protocol
+    assert der.state.t_ns == t                                     # says it; kept running
     # the device goes silent: at the next timer the DER is unavailable, on its schedule
     device.now = DeviceStatus(False, "timeout", "no answer in 0.5 s", 6e5, None)
     out = der.on_timer(der.next_timer_ns())

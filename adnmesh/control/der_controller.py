@@ -46,8 +46,11 @@ one watchdog serves both loops, whose commands come from the one CPFC over the s
 switch of the Q table moves the DERs' reactive shares at once (Q is fast; no handover).
 
 **A plant device** (``device``, the config's ``plant:``; :mod:`adnmesh.control.plant_device`):
-the controller runs no model; it hands every new set-point pair to the device and reports the
-device's last measured P (and Q). A device that is not healthy (unreachable, silent, refusing
+the controller hands every new set-point pair to the device and reports the device's last
+measured P (and Q). Whether the plant is held by a rate or range limit (``held``, for the
+CPFC's anti-windup) is said by neither protocol: it comes from the DER's model, which the
+controller keeps running on the same set-points (without it, the CPFC's integrator wound up
+while the CHPs ramped: 7.3 % overshoot at the reference case's 200 s step against 2.0 %). A device that is not healthy (unreachable, silent, refusing
 set-points, a stale measurement, not connected to the grid) makes the DER unavailable, as a
 scenario availability change would (heartbeat at once, the schedule as set-point, the CPFC
 switches), until it is healthy again; each change is an event (``device_lost`` with the
@@ -215,9 +218,8 @@ class DERController(Agent):
                 self.der.p_sched_w if device.p_w is None else min(max(device.p_w, 0.0),
                                                                   self.der.p_inst_w)
             state = {"p_w": p_w, "setpoint_w": self.setpoint_w, "mode": self.mode}
-            if self.mode == "control" and self.weight > 0:
-                state["held"] = self._clamped or (0 if device is not None else
-                                                  held_at(self.params, self.state, t_ns))
+            if self.mode == "control" and self.weight > 0:   # a device's by its model (below)
+                state["held"] = self._clamped or held_at(self.params, self.state, t_ns)
             if self.reactive is not None:
                 state["q_var"] = infeed_at(self.q_params, self.q_state, t_ns) \
                     if device is None else device.q_var if device.q_var is not None \
