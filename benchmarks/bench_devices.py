@@ -1,5 +1,4 @@
-"""Benchmark: what a DER gateway's protocol costs, and how many device connections one machine
-serves.
+"""Benchmark: what a DER gateway's protocol costs.
 
 **Latency** (per repeat, on 127.0.0.1, in one process): a device simulator's server and the
 gateway's link of each protocol — SunSpec/Modbus TCP, SunSpec over TLS, IEC 60870-5-104 — and
@@ -9,22 +8,13 @@ this machine) and pysunspec2's own Modbus client reading model 701 of the same s
 implementation of the same request); each protocol's p50 is also given as a ratio to the TCP
 round trip.
 
-**Connections**: ``K`` SunSpec (or 104) devices served by one "device farm" process (``K``
-servers, each a DER's model), ``K`` gateways in this process each polling its device every
-``--poll`` s for ``--seconds`` s: the reads achieved against those asked for, their p99 and the
-CPU both processes used. ``K`` grows until fewer than 95 % of the reads are achieved.
-
     .venv/bin/python benchmarks/bench_devices.py [--repeat 3] [--calls 1000]
-        [--connections 10,50,100,200] [--poll 0.1] [--seconds 10]
 """
 from __future__ import annotations
 
 import argparse
 import os
-import resource
 import socket
-import statistics
-import subprocess
 import sys
 import tempfile
 import threading
@@ -156,87 +146,16 @@ def _span(values: list[float], unit: str = "") -> str:
     return f"{min(values):.3g}-{max(values):.3g}{unit}"
 
 
-FARM = """
-import signal, sys, threading
-from adnmesh.config import load_config
-from adnmesh.devices.realtime_plant import RealtimePlant
-protocol, count = sys.argv[1], int(sys.argv[2])
-config = load_config(sys.argv[3])
-if protocol == "sunspec":
-    from adnmesh.devices.sunspec import SunSpecServer as Server
-else:
-    from adnmesh.devices.iec104 import IEC104Server as Server
-servers = [Server(RealtimePlant(config.ders[i % len(config.ders)], config)) for i in range(count)]
-for s in servers:
-    s.start()
-print(" ".join(str(s.port) for s in servers), flush=True)
-stop = threading.Event()
-signal.signal(signal.SIGTERM, lambda *_: stop.set())
-stop.wait()
-for s in servers:
-    s.stop()
-"""
-
-
-def connections(args, config) -> None:
-    from adnmesh.devices.gateway import Gateway
-    from adnmesh.devices.iec104 import IEC104Link
-    from adnmesh.devices.sunspec import SunSpecLink
-    print(f"\ndevice connections: gateways polling every {args.poll:g} s for {args.seconds:g} s "
-          "against one device-farm process")
-    print(f"{'protocol':<9} {'K':>5} {'reads asked':>12} {'achieved':>9} {'read p99 ms':>12} "
-          f"{'CPU s (gateways)':>17} {'CPU s (farm)':>13} {'load':>5}")
-    for protocol in args.protocols.split(","):
-        for count in [int(k) for k in args.connections.split(",")]:
-            before = resource.getrusage(resource.RUSAGE_CHILDREN)
-            farm = subprocess.Popen([sys.executable, "-c", FARM, protocol, str(count),
-                                     str(CONFIG)], stdout=subprocess.PIPE, text=True)
-            try:
-                ports = [int(p) for p in farm.stdout.readline().split()]
-                link = SunSpecLink if protocol == "sunspec" else IEC104Link
-                gateways = [Gateway(link("127.0.0.1", port, timeout_s=1.0), args.poll, 5.0,
-                                    1.0) for port in ports]
-                cpu0 = time.process_time()
-                for gateway in gateways:
-                    gateway.start()
-                time.sleep(args.seconds)
-                for gateway in gateways:
-                    gateway.stop()
-                cpu = time.process_time() - cpu0
-                stats = [g.stats() for g in gateways]
-            finally:
-                farm.terminate()
-                farm.wait()
-            after = resource.getrusage(resource.RUSAGE_CHILDREN)
-            farm_cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
-            reads = sum(s["device_reads"] for s in stats)
-            asked = count * args.seconds / args.poll
-            p99 = max(s.get("device_read_p99_ms", float("nan")) for s in stats)
-            print(f"{protocol:<9} {count:>5} {asked:>12.0f} {reads / asked:>8.1%} {p99:>12.3g} "
-                  f"{cpu:>17.2f} {farm_cpu:>13.2f} "
-                  f"{os.getloadavg()[0]:>5.1f}")
-            if reads / asked < 0.95:
-                break
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--calls", type=int, default=1000)
-    parser.add_argument("--connections", default="10,50,100,200")
-    parser.add_argument("--protocols", default="sunspec,iec104")
-    parser.add_argument("--poll", type=float, default=0.1)
-    parser.add_argument("--seconds", type=float, default=10.0)
-    parser.add_argument("--only", choices=["latency", "connections"])
     args = parser.parse_args()
     import logging
     logging.disable(logging.CRITICAL)          # pymodbus's and c104's complaints
     from adnmesh.config import load_config
     config = load_config(CONFIG)
-    if args.only != "connections":
-        latency(args, config)
-    if args.only != "latency":
-        connections(args, config)
+    latency(args, config)
 
 
 if __name__ == "__main__":
