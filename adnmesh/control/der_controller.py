@@ -50,11 +50,12 @@ the controller hands every new set-point pair to the device and reports the devi
 measured P (and Q). Whether the plant is held by a rate or range limit (``held``, for the
 CPFC's anti-windup) is said by neither protocol: it comes from the DER's model, which the
 controller keeps running on the same set-points (without it, the CPFC's integrator wound up
-while the CHPs ramped: 7.3 % overshoot at the reference case's 200 s step against 2.0 %). A device that is not healthy (unreachable, silent, refusing
-set-points, a stale measurement, not connected to the grid) makes the DER unavailable, as a
-scenario availability change would (heartbeat at once, the schedule as set-point, the CPFC
-switches), until it is healthy again; each change is an event (``device_lost`` with the
-reason, ``device_back``). The controller looks at the device at each of its timers.
+while the CHPs ramped: 7.3 % overshoot at the reference case's 200 s step against 2.0 %). A
+device that is not healthy (unreachable, silent, refusing set-points, a stale measurement, not
+connected to the grid) makes the DER unavailable, as a scenario availability change would
+(heartbeat at once, the schedule as set-point, the CPFC switches), until it is healthy again;
+each change is an event (``device_lost`` with the reason, ``device_back``). The controller
+looks at the device at each of its timers.
 """
 
 from __future__ import annotations
