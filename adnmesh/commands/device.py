@@ -110,7 +110,9 @@ def run(args: argparse.Namespace) -> int:
     try:
         server.start()
     except OSError as exc:
-        raise UsageError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from None
+        detail = exc.strerror or str(exc)
+        raise UsageError(detail if detail.startswith("cannot listen") else
+                         f"cannot listen on {host}:{port}: {detail}") from None
     print(f"adnmesh device: {der.id} ({der.type}, {der.p_inst_w / 1e6:g} MW) as a "
           f"{args.protocol} device on {host}:{port}", flush=True)
     try:
