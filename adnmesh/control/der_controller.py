@@ -107,6 +107,7 @@ class DERController(Agent):
         self._scheduled = True           # available by the scenario
         self.device = device
         self._device_ok = True
+        self._last_device = None         # the device's status at the last look (no device: None)
         self.next_sample_ns = 0
         self.next_heartbeat_ns = 0
         self.watchdog_deadline_ns = self.watchdog_ns
@@ -214,7 +215,7 @@ class DERController(Agent):
         if (self.available, self.watchdog_expired) != self._inputs:
             self._update_setpoint(t_ns)   # else on_message has set it from the same inputs
         if t_ns == self.next_sample_ns:
-            device = self._device_status
+            device = self._last_device
             p_w = infeed_at(self.params, self.state, t_ns) if device is None else \
                 self.der.p_sched_w if device.p_w is None else min(max(device.p_w, 0.0),
                                                                   self.der.p_inst_w)
@@ -249,11 +250,6 @@ class DERController(Agent):
         if self.device is not None:
             self.device.command(self.setpoint_w, None if self.reactive is None else
                                 self.q_setpoint_var)
-
-    @property
-    def _device_status(self):
-        """The device's status of the last look (None: the DER runs its model)."""
-        return None if self.device is None else self._last_device
 
     def _look_at_device(self, out: list[Outgoing]) -> None:
         """Take the device's status; a change of health is an event."""
