@@ -150,6 +150,56 @@ def test_a_gateway_that_cannot_connect_says_why_and_stops_promptly() -> None:
     assert (status.ok, status.reason, status.p_w) == (False, "unreachable", None)
 
 
+class FakeClock:
+    """Monotonic seconds the test moves."""
+
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_set_points_within_the_deadband_are_not_written() -> None:
+    link = FakeLink()
+    gateway = Gateway(link, poll_period_s=0.01, stale_after_s=5.0, retry_s=0.01,
+                      deadband=(1e3, 2e3))
+    gateway.start(first_within_s=5.0)
+    try:
+        gateway.command(1e6, 0.0)
+        assert link.wait_for(lambda: link.written == [(1e6, 0.0)])
+        gateway.command(1e6 + 900.0, 1.9e3)            # within both bands: not written
+        gateway.command(1e6 - 900.0, -1.9e3)
+        gateway.command(1e6, 2.5e3)                    # Q beyond its band: written
+        assert link.wait_for(lambda: link.written[-1] == (1e6, 2.5e3))
+        gateway.command(1e6 + 1.1e3, 2.5e3)            # P beyond its band: written
+        assert link.wait_for(lambda: link.written[-1] == (1e6 + 1.1e3, 2.5e3))
+        assert gateway.stats()["device_within_deadband"] == 2
+        assert link.written == [(1e6, 0.0), (1e6, 2.5e3), (1e6 + 1.1e3, 2.5e3)]
+    finally:
+        gateway.stop()
+
+
+def test_writes_keep_their_interval_and_the_newest_set_point_wins() -> None:
+    link, clock = FakeLink(), FakeClock()
+    gateway = Gateway(link, poll_period_s=1.0, stale_after_s=50.0, retry_s=0.01,
+                      write_interval_s=10.0, clock=clock)
+    gateway.command(1e6, None)
+    gateway.start(first_within_s=5.0)
+    try:
+        assert link.wait_for(lambda: link.written == [(1e6, None)] and link.reads == 1)
+        gateway.command(1.1e6, None)                   # 0 s after the write: held
+        gateway.command(1.2e6, None)
+        clock.now = 5.0                                # a read is due, the write is not
+        assert link.wait_for(lambda: link.reads >= 2)
+        assert link.written == [(1e6, None)]
+        clock.now = 10.0                               # the interval has passed
+        assert link.wait_for(lambda: len(link.written) == 2)
+        assert link.written[-1] == (1.2e6, None)       # only the newest, never 1.1 MW
+    finally:
+        gateway.stop()
+
+
 # --- the DER controller with a device -----------------------------------------------------------
 
 
@@ -217,3 +267,14 @@ def test_a_device_down_at_the_start_is_said_at_the_first_timer(config: Config) -
     state = next(o.body for o in out if o.key.endswith("/state"))
     assert state["p_w"] == 5e5 and state["mode"] == "schedule"    # its schedule, never read
     assert [o.body["kind"] for o in out if "/event/" in o.key] == ["device_lost"]
+
+
+def test_a_device_ders_model_keeps_up_with_its_set_points(config: Config) -> None:
+    """The model behind a device's hold flag consumes its set-point changes as it runs: they
+    do not pile up over a long run (they did: every sample's hold flag went through all)."""
+    der = DERController(config.ders[1], config, device=FakeDevice())
+    for i in range(400):
+        t = der.next_timer_ns()
+        command(der, t, 0.1 + 1e-4 * i, w={"SGen2": 1.0}, seq=i)
+        der.on_timer(der.next_timer_ns())
+    assert len(der.state.queue) <= 2

@@ -216,16 +216,20 @@ class DERController(Agent):
             self._update_setpoint(t_ns)   # else on_message has set it from the same inputs
         if t_ns == self.next_sample_ns:
             device = self._last_device
-            p_w = infeed_at(self.params, self.state, t_ns) if device is None else \
-                self.der.p_sched_w if device.p_w is None else min(max(device.p_w, 0.0),
-                                                                  self.der.p_inst_w)
+            # the model runs with a device too (its hold flag is the device's): advancing it
+            # here also consumes its queue of set-point changes, which would otherwise grow
+            p_w = infeed_at(self.params, self.state, t_ns)
+            if device is not None:
+                p_w = self.der.p_sched_w if device.p_w is None else min(max(device.p_w, 0.0),
+                                                                        self.der.p_inst_w)
             state = {"p_w": p_w, "setpoint_w": self.setpoint_w, "mode": self.mode}
             if self.mode == "control" and self.weight > 0:   # a device's by its model (below)
                 state["held"] = self._clamped or held_at(self.params, self.state, t_ns)
             if self.reactive is not None:
-                state["q_var"] = infeed_at(self.q_params, self.q_state, t_ns) \
-                    if device is None else device.q_var if device.q_var is not None \
-                    else self.der.q_sched_var
+                q_var = infeed_at(self.q_params, self.q_state, t_ns)
+                if device is not None:
+                    q_var = device.q_var if device.q_var is not None else self.der.q_sched_var
+                state["q_var"] = q_var
                 state["q_setpoint_var"] = self.q_setpoint_var
                 if self.mode == "control" and self.q_weight > 0:
                     state["q_held"] = self._q_clamped
