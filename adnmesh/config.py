@@ -257,6 +257,14 @@ class _Device(Section):
     """Longest wait for one answer of the device, s: beyond it the device counts as silent."""
     poll_period_s: _Period | None = None
     """How often the gateway reads the measurement, s (default runtime.measurement_period_s)."""
+    write_interval_s: _Delay = 0.0
+    """Shortest time between two set-point writes, s (0: each new set-point at once). Newer
+    set-points that come sooner are held and the newest is written when the interval has
+    passed: at most this much delay, to spare a device that cannot take a write per
+    pi_period_s."""
+    write_deadband_pct: Annotated[float, Field(ge=0, le=10)] = 0.0
+    """A new set-point pair is not written while P and Q both stay within this percentage of
+    the DER's p_inst_w of the pair last written (the device runs within the dead band of it)."""
     stale_after_s: _Duration = 2.0
     """The measurement counts as stale when its time stamp has not advanced for this long, s."""
     retry_s: _Duration = 1.0

@@ -79,7 +79,9 @@ def gateway_for(der: DER, config: Config) -> Gateway:
     """The gateway of ``der`` to its device (not started). Raises like :func:`link_for`."""
     plant = der.plant
     period = plant.poll_period_s or config.runtime.measurement_period_s
-    return Gateway(link_for(der, config), period, plant.stale_after_s, plant.retry_s)
+    band = plant.write_deadband_pct / 100 * der.p_inst_w
+    return Gateway(link_for(der, config), period, plant.stale_after_s, plant.retry_s,
+                   write_interval_s=plant.write_interval_s, deadband=(band, band))
 
 
 def server_for(protocol: str, der: DER, config: Config, plant_model, host: str, port: int,

@@ -2,8 +2,15 @@
 
 :class:`Gateway` is the DER controller's :class:`~adnmesh.control.plant_device.PlantDevice`:
 the controller hands it set-points and takes its status without ever waiting for the network.
-Its thread connects, writes each new set-point pair at once, reads the measurement every
-``poll_period_s`` and keeps the device's health:
+Its thread connects, writes each new set-point pair, reads the measurement every
+``poll_period_s`` and keeps the device's health. A new pair is written at once, unless
+
+- it differs from the pair last written by no more than the dead band in P and in Q: it is not
+  written (the device already runs within the dead band of it), or
+- the last write was less than ``write_interval_s`` ago: the newest pair is written when the
+  interval has passed (pairs in between are never written).
+
+Its health:
 
 - an error of the link (:class:`~adnmesh.devices.link.DeviceError`) makes the device unhealthy
   with its reason; after ``unreachable``, ``timeout`` or ``malformed`` the link is closed and
@@ -110,25 +117,35 @@ class Gateway:
         See :class:`DeviceHealth`, s.
     retry_s : float
         How often a failed connection or refused write is tried again, s.
+    write_interval_s : float
+        Shortest time between two writes, s (0: each new pair at once).
+    deadband : (float, float)
+        A pair within ``(W, var)`` of the pair last written is not written.
     clock : callable
         Monotonic seconds (tests give their own).
     """
 
     def __init__(self, link: DeviceLink, poll_period_s: float, stale_after_s: float,
-                 retry_s: float, clock: Callable[[], float] = time.monotonic) -> None:
+                 retry_s: float, write_interval_s: float = 0.0,
+                 deadband: tuple[float, float] = (0.0, 0.0),
+                 clock: Callable[[], float] = time.monotonic) -> None:
         self.link = link
         self.poll_period_s = poll_period_s
         self.retry_s = retry_s
+        self.write_interval_s = write_interval_s
+        self.deadband = deadband
         self._clock = clock
         self._health = DeviceHealth(stale_after_s)
         self._lock = threading.Lock()
         self._wake = threading.Condition(self._lock)
         self._pending: tuple[float, float | None] | None = None
         self._latest: tuple[float, float | None] | None = None
+        self._written: tuple[float, float | None] | None = None
         self._stop = False
         self._first = threading.Event()
         self._thread: threading.Thread | None = None
-        self.counts = {"device_writes": 0, "device_reads": 0, "device_errors": 0}
+        self.counts = {"device_writes": 0, "device_reads": 0, "device_errors": 0,
+                       "device_within_deadband": 0}
         self._write_s: deque[float] = deque(maxlen=LATENCIES_KEPT)
         self._read_s: deque[float] = deque(maxlen=LATENCIES_KEPT)
 
@@ -136,8 +153,24 @@ class Gateway:
 
     def command(self, p_w: float, q_var: float | None) -> None:
         with self._lock:
-            self._pending = self._latest = (p_w, q_var)
+            self._latest = (p_w, q_var)
+            if self._within_deadband(p_w, q_var):
+                self._pending = None
+                self.counts["device_within_deadband"] += 1
+                return
+            self._pending = self._latest
             self._wake.notify()
+
+    def _within_deadband(self, p_w: float, q_var: float | None) -> bool:
+        """The pair differs from the one last written by no more than the dead band."""
+        if self._written is None:
+            return False
+        p_last, q_last = self._written
+        if abs(p_w - p_last) > self.deadband[0]:
+            return False
+        if q_var is None or q_last is None:
+            return q_var is None and q_last is None
+        return abs(q_var - q_last) <= self.deadband[1]
 
     def status(self) -> DeviceStatus:
         with self._lock:
@@ -174,22 +207,23 @@ class Gateway:
         self.link.close()
 
     def _run(self) -> None:
-        up, retry_at, next_read = False, 0.0, 0.0
+        up, retry_at, next_read, next_write = False, 0.0, 0.0, 0.0
         while True:
             with self._lock:
                 if self._stop:
                     return
                 now = self._clock()
+                write_at = max(retry_at, next_write)
                 if not up:
                     wake = retry_at
                 elif self._pending is not None:
-                    wake = min(next_read, retry_at)
+                    wake = min(next_read, write_at)
                 else:
                     wake = next_read
                 if wake > now:
                     self._wake.wait(wake - now)
                     continue
-                write = self._pending if up and now >= retry_at else None
+                write = self._pending if up and now >= write_at else None
                 if write is not None:
                     self._pending = None
             if not up:
@@ -198,6 +232,7 @@ class Gateway:
                     if up:
                         self._health.connected(self._clock())
                         self._pending, retry_at, next_read = self._latest, 0.0, 0.0
+                        self._written = None    # a restarted device has lost its set-points
                     else:
                         retry_at = self._clock() + self.retry_s
                         self._first.set()
@@ -210,6 +245,8 @@ class Gateway:
                         retry_at = self._clock() + self.retry_s
                     else:
                         self.counts["device_writes"] += 1
+                        self._written = write
+                        next_write = self._clock() + self.write_interval_s
                         self._health.wrote(self._clock())
             if self._clock() >= next_read and self._health.link_up:
                 reading = self._attempt(self.link.read, self._read_s)
