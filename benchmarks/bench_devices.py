@@ -8,7 +8,17 @@ this machine) and pysunspec2's own Modbus client reading model 701 of the same s
 implementation of the same request); each protocol's p50 is also given as a ratio to the TCP
 round trip.
 
+**Connections** (``--connections 25,50,100``): how many devices one machine serves. For each
+protocol and count N, one process serves N device simulators (N protocol servers, each with a
+DER's model) and another runs N gateways (:class:`~adnmesh.devices.gateway.Gateway`, as N DER
+agents would, in one process) polling every ``--poll-period`` s for ``--seconds`` s. Printed:
+the reads done as a share of those due, the read p50/p99 over all gateways, connection
+errors, and each side's CPU in percent of one core. The machine serves N devices at that
+period while the share stays near 100 % and p99 well under the period. Peer in the same
+run: the latency figures' TCP round trip (``--repeat 0`` skips the latency part).
+
     .venv/bin/python benchmarks/bench_devices.py [--repeat 3] [--calls 1000]
+        [--connections 25,50,100,200 --poll-period 0.02 --seconds 20]
 """
 from __future__ import annotations
 
@@ -142,6 +152,91 @@ def latency(args, config) -> None:
               f"{_span([v[1] for v in values]):>15} {ratio:>15}")
 
 
+def _serve(protocol: str, count: int) -> None:
+    """The server side of ``--connections``: ``count`` simulators of DER 0, their ports as one
+    JSON line on stdout, until stdin closes; then this process's CPU seconds on stdout."""
+    import json
+    import resource
+    from adnmesh.config import load_config
+    from adnmesh.devices.iec104 import IEC104Server
+    from adnmesh.devices.sunspec import SunSpecServer
+    config = load_config(CONFIG)
+    kind = SunSpecServer if protocol == "sunspec" else IEC104Server
+    servers = [kind(_plant(config)) for _ in range(count)]
+    for server in servers:
+        server.start()
+    print(json.dumps([server.port for server in servers]), flush=True)
+    began = resource.getrusage(resource.RUSAGE_SELF)
+    sys.stdin.read()
+    ended = resource.getrusage(resource.RUSAGE_SELF)
+    print(json.dumps(ended.ru_utime + ended.ru_stime - began.ru_utime - began.ru_stime),
+          flush=True)
+    for server in servers:
+        server.stop()
+
+
+def _gateways(protocol: str, count: int, args) -> dict[str, float]:
+    """``count`` gateways against ``count`` simulators in a process of their own."""
+    import json
+    import resource
+    import subprocess
+    from adnmesh.devices.gateway import Gateway
+    from adnmesh.devices.iec104 import IEC104Link
+    from adnmesh.devices.sunspec import SunSpecLink
+    server = subprocess.Popen([sys.executable, __file__, "--serve", protocol, str(count)],
+                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    gateways = []
+    try:
+        ports = json.loads(server.stdout.readline())
+        kind = SunSpecLink if protocol == "sunspec" else IEC104Link
+        gateways = [Gateway(kind("127.0.0.1", port, timeout_s=1.0), args.poll_period,
+                            stale_after_s=60.0, retry_s=1.0) for port in ports]
+        for gateway in gateways:
+            gateway.start()
+        deadline = time.monotonic() + 60.0
+        while time.monotonic() < deadline and any(g.stats()["device_reads"] < 1
+                                                  for g in gateways):
+            time.sleep(0.1)
+        reads0 = sum(g.stats()["device_reads"] for g in gateways)
+        cpu0 = resource.getrusage(resource.RUSAGE_SELF)
+        began = time.monotonic()
+        time.sleep(args.seconds)
+        took = time.monotonic() - began
+        cpu1 = resource.getrusage(resource.RUSAGE_SELF)
+        stats = [g.stats() for g in gateways]
+        server.stdin.close()
+        server_cpu = float(server.stdout.readline() or "nan")
+    finally:
+        for gateway in gateways:
+            gateway.stop()
+        if server.poll() is None:
+            server.kill()
+        server.wait()
+    reads = sum(s["device_reads"] for s in stats) - reads0
+    p50 = sorted(s.get("device_read_p50_ms", float("nan")) for s in stats)
+    p99 = max(s.get("device_read_p99_ms", float("nan")) for s in stats)
+    return {"done_pct": 100 * reads / (count * took / args.poll_period),
+            "p50_ms": p50[len(p50) // 2], "p99_ms": p99,
+            "errors": sum(s["device_errors"] for s in stats),
+            "gateway_cpu_pct": 100 * (cpu1.ru_utime + cpu1.ru_stime - cpu0.ru_utime
+                                      - cpu0.ru_stime) / took,
+            "server_cpu_pct": 100 * server_cpu / took}
+
+
+def connections(args) -> None:
+    print(f"\nconnections: N gateways polling every {args.poll_period * 1e3:g} ms for "
+          f"{args.seconds:g} s against N simulators (two processes)")
+    print(f"{'protocol':<9} {'N':>5} {'reads done':>11} {'p50 ms':>8} {'p99 ms':>8} "
+          f"{'errors':>7} {'gateway CPU':>12} {'server CPU':>11} {'load':>5}")
+    for protocol in ("sunspec", "iec104"):
+        for count in args.connections:
+            row = _gateways(protocol, count, args)
+            print(f"{protocol:<9} {count:>5} {row['done_pct']:>10.1f}% {row['p50_ms']:>8.2f} "
+                  f"{row['p99_ms']:>8.2f} {row['errors']:>7.0f} "
+                  f"{row['gateway_cpu_pct']:>11.0f}% {row['server_cpu_pct']:>10.0f}% "
+                  f"{os.getloadavg()[0]:>5.1f}", flush=True)
+
+
 def _span(values: list[float], unit: str = "") -> str:
     return f"{min(values):.3g}-{max(values):.3g}{unit}"
 
@@ -150,12 +245,23 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--calls", type=int, default=1000)
+    parser.add_argument("--connections", type=lambda text: [int(n) for n in text.split(",")],
+                        default=[])
+    parser.add_argument("--poll-period", type=float, default=0.02)
+    parser.add_argument("--seconds", type=float, default=20.0)
+    parser.add_argument("--serve", nargs=2, metavar=("PROTOCOL", "N"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     import logging
     logging.disable(logging.CRITICAL)          # pymodbus's and c104's complaints
+    if args.serve:
+        _serve(args.serve[0], int(args.serve[1]))
+        return
     from adnmesh.config import load_config
     config = load_config(CONFIG)
-    latency(args, config)
+    if args.repeat:
+        latency(args, config)
+    if args.connections:
+        connections(args)
 
 
 if __name__ == "__main__":
