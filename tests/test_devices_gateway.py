@@ -144,10 +144,35 @@ def test_a_gateway_that_cannot_connect_says_why_and_stops_promptly() -> None:
     link = FakeLink()
     link.fail["connect"] = DeviceError("unreachable", "connection refused")
     gateway = Gateway(link, poll_period_s=0.01, stale_after_s=5.0, retry_s=60.0)
-    gateway.start(first_within_s=5.0)
+    gateway.start(first_within_s=0.3)                # tried again and again within it
     status = gateway.status()
     gateway.stop()                                   # not after the 60 s retry
     assert (status.ok, status.reason, status.p_w) == (False, "unreachable", None)
+    assert link.connects == 0
+
+
+@pytest.mark.parametrize("call", ["connect", "read"])
+def test_a_device_slow_at_the_start_is_tried_again_at_once(call: str) -> None:
+    """A device that fails its first connection or read while a run starts (every process
+    busy) is connected before the DER's first timer, not a retry_s later."""
+    link = FakeLink()
+    link.fail[call] = DeviceError("timeout", "no answer within 0.5 s")
+    tries = []
+    original = getattr(link, call)
+
+    def once(*args):
+        tries.append(1)
+        if len(tries) == 2:
+            del link.fail[call]
+        return original(*args)
+
+    setattr(link, call, once)
+    gateway = Gateway(link, poll_period_s=0.01, stale_after_s=5.0, retry_s=60.0)
+    gateway.start(first_within_s=30.0)
+    try:
+        assert gateway.status().ok and link.connects == (2 if call == "read" else 1)
+    finally:
+        gateway.stop()
 
 
 class FakeClock:

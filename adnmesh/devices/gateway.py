@@ -41,6 +41,9 @@ __all__ = ["DeviceHealth", "Gateway", "LATENCIES_KEPT"]
 LATENCIES_KEPT = 20_000
 """How many write and read durations a gateway keeps for its statistics."""
 
+_START_RETRY_S = 0.05
+"""While a gateway starts, a failed connection is tried again this soon, s."""
+
 _RECONNECT = frozenset({"unreachable", "timeout", "malformed"})
 
 
@@ -143,6 +146,7 @@ class Gateway:
         self._written: tuple[float, float | None] | None = None
         self._stop = False
         self._first = threading.Event()
+        self._starting_until = 0.0
         self._thread: threading.Thread | None = None
         self.counts = {"device_writes": 0, "device_reads": 0, "device_errors": 0,
                        "device_within_deadband": 0}
@@ -191,7 +195,10 @@ class Gateway:
 
     def start(self, first_within_s: float | None = None) -> None:
         """Start the thread; with ``first_within_s``, return once the first connection and
-        read were tried (at most that long)."""
+        read were done, or that long has passed (a device slow to answer while a whole run
+        starts is tried again at once within it, not after ``retry_s``)."""
+        if first_within_s is not None:
+            self._starting_until = self._clock() + first_within_s
         self._thread = threading.Thread(target=self._run, name="adnmesh-gateway", daemon=True)
         self._thread.start()
         if first_within_s is not None:
@@ -234,15 +241,14 @@ class Gateway:
                         self._pending, retry_at, next_read = self._latest, 0.0, 0.0
                         self._written = None    # a restarted device has lost its set-points
                     else:
-                        retry_at = self._clock() + self.retry_s
-                        self._first.set()
+                        retry_at = self._retry_at()
                 continue
             if write is not None:
                 done = self._attempt(self.link.write, self._write_s, *write)
                 with self._lock:
                     if done is None:
                         self._pending = self._pending or self._latest
-                        retry_at = self._clock() + self.retry_s
+                        retry_at = self._retry_at()
                     else:
                         self.counts["device_writes"] += 1
                         self._written = write
@@ -254,12 +260,21 @@ class Gateway:
                     if reading is not None:
                         self.counts["device_reads"] += 1
                         self._health.read(reading[0], self._clock())
+                        self._first.set()
                     next_read = max(next_read + self.poll_period_s, self._clock())
-                self._first.set()
             with self._lock:
                 up = self._health.link_up
                 if not up:
-                    retry_at = self._clock() + self.retry_s
+                    retry_at = self._retry_at()
+
+    def _retry_at(self) -> float:
+        """When to try the device again after a failure (lock held), s: at once while the
+        gateway starts, else ``retry_s`` from now."""
+        now = self._clock()
+        if not self._first.is_set() and now + _START_RETRY_S < self._starting_until:
+            return now + _START_RETRY_S
+        self._first.set()
+        return now + self.retry_s
 
     def _attempt(self, call, durations: deque | None, *args) -> tuple | None:
         """``(result,)`` of a call of the link, or None if it failed (the health told)."""
