@@ -216,7 +216,7 @@ class DERController(Agent):
             self._update_setpoint(t_ns)   # else on_message has set it from the same inputs
         if t_ns == self.next_sample_ns:
             device = self._last_device
-            # the model runs with a device too (its hold flag is the device's): advancing it
+            # the model runs beside a device too (it gives the hold flag): advancing it
             # here also consumes its queue of set-point changes, which would otherwise grow
             p_w = infeed_at(self.params, self.state, t_ns)
             if device is not None:

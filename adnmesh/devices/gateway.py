@@ -42,7 +42,8 @@ LATENCIES_KEPT = 20_000
 """How many write and read durations a gateway keeps for its statistics."""
 
 _START_RETRY_S = 0.05
-"""While a gateway starts, a failed connection is tried again this soon, s."""
+"""While a gateway starts (within ``first_within_s``), a device that failed is tried again this
+soon, s."""
 
 _RECONNECT = frozenset({"unreachable", "timeout", "malformed"})
 
