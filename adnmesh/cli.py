@@ -24,8 +24,9 @@ from adnmesh.errors import ConfigError, UsageError
 __all__ = ["COMMANDS", "COMMAND_NAMES", "EXIT_INTERRUPTED", "EXIT_USER_ERROR", "build_parser",
            "main"]
 
-COMMAND_NAMES = ("init", "check", "margins", "tune", "analyze", "up", "fault", "certs", "agent",
-                 "router", "device", "replay", "plot", "inspect", "export", "schema", "study")
+COMMAND_NAMES = ("init", "check", "margins", "tune", "analyze", "identify", "up", "fault", "certs",
+                 "agent", "router", "device", "replay", "plot", "inspect", "export", "schema",
+                 "study")
 """The commands, in the order ``adnmesh --help`` lists them: each is the module
 ``adnmesh.commands.<name>``, imported only when needed (a command that reads a recording does
 not wait for the libraries of the analysis)."""

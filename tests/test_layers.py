@@ -22,7 +22,7 @@ PACKAGE = Path(__file__).resolve().parent.parent / "adnmesh"
 
 LAYERS = (
     ("__init__", "config", "errors", "names", "files", "reactive"),
-    ("loopmodel", "grid", "dermodels"),
+    ("loopmodel", "grid", "dermodels", "identify"),
     ("tuning", "analysis", "adn"),
     ("wire",),
     ("control",),

@@ -1,0 +1,207 @@
+"""``adnmesh identify CONFIG RUN.mcap | --csv FILE``: each DER's reaction and rise time fitted
+from its set-point and measured infeed (the reference model, :mod:`adnmesh.identify.pt1_fit`)."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+from pathlib import Path
+
+from adnmesh.commands import add_config_argument, input_file, output_path
+from adnmesh.errors import UsageError
+
+__all__ = ["add_parser", "run"]
+
+
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    """Add the ``identify`` subparser."""
+    parser = subparsers.add_parser(
+        "identify",
+        help="fit each DER's reaction and rise time from a recording or a CSV",
+        description="Fit each DER's reference model (a dead time, then a first-order lag) to "
+        "its set-point and measured infeed: from a recording of CONFIG (the DERs' state "
+        "messages) or from a CSV a SCADA exports (--csv with --time, --setpoint, --measured "
+        "and --der). Prints T_delay and T_rise with 95 %% intervals and the fit's RMSE and R², "
+        "writes a config that extends CONFIG with the fitted values (-o) and a figure of the "
+        "data against each fit (--plot). Exit code 0 when every DER asked for was fitted, 2 for "
+        "a user error (no such file, a column or DER that is not there, nothing to fit).",
+    )
+    add_config_argument(parser)
+    parser.add_argument("recording", metavar="RUN", nargs="?",
+                        help="recording (.mcap) of a run of CONFIG")
+    parser.add_argument("--der", metavar="ID[,ID...]",
+                        help="the DERs to fit (default: every DER of CONFIG in the recording; "
+                        "with --csv: the one DER the file is of)")
+    parser.add_argument("--from", dest="start_s", type=float, metavar="S",
+                        help="fit from this time on, s of the run (default: its start)")
+    parser.add_argument("--to", dest="stop_s", type=float, metavar="S",
+                        help="fit up to this time, s of the run (default: its end)")
+    parser.add_argument("--csv", metavar="FILE", help="read time, set-point and measured "
+                        "power from this CSV instead of a recording")
+    parser.add_argument("--time", metavar="COL", help="--csv: the column of the time, s")
+    parser.add_argument("--setpoint", metavar="COL", help="--csv: the set-point column, W")
+    parser.add_argument("--measured", metavar="COL", help="--csv: the measured power column, W")
+    parser.add_argument("-o", "--out", metavar="CONFIG2", type=Path,
+                        help="write a config extending CONFIG with the fitted t_delay_s and "
+                        "t_rise_s")
+    parser.add_argument("--plot", metavar="FIG", type=Path,
+                        help="write the data and each fit as a figure (png, pdf, svg, ...)")
+    return parser
+
+
+def run(args: argparse.Namespace) -> int:
+    """Fit, print, write what was asked for."""
+    from adnmesh.config import load_config
+    from adnmesh.identify.pt1_fit import fit_pt1
+    from adnmesh.identify.resample import on_grid, sample_period
+
+    config = load_config(args.config)
+    known = [d.id for d in config.ders]
+    wanted = None if args.der is None else [d.strip() for d in args.der.split(",") if d.strip()]
+    for der in wanted or []:
+        if der not in known:
+            raise UsageError(f"--der {der}: not a DER of {args.config} "
+                             f"(its DERs: {', '.join(known)})")
+    for path, flag in ((args.out, "-o"), (args.plot, "--plot")):
+        if path is not None:
+            output_path(path, flag)
+    if args.plot is not None:
+        _check_format(args.plot)
+    if (args.csv is None) == (args.recording is None):
+        raise UsageError("give a recording RUN or --csv FILE (one of them)")
+    series = _from_csv(args, wanted) if args.csv else _from_recording(args, wanted, known)
+    fits, grids = {}, {}
+    for der, (ts, u, tm, y) in series.items():
+        try:
+            period = sample_period(tm)
+            t, held, measured = on_grid(ts, u, tm, y, period, args.start_s, args.stop_s)
+            fits[der] = fit_pt1(period, held, measured)
+        except ValueError as exc:
+            raise UsageError(f"{der}: {exc}") from None
+        grids[der] = (t, held, measured, period)
+    _print(fits, config)
+    if args.out is not None:
+        args.out.write_text(_overlay(config, fits, args.out))
+        print(f"{args.out}: written (extends {args.config})")
+    if args.plot is not None:
+        _plot(fits, grids, args.plot)
+        print(f"{args.plot}: written")
+    return 0
+
+
+def _check_format(path: Path) -> None:
+    from matplotlib.figure import Figure
+    formats = Figure().canvas.get_supported_filetypes()
+    if path.suffix.lstrip(".").lower() not in formats:
+        raise UsageError(f"--plot {path}: unknown figure format {path.suffix or '(none)'!r}")
+
+
+def _from_recording(args, wanted, known) -> dict:
+    """``{der: (set-point t, set-point, infeed t, infeed)}`` from the recording, s and W."""
+    from adnmesh.results.series import read_run
+    found, _ = read_run(input_file(args.recording))
+    run = found.run
+    out: dict = {}
+    for role, slot in (("der_setpoint", 0), ("der_infeed", 1)):
+        for s in run.by_role(role):
+            if s.der in known and (wanted is None or s.der in wanted):
+                out.setdefault(s.der, [None, None])[slot] = (run.seconds(s.t_ns), s.values)
+    missing = [d for d in (wanted or []) if d not in out or None in out[d]]
+    if missing:
+        raise UsageError(f"{args.recording}: no set-point and infeed of {', '.join(missing)}")
+    series = {d: (*v[0], *v[1]) for d, v in out.items() if None not in v}
+    if not series:
+        raise UsageError(f"{args.recording}: no DER of {args.config} with a set-point and an "
+                         f"infeed in it")
+    return dict(sorted(series.items(), key=lambda item: known.index(item[0])))
+
+
+def _from_csv(args, wanted) -> dict:
+    """``{der: (t, set-point, t, measured)}`` from the CSV, s and W."""
+    import numpy as np
+    if wanted is None or len(wanted) != 1:
+        raise UsageError("--csv needs --der with the one DER the file is of")
+    columns = {"--time": args.time, "--setpoint": args.setpoint, "--measured": args.measured}
+    for flag, name in columns.items():
+        if not name:
+            raise UsageError(f"--csv needs {flag} COL")
+    path = input_file(args.csv)
+    try:
+        with open(path, newline="", encoding="utf-8") as handle:
+            rows = list(csv.DictReader(handle))
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise UsageError(f"--csv {args.csv}: cannot read it: {exc}") from None
+    header = list(rows[0]) if rows else []
+    values = {}
+    for flag, name in columns.items():
+        if name not in header:
+            raise UsageError(f"--csv {args.csv}: no column {name!r} ({flag}; its columns: "
+                             f"{', '.join(header) or 'none'})")
+        try:
+            values[flag] = np.array([float(row[name]) for row in rows])
+        except (TypeError, ValueError):
+            bad = next(i for i, row in enumerate(rows) if not _is_number(row[name]))
+            raise UsageError(f"--csv {args.csv}: row {bad + 2}, column {name!r}: "
+                             f"{rows[bad][name]!r} is not a number") from None
+    t = values["--time"]
+    return {wanted[0]: (t, values["--setpoint"], t, values["--measured"])}
+
+
+def _is_number(text) -> bool:
+    try:
+        float(text)
+    except (TypeError, ValueError):
+        return False
+    return True
+
+
+def _print(fits: dict, config) -> None:
+    from rich.console import Console
+    from rich.table import Table
+    given = {d.id: d for d in config.ders}
+    table = Table(title="the reference model fitted (95 % intervals from the fit's Jacobian)")
+    for name in ("DER", "T_delay [s]", "T_rise [s]", "config: T_delay / T_rise [s]",
+                 "RMSE [kW]", "R²", "samples"):
+        table.add_column(name, justify="left" if name == "DER" else "right")
+    for der, fit in fits.items():
+        table.add_row(der, f"{fit.delay_s:.4g} ({fit.delay_ci_s[0]:.4g}-{fit.delay_ci_s[1]:.4g})",
+                      f"{fit.rise_s:.4g} ({fit.rise_ci_s[0]:.4g}-{fit.rise_ci_s[1]:.4g})",
+                      f"{given[der].t_delay_s:g} / {given[der].t_rise_s:g}",
+                      f"{fit.rmse_w / 1e3:.3g}", f"{fit.r2:.5f}", str(fit.samples))
+    Console(width=max(100, os.get_terminal_size(1).columns if os.isatty(1) else 120)).print(table)
+
+
+def _overlay(config, fits: dict, out: Path) -> str:
+    """A config extending ``config`` with the fitted values (every DER, the list is replaced)."""
+    base = os.path.relpath(Path(config.path).resolve(), out.resolve().parent)
+    lines = [f"# adnmesh identify: the reference model fitted to {len(fits)} DER(s) "
+             f"({', '.join(fits)}); the others as in {Path(config.path).name}",
+             f"extends: {json.dumps(base)}", "ders:"]
+    for der in config.ders:
+        entry = der.model_dump(mode="json", exclude_defaults=True)
+        if der.id in fits:
+            entry["t_delay_s"] = float(f"{fits[der.id].delay_s:.6g}")
+            entry["t_rise_s"] = float(f"{max(fits[der.id].rise_s, 1e-6):.6g}")
+        lines.append(f"  - {json.dumps(entry)}")
+    return "\n".join(lines) + "\n"
+
+
+def _plot(fits: dict, grids: dict, path: Path) -> None:
+    from matplotlib.figure import Figure
+    rows = len(fits)
+    figure = Figure(figsize=(10, 2.4 * rows), layout="constrained")
+    axes = figure.subplots(rows, 1, squeeze=False)[:, 0]
+    for ax, (der, fit) in zip(axes, fits.items()):
+        t, held, measured, period = grids[der]
+        model = fit.model(period, held, float(measured[0]))
+        ax.plot(t, held / 1e6, drawstyle="steps-post", color="0.6", lw=1, label="set-point")
+        ax.plot(t, measured / 1e6, color="C0", lw=1.2, label="measured")
+        ax.plot(t, model / 1e6, color="C3", lw=1, ls="--",
+                label=f"fit: T_delay {fit.delay_s:.3g} s, T_rise {fit.rise_s:.3g} s")
+        ax.set_ylabel(f"{der} [MW]")
+        ax.legend(loc="best", fontsize=8)
+        ax.grid(alpha=0.3)
+    axes[-1].set_xlabel("time [s]")
+    figure.savefig(path, dpi=110)

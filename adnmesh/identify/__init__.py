@@ -1,0 +1,1 @@
+"""Identifying a DER's dynamics from its measured responses (``adnmesh identify``)."""
