@@ -1,6 +1,6 @@
-"""``adnmesh identify``: the reference model's exact response (against a closed form and
-python-control), its fit on synthetic data with known parameters and noise, the resampling of
-recorded series, and the command on a CSV and on a real recording."""
+"""``adnmesh identify``: the models' exact responses (against a closed form and
+python-control), their fit on synthetic data with known parameters and noise, the resampling
+of recorded series, and the command on a CSV and on a real recording."""
 
 from __future__ import annotations
 
@@ -14,10 +14,19 @@ from up_runs import REPO, run_up, write_case
 
 from adnmesh.cli import main
 from adnmesh.config import load_config
-from adnmesh.identify.pt1_fit import RISE_PER_LAG, fit_pt1, pt1_response
+from adnmesh.identify.model_fit import RISE_PER_LAG, fit_model, model_response
+from adnmesh.loopmodel.plant import Actuator
 from adnmesh.identify.resample import on_grid, sample_period
 
 H = 0.01
+
+
+def pt1_response(period_s, u, y0, delay_s, lag_s):
+    return model_response(Actuator(delay_s, lag_s, "pt1"), period_s, u, y0)
+
+
+def fit_pt1(period_s, u, y):
+    return fit_model(period_s, u, y, "pt1")
 
 
 def test_one_step_is_the_closed_form() -> None:
@@ -50,6 +59,47 @@ def test_any_set_point_agrees_with_python_control() -> None:
     peer = control.forced_response(control.ss(-1 / lag, 1 / lag, 1, 0), t, delayed,
                                    X0=1.1e6).outputs[::fine]
     assert np.max(np.abs(y - peer)) < 2e-4 * np.ptp(u)
+
+
+def _python_control(actuator: Actuator, u: np.ndarray, fine: int) -> np.ndarray:
+    """python-control's simulation of ``actuator`` from rest at ``u[0]``, on a grid ``fine``
+    times finer than ``H`` with the input shifted by the dead time, at the samples."""
+    t = np.arange(len(u) * fine) * (H / fine)
+    shift = int(round(actuator.t_delay_s / (H / fine)))
+    held = np.repeat(u, fine)
+    delayed = np.concatenate([np.full(shift, u[0]), held[:-shift]])
+    peer = control.tf(actuator.numerator[::-1], actuator.denominator[::-1])
+    return control.forced_response(peer, t, delayed - u[0]).outputs[::fine] + u[0]
+
+
+@pytest.mark.parametrize("model", ["pt1", "pt2", "rhpz"])
+def test_every_model_converges_to_python_control(model: str) -> None:
+    """python-control interpolates its input linearly between its samples, so its result
+    approaches the exact one as its grid gets finer: the difference shrinks as 1/fine."""
+    n = 600
+    u = np.full(n, 1e6)
+    u[100:] = 1.5e6
+    u[300:] = 0.8e6
+    u[400:] += np.linspace(0.0, 2e5, 200)
+    actuator = Actuator(0.237, 0.4, model)
+    y = model_response(actuator, H, u, 1e6)
+    coarse, finer = (np.max(np.abs(y - _python_control(actuator, u, fine))) for fine in (100, 400))
+    assert coarse < 1e-3 * np.ptp(u)
+    assert 3.5 < coarse / finer < 4.5
+
+
+@pytest.mark.parametrize("model", ["pt2", "rhpz"])
+def test_each_model_is_recovered_and_told_from_the_others(model: str) -> None:
+    rng = np.random.default_rng(3)
+    u = np.full(2000, 1e6)
+    u[100:] = 1.5e6
+    u[1000:] = 0.7e6
+    truth = Actuator(0.12, 0.9, model)
+    y = model_response(truth, H, u, 1e6) + rng.normal(0.0, 2e3, len(u))
+    fits = {m: fit_model(H, u, y, m) for m in ("pt1", "pt2", "rhpz")}
+    assert min(fits, key=lambda m: fits[m].rmse_w) == model
+    assert math.isclose(fits[model].delay_s, 0.12, abs_tol=0.005)
+    assert math.isclose(fits[model].rise_s, 0.9 * RISE_PER_LAG, rel_tol=0.01)
 
 
 def test_the_fit_recovers_known_parameters_through_noise() -> None:

@@ -22,8 +22,8 @@ PACKAGE = Path(__file__).resolve().parent.parent / "adnmesh"
 
 LAYERS = (
     ("__init__", "config", "errors", "names", "files", "reactive"),
-    ("loopmodel", "grid", "dermodels", "identify"),
-    ("tuning", "analysis", "adn"),
+    ("loopmodel", "grid", "dermodels"),
+    ("tuning", "analysis", "adn", "identify"),
     ("wire",),
     ("control",),
     ("sim",),

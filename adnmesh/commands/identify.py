@@ -1,5 +1,5 @@
 """``adnmesh identify CONFIG RUN.mcap | --csv FILE``: each DER's reaction and rise time fitted
-from its set-point and measured infeed (the reference model, :mod:`adnmesh.identify.pt1_fit`)."""
+from its set-point and measured infeed (:mod:`adnmesh.identify.model_fit`)."""
 
 from __future__ import annotations
 
@@ -20,13 +20,14 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     parser = subparsers.add_parser(
         "identify",
         help="fit each DER's reaction and rise time from a recording or a CSV",
-        description="Fit each DER's reference model (a dead time, then a first-order lag) to "
-        "its set-point and measured infeed: from a recording of CONFIG (the DERs' state "
-        "messages) or from a CSV a SCADA exports (--csv with --time, --setpoint, --measured "
-        "and --der). Prints T_delay and T_rise with 95 %% intervals and the fit's RMSE and R², "
-        "writes a config that extends CONFIG with the fitted values (-o) and a figure of the "
-        "data against each fit (--plot). Exit code 0 when every DER asked for was fitted, 2 for "
-        "a user error (no such file, a column or DER that is not there, nothing to fit).",
+        description="Fit each DER's model (a dead time, then the reference first-order lag, "
+        "or the analyses' pt2 or rhpz) to its set-point and measured infeed: from a recording "
+        "of CONFIG (the DERs' state messages) or from a CSV a SCADA exports (--csv with --time, "
+        "--setpoint, --measured and --der). Prints T_delay and T_rise = T ln 9 with 95 %% "
+        "intervals and the fit's RMSE and R², writes a config that extends CONFIG with the "
+        "fitted reference model (-o) and a figure of the data against each fit (--plot). Exit "
+        "code 0 when every DER asked for was fitted, 2 for a user error (no such file, a column "
+        "or DER that is not there, nothing to fit).",
     )
     add_config_argument(parser)
     parser.add_argument("recording", metavar="RUN", nargs="?",
@@ -34,6 +35,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--der", metavar="ID[,ID...]",
                         help="the DERs to fit (default: every DER of CONFIG in the recording; "
                         "with --csv: the one DER the file is of)")
+    parser.add_argument("--model", choices=("pt1", "pt2", "rhpz", "all"), default="pt1",
+                        help="the model fitted: pt1 (the reference model, default), pt2, rhpz "
+                        "(docs/method.md#model-uncertainty) or all three, side by side")
     parser.add_argument("--from", dest="start_s", type=float, metavar="S",
                         help="fit from this time on, s of the run (default: its start)")
     parser.add_argument("--to", dest="stop_s", type=float, metavar="S",
@@ -54,7 +58,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     """Fit, print, write what was asked for."""
     from adnmesh.config import load_config
-    from adnmesh.identify.pt1_fit import fit_pt1
+    from adnmesh.identify.model_fit import MODELS, fit_model
     from adnmesh.identify.resample import on_grid, sample_period
 
     config = load_config(args.config)
@@ -69,15 +73,19 @@ def run(args: argparse.Namespace) -> int:
             output_path(path, flag)
     if args.plot is not None:
         _check_format(args.plot)
+    if args.out is not None and args.model != "pt1":
+        raise UsageError("-o writes the reference model (t_delay_s, t_rise_s): it needs "
+                         "--model pt1")
     if (args.csv is None) == (args.recording is None):
         raise UsageError("give a recording RUN or --csv FILE (one of them)")
     series = _from_csv(args, wanted) if args.csv else _from_recording(args, wanted, known)
+    models = MODELS if args.model == "all" else (args.model,)
     fits, grids = {}, {}
     for der, (ts, u, tm, y) in series.items():
         try:
             period = sample_period(tm)
             t, held, measured = on_grid(ts, u, tm, y, period, args.start_s, args.stop_s)
-            fits[der] = fit_pt1(period, held, measured)
+            fits[der] = [fit_model(period, held, measured, model) for model in models]
         except ValueError as exc:
             raise UsageError(f"{der}: {exc}") from None
         grids[der] = (t, held, measured, period)
@@ -161,15 +169,17 @@ def _print(fits: dict, config) -> None:
     from rich.console import Console
     from rich.table import Table
     given = {d.id: d for d in config.ders}
-    table = Table(title="the reference model fitted (95 % intervals from the fit's Jacobian)")
-    for name in ("DER", "T_delay [s]", "T_rise [s]", "config: T_delay / T_rise [s]",
-                 "RMSE [kW]", "R²", "samples"):
-        table.add_column(name, justify="left" if name == "DER" else "right")
-    for der, fit in fits.items():
-        table.add_row(der, f"{fit.delay_s:.4g} ({fit.delay_ci_s[0]:.4g}-{fit.delay_ci_s[1]:.4g})",
-                      f"{fit.rise_s:.4g} ({fit.rise_ci_s[0]:.4g}-{fit.rise_ci_s[1]:.4g})",
-                      f"{given[der].t_delay_s:g} / {given[der].t_rise_s:g}",
-                      f"{fit.rmse_w / 1e3:.3g}", f"{fit.r2:.5f}", str(fit.samples))
+    table = Table(title="the models fitted (95 % intervals from the fit's Jacobian)")
+    for name in ("DER", "model", "T_delay [s]", "T_rise = T ln 9 [s]",
+                 "config: T_delay / T_rise [s]", "RMSE [kW]", "R²", "samples"):
+        table.add_column(name, justify="left" if name in ("DER", "model") else "right")
+    for der, found in fits.items():
+        for fit in found:
+            table.add_row(der, fit.model,
+                          f"{fit.delay_s:.4g} ({fit.delay_ci_s[0]:.4g}-{fit.delay_ci_s[1]:.4g})",
+                          f"{fit.rise_s:.4g} ({fit.rise_ci_s[0]:.4g}-{fit.rise_ci_s[1]:.4g})",
+                          f"{given[der].t_delay_s:g} / {given[der].t_rise_s:g}",
+                          f"{fit.rmse_w / 1e3:.3g}", f"{fit.r2:.5f}", str(fit.samples))
     Console(width=max(100, os.get_terminal_size(1).columns if os.isatty(1) else 120)).print(table)
 
 
@@ -182,8 +192,9 @@ def _overlay(config, fits: dict, out: Path) -> str:
     for der in config.ders:
         entry = der.model_dump(mode="json", exclude_defaults=True)
         if der.id in fits:
-            entry["t_delay_s"] = float(f"{fits[der.id].delay_s:.6g}")
-            entry["t_rise_s"] = float(f"{max(fits[der.id].rise_s, 1e-6):.6g}")
+            fit = fits[der.id][0]
+            entry["t_delay_s"] = float(f"{fit.delay_s:.6g}")
+            entry["t_rise_s"] = float(f"{max(fit.rise_s, 1e-6):.6g}")
         lines.append(f"  - {json.dumps(entry)}")
     return "\n".join(lines) + "\n"
 
@@ -193,13 +204,14 @@ def _plot(fits: dict, grids: dict, path: Path) -> None:
     rows = len(fits)
     figure = Figure(figsize=(10, 2.4 * rows), layout="constrained")
     axes = figure.subplots(rows, 1, squeeze=False)[:, 0]
-    for ax, (der, fit) in zip(axes, fits.items()):
+    for ax, (der, found) in zip(axes, fits.items()):
         t, held, measured, period = grids[der]
-        model = fit.model(period, held, float(measured[0]))
         ax.plot(t, held / 1e6, drawstyle="steps-post", color="0.6", lw=1, label="set-point")
         ax.plot(t, measured / 1e6, color="C0", lw=1.2, label="measured")
-        ax.plot(t, model / 1e6, color="C3", lw=1, ls="--",
-                label=f"fit: T_delay {fit.delay_s:.3g} s, T_rise {fit.rise_s:.3g} s")
+        for i, fit in enumerate(found):
+            ax.plot(t, fit.response(period, held, float(measured[0])) / 1e6, color=f"C{3 + i}",
+                    lw=1, ls="--", label=f"{fit.model}: T_delay {fit.delay_s:.3g} s, "
+                    f"T_rise {fit.rise_s:.3g} s, R² {fit.r2:.4f}")
         ax.set_ylabel(f"{der} [MW]")
         ax.legend(loc="best", fontsize=8)
         ax.grid(alpha=0.3)

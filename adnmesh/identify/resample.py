@@ -1,4 +1,4 @@
-"""A DER's recorded set-point and infeed on one uniform time grid, as :mod:`pt1_fit` takes them.
+"""A DER's recorded set-point and infeed on one uniform time grid, as :mod:`model_fit` takes them.
 
 A set-point holds from each of its samples to the next (zero-order hold); the infeed, a measured
 quantity, is interpolated linearly between its samples. Times in s, powers in W.
