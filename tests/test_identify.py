@@ -201,3 +201,13 @@ def test_identify_a_recording_recovers_the_reference_models(tmp_path: Path, caps
     assert math.isclose(fitted["SGen1"].t_rise_s, 0.515, rel_tol=1e-3)
     assert math.isclose(fitted["SGen2"].t_delay_s, 0.01, abs_tol=1e-4)
     assert math.isclose(fitted["SGen2"].t_rise_s, 1.2, rel_tol=1e-3)
+    # before the step at 1 s no set-point moves: each DER is said and left out; none is left,
+    # which is a one-line error, as is asking for one by name
+    capsys.readouterr()
+    recording = str(tmp_path / "identify.mcap")
+    assert main(["identify", str(config), recording, "--to", "0.9"]) == 2
+    err = capsys.readouterr().err
+    assert "no DER could be fitted: SGen1 (the set-point never moves" in err
+    assert main(["identify", str(config), recording, "--der", "SGen2", "--to", "0.9"]) == 2
+    assert "SGen2: the set-point never moves" in capsys.readouterr().err
+

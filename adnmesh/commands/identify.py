@@ -80,16 +80,23 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError("give a recording RUN or --csv FILE (one of them)")
     series = _from_csv(args, wanted) if args.csv else _from_recording(args, wanted, known)
     models = MODELS if args.model == "all" else (args.model,)
-    fits, grids = {}, {}
+    fits, grids, skipped = {}, {}, []
     for der, (ts, u, tm, y) in series.items():
         try:
             period = sample_period(tm)
             t, held, measured = on_grid(ts, u, tm, y, period, args.start_s, args.stop_s)
             fits[der] = [fit_model(period, held, measured, model) for model in models]
         except ValueError as exc:
-            raise UsageError(f"{der}: {exc}") from None
+            if wanted is not None:
+                raise UsageError(f"{der}: {exc}") from None
+            skipped.append(f"{der} ({exc})")
+            continue
         grids[der] = (t, held, measured, period)
+    if not fits:
+        raise UsageError(f"no DER could be fitted: {'; '.join(skipped)}")
     _print(fits, config)
+    if skipped:
+        print(f"not fitted: {'; '.join(skipped)}")
     if args.out is not None:
         args.out.write_text(_overlay(config, fits, args.out))
         print(f"{args.out}: written (extends {args.config})")
