@@ -165,6 +165,14 @@ def test_identify_a_csv_writes_a_config_that_loads_and_a_figure(tmp_path: Path, 
     assert [d.t_rise_s for d in fitted.ders if d.id != "SGen5"] == \
         [d.t_rise_s for d in load_config(config).ders if d.id != "SGen5"]
     assert fig.read_bytes()[:4] == b"\x89PNG"
+    capsys.readouterr()
+    assert main(["identify", str(config), "--csv", str(data), "--der", "SGen5", "--time",
+                 "time_s", "--setpoint", "p_set_w", "--measured", "p_meas_w", "--steps",
+                 "2,9"]) == 0
+    rows = [line.split() for line in capsys.readouterr().out.splitlines() if " pt1 " in line]
+    text = "\n".join(" ".join(r) for r in rows)
+    assert "2-8.98" in text and "9-14.99" in text
+    assert [r for r in rows if "up" in r] and [r for r in rows if "down" in r]
 
 
 @pytest.mark.parametrize("argv, said", [
@@ -175,6 +183,10 @@ def test_identify_a_csv_writes_a_config_that_loads_and_a_figure(tmp_path: Path, 
     (["--csv", "{csv}", "--der", "SGen99", "--time", "time_s", "--setpoint", "p_set_w",
       "--measured", "p_meas_w"], "not a DER"),
     (["{csv}"], "not an MCAP"),
+    (["--csv", "{csv}", "--der", "SGen5", "--time", "time_s", "--setpoint", "p_set_w",
+      "--measured", "p_meas_w", "--steps", "auto"], "give the step times"),
+    (["--csv", "{csv}", "--der", "SGen5", "--time", "time_s", "--setpoint", "p_set_w",
+      "--measured", "p_meas_w", "--steps", "2,x"], "auto or times in s"),
 ])
 def test_bad_input_is_one_line_exit_2(tmp_path: Path, capsys, argv, said) -> None:
     data = tmp_path / "scada.csv"
@@ -201,6 +213,12 @@ def test_identify_a_recording_recovers_the_reference_models(tmp_path: Path, caps
     assert math.isclose(fitted["SGen1"].t_rise_s, 0.515, rel_tol=1e-3)
     assert math.isclose(fitted["SGen2"].t_delay_s, 0.01, abs_tol=1e-4)
     assert math.isclose(fitted["SGen2"].t_rise_s, 1.2, rel_tol=1e-3)
+    # each window from a P_ref step on apart: the step at 1 s, the set-points go up
+    capsys.readouterr()
+    assert main(["identify", str(config), str(tmp_path / "identify.mcap"), "--steps",
+                 "auto"]) == 0
+    rows = [line for line in capsys.readouterr().out.splitlines() if "pt1" in line]
+    assert any("SGen1" in r and "1-" in r and " up " in r for r in rows)
     # before the step at 1 s no set-point moves: each DER is said and left out; none is left,
     # which is a one-line error, as is asking for one by name
     capsys.readouterr()

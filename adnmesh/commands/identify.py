@@ -42,6 +42,10 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         help="fit from this time on, s of the run (default: its start)")
     parser.add_argument("--to", dest="stop_s", type=float, metavar="S",
                         help="fit up to this time, s of the run (default: its end)")
+    parser.add_argument("--steps", metavar="auto|S,S,...",
+                        help="also fit each window from one step to the next apart and say "
+                        "whether the DER's set-point went up or down in it: auto (the "
+                        "recording's P_ref steps) or the times, s")
     parser.add_argument("--csv", metavar="FILE", help="read time, set-point and measured "
                         "power from this CSV instead of a recording")
     parser.add_argument("--time", metavar="COL", help="--csv: the column of the time, s")
@@ -78,7 +82,15 @@ def run(args: argparse.Namespace) -> int:
                          "--model pt1")
     if (args.csv is None) == (args.recording is None):
         raise UsageError("give a recording RUN or --csv FILE (one of them)")
-    series = _from_csv(args, wanted) if args.csv else _from_recording(args, wanted, known)
+    if args.csv is not None and args.steps == "auto":
+        raise UsageError("--steps auto takes the P_ref steps of a recording: with --csv, give "
+                         "the step times (--steps S,S,...)")
+    steps = None if args.steps in (None, "auto") else _times(args.steps)
+    if args.csv:
+        series = _from_csv(args, wanted)
+    else:
+        series, p_ref_steps = _from_recording(args, wanted, known)
+        steps = p_ref_steps if args.steps == "auto" else steps
     models = MODELS if args.model == "all" else (args.model,)
     fits, grids, skipped = {}, {}, []
     for der, (ts, u, tm, y) in series.items():
@@ -97,6 +109,8 @@ def run(args: argparse.Namespace) -> int:
     _print(fits, config)
     if skipped:
         print(f"not fitted: {'; '.join(skipped)}")
+    if steps is not None:
+        _print_steps(_by_step(grids, steps, models))
     if args.out is not None:
         args.out.write_text(_overlay(config, fits, args.out))
         print(f"{args.out}: written (extends {args.config})")
@@ -104,6 +118,54 @@ def run(args: argparse.Namespace) -> int:
         _plot(fits, grids, args.plot)
         print(f"{args.plot}: written")
     return 0
+
+
+def _times(text: str) -> list[float]:
+    try:
+        times = sorted(float(part) for part in text.split(",") if part.strip())
+    except ValueError:
+        raise UsageError(f"--steps {text!r}: auto or times in s, e.g. 20,100") from None
+    if not times:
+        raise UsageError(f"--steps {text!r}: no time given")
+    return times
+
+
+def _by_step(grids: dict, steps: list[float], models) -> list[tuple]:
+    """``(der, start, stop, up/down, fits)`` for each window from a step to the next (the
+    last to the end) in which the DER's set-point moved. A window begins with the last sample
+    before its step, where each fit starts at rest."""
+    import numpy as np
+
+    from adnmesh.identify.model_fit import fit_model
+    rows = []
+    for der, (t, held, measured, period) in grids.items():
+        inside = [s for s in steps if t[0] < s <= t[-1]]
+        first = [int(np.searchsorted(t, s - 1e-6 * period)) - 1 for s in inside] + [len(t)]
+        for start, i0, i1 in zip(inside, first, first[1:]):
+            u, y = held[i0:i1], measured[i0:i1]
+            try:
+                found = [fit_model(period, u, y, model) for model in models]
+            except ValueError:
+                continue                                 # it did not move in this window
+            direction = "up" if u[-1] >= u[0] else "down"
+            rows.append((der, start, float(t[i1 - 1]), direction, found))
+    return rows
+
+
+def _print_steps(rows: list[tuple]) -> None:
+    from rich.console import Console
+    from rich.table import Table
+    table = Table(title="each window from a step to the next (the model starts at rest there)")
+    for name in ("DER", "window [s]", "set-point", "model", "T_delay [s]", "T_rise [s]",
+                 "RMSE [kW]", "R²"):
+        table.add_column(name, justify="left" if name in ("DER", "set-point", "model")
+                         else "right")
+    for der, start, stop, direction, found in rows:
+        for fit in found:
+            table.add_row(der, f"{start:g}-{stop:g}", direction, fit.model,
+                          f"{fit.delay_s:.4g}", f"{fit.rise_s:.4g}", f"{fit.rmse_w / 1e3:.3g}",
+                          f"{fit.r2:.5f}")
+    Console(width=max(100, os.get_terminal_size(1).columns if os.isatty(1) else 120)).print(table)
 
 
 def _check_format(path: Path) -> None:
@@ -114,7 +176,8 @@ def _check_format(path: Path) -> None:
 
 
 def _from_recording(args, wanted, known) -> dict:
-    """``{der: (set-point t, set-point, infeed t, infeed)}`` from the recording, s and W."""
+    """``({der: (set-point t, set-point, infeed t, infeed)}, P_ref step times)`` from the
+    recording, s and W."""
     from adnmesh.results.series import read_run
     found, _ = read_run(input_file(args.recording))
     run = found.run
@@ -123,6 +186,10 @@ def _from_recording(args, wanted, known) -> dict:
         for s in run.by_role(role):
             if s.der in known and (wanted is None or s.der in wanted):
                 out.setdefault(s.der, [None, None])[slot] = (run.seconds(s.t_ns), s.values)
+    p_ref = run.one("p_ref")
+    steps = [] if p_ref is None else [float(run.seconds(t)) for t, change in
+                                      zip(p_ref.t_ns[1:], p_ref.values[1:] != p_ref.values[:-1])
+                                      if change]
     missing = [d for d in (wanted or []) if d not in out or None in out[d]]
     if missing:
         raise UsageError(f"{args.recording}: no set-point and infeed of {', '.join(missing)}")
@@ -130,7 +197,7 @@ def _from_recording(args, wanted, known) -> dict:
     if not series:
         raise UsageError(f"{args.recording}: no DER of {args.config} with a set-point and an "
                          f"infeed in it")
-    return dict(sorted(series.items(), key=lambda item: known.index(item[0])))
+    return dict(sorted(series.items(), key=lambda item: known.index(item[0]))), steps
 
 
 def _from_csv(args, wanted) -> dict:
