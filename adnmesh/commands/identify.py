@@ -153,7 +153,6 @@ def _by_step(grids: dict, steps: list[float], models) -> list[tuple]:
 
 
 def _print_steps(rows: list[tuple]) -> None:
-    from rich.console import Console
     from rich.table import Table
     table = Table(title="each window from a step to the next (the model starts at rest there)")
     for name in ("DER", "window [s]", "set-point", "model", "T_delay [s]", "T_rise [s]",
@@ -165,7 +164,13 @@ def _print_steps(rows: list[tuple]) -> None:
             table.add_row(der, f"{start:g}-{stop:g}", direction, fit.model,
                           f"{fit.delay_s:.4g}", f"{fit.rise_s:.4g}", f"{fit.rmse_w / 1e3:.3g}",
                           f"{fit.r2:.5f}")
-    Console(width=max(100, os.get_terminal_size(1).columns if os.isatty(1) else 120)).print(table)
+    _console().print(table)
+
+
+def _console():
+    """A console as wide as the terminal, at least 100 columns (120 when not a terminal)."""
+    from rich.console import Console
+    return Console(width=max(100, os.get_terminal_size(1).columns if os.isatty(1) else 120))
 
 
 def _check_format(path: Path) -> None:
@@ -240,7 +245,6 @@ def _is_number(text) -> bool:
 
 
 def _print(fits: dict, config) -> None:
-    from rich.console import Console
     from rich.table import Table
     given = {d.id: d for d in config.ders}
     table = Table(title="the models fitted (95 % intervals from the fit's Jacobian)")
@@ -254,7 +258,7 @@ def _print(fits: dict, config) -> None:
                           f"{fit.rise_s:.4g} ({fit.rise_ci_s[0]:.4g}-{fit.rise_ci_s[1]:.4g})",
                           f"{given[der].t_delay_s:g} / {given[der].t_rise_s:g}",
                           f"{fit.rmse_w / 1e3:.3g}", f"{fit.r2:.5f}", str(fit.samples))
-    Console(width=max(100, os.get_terminal_size(1).columns if os.isatty(1) else 120)).print(table)
+    _console().print(table)
 
 
 def _overlay(config, fits: dict, out: Path) -> str:
