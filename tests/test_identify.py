@@ -157,7 +157,10 @@ def test_identify_a_csv_writes_a_config_that_loads_and_a_figure(tmp_path: Path, 
     assert main(["identify", str(config), "--csv", str(data), "--der", "SGen5", "--time",
                  "time_s", "--setpoint", "p_set_w", "--measured", "p_meas_w", "-o", str(out),
                  "--plot", str(fig)]) == 0
-    assert "SGen5" in capsys.readouterr().out
+    said = capsys.readouterr().out
+    assert "SGen5" in said
+    assert "b = fitted T_rise / configured from 0.163 (SGen5) to 0.163 (SGen5)" in said
+    assert "dead time -0.48 s (SGen5)" in said
     fitted = load_config(out)
     sgen5 = next(d for d in fitted.ders if d.id == "SGen5")
     assert math.isclose(sgen5.t_delay_s, 0.52, abs_tol=1e-3)

@@ -107,6 +107,7 @@ def run(args: argparse.Namespace) -> int:
     if not fits:
         raise UsageError(f"no DER could be fitted: {'; '.join(skipped)}")
     _print(fits, config)
+    print(_implied(fits, config))
     if skipped:
         print(f"not fitted: {'; '.join(skipped)}")
     if steps is not None:
@@ -165,6 +166,24 @@ def _print_steps(rows: list[tuple]) -> None:
                           f"{fit.delay_s:.4g}", f"{fit.rise_s:.4g}", f"{fit.rmse_w / 1e3:.3g}",
                           f"{fit.r2:.5f}")
     _console().print(table)
+
+
+def _implied(fits: dict, config) -> str:
+    """The uncertainty the fits imply against the config, as the analyses take it: the factor
+    ``b`` of each DER's lag (fitted T_rise over the configured) and the dead times' shift; of
+    the reference model if it was fitted, else of the first model."""
+    given = {d.id: d for d in config.ders}
+    models = [f.model for f in next(iter(fits.values()))]
+    model = "pt1" if "pt1" in models else models[0]
+    chosen = {der: next(f for f in found if f.model == model) for der, found in fits.items()}
+    b = {der: fit.rise_s / given[der].t_rise_s for der, fit in chosen.items()}
+    shift = {der: fit.delay_s - given[der].t_delay_s for der, fit in chosen.items()}
+    low, high = min(b, key=b.get), max(b, key=b.get)
+    early, late = min(shift, key=shift.get), max(shift, key=shift.get)
+    return (f"implied uncertainty ({model}): b = fitted T_rise / configured from "
+            f"{b[low]:.3g} ({low}) to {b[high]:.3g} ({high}); dead time "
+            f"{shift[early]:+.3g} s ({early}) to {shift[late]:+.3g} s ({late}) from the "
+            f"configured (analyze: docs/method.md#model-uncertainty)")
 
 
 def _console():
