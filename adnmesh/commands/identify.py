@@ -7,6 +7,7 @@ import argparse
 import csv
 import json
 import os
+from contextlib import contextmanager
 from pathlib import Path
 
 from adnmesh.commands import add_config_argument, input_file, output_path
@@ -93,17 +94,22 @@ def run(args: argparse.Namespace) -> int:
         steps = p_ref_steps if args.steps == "auto" else steps
     models = MODELS if args.model == "all" else (args.model,)
     fits, grids, skipped = {}, {}, []
-    for der, (ts, u, tm, y) in series.items():
-        try:
-            period = sample_period(tm)
-            t, held, measured = on_grid(ts, u, tm, y, period, args.start_s, args.stop_s)
-            fits[der] = [fit_model(period, held, measured, model) for model in models]
-        except ValueError as exc:
-            if wanted is not None:
-                raise UsageError(f"{der}: {exc}") from None
-            skipped.append(f"{der} ({exc})")
-            continue
-        grids[der] = (t, held, measured, period)
+    with _progress(len(series) * len(models)) as advance:
+        for der, (ts, u, tm, y) in series.items():
+            try:
+                period = sample_period(tm)
+                t, held, measured = on_grid(ts, u, tm, y, period, args.start_s, args.stop_s)
+                fits[der] = []
+                for model in models:
+                    fits[der].append(fit_model(period, held, measured, model))
+                    advance(f"{der} {model}")
+            except ValueError as exc:
+                if wanted is not None:
+                    raise UsageError(f"{der}: {exc}") from None
+                skipped.append(f"{der} ({exc})")
+                fits.pop(der, None)
+                continue
+            grids[der] = (t, held, measured, period)
     if not fits:
         raise UsageError(f"no DER could be fitted: {'; '.join(skipped)}")
     _print(fits, config)
@@ -119,6 +125,19 @@ def run(args: argparse.Namespace) -> int:
         _plot(fits, grids, args.plot)
         print(f"{args.plot}: written")
     return 0
+
+
+@contextmanager
+def _progress(total: int):
+    """A bar on stderr while the fits run (gone when they are done); yields ``advance(what)``."""
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
+
+    with Progress(TextColumn("fitting"), BarColumn(), MofNCompleteColumn(),
+                  TextColumn("{task.fields[what]}"), console=Console(stderr=True),
+                  transient=True) as bar:
+        task = bar.add_task("fit", total=total, what="")
+        yield lambda what: bar.update(task, advance=1, what=what)
 
 
 def _times(text: str) -> list[float]:
