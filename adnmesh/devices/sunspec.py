@@ -75,6 +75,7 @@ from pymodbus.simulator import DataType, SimData, SimDevice
 from sunspec2.device import Model
 from sunspec2.mdef import END_MODEL_ID
 
+from adnmesh.config import SunSpecPointNames
 from adnmesh.devices.faults import DeviceFaults
 from adnmesh.devices.link import DeviceError, Reading
 
@@ -190,6 +191,9 @@ def _fit(point_type: str, magnitude: float) -> int:
 
 # -- the points -----------------------------------------------------------------------------
 
+_CONFIG_DEFAULTS = SunSpecPointNames()
+"""The points a DER's ``plant.points`` names unless it says otherwise: the defaults here too."""
+
 
 @dataclass(frozen=True)
 class SunSpecPoints:
@@ -215,12 +219,12 @@ class SunSpecPoints:
         always within one Modbus read, 125 registers: a read is one request per model.)
     """
 
-    p_set: str = "704.WSet"
-    q_set: str = "704.VarSet"
-    p_meas: str = "701.W"
-    q_meas: str = "701.Var"
-    status: str = "701.ConnSt"
-    stamp: str | None = "122.Tms"
+    p_set: str = _CONFIG_DEFAULTS.p_set
+    q_set: str = _CONFIG_DEFAULTS.q_set
+    p_meas: str = _CONFIG_DEFAULTS.p_meas
+    q_meas: str = _CONFIG_DEFAULTS.q_meas
+    status: str = _CONFIG_DEFAULTS.status
+    stamp: str | None = _CONFIG_DEFAULTS.stamp
 
     def __post_init__(self) -> None:
         for field in fields(self):
