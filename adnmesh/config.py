@@ -519,6 +519,70 @@ class GridModel(Section):
         return self
 
 
+_Scale = Annotated[float, Field(gt=0, le=100)]
+_Shift = Annotated[float, Field(ge=-_MAX_DELAY_S, le=_MAX_DELAY_S)]
+_ScaleRange = Annotated[tuple[_Scale, _Scale], Field(strict=False)]
+_ShiftRange = Annotated[tuple[_Shift, _Shift], Field(strict=False)]
+
+
+def _ordered(pair: tuple, what: str) -> tuple:
+    if pair[0] > pair[1]:
+        raise _problem((what,), f"the low end {pair[0]:g} is above the high end {pair[1]:g}")
+    return pair
+
+
+class TypeUncertainty(Section):
+    """How far one DER type's dynamics may stray from its configured reference model."""
+
+    lag_scale: _ScaleRange = (1.0, 1.0)
+    """``[b_lo, b_hi]``: every time constant of the type's DERs times one factor ``b`` in this
+    interval (dimensionless; ``[1, 1]``: as configured)."""
+    delay_add_s: _ShiftRange = (0.0, 0.0)
+    """``[lo, hi]``: added to every dead time of the type's DERs (s; a dead time never goes
+    below 0)."""
+
+    @model_validator(mode="after")
+    def _intervals(self) -> TypeUncertainty:
+        _ordered(self.lag_scale, "lag_scale")
+        _ordered(self.delay_add_s, "delay_add_s")
+        return self
+
+
+class RobustSet(Section):
+    """The uncertainty set every table entry is certified over (docs/tuning.md#robust-tables):
+    the actuator structures, and per DER type an interval of the time-constant factor ``b`` and
+    of added dead time. DERs of one type share one ``b`` and one added dead time; types vary
+    independently of each other."""
+
+    models: Annotated[tuple[Literal["pt1", "pt2", "rhpz"], ...],
+                      Field(strict=False, min_length=1, max_length=3)] = ("pt1",)
+    """Actuator structures (docs/method.md#model-uncertainty), each with the type's time
+    constant."""
+    lag_scale: _ScaleRange = (1.0, 1.0)
+    """``[b_lo, b_hi]`` for every type not under ``types``."""
+    delay_add_s: _ShiftRange = (0.0, 0.0)
+    """Added dead time ``[lo, hi]`` for every type not under ``types``, s."""
+    types: dict[DERType, TypeUncertainty] = {}
+    """Per DER type, its own intervals (replacing the two above for it)."""
+
+    @model_validator(mode="after")
+    def _intervals(self) -> RobustSet:
+        _ordered(self.lag_scale, "lag_scale")
+        _ordered(self.delay_add_s, "delay_add_s")
+        if len(set(self.models)) != len(self.models):
+            raise _problem(("models",), "name each structure once")
+        return self
+
+    def __hash__(self) -> int:                  # a frozen section is hashable: its dict too
+        return hash((self.models, self.lag_scale, self.delay_add_s,
+                     tuple(sorted(self.types.items()))))
+
+    def of_type(self, der_type: str) -> TypeUncertainty:
+        """The intervals of ``der_type``."""
+        return self.types.get(der_type) or TypeUncertainty(lag_scale=self.lag_scale,
+                                                           delay_add_s=self.delay_add_s)
+
+
 class Constraints(Section):
     """Design constraints every table entry must satisfy (docs/method.md#design-constraints)."""
 
@@ -532,6 +596,9 @@ class Constraints(Section):
     """Design for the sampled PI of the runtime: its zero-order hold delays P_Y by half a
     sampling period on average, so the design loop's T_com is t_com_s + runtime.pi_period_s /
     2 (false: the continuous PI of the paper, T_com = t_com_s)."""
+    robust: RobustSet | None = None
+    """Certify every entry over this uncertainty set as well as on the reference model (none:
+    the reference model alone)."""
 
 
 class PRefStep(Section):

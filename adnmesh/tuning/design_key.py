@@ -55,7 +55,8 @@ def design_document(config) -> dict:
         "t_meas_s": config.t_meas_s,
         "design_t_com_s": config.design_t_com_s,
         "t_rise_is": config.t_rise_is,
-        "constraints": config.constraints.model_dump(),
+        # an uncertainty set is part of the design; none leaves the document as before
+        "constraints": config.constraints.model_dump(exclude_none=True),
     })
 
 
