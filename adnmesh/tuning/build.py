@@ -36,6 +36,11 @@ __all__ = ["tune_table", "static_entry", "paper_path", "write_csv", "group_subse
            "plant_chunks", "METHODS", "PHASES"]
 
 METHODS = ("paper", "global")
+#: an entry's certificate over the uncertainty set (tables of configs with one)
+ROBUST_KEYS = ("robust_disk_margin", "robust_disk_margin_at", "robust_overshoot_pct",
+               "robust_overshoot_at")
+#: CSV columns that are text
+TEXT_KEYS = ("tuned_by", "robust_disk_margin_at", "robust_overshoot_at")
 #: ``tuned_by`` of a paper-method entry whose path search never found a feasible point
 PAPER_FALLBACK = "global (the paper's path found no feasible point)"
 #: plants per chunk, at most: the paper method's path walk checks its plants in 800-900
@@ -344,6 +349,8 @@ def write_csv(table: SchedulingTable, path: Path) -> None:
     1/(W s)), feasibility, the reason (text) and the figures (empty: none). Written atomically."""
     keys = list(FIGURE_KEYS) + ["settling_time_2pct_s", "design_rise_time_s",
                                 "global_rise_time_s", "tuned_by"]
+    if any("robust_disk_margin" in e.figures for e in table.entries.values()):
+        keys += list(ROBUST_KEYS)
     ders = list(table.der_ids)
     text = io.StringIO(newline="")
     w = csv.writer(text)
@@ -355,6 +362,6 @@ def write_csv(table: SchedulingTable, path: Path) -> None:
                    + [int(d in members) for d in ders]
                    + [_number(e["w"].get(d)) if d in members else "" for d in ders]
                    + [e["feasible"], e["reason"] or ""]
-                   + [_number(e.get(k)) if k != "tuned_by" else e.get(k) or ""
+                   + [_number(e.get(k)) if k not in TEXT_KEYS else e.get(k) or ""
                       for k in keys])
     write_atomic(path, text.getvalue())

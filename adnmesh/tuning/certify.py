@@ -5,7 +5,11 @@ pair per plant. :func:`certified_entries` turns it into a table entry for every 
 plant: absolute gains (``K = k_n / sum P_inst``), the weights of Find W
 (:func:`~adnmesh.tuning.weights.find_weights`), the as-deployed figures (weights applied) and,
 where that loop misses a constraint, both gains lowered together (:func:`back_off`). An entry
-is feasible only if the as-deployed loop meets both constraints. The table builder
+is feasible only if the as-deployed loop meets both constraints. With an uncertainty set
+(``constraints.robust``) it must meet them on every member the certificate
+(:func:`~adnmesh.tuning.robust_check.worst_members`) finds too; where it does not, those members
+join every later check and the entry is backed off, up to :data:`ROBUST_ROUNDS` times
+(docs/tuning.md#robust-tables). The table builder
 (:mod:`adnmesh.tuning.build`) and the on-demand tuner (:mod:`adnmesh.tuning.ondemand`) both end
 here.
 """
@@ -18,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from adnmesh.tuning.problem import TuningProblem
+from adnmesh.tuning.robust_check import worst_members
 from adnmesh.tuning.table import FIGURE_KEYS, TableEntry
 from adnmesh.tuning.weights import find_weights
 
@@ -85,6 +90,11 @@ def certified_entries(problem: TuningProblem, groups: list[PlantGroup], kp_n, ki
         with _phase(clock, "as-deployed figures"):
             again = problem.figures(gains[bad], kp[bad], ki[bad])
         fig = _replace_rows(fig, bad, again)
+    robust = None
+    if problem.box is not None:
+        with _phase(clock, "back-off"):
+            robust, scale, kp, ki, fig = _certify_over_set(problem, gains, kp, ki, scale, fig,
+                                                           usable)
     for i, ((s, _, _, grise, drise, by), w) in enumerate(zip(rows, weights)):
         row = fig.row(i)
         figures = {k: row[k] for k in FIGURE_KEYS}
@@ -99,7 +109,120 @@ def certified_entries(problem: TuningProblem, groups: list[PlantGroup], kp_n, ki
                   and row["overshoot_pct"] < problem.overshoot_max_pct)
         reason = None if ok else ("every weight reduced to 0" if not usable[i]
                                   else "as-deployed loop violates a constraint")
+        if robust is not None:
+            figures.update(robust.figures(i))
+            if ok and not robust.holds[i]:
+                ok, reason = False, "not certified over the uncertainty set: " + robust.why(i)
         out.append(TableEntry(s, float(kp[i]), float(ki[i]), w, ok, reason, figures))
+    return out
+
+
+#: certificate rounds: find the worst members, add them to the checks, back off, again
+ROBUST_ROUNDS = 3
+
+
+class _SetCertificate:
+    """The certificate of every row: its worst members (:func:`worst_members`)."""
+
+    def __init__(self, problem: TuningProblem, gains: np.ndarray):
+        self.problem = problem
+        n = gains.shape[0]
+        self.worst = [None] * n        # (disk margin, member, overshoot, member, settled)
+        self.holds = np.zeros(n, bool)
+        #: the DER types each row's loop has
+        self.types = [{t for t, g in zip(problem.group_types, row) if g > 0} for row in gains]
+
+    def record(self, rows: np.ndarray, wc) -> None:
+        p = self.problem
+        ok = wc.meets(p.disk_margin_min, p.overshoot_max_pct)
+        for j, r in enumerate(rows):
+            self.worst[r] = (float(wc.disk_margin[j]), wc.disk_margin_at[j],
+                             float(wc.overshoot_pct[j]), wc.overshoot_at[j],
+                             bool(wc.settled[j]))
+            self.holds[r] = bool(ok[j])
+
+    def why(self, i: int) -> str:
+        if self.worst[i] is None:
+            return "not evaluated"
+        dm, dm_at, over, os_at, settled = self.worst[i]
+        box = self.problem.box
+        if not settled:
+            return "a member is unstable or does not settle"
+        if dm < self.problem.disk_margin_min:
+            return f"disk margin {dm:.4g} at {box.describe(dm_at, self.types[i])}"
+        return f"overshoot {over:.4g} % at {box.describe(os_at, self.types[i])}"
+
+    def figures(self, i: int) -> dict:
+        if self.worst[i] is None:
+            return {}
+        dm, dm_at, over, os_at, settled = self.worst[i]
+        box = self.problem.box
+        return {"robust_disk_margin": dm if settled else None,
+                "robust_disk_margin_at": box.describe(dm_at, self.types[i]) if dm_at else None,
+                "robust_overshoot_pct": over if settled else None,
+                "robust_overshoot_at": box.describe(os_at, self.types[i]) if os_at else None}
+
+
+def _certify_over_set(problem, gains, kp, ki, scale, fig, usable):
+    """Certify the rows over the uncertainty set; where one fails, add the members it failed
+    on to every later check and back it off (both gains together), up to
+    :data:`ROBUST_ROUNDS` times. Returns (certificate, scale, kp, ki, figures)."""
+    cert = _SetCertificate(problem, gains)
+    todo = np.nonzero(usable & np.isfinite(scale) & _meets(problem, fig))[0]
+    for round_ in range(ROBUST_ROUNDS + 1):
+        if todo.size == 0:
+            break
+        wc = worst_members(problem, gains[todo], kp[todo], ki[todo])
+        cert.record(todo, wc)
+        bad = todo[~cert.holds[todo]]
+        if bad.size == 0 or round_ == ROBUST_ROUNDS:
+            break
+        problem.add_members(m for r in bad for m in (cert.worst[r][1], cert.worst[r][3])
+                            if m is not None)
+        factor = back_off(problem, gains[bad], kp[bad], ki[bad])
+        far = ~np.isfinite(factor)
+        if far.any():
+            factor[far] = _far_back_off(problem, gains[bad[far]], kp[bad[far]], ki[bad[far]])
+        found = np.isfinite(factor)
+        bad = bad[found]
+        if bad.size == 0:
+            break
+        scale[bad] *= factor[found]
+        kp, ki = kp.copy(), ki.copy()
+        kp[bad] *= factor[found]
+        ki[bad] *= factor[found]
+        fig = _replace_rows(fig, bad, problem.figures(gains[bad], kp[bad], ki[bad]))
+        todo = bad
+    return cert, scale, kp, ki, fig
+
+
+#: beyond the 1 % steps: factors down to this, then bisection to 1 % of the factor
+FAR_FACTORS = np.geomspace(0.6, 1e-3, 24)
+FAR_BISECTIONS = 6
+
+
+def _far_back_off(problem, gains, kp, ki) -> np.ndarray:
+    """A gain scale for rows the 1 % steps of :func:`back_off` did not help (a member of the
+    set far from the ones the search checked): the largest of :data:`FAR_FACTORS` that meets
+    every check, then bisected (geometrically) towards the one above it; NaN if none does."""
+    n, k = kp.size, FAR_FACTORS.size
+    rows = np.repeat(np.arange(n), k)
+    f = np.tile(FAR_FACTORS, n)
+    ok = problem.check(gains[rows], kp[rows] * f, ki[rows] * f).feasible.reshape(n, k)
+    hit = ok.any(axis=1)
+    out = np.full(n, np.nan)
+    if not hit.any():
+        return out
+    j = np.argmax(ok, axis=1)
+    lo = FAR_FACTORS[j]                                       # feasible
+    hi = np.where(j > 0, FAR_FACTORS[np.maximum(j - 1, 0)], 0.99 ** 50)   # not
+    idx = np.nonzero(hit)[0]
+    lo, hi = lo[idx], hi[idx]
+    for _ in range(FAR_BISECTIONS):
+        mid = np.sqrt(lo * hi)
+        good = problem.check(gains[idx], kp[idx] * mid, ki[idx] * mid).feasible
+        lo, hi = np.where(good, mid, lo), np.where(good, hi, mid)
+    out[idx] = lo
     return out
 
 

@@ -17,6 +17,7 @@ import numpy as np
 from adnmesh.loopmodel.evaluation import LoopFigures, disk_margin_bound, evaluate
 from adnmesh.loopmodel.plant import Actuator, Plant
 from adnmesh.loopmodel.step_response import integral_rate, step_info
+from adnmesh.tuning.robust_set import Member, UncertaintyBox
 from adnmesh.tuning.subset_selection import all_subsets
 
 __all__ = ["TuningProblem", "Check", "all_subsets", "T_MAX_S", "horizon_s", "MAX_EXACT_CLASSES"]
@@ -110,14 +111,41 @@ class TuningProblem:
         self.overshoot_max_pct = (c.overshoot_max_pct if overshoot_max_pct is None
                                   else overshoot_max_pct)
         self.band_pct = c.settling_band_pct
-        groups: dict[Actuator, int] = {}
+        robust = getattr(c, "robust", None)
+        # with an uncertainty set every group is of one DER type (types stray independently)
+        groups: dict[tuple, int] = {}
         self.group_of: dict[str, int] = {}
         nominal = _nominal_by_type(config) if by_type else {}
         for der in config.ders:
             act = nominal.get(der.type) or Actuator(float(der.t_delay_s), config.t_lag_s(der))
-            self.group_of[der.id] = groups.setdefault(act, len(groups))
-        self.actuators = tuple(groups)
+            key = (act, der.type if robust is not None else None)
+            self.group_of[der.id] = groups.setdefault(key, len(groups))
+        self.actuators = tuple(a for a, _ in groups)
+        self.group_types = tuple(next(d.type for d in config.ders if self.group_of[d.id] == g)
+                                 for g in range(len(groups)))
         self.p_inst = {d.id: float(d.p_inst_w) for d in config.ders}
+        #: the uncertainty set (None: the reference model alone)
+        self.box = (None if robust is None
+                    else UncertaintyBox(robust, self.actuators, self.group_types))
+        #: members of the set every check covers besides the reference model
+        self.members: list[Member] = []
+        self._member_actuators: list[tuple[Actuator, ...]] = []
+        if self.box is not None:
+            self.add_members(self.box.design_members())
+
+    def add_members(self, members) -> None:
+        """Make every check cover ``members`` of the set too (the certificate adds a member
+        an entry failed on before it backs the entry off)."""
+        for m in members:
+            if m not in self.members:
+                self.members.append(m)
+                self._member_actuators.append(self.box.actuators_of(m))
+
+    def member_plant(self, member: Member, gains: np.ndarray) -> Plant:
+        """The plant of ``member`` of the set with group gains ``gains`` (shape (G,) or
+        (M, G))."""
+        return Plant(self.box.actuators_of(member), gains, self.config.design_t_com_s,
+                     self.config.t_meas_s)
 
     def design(self) -> "TuningProblem":
         """The problem the searches run on: this one, or with more than
@@ -174,8 +202,18 @@ class TuningProblem:
         disk margin sampled at :data:`SCREEN_PER_DECADE` frequencies per decade, an upper
         bound, is below the limit); True where only :meth:`check` can tell. Far cheaper than
         a check: no certification, no refinement."""
-        return (disk_margin_bound(self.plant(gains), kp, ki, SCREEN_PER_DECADE)
-                >= self.disk_margin_min)
+        ok = disk_margin_bound(self.plant(gains), kp, ki, SCREEN_PER_DECADE) >= self.disk_margin_min
+        gains = np.atleast_2d(gains)
+        for acts in self._member_actuators:
+            rows = np.nonzero(ok)[0]
+            if rows.size == 0:
+                break
+            plant = Plant(acts, np.broadcast_to(gains, (ok.size, gains.shape[1]))[rows],
+                          self.config.design_t_com_s, self.config.t_meas_s)
+            ok[rows] = (disk_margin_bound(plant, np.broadcast_to(kp, ok.shape)[rows],
+                                          np.broadcast_to(ki, ok.shape)[rows], SCREEN_PER_DECADE)
+                        >= self.disk_margin_min)
+        return ok
 
     def check(self, gains: np.ndarray, kp, ki, simulate=None,
               t_max_s: float = T_MAX_S) -> Check:
@@ -189,7 +227,34 @@ class TuningProblem:
         A response that has not settled within ``t_max_s`` (s) is not feasible either (its
         overshoot is not known): reason ``slow``.
         """
-        f = evaluate(self.plant(gains), kp, ki, band_pct=self.band_pct, classical=False,
+        nominal = self._check_plant(self.plant(gains), kp, ki, simulate, t_max_s)
+        if not self._member_actuators:
+            return nominal
+        m = nominal.feasible.size
+        gains = np.broadcast_to(np.atleast_2d(gains), (m, len(self.actuators)))
+        kp, ki = np.broadcast_to(kp, (m,)), np.broadcast_to(ki, (m,))
+        sim = np.ones(m, bool) if simulate is None else np.asarray(simulate, bool)
+        t_max = np.broadcast_to(np.asarray(t_max_s, float), (m,))
+        feasible = nominal.feasible.copy()
+        reason = nominal.reason.copy()
+        dm, over = nominal.disk_margin.copy(), nominal.overshoot_pct.copy()
+        for acts in self._member_actuators:
+            rows = np.nonzero(reason == "")[0]          # feasible, or met the disk margin
+            if rows.size == 0:
+                break
+            plant = Plant(acts, gains[rows], self.config.design_t_com_s, self.config.t_meas_s)
+            c = self._check_plant(plant, kp[rows], ki[rows], sim[rows],
+                                  t_max[rows] if t_max.ndim else t_max_s)
+            feasible[rows] &= c.feasible
+            reason[rows] = np.where(c.reason != "", c.reason, reason[rows])
+            dm[rows] = np.fmin(dm[rows], c.disk_margin)
+            over[rows] = np.fmax(over[rows], c.overshoot_pct)
+        return Check(feasible, dm, over, np.where(feasible, nominal.rise_time_s, np.nan),
+                     reason, nominal.simulated_rise_s)
+
+    def _check_plant(self, plant: Plant, kp, ki, simulate, t_max_s) -> Check:
+        """:meth:`check` of one plant (the reference model's or a member's of the set)."""
+        f = evaluate(plant, kp, ki, band_pct=self.band_pct, classical=False,
                      overshoot_stop_pct=self.overshoot_max_pct,
                      disk_margin_min=self.disk_margin_min, time_mask=simulate,
                      t_max_s=t_max_s, screen=True)
