@@ -55,6 +55,11 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("-o", "--out", metavar="CONFIG2", type=Path,
                         help="write a config extending CONFIG with the fitted t_delay_s and "
                         "t_rise_s")
+    parser.add_argument("--robust-out", metavar="CONFIG2", type=Path,
+                        help="write a config extending CONFIG with the uncertainty set the "
+                        "fits imply (constraints.robust: per DER type, the time-constant "
+                        "factor and added dead time covering the configured model and every "
+                        "fit's 95 %% interval, --steps windows included), for tune")
     parser.add_argument("--plot", metavar="FIG", type=Path,
                         help="write the data and each fit as a figure (png, pdf, svg, ...)")
     return parser
@@ -73,7 +78,8 @@ def run(args: argparse.Namespace) -> int:
         if der not in known:
             raise UsageError(f"--der {der}: not a DER of {args.config} "
                              f"(its DERs: {', '.join(known)})")
-    for path, flag in ((args.out, "-o"), (args.plot, "--plot")):
+    for path, flag in ((args.out, "-o"), (args.plot, "--plot"),
+                       (args.robust_out, "--robust-out")):
         if path is not None:
             output_path(path, flag)
     if args.plot is not None:
@@ -116,11 +122,18 @@ def run(args: argparse.Namespace) -> int:
     print(_implied(fits, config))
     if skipped:
         print(f"not fitted: {'; '.join(skipped)}")
+    windows = _by_step(grids, steps, models) if steps is not None else []
     if steps is not None:
-        _print_steps(_by_step(grids, steps, models))
+        _print_steps(windows)
     if args.out is not None:
         args.out.write_text(_overlay(config, fits, args.out))
         print(f"{args.out}: written (extends {args.config})")
+    if args.robust_out is not None:
+        found = [(der, fit) for der, each in fits.items() for fit in each]
+        found += [(der, fit) for der, _, _, _, each in windows for fit in each]
+        args.robust_out.write_text(_robust_overlay(config, found, args.robust_out))
+        print(f"{args.robust_out}: written (extends {args.config} with the uncertainty set; "
+              f"tune it, then up)")
     if args.plot is not None:
         _plot(fits, grids, args.plot)
         print(f"{args.plot}: written")
@@ -312,6 +325,20 @@ def _overlay(config, fits: dict, out: Path) -> str:
             entry["t_delay_s"] = float(f"{fit.delay_s:.6g}")
             entry["t_rise_s"] = float(f"{max(fit.rise_s, 1e-6):.6g}")
         lines.append(f"  - {json.dumps(entry)}")
+    return "\n".join(lines) + "\n"
+
+
+def _robust_overlay(config, found: list, out: Path) -> str:
+    """A config extending ``config`` with ``constraints.robust`` covering ``found``."""
+    from adnmesh.identify.implied_set import implied_set
+    base = os.path.relpath(Path(config.path).resolve(), out.resolve().parent)
+    robust = implied_set(config, found)
+    lines = [f"# adnmesh identify: the uncertainty set {len(found)} fit(s) imply (the configured "
+             f"model and every fit's 95 % interval); the DERs as in {Path(config.path).name}",
+             f"extends: {json.dumps(base)}", "constraints:", "  robust:",
+             f"    models: {json.dumps(robust['models'])}", "    types:"]
+    for t, box in robust["types"].items():
+        lines.append(f"      {t}: {json.dumps(box)}")
     return "\n".join(lines) + "\n"
 
 

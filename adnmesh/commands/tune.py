@@ -47,6 +47,10 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         % (MAX_ALL_DERS, MAX_ALL_DERS))
     parser.add_argument("--resume", action="store_true",
                         help="continue an interrupted run's partial table at --out")
+    parser.add_argument("--robust", action="store_true",
+                        help="require the config's uncertainty set (constraints.robust, e.g. "
+                        "from adnmesh identify --robust-out) and report each entry's worst "
+                        "member; a config with a set is always tuned over it")
     parser.add_argument("--disk-margin-min", type=float, help="override the config's alpha limit")
     parser.add_argument("--overshoot-max-pct", type=float, help="override the overshoot limit, %%")
     return parser
@@ -65,6 +69,9 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--overshoot-max-pct must be in (0, 100] (as the config's "
                          f"overshoot_max_pct), got {args.overshoot_max_pct:g}")
     config = load_loop_config(args)
+    if args.robust and config.constraints.robust is None:
+        raise UsageError(f"--robust: {args.config} has no uncertainty set (constraints.robust; "
+                         "adnmesh identify --robust-out writes one, docs/tuning.md#robust-tables)")
     spec = args.subsets
     if spec is None:
         spec = "all" if len(config.ders) <= MAX_ALL_DERS else "scenario"
@@ -108,6 +115,8 @@ def run(args: argparse.Namespace) -> int:
           f"({len(infeasible)} infeasible) in {dt:.1f} s, method {table.method}")
     for e in infeasible[:5]:
         print(f"  infeasible {','.join(e.ders)}: {e.reason}")
+    if config.constraints.robust is not None:
+        _print_robust(config, entries)
     if table.static is not None and table.static.feasible:
         s = table.static
         u = config.unit
@@ -123,3 +132,23 @@ def run(args: argparse.Namespace) -> int:
             print(f"  designed on the selection and the extreme plants, verified on them and "
                   f"{sample} subsets ({f.get('verified_plants', n)} plants; {how})")
     return 0
+
+
+def _print_robust(config, entries) -> None:
+    """The uncertainty set and the worst members the certificates found."""
+    r = config.constraints.robust
+    types = ", ".join(f"{t} b {u.lag_scale[0]:g}-{u.lag_scale[1]:g}, dead time "
+                      f"{u.delay_add_s[0]:+g} to {u.delay_add_s[1]:+g} s"
+                      for t, u in ((t, r.of_type(t)) for t in dict.fromkeys(
+                          d.type for d in config.ders)))
+    print(f"certified over the uncertainty set: {', '.join(r.models)}; {types}")
+    done = [e for e in entries if e.feasible and e.figures.get("robust_disk_margin") is not None]
+    if not done:
+        return
+    dm = min(done, key=lambda e: e.figures["robust_disk_margin"])
+    os_ = max(done, key=lambda e: e.figures["robust_overshoot_pct"])
+    backed = sum(1 for e in done if (e.figures.get("gain_back_off") or 1.0) < 1.0)
+    print(f"  lowest disk margin {dm.figures['robust_disk_margin']:.4g} "
+          f"({','.join(dm.ders)}: {dm.figures['robust_disk_margin_at']}); highest overshoot "
+          f"{os_.figures['robust_overshoot_pct']:.4g} % ({','.join(os_.ders)}: "
+          f"{os_.figures['robust_overshoot_at']}); {backed} of {len(done)} entries backed off")
