@@ -188,3 +188,22 @@ def test_tune_robust_needs_a_set(tmp_path: Path, capsys) -> None:
     assert main(["tune", str(path), "--robust", "--out", str(tmp_path / "t.json")]) == 2
     err = capsys.readouterr().err.strip()
     assert "--robust:" in err and "no uncertainty set" in err and "\n" not in err
+
+
+def test_a_robust_table_and_its_static_pair_hold_on_every_sampled_member(tmp_path: Path) -> None:
+    """Every entry of a whole table tuned over the set, and the static pair on every subset,
+    meets both constraints on a 5 x 5 grid of the set per structure."""
+    from adnmesh.tuning import tune_table
+
+    config = load_config(_config(tmp_path))
+    table = tune_table(config, "paper", 1)
+    problem = TuningProblem(config)
+    static = table.static
+    assert static.feasible, static.reason
+    assert static.figures["robust_disk_margin"] >= 1.5
+    for s in (("SGen5",), ("SGen9",), ("SGen5", "SGen9")):
+        entry = table.lookup(s)
+        assert entry.feasible, entry.reason
+        for kp, ki, w in ((entry.kp, entry.ki, entry.w), (static.kp, static.ki, None)):
+            low, high = _dense(problem, problem.group_power(s, w), kp, ki, n=5)
+            assert low >= 1.5 - 1e-9 and high < 1.0, (s, kp, ki)

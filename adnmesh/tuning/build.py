@@ -8,6 +8,7 @@ atomically, so an interrupted run leaves a valid partial table that ``resume`` c
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import math
 import multiprocessing
@@ -23,7 +24,7 @@ import numpy as np
 
 from adnmesh import BLAS_THREADS_ENV
 from adnmesh.files import write_atomic
-from adnmesh.tuning.certify import PlantGroup, certified_entries
+from adnmesh.tuning.certify import PlantGroup, certified_entries, certify_static
 from adnmesh.tuning.global_search import tune_global
 from adnmesh.tuning.paper import initial_values, tune_paper
 from adnmesh.tuning.problem import TuningProblem, all_subsets, horizon_s
@@ -310,7 +311,21 @@ def static_entry(problem: TuningProblem, ids: list[str],
         return TableEntry(tuple(ids), float("nan"), float("nan"), {d: 1.0 for d in ids}, False,
                           "no pair is feasible on every subset", verified)
     kp, ki = np.full(len(tot), res.kp), np.full(len(tot), res.ki)
+    robust = {}
+    if problem.box is not None:
+        f = powers / tot[:, None]
+        kp_s, ki_s, robust, why = certify_static(problem, powers, res.kp, res.ki,
+                                                 horizon_s(f, kp * tot, ki * tot))
+        if why is not None:
+            return TableEntry(tuple(ids), float("nan"), float("nan"), {d: 1.0 for d in ids},
+                              False, "not certified over the uncertainty set: " + why,
+                              {**verified, **robust})
+        res = dataclasses.replace(res, kp=kp_s, ki=ki_s)
+        kp, ki = np.full(len(tot), res.kp), np.full(len(tot), res.ki)
     fig = problem.figures(powers, kp, ki, t_max_s=horizon_s(powers, kp, ki))
+    if robust:                           # lowered or not, the worst plant of the pair in use
+        j = int(np.nanargmax(fig.rise_time_s))
+        res = dataclasses.replace(res, worst_rise_time_s=float(fig.rise_time_s[j]), worst_plant=j)
     worst = next(s for s in cases
                  if np.allclose(problem.group_power(s), powers[res.worst_plant]))
     figures = {
@@ -322,6 +337,7 @@ def static_entry(problem: TuningProblem, ids: list[str],
         "min_phase_margin_deg": float(np.min(fig.phase_margin_deg)),
         "min_delay_margin_s": float(np.min(fig.delay_margin_s)),
         **verified,
+        **robust,
     }
     return TableEntry(tuple(ids), res.kp, res.ki, {d: 1.0 for d in ids}, True, None, figures)
 

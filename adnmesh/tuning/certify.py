@@ -26,7 +26,8 @@ from adnmesh.tuning.robust_check import worst_members
 from adnmesh.tuning.table import FIGURE_KEYS, TableEntry
 from adnmesh.tuning.weights import find_weights
 
-__all__ = ["PlantGroup", "certified_entries", "back_off", "BACK_OFF_STEPS", "BACK_OFF_FIRST"]
+__all__ = ["PlantGroup", "certified_entries", "certify_static", "back_off", "BACK_OFF_STEPS",
+           "BACK_OFF_FIRST"]
 
 #: 1 % steps by which both gains are lowered at most (:func:`back_off`)
 BACK_OFF_STEPS = 50
@@ -194,6 +195,48 @@ def _certify_over_set(problem, gains, kp, ki, scale, fig, usable):
         fig = _replace_rows(fig, bad, problem.figures(gains[bad], kp[bad], ki[bad]))
         todo = bad
     return cert, scale, kp, ki, fig
+
+
+def certify_static(problem: TuningProblem, powers: np.ndarray, kp: float, ki: float,
+                   t_max_s) -> tuple[float, float, dict, str | None]:
+    """The static pair (1/W, 1/(W s)) certified over the uncertainty set on every plant it is
+    checked on (``powers`` (P, G), W): the members it fails on join the checks and both gains
+    are lowered together (the same factor on every plant) until it holds, up to
+    :data:`ROBUST_ROUNDS` times. Returns (K_P, K_I, the certificate's figures, why it is not
+    certified or None)."""
+    ones = np.ones(powers.shape[0])
+    why = None
+    for round_ in range(ROBUST_ROUNDS + 1):
+        wc = worst_members(problem, powers, kp * ones, ki * ones)
+        ok = wc.meets(problem.disk_margin_min, problem.overshoot_max_pct)
+        i_dm, i_os = int(np.argmin(wc.disk_margin)), int(np.argmax(wc.overshoot_pct))
+        types = {t for t, g in zip(problem.group_types, powers[i_dm]) if g > 0}
+        figures = {"robust_disk_margin": float(wc.disk_margin[i_dm]),
+                   "robust_disk_margin_at": problem.box.describe(wc.disk_margin_at[i_dm], types),
+                   "robust_overshoot_pct": float(wc.overshoot_pct[i_os]),
+                   "robust_overshoot_at": problem.box.describe(
+                       wc.overshoot_at[i_os],
+                       {t for t, g in zip(problem.group_types, powers[i_os]) if g > 0})}
+        if ok.all():
+            return kp, ki, figures, None
+        bad = np.nonzero(~ok)[0]
+        why = (f"plant {int(bad[0])}: disk margin {wc.disk_margin[bad[0]]:.4g}, overshoot "
+               f"{wc.overshoot_pct[bad[0]]:.4g} % on the set")
+        if round_ == ROBUST_ROUNDS:
+            break
+        problem.add_members(m for r in bad for m in (wc.disk_margin_at[r], wc.overshoot_at[r])
+                            if m is not None)
+        tot = powers.sum(axis=1)
+        f = powers / tot[:, None]
+        factors = np.concatenate([0.99 ** np.arange(1, BACK_OFF_STEPS + 1), FAR_FACTORS])
+        for factor in factors:
+            chk = problem.check(f, kp * factor * tot, ki * factor * tot, t_max_s=t_max_s)
+            if chk.feasible.all():
+                kp, ki = kp * factor, ki * factor
+                break
+        else:
+            break
+    return kp, ki, figures, why
 
 
 #: beyond the 1 % steps: factors down to this, then bisection to 1 % of the factor
