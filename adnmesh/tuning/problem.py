@@ -111,7 +111,7 @@ class TuningProblem:
         self.overshoot_max_pct = (c.overshoot_max_pct if overshoot_max_pct is None
                                   else overshoot_max_pct)
         self.band_pct = c.settling_band_pct
-        robust = getattr(c, "robust", None)
+        robust = c.robust
         # with an uncertainty set every group is of one DER type (types stray independently)
         groups: dict[tuple, int] = {}
         self.group_of: dict[str, int] = {}
@@ -226,6 +226,11 @@ class TuningProblem:
         (``feasible`` False, ``reason`` "" if they meet the disk margin — not yet decided).
         A response that has not settled within ``t_max_s`` (s) is not feasible either (its
         overshoot is not known): reason ``slow``.
+
+        With an uncertainty set, a candidate is feasible only if it is on the reference model
+        and on every member in :attr:`members` too; its disk margin is the lowest and its
+        overshoot the highest of those checked, its rise time the reference model's (the
+        objective), its reason the first failing plant's.
         """
         nominal = self._check_plant(self.plant(gains), kp, ki, simulate, t_max_s)
         if not self._member_actuators:
@@ -243,8 +248,7 @@ class TuningProblem:
             if rows.size == 0:
                 break
             plant = Plant(acts, gains[rows], self.config.design_t_com_s, self.config.t_meas_s)
-            c = self._check_plant(plant, kp[rows], ki[rows], sim[rows],
-                                  t_max[rows] if t_max.ndim else t_max_s)
+            c = self._check_plant(plant, kp[rows], ki[rows], sim[rows], t_max[rows])
             feasible[rows] &= c.feasible
             reason[rows] = np.where(c.reason != "", c.reason, reason[rows])
             dm[rows] = np.fmin(dm[rows], c.disk_margin)
