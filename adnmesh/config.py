@@ -1120,6 +1120,12 @@ class ConfigFile(Section):
             if fault.agent is not None and der_id_of(fault.agent) is not None:
                 _known(der_id_of(fault.agent), known, (*at, "agent"))
             _not_after(fault.t_s, self.scenario.duration_s, (*at, "t_s"))
+        robust = self.constraints.robust
+        types = dict.fromkeys(d.type for d in self.ders)
+        for der_type in robust.types if robust is not None else ():
+            if der_type not in types:
+                raise _problem(("constraints", "robust", "types", der_type),
+                               f"no DER of this type (the DERs' types: {', '.join(types)})")
         return self
 
 

@@ -64,6 +64,8 @@ def _dense(problem: TuningProblem, gains, kp: float, ki: float, n: int = 9):
     ({"models": ["pt1", "pt9"]}, "constraints.robust.models[1]: must be one of"),
     ({"models": ["pt1", "pt1"]}, "constraints.robust.models: name each structure once"),
     ({"types": {"XX": {}}}, "constraints.robust.types.XX"),
+    ({"types": {"WT": {}}}, "constraints.robust.types.WT: no DER of this type (the DERs' "
+                            "types: CHP, PV)"),
     ({"types": {"CHP": {"delay_add_s": [2, 1]}}}, "delay_add_s: the low end 2 is above"),
     ({"lag_scale": [0, 1]}, "constraints.robust.lag_scale[0]: must be a positive number"),
 ])
