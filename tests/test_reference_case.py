@@ -127,6 +127,9 @@ def test_the_step_over_its_design_is_said(reference_run) -> None:
     assert overshoot["limit"] == 1.0 and overshoot["measured"] > 1.9
     assert overshoot["design"] == pytest.approx(1.0, abs=0.01)
     assert "step at 200 s (+1.000 MW) OVER THE DESIGN of entry 1" in result.stdout
+    # and up names the way to a table certified for plants like these
+    assert ("1 step(s) broke the overshoot their entry was certified for" in result.stdout
+            and "--robust-out" in result.stdout)
     said = [m.payload()["message"] for m in recording.messages
             if m.schema_name == "foxglove.Log" and "OVER THE DESIGN" in m.payload()["message"]]
     assert any("step at 200 s (+1.000 MW) OVER THE DESIGN" in text for text in said)
@@ -171,3 +174,4 @@ def test_a_table_certified_over_the_identified_set_keeps_every_step_within(
         assert _figure(step, "overshoot_pct") < 1.0, step
         assert abs(step["steady_error_w"]) < 0.005 * 1e6, step
     assert all(c["over"] == [] for c in summary["design_checks"])
+    assert "--robust-out" not in result.stdout

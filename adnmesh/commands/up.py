@@ -439,11 +439,28 @@ def run(args: argparse.Namespace) -> int:
             f"{out} --recover-to FILE' completes them into FILE)")
     else:
         log(f"recording: {out} ({sum(result.recorded.values())} messages)")
-    unwritten = _print_summary(args, config, run_id, result)
+    unwritten = _print_summary(args, config, run_id, result,
+                               None if result.recording_failed else out)
     if unwritten:
         log(unwritten)
         return result.exit_code or 1
     return result.exit_code
+
+
+def _robust_hint(args, config: Config, checks, out) -> str | None:
+    """Where a step broke the overshoot its entry was certified for and the config has no
+    uncertainty set: the commands that certify a table for plants like the ones just run
+    (docs/tuning.md#robust-tables); else None."""
+    if config.constraints.robust is not None or out is None:
+        return None
+    over = [c for c in checks if "overshoot" in c.over]
+    if not over:
+        return None
+    robust = Path(args.config).with_name(Path(args.config).stem + "-robust.yaml")
+    return (f"{len(over)} step(s) broke the overshoot their entry was certified for: the DERs "
+            f"do not behave as the reference model. A table certified for plants like these: "
+            f"adnmesh identify {args.config} {out} --steps auto --robust-out {robust}; adnmesh "
+            f"tune {robust} --robust; adnmesh up {robust} (docs/tuning.md#robust-tables)")
 
 
 def _launch_with_view(args, options, launch, err: Console, log):
@@ -493,9 +510,11 @@ def _print_zenoh_config(args: argparse.Namespace, config: Config, certs, routers
     return 0
 
 
-def _print_summary(args: argparse.Namespace, config: Config, run_id: str, result) -> str | None:
-    """The summary on stdout (and as JSON with ``--summary-json``); return the line that says
-    the JSON could not be written (a full disk, say), or None."""
+def _print_summary(args: argparse.Namespace, config: Config, run_id: str, result,
+                   recording: Path | None = None) -> str | None:
+    """The summary on stdout (and as JSON with ``--summary-json``), with the way to a robust
+    table where a step broke its certified overshoot (``recording``: the run's, if complete);
+    return the line that says the JSON could not be written (a full disk, say), or None."""
     from adnmesh.results.realtime_report import realtime_figures
     from adnmesh.results.summary import format_summary, summarize
 
@@ -537,6 +556,9 @@ def _print_summary(args: argparse.Namespace, config: Config, run_id: str, result
                       width=None if sys.stdout.isatty() else 200)
     for item in format_summary(summary):
         console.print(item)
+    hint = _robust_hint(args, config, summary.design_checks, recording)
+    if hint:
+        console.print(hint)
     sys.stdout.flush()
     if args.summary_json:
         from adnmesh.files import write_atomic
