@@ -137,9 +137,12 @@ class TuningProblem:
         """Make every check cover ``members`` of the set too (the certificate adds a member
         an entry failed on before it backs the entry off)."""
         for m in members:
-            if m not in self.members:
+            acts = self.box.actuators_of(m)
+            # a member that is the reference model (a set of pt1 with b = 1 and no added
+            # dead time somewhere) is checked already
+            if m not in self.members and acts != self.actuators:
                 self.members.append(m)
-                self._member_actuators.append(self.box.actuators_of(m))
+                self._member_actuators.append(acts)
 
     def member_plant(self, member: Member, gains: np.ndarray) -> Plant:
         """The plant of ``member`` of the set with group gains ``gains`` (shape (G,) or

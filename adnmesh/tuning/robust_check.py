@@ -79,7 +79,7 @@ def worst_members(problem, gains, kp, ki) -> WorstCase:
     settled = np.ones(m, bool)
     dm_at, os_at = [None] * m, [None] * m
     evaluations = 0
-    for member in box.vertices() + box.centres():
+    for member in dict.fromkeys(box.vertices() + box.centres()):
         d, o, s = _figures(problem, member, gains, kp, ki)
         evaluations += m
         settled &= s
