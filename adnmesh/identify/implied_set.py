@@ -9,6 +9,8 @@ itself (``b = 1``, nothing added). The structures are those fitted.
 """
 from __future__ import annotations
 
+import math
+
 __all__ = ["implied_set", "B_FLOOR"]
 
 #: the lowest factor written (an interval reaching 0 s of rise time is no actuator)
@@ -21,21 +23,14 @@ DELAY_SAME_S = 1e-3
 
 def _round_out(low: float, high: float) -> tuple[float, float]:
     """``[low, high]`` widened to 4 significant digits (never narrower than found)."""
-    import math
 
-    def down(x):
+    def rounded(x: float, to) -> float:
         if x == 0:
             return 0.0
         step = 10 ** (math.floor(math.log10(abs(x))) - 3)
-        return math.floor(x / step) * step
+        return float(f"{to(x / step) * step:.6g}")
 
-    def up(x):
-        if x == 0:
-            return 0.0
-        step = 10 ** (math.floor(math.log10(abs(x))) - 3)
-        return math.ceil(x / step) * step
-
-    return float(f"{down(low):.6g}"), float(f"{up(high):.6g}")
+    return rounded(low, math.floor), rounded(high, math.ceil)
 
 
 def implied_set(config, fits) -> dict:

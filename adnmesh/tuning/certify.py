@@ -131,7 +131,7 @@ class _SetCertificate:
         self.worst = [None] * n        # (disk margin, member, overshoot, member, settled)
         self.holds = np.zeros(n, bool)
         #: the DER types each row's loop has
-        self.types = [{t for t, g in zip(problem.group_types, row) if g > 0} for row in gains]
+        self.types = [problem.types_in(row) for row in gains]
 
     def record(self, rows: np.ndarray, wc) -> None:
         p = self.problem
@@ -205,23 +205,20 @@ def certify_static(problem: TuningProblem, powers: np.ndarray, kp: float, ki: fl
     :data:`ROBUST_ROUNDS` times. Returns (K_P, K_I, the certificate's figures, why it is not
     certified or None)."""
     ones = np.ones(powers.shape[0])
+    rows = np.arange(powers.shape[0])
     why = None
     for round_ in range(ROBUST_ROUNDS + 1):
         wc = worst_members(problem, powers, kp * ones, ki * ones)
-        ok = wc.meets(problem.disk_margin_min, problem.overshoot_max_pct)
-        i_dm, i_os = int(np.argmin(wc.disk_margin)), int(np.argmax(wc.overshoot_pct))
-        types = {t for t, g in zip(problem.group_types, powers[i_dm]) if g > 0}
-        figures = {"robust_disk_margin": float(wc.disk_margin[i_dm]),
-                   "robust_disk_margin_at": problem.box.describe(wc.disk_margin_at[i_dm], types),
-                   "robust_overshoot_pct": float(wc.overshoot_pct[i_os]),
-                   "robust_overshoot_at": problem.box.describe(
-                       wc.overshoot_at[i_os],
-                       {t for t, g in zip(problem.group_types, powers[i_os]) if g > 0})}
-        if ok.all():
+        cert = _SetCertificate(problem, powers)
+        cert.record(rows, wc)
+        # the lowest disk margin of all plants, and the highest overshoot
+        figures = cert.figures(int(np.argmin(wc.disk_margin)))
+        figures.update({k: v for k, v in cert.figures(int(np.argmax(wc.overshoot_pct))).items()
+                        if k.startswith("robust_overshoot")})
+        if cert.holds.all():
             return kp, ki, figures, None
-        bad = np.nonzero(~ok)[0]
-        why = (f"plant {int(bad[0])}: disk margin {wc.disk_margin[bad[0]]:.4g}, overshoot "
-               f"{wc.overshoot_pct[bad[0]]:.4g} % on the set")
+        bad = np.nonzero(~cert.holds)[0]
+        why = f"plant {int(bad[0])}: {cert.why(int(bad[0]))}"
         if round_ == ROBUST_ROUNDS:
             break
         problem.add_members(m for r in bad for m in (wc.disk_margin_at[r], wc.overshoot_at[r])

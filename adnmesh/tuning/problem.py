@@ -144,6 +144,10 @@ class TuningProblem:
                 self.members.append(m)
                 self._member_actuators.append(acts)
 
+    def types_in(self, gains: np.ndarray) -> set[str]:
+        """The DER types of the groups with a gain in ``gains`` (shape (G,))."""
+        return {t for t, g in zip(self.group_types, gains) if g > 0}
+
     def member_plant(self, member: Member, gains: np.ndarray) -> Plant:
         """The plant of ``member`` of the set with group gains ``gains`` (shape (G,) or
         (M, G))."""
@@ -206,6 +210,8 @@ class TuningProblem:
         bound, is below the limit); True where only :meth:`check` can tell. Far cheaper than
         a check: no certification, no refinement."""
         ok = disk_margin_bound(self.plant(gains), kp, ki, SCREEN_PER_DECADE) >= self.disk_margin_min
+        if not self._member_actuators:
+            return ok
         gains = np.atleast_2d(gains)
         for acts in self._member_actuators:
             rows = np.nonzero(ok)[0]

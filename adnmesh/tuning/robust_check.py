@@ -51,7 +51,6 @@ class WorstCase:
     overshoot_pct: np.ndarray
     overshoot_at: list
     settled: np.ndarray
-    evaluations: int
 
     def meets(self, disk_margin_min: float, overshoot_max_pct: float) -> np.ndarray:
         """Both constraints hold for every member found."""
@@ -78,10 +77,8 @@ def worst_members(problem, gains, kp, ki) -> WorstCase:
     dm, over = np.full(m, np.inf), np.full(m, -np.inf)
     settled = np.ones(m, bool)
     dm_at, os_at = [None] * m, [None] * m
-    evaluations = 0
     for member in dict.fromkeys(box.vertices() + box.centres()):
         d, o, s = _figures(problem, member, gains, kp, ki)
-        evaluations += m
         settled &= s
         for i in np.nonzero(d < dm)[0]:
             dm_at[i] = member
@@ -91,20 +88,18 @@ def worst_members(problem, gains, kp, ki) -> WorstCase:
         over = np.maximum(over, o)
     if box.dimension:
         # the coordinates each loop has (its DER types with a gain)
-        has = np.array([[gains[i, [g for g, t in enumerate(problem.group_types)
-                                   if t == c.der_type]].sum() > 0 for c in box.coordinates]
-                        for i in range(m)])
+        types = [problem.types_in(row) for row in gains]
+        has = np.array([[c.der_type in t for c in box.coordinates] for t in types])
         rows = np.nonzero(settled & (dm < problem.disk_margin_min + REFINE_DM))[0]
-        evaluations += _compass(problem, gains, kp, ki, rows, dm, dm_at, has, worse=-1.0)
+        _compass(problem, gains, kp, ki, rows, dm, dm_at, has, worse=-1.0)
         rows = np.nonzero(settled & (over > REFINE_OS * problem.overshoot_max_pct))[0]
-        evaluations += _compass(problem, gains, kp, ki, rows, over, os_at, has, worse=1.0)
-    return WorstCase(dm, dm_at, over, os_at, settled, evaluations)
+        _compass(problem, gains, kp, ki, rows, over, os_at, has, worse=1.0)
+    return WorstCase(dm, dm_at, over, os_at, settled)
 
 
-def _compass(problem, gains, kp, ki, rows, value, at, has, worse: float) -> int:
+def _compass(problem, gains, kp, ki, rows, value, at, has, worse: float) -> None:
     """Compass search (module docstring) in place on ``value``/``at`` for ``rows``: towards
-    lower disk margin (``worse`` -1) or higher overshoot (+1). Returns the evaluations."""
-    evaluations = 0
+    lower disk margin (``worse`` -1) or higher overshoot (+1)."""
     time_domain = worse > 0
     step = FIRST
     while step >= FINEST and rows.size:
@@ -124,7 +119,6 @@ def _compass(problem, gains, kp, ki, rows, value, at, has, worse: float) -> int:
                 idx = np.array(idx)
                 d, o, s = _figures(problem, member, gains[idx], kp[idx], ki[idx],
                                    time_domain=time_domain)
-                evaluations += idx.size
                 v = o if time_domain else d
                 for j, i in enumerate(idx):
                     if worse * (v[j] - value[i]) > 0:
@@ -134,4 +128,3 @@ def _compass(problem, gains, kp, ki, rows, value, at, has, worse: float) -> int:
                 break
             active = np.array(sorted(moved))       # only loops that moved can move again
         step /= 2.0
-    return evaluations

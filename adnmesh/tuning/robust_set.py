@@ -23,8 +23,6 @@ import itertools
 import math
 from dataclasses import dataclass
 
-import numpy as np
-
 from adnmesh.loopmodel.plant import Actuator
 
 __all__ = ["Member", "UncertaintyBox", "Coordinate", "DELAY_GRID_S"]
@@ -52,9 +50,6 @@ class Coordinate:
             return self.low * (self.high / self.low) ** x
         return _on_grid(self.low + x * (self.high - self.low))
 
-    def label(self) -> str:
-        return f"{self.der_type} {'b' if self.kind == 'lag' else 'added dead time'}"
-
 
 @dataclass(frozen=True)
 class Member:
@@ -77,7 +72,6 @@ class UncertaintyBox:
     """
 
     def __init__(self, robust, actuators: tuple[Actuator, ...], group_types):
-        self.robust = robust
         self.actuators = tuple(actuators)
         self.group_types = tuple(group_types)
         self.models = tuple(robust.models)
@@ -127,10 +121,6 @@ class UncertaintyBox:
                 parts.append(f"{t} dead time {delay[t]:+.4g} s")
         return ", ".join(parts)
 
-    def to_json(self, member: Member) -> dict:
-        lag, delay = self._scales(member.x)
-        return {"model": member.model, "lag_scale": lag, "delay_add_s": delay}
-
     def vertices(self) -> list[Member]:
         """Every corner of the box, per structure (``2^D`` each)."""
         corners = list(itertools.product((0.0, 1.0), repeat=self.dimension))
@@ -152,6 +142,3 @@ class UncertaintyBox:
             for x in dict.fromkeys((slow, fast)):
                 out.append(Member(m, x))
         return out
-
-    def clip(self, x: np.ndarray) -> np.ndarray:
-        return np.clip(x, 0.0, 1.0)
