@@ -28,7 +28,7 @@ from scipy.signal import lfilter, ss2tf
 
 from adnmesh.loopmodel.plant import MODELS, RISE_PER_LAG, Actuator
 
-__all__ = ["MODELS", "ModelFit", "RISE_PER_LAG", "fit_model", "model_response"]
+__all__ = ["MODELS", "ModelFit", "RISE_PER_LAG", "fit_model", "fits_of", "model_response"]
 
 _Z95 = 1.959963984540054
 
@@ -133,18 +133,30 @@ def fit_model(period_s: float, setpoint: np.ndarray, measured: np.ndarray, model
             found = least_squares(residuals, start, bounds=bounds, x_scale=[0.1, 1.0])
             if best is None or found.cost < best.cost:
                 best = found
-    delay, lag = round(float(best.x[0]), 9), float(best.x[1])   # a dead time to 1 ns
-    rss = float(np.sum((best.fun * scale) ** 2))
-    jac = best.jac * scale
+    return fits_of(best, scale, y, model)[0]
+
+
+def fits_of(found, scale: float, measured: np.ndarray, model: str) -> list[ModelFit]:
+    """The :class:`ModelFit` of each (dead time, lag) pair of ``found``'s parameters (a
+    :func:`scipy.optimize.least_squares` result whose residuals are W over ``scale``), with
+    95 % intervals from its Jacobian; RMSE and R² are of the whole fit."""
+    y = np.asarray(measured, dtype=float)
+    rss = float(np.sum((found.fun * scale) ** 2))
+    jac = found.jac * scale
     try:
-        cov = np.linalg.inv(jac.T @ jac) * rss / max(len(y) - 2, 1)
+        cov = np.linalg.inv(jac.T @ jac) * rss / max(len(y) - found.x.size, 1)
         half = _Z95 * np.sqrt(np.maximum(np.diag(cov), 0.0))
     except np.linalg.LinAlgError:
-        half = np.array([math.inf, math.inf])
+        half = np.full(found.x.size, math.inf)
     total = float(np.sum((y - y.mean()) ** 2))
-    return ModelFit(
-        model=model, delay_s=delay, rise_s=lag * RISE_PER_LAG,
-        delay_ci_s=(max(delay - half[0], 0.0), delay + half[0]),
-        rise_ci_s=(max(lag - half[1], 0.0) * RISE_PER_LAG, (lag + half[1]) * RISE_PER_LAG),
-        rmse_w=math.sqrt(rss / len(y)), r2=1.0 - rss / total if total > 0 else math.nan,
-        samples=len(y))
+    out = []
+    for i in range(0, found.x.size, 2):
+        delay, lag = round(float(found.x[i]), 9), float(found.x[i + 1])   # a dead time to 1 ns
+        out.append(ModelFit(
+            model=model, delay_s=delay, rise_s=lag * RISE_PER_LAG,
+            delay_ci_s=(max(delay - half[i], 0.0), delay + half[i]),
+            rise_ci_s=(max(lag - half[i + 1], 0.0) * RISE_PER_LAG,
+                       (lag + half[i + 1]) * RISE_PER_LAG),
+            rmse_w=math.sqrt(rss / len(y)), r2=1.0 - rss / total if total > 0 else math.nan,
+            samples=len(y)))
+    return out
