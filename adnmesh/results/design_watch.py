@@ -7,13 +7,14 @@ from __future__ import annotations
 
 import json
 from array import array
+from dataclasses import dataclass
 
 import numpy as np
 from adnmesh.loopmodel.step_figures import reference_step_figures
-from adnmesh.results.design_check import design_checks, design_lines
+from adnmesh.results.design_check import DesignCheck, design_checks, design_lines, entry_at
 from adnmesh.results.summary import RunSeries
 
-__all__ = ["GRACE_NS", "OverDesignWatch"]
+__all__ = ["GRACE_NS", "OverDesign", "OverDesignWatch"]
 
 #: sim time a step's window is left open after its end, so that every message before the end
 #: has been recorded (messages of one clock window arrive in any order), ns
@@ -23,6 +24,21 @@ _TRIM = 20_000      # P_IP samples (200 s at 10 ms) between two trims of the che
 
 _WATCHED = frozenset({"p_ip", "p_ref", "p_y", "heartbeat", "si", "fault", "event", "clock_start",
                       "clock_stop"})
+
+
+@dataclass(frozen=True)
+class OverDesign:
+    """A step over its design: its window's end (``closed_ns``, where the figures stop) and
+    the check (:class:`~adnmesh.results.design_check.DesignCheck`: the step, its entry and
+    DERs, each figure against its design)."""
+
+    closed_ns: int
+    check: DesignCheck
+
+    @property
+    def text(self) -> str:
+        """The words of :func:`~adnmesh.results.design_check.design_lines`."""
+        return design_lines([self.check])[0].strip()
 
 
 class OverDesignWatch:
@@ -36,11 +52,17 @@ class OverDesignWatch:
     figures by the summary's rule and checks them (:func:`design_checks`). Each step over its
     design gives one ``(t_ns, text)``: its window's end and the words of :func:`design_lines`
     (the log records it at the message that closed the window, a grace later).
+
+    With ``early_settlings`` (the CPFC's model watch, docs/method.md#model-watch) a step is
+    judged at the latest that many of its entry's design settling times after it, on the
+    window up to then, rather than only when the next step or event ends its window.
     """
 
-    def __init__(self, band_pct: float | None = None) -> None:
+    def __init__(self, band_pct: float | None = None,
+                 early_settlings: float | None = None) -> None:
         self.series = RunSeries()
         self._band_pct = band_pct
+        self._early = early_settlings
         self._end_ns: int | None = None
         self._checked = 0                  # steps (P_ref changes) already checked
         self._due_ns = 0                   # no step can close before this P_IP sample
@@ -48,7 +70,8 @@ class OverDesignWatch:
         self._trim_at = _TRIM              # P_IP samples held when the next trim is due
 
     def observe(self, schema_name: str, payload: bytes, t_ns: int) -> list[tuple[int, str]]:
-        """The over-design findings a recorded message closes (usually none)."""
+        """The over-design findings a recorded message closes (usually none), as
+        ``(window end, words)``."""
         if schema_name not in _WATCHED or (schema_name == "p_y" and b'"switch"' not in payload
                                            and b'"design"' not in payload):
             return []
@@ -57,6 +80,13 @@ class OverDesignWatch:
         except ValueError:
             return []
         if not isinstance(body, dict):
+            return []
+        return [(found.closed_ns, found.text) for found in self.observe_body(schema_name, body)]
+
+    def observe_body(self, schema_name: str, body: dict) -> list[OverDesign]:
+        """The steps over their design that one decoded message (envelope and body, as
+        :meth:`RunSeries.add <adnmesh.results.summary.RunSeries.add>` takes it) closes."""
+        if schema_name not in _WATCHED:
             return []
         if schema_name == "clock_start":
             if isinstance(body.get("end_ns"), int):
@@ -93,7 +123,18 @@ class OverDesignWatch:
         series.p_ip_w = array("d", np.asarray(series.p_ip_w, dtype=float)[keep].tobytes())
         self._trim_at = len(series.p_ip_t_ns) + _TRIM
 
-    def _close(self, final: bool) -> list[tuple[int, str]]:
+    def _early_end(self, start_ns: int) -> int | None:
+        """When the step at ``start_ns`` is judged at the latest (``early_settlings`` of its
+        entry's design settling times after it), ns; None without them."""
+        if self._early is None:
+            return None
+        announced = entry_at(self.series.entries, start_ns)
+        design = None if announced is None else announced.get("design")
+        if not design:
+            return None
+        return start_ns + int(round(self._early * float(design["settling_time_s"]) * 1e9))
+
+    def _close(self, final: bool) -> list[OverDesign]:
         series = self.series
         if not series.p_ip_t_ns or self._checked >= len(series.p_ref_t_ns) - 1:
             return []
@@ -107,6 +148,9 @@ class OverDesignWatch:
         while self._checked < len(starts):
             start = starts[self._checked]
             later = [t for t in ends if t > start]
+            early = self._early_end(start)
+            cut = [early] if early is not None and (not later or early < later[0]) else []
+            later = cut or later
             if later and now >= later[0] + GRACE_NS:
                 end_ns = now                   # the window ends at later[0], exclusive
             elif final:
@@ -116,13 +160,14 @@ class OverDesignWatch:
                 self._known = known
                 break
             steps = reference_step_figures(series.p_ip_t_ns, series.p_ip_w, series.p_ref_t_ns,
-                                           series.p_ref_w, series.windows.instants, end_ns,
+                                           series.p_ref_w, [*series.windows.instants, *cut],
+                                           end_ns,
                                            band_pct=self._band_pct or 5.0)
             step = next((s for s in steps if int(round(s.t_s * 1e9)) == start), None)
             self._checked += 1
             if step is None:
                 continue
             closed = start + int(round(step.window_s * 1e9))
-            for line in design_lines(design_checks([step], series.entries)):
-                found.append((closed, line.strip()))
+            found += [OverDesign(closed, check)
+                      for check in design_checks([step], series.entries) if check.over]
         return found
