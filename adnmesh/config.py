@@ -815,6 +815,12 @@ class Runtime(Section):
     hundreds of DERs on one machine. The messages and the recording are the same either way;
     a process is then a failure domain: an internal error in one DER's code ends its
     process and every DER in it (an injected kill still ends one DER only)."""
+    model_watch: Literal["off", "event", "retune"] = "off"
+    """After each step of P_ref, the CPFC compares P_IP's response with what its table entry
+    was certified for (docs/method.md#model-watch): ``event`` says a step over its design on
+    ``event/cpfc`` (kind ``model_mismatch``: which entry and DERs, each figure against its
+    design); ``retune`` also fits each DER type's dynamics to that step and tunes the subset
+    again, certified over the uncertainty set the fit implies, and switches to that entry."""
     links: Links = Links()
     """ICT channel model per link."""
     faults: _Events[Fault] = ()

@@ -45,8 +45,12 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as exc:
         print(f"adnmesh agent: error: {exc}", file=sys.stderr)
         return 2
+    watch = None
+    if config.runtime.model_watch != "off":
+        from adnmesh.results.model_watch import ModelWatch   # step figures: numba
+        watch = ModelWatch(config, keep_setpoints=config.runtime.model_watch == "retune")
     node = Node.for_config(build_agent("cpfc", config, GainSchedule(config, table),
-                                       q_schedule=q_schedule), config,
+                                       q_schedule=q_schedule, model_watch=watch), config,
                           start_ns=args.resume_at_ns)
     with open_session(args, "cpfc") as session:
         return AgentProcess(session, node, config.grid,

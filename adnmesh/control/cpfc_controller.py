@@ -99,7 +99,7 @@ from __future__ import annotations
 import math
 from collections import deque
 
-from msgspec import UNSET
+from msgspec import UNSET, to_builtins
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -218,14 +218,19 @@ class GainSchedule:
         self.background = background
         self._tuned: dict[frozenset, TableEntry] = {}
         self._jobs: dict[frozenset, tuple] = {}     # set -> (ready at ns, entry) or (future,)
+        self._retuned: dict[frozenset, TableEntry] = {}   # entries that replace the table's
+        self._retunes: dict[frozenset, tuple] = {}  # set -> as _jobs, of (entry, words)
         self._pool = None
         self.sources: dict[str, int] = {}
 
     def lookup(self, available: frozenset[str], t_ns: int | None = None
                ) -> tuple[TableEntry | None, str]:
-        """Return ``(entry, source)``; source is ``table``, ``tuned``, ``static``,
+        """Return ``(entry, source)``; source is ``retuned`` (an entry of :meth:`retune`),
+        ``table``, ``tuned``, ``static``,
         ``static_tuning`` (an on-demand tuning started at ``t_ns`` is not ready yet) or
         ``none``. Without ``t_ns`` a missing subset is tuned at once."""
+        if available in self._retuned:
+            return self._count(self._retuned[available], "retuned")
         if self.table is not None:
             entry = self.table.lookup(available)
             if entry is not None and entry.feasible:
@@ -268,6 +273,28 @@ class GainSchedule:
         del self._jobs[available]
         return True
 
+    def retune(self, available: frozenset[str], job: Callable[[], tuple], t_ns: int) -> None:
+        """Tune ``available`` again by ``job() -> (entry or None, words)`` (the model watch's,
+        docs/method.md#model-watch), as an on-demand tuning runs: at once and released
+        ``tuning_delay_s`` later on the sim clock, in the background in realtime runs. Its
+        entry, once :meth:`retuned` has handed it over, replaces the table's."""
+        if available not in self._retunes:
+            self._retunes[available] = self._start(lambda _config, _ids: job(), [], t_ns)
+
+    def retuned(self, available: frozenset[str], t_ns: int) -> tuple | None:
+        """``(entry or None, words)`` of the retune of ``available`` once it is done by
+        ``t_ns`` (once; None before); a feasible entry is then what :meth:`lookup` returns
+        for ``available``."""
+        job = self._retunes.get(available)
+        if job is None or (len(job) == 1 and not job[0].done()) or (len(job) == 2
+                                                                    and t_ns < job[0]):
+            return None
+        del self._retunes[available]
+        entry, words = job[0].result() if len(job) == 1 else job[1]
+        if entry is not None and entry.feasible:
+            self._retuned[available] = entry
+        return entry, words
+
     def _start(self, tune, ids: list[str], t_ns: int) -> tuple:
         if self.background:
             if self._pool is None:
@@ -286,6 +313,39 @@ class GainSchedule:
     def _count(self, entry, source):
         self.sources[source] = self.sources.get(source, 0) + 1
         return entry, source
+
+
+def _retune_job(config: Config, table: SchedulingTable | None, ders: tuple[str, ...], data):
+    """``job() -> (entry or None, words)``: fit each moving DER type of ``data`` (a
+    :class:`~adnmesh.results.model_watch.StepData`) and tune ``ders`` over the set it implies
+    (:func:`adnmesh.tuning.retune.retune`)."""
+
+    def job() -> tuple:
+        from adnmesh.identify.type_fit import fit_types       # scipy, numba: when asked
+        from adnmesh.tuning.retune import retune
+        from adnmesh.tuning.problem import nominal_by_type
+
+        try:
+            fits = fit_types(data.period_s, data.setpoints_w, data.p_ip_w,
+                             {t: a for t, a in nominal_by_type(config, ders).items()
+                              if t in data.setpoints_w})
+            entry, robust = retune(config, table, ders, fits)
+        except Exception as exc:       # noqa: BLE001 - a worker's end: said, the entry stays
+            return None, f"the fit or the tuning failed: {exc}"
+        fitted = "; ".join(f"{t} dead time {f.delay_s:.4g} s, T_rise {f.rise_s:.4g} s "
+                           f"(R² {f.r2:.3f})" for t, f in fits.items())
+        if not entry.feasible:
+            return entry, f"fitted {fitted}; no entry certified over the set ({entry.reason})"
+        fig = entry.figures
+        box = ", ".join(f"{t} b {u.lag_scale[0]:g}-{u.lag_scale[1]:g}, dead time "
+                        f"{u.delay_add_s[0]:+g} to {u.delay_add_s[1]:+g} s"
+                        for t, u in robust.types.items() if t in fits)
+        return entry, (f"fitted {fitted}; tuned {len(ders)} DERs over {box}: K_P "
+                       f"{entry.kp:.4g} 1/W, K_I {entry.ki:.4g} 1/(W s), designed rise "
+                       f"{fig['rise_time_s']:.4g} s, settling {fig['settling_time_s']:.4g} s, "
+                       f"overshoot {fig['overshoot_pct']:.3g} %")
+
+    return job
 
 
 def _tuner(config: Config, table: SchedulingTable | None):
@@ -349,7 +409,8 @@ class CPFC(Agent):
                  start_ref: float | None = None, available: dict[str, float] | None = None,
                  steps: list[tuple[int, float]] | None = None, known_ids=None,
                  reachable: tuple[float, float] | None = None,
-                 reachable_note: str = "", guard_mode: str | None = None) -> None:
+                 reachable_note: str = "", guard_mode: str | None = None,
+                 model_watch=None) -> None:
         self.config = config
         self.loop = loop
         self.keys = Keys(config.grid)
@@ -418,6 +479,13 @@ class CPFC(Agent):
         self.switches: list[SwitchEvent] = []
         self.counts: dict[str, int] = {"samples": 0, "no_gains": 0, "rejected_si": 0,
                                        "held_samples": 0, "rollbacks": 0}
+        # the model watch (docs/method.md#model-watch): steps over their design, retunes
+        self.model_watch = model_watch
+        self._retune = config.runtime.model_watch == "retune" and model_watch is not None
+        self._retuning: frozenset[str] | None = None     # set whose retune runs
+        self._retuned_sets: set[frozenset[str]] = set()  # retuned once: not again
+        if model_watch is not None:
+            self.counts.update(model_mismatches=0, retunes=0)
 
     # -- agent interface -----------------------------------------------------------------------
 
@@ -441,6 +509,13 @@ class CPFC(Agent):
         self.hold = "resuming"
 
     def on_message(self, t_ns: int, message: Envelope) -> list[Outgoing]:
+        if self.model_watch is not None and message.type in ("p_ip", "si", "heartbeat"):
+            found = self.model_watch.observe(message.type, to_builtins(message))
+            out = self._mismatches(t_ns, found) if found else []
+            return out + self._handle(t_ns, message)
+        return self._handle(t_ns, message)
+
+    def _handle(self, t_ns: int, message: Envelope) -> list[Outgoing]:
         loop = self.loop
         if message.type == "p_ip":
             measured = getattr(message, loop.measured_field)
@@ -611,6 +686,8 @@ class CPFC(Agent):
         if (self._pending is None and self._awaiting is not None
                 and self.schedule.ready(self._awaiting, t_ns)):
             self._pending, self._awaiting = self.available, None    # the tuned gains are in
+        if self._retuning is not None:
+            self._take_retune(t_ns, out)
         if self._pending is not None:
             self._apply_switch(t_ns, body, out)
         body["entry"] = self.entry_index
@@ -626,6 +703,8 @@ class CPFC(Agent):
             body["hold"] = self.hold
         out.append(Outgoing(self.keys.of(loop.output_kind), body))
         self._p_y_sent = body[loop.output_field]
+        if self.model_watch is not None:
+            self._watch_sent(t_ns, out)
         self.counts["samples"] += 1
         self._history.append((t_ns, self.pi.snapshot()))
         return out
@@ -795,6 +874,67 @@ class CPFC(Agent):
         out.append(self._event("INFO", "resume", f"restarted: resumed from the P_Y {acked:.6g} "
                                f"the DERs acknowledged ({len(fresh)} heartbeat(s))"))
         return True
+
+    # -- the model watch (docs/method.md#model-watch) ------------------------------------------
+
+    def _watch_sent(self, t_ns: int, out: list[Outgoing]) -> None:
+        """Show the model watch this sample's reference and entry, and the set-points its
+        P_Y commands."""
+        watch = self.model_watch
+        for message in list(out):
+            kind = message.key.rsplit("/", 1)[-1]
+            if kind in ("p_ref", "p_y") and (kind == "p_ref" or "switch" in message.body
+                                             or "design" in message.body):
+                body = to_builtins(message.body)
+                body.update(t_send_ns=t_ns, src=self.agent_id)
+                for found in watch.observe(kind, body):
+                    out += self._mismatches(t_ns, [found])
+        if self._retune:
+            p_y = self._p_y_sent
+            watch.commanded(t_ns, {d: self._p_sched[d] + self._share_w(d, w, p_y)
+                                   for d, w in self.weights.items()})
+
+    def _mismatches(self, t_ns: int, found) -> list[Outgoing]:
+        """The events of steps over their design; with ``retune``, the fit and tuning of
+        the subset in use if it is the step's and has not been retuned yet."""
+        out = []
+        for over in found:
+            self.counts["model_mismatches"] += 1
+            out.append(self._event("WARNING", "model_mismatch", over.text))
+            ders = frozenset(over.check.ders)
+            if (not self._retune or ders != self.in_use or ders in self._retuned_sets
+                    or self._retuning is not None):
+                continue
+            try:
+                data = self.model_watch.step_data(over)
+            except ValueError as exc:
+                out.append(self._event("WARNING", "model_retune", f"not tuned again: {exc}"))
+                continue
+            self._retuning = ders
+            self._retuned_sets.add(ders)
+            self.schedule.retune(ders, _retune_job(self.config, self.schedule.table,
+                                                   tuple(d for d in self._ids if d in ders),
+                                                   data), t_ns)
+            out.append(self._event("INFO", "model_retune",
+                                   f"fitting the DER types of entry {over.check.entry} to the "
+                                   f"step at {over.check.t_s:g} s and tuning "
+                                   f"{len(ders)} DERs again over the set the fit implies"))
+        return out
+
+    def _take_retune(self, t_ns: int, out: list[Outgoing]) -> None:
+        """Switch to the retuned entry once it is ready (if its set is still in use)."""
+        done = self.schedule.retuned(self._retuning, t_ns)
+        if done is None:
+            return
+        ders, self._retuning = self._retuning, None
+        entry, words = done
+        if entry is None or not entry.feasible:
+            out.append(self._event("WARNING", "model_retune", f"the entry stays: {words}"))
+            return
+        self.counts["retunes"] += 1
+        out.append(self._event("INFO", "model_retuned", words))
+        if ders == self.in_use and self._pending is None:
+            self._pending = self.available
 
     def _event(self, level: str, kind: str, text: str) -> Outgoing:
         if self.loop is not P_LOOP:

@@ -21,7 +21,7 @@ __all__ = ["build_agent"]
 
 def build_agent(agent_id: str, config: Config, schedule: GainSchedule | None = None,
                 p_avail_w: float | None = None, der_params=None,
-                q_schedule: GainSchedule | None = None, device=None) -> Agent:
+                q_schedule: GainSchedule | None = None, device=None, model_watch=None) -> Agent:
     """The state machine of ``agent_id`` for ``config``; the CPFC needs its gain schedule (with
     reactive power control it runs a Q loop too, :mod:`adnmesh.control.cpfc_pair`, with
     ``q_schedule``, default the Q gains tuned on demand), a DER
@@ -29,6 +29,8 @@ def build_agent(agent_id: str, config: Config, schedule: GainSchedule | None = N
     available_power_w`), and its model parameters (default: from the config,
     :func:`adnmesh.control.der_model.der_params`) and its plant device
     (:class:`~adnmesh.control.plant_device.PlantDevice`; default: its model runs in the agent).
+    The CPFC's P loop takes ``model_watch`` (:class:`adnmesh.results.model_watch.ModelWatch`,
+    for ``runtime.model_watch``; default none).
 
     Raises
     ------
@@ -45,7 +47,7 @@ def build_agent(agent_id: str, config: Config, schedule: GainSchedule | None = N
         note = "" if found or "could not" not in ranges else \
             f"references are not clipped: {ranges}"
         p_cpfc = CPFC(config, schedule, reachable=ranges[0] if found else None,
-                      reachable_note=note)
+                      reachable_note=note, model_watch=model_watch)
         if config.reactive is None:
             return p_cpfc
         from adnmesh.control.cpfc_pair import CPFCPair, reactive_cpfc

@@ -51,8 +51,10 @@ class LocalRun:
 class _LocalRunner:
     """What ``adnmesh up`` does, in one process: nodes, clock, faults, restarts."""
 
-    def __init__(self, config: Config, schedule, end_ns: int, q_schedule=None) -> None:
+    def __init__(self, config: Config, schedule, end_ns: int, q_schedule=None,
+                 model_watch=None) -> None:
         self.config, self.schedule, self.q_schedule = config, schedule, q_schedule
+        self.model_watch = model_watch
         self.topology = Topology.from_config(config)
         self.run = LocalRun()
         self.plan = FaultPlan(config, self.topology.agents)
@@ -63,8 +65,10 @@ class _LocalRunner:
             self.run.nodes[agent_id] = self._node(agent_id, 0)
 
     def _node(self, agent_id: str, start_ns: int) -> Node:
+        watch = (self.model_watch() if self.model_watch is not None and agent_id == "cpfc"
+                 else None)
         return Node(build_agent(agent_id, self.config, self.schedule,
-                                q_schedule=self.q_schedule), self.topology,
+                                q_schedule=self.q_schedule, model_watch=watch), self.topology,
                     self.config.runtime.seed, start_ns=start_ns)
 
     def send_own(self, key: str, t_send: int, body: dict, t_deliver: int | None = None) -> None:
@@ -130,7 +134,7 @@ class _LocalRunner:
 
 
 def run_local(config: Config, schedule, *, end_s: float | None = None,
-              q_schedule=None) -> LocalRun:
+              q_schedule=None, model_watch=None) -> LocalRun:
     """Run the scenario of ``config`` (to ``end_s``, default its duration) in this process,
     with the config's faults (kills and restarts included), as ``adnmesh up`` would.
 
@@ -143,9 +147,13 @@ def run_local(config: Config, schedule, *, end_s: float | None = None,
         Its Q gains (reactive power control; default tuned on demand).
     end_s : float, optional
         Last instant, s.
+    model_watch : callable, optional
+        ``model_watch() -> ModelWatch`` for each (re)start of the CPFC
+        (:class:`adnmesh.results.model_watch.ModelWatch`, ``runtime.model_watch``; default none).
     """
     runner = _LocalRunner(config, schedule,
-                          ns(config.scenario.duration_s if end_s is None else end_s), q_schedule)
+                          ns(config.scenario.duration_s if end_s is None else end_s), q_schedule,
+                          model_watch)
     grants = runner.start()
     while grants:
         grants.extend(runner.step(grants.popleft()))

@@ -20,7 +20,8 @@ from adnmesh.loopmodel.step_response import integral_rate, step_info
 from adnmesh.tuning.robust_set import Member, UncertaintyBox
 from adnmesh.tuning.subset_selection import all_subsets
 
-__all__ = ["TuningProblem", "Check", "all_subsets", "T_MAX_S", "horizon_s", "MAX_EXACT_CLASSES"]
+__all__ = ["TuningProblem", "Check", "all_subsets", "T_MAX_S", "horizon_s", "MAX_EXACT_CLASSES",
+           "nominal_by_type"]
 
 #: longest simulated step response in a constraint check, s
 T_MAX_S = 20000.0
@@ -73,12 +74,13 @@ class Check:
     simulated_rise_s: np.ndarray
 
 
-def _nominal_by_type(config) -> dict:
+def nominal_by_type(config, der_ids=None) -> dict:
     """Per DER type, the actuator with the installed-power-weighted mean delay (to 10 ms) and
-    lag, s."""
+    lag, s, of the config's DERs (of ``der_ids`` only, if given)."""
     out = {}
-    for t in dict.fromkeys(d.type for d in config.ders):
-        ders = [d for d in config.ders if d.type == t]
+    chosen = config.ders if der_ids is None else config.ders_by_id(der_ids)
+    for t in dict.fromkeys(d.type for d in chosen):
+        ders = [d for d in chosen if d.type == t]
         p = np.array([float(d.p_inst_w) for d in ders])
         # to 10 ms: a mean of delays is no common multiple of them (tiny simulation steps)
         delay = round(float(np.dot(p, [float(d.t_delay_s) for d in ders]) / p.sum()), 2)
@@ -115,7 +117,7 @@ class TuningProblem:
         # with an uncertainty set every group is of one DER type (types stray independently)
         groups: dict[tuple, int] = {}
         self.group_of: dict[str, int] = {}
-        nominal = _nominal_by_type(config) if by_type else {}
+        nominal = nominal_by_type(config) if by_type else {}
         for der in config.ders:
             act = nominal.get(der.type) or Actuator(float(der.t_delay_s), config.t_lag_s(der))
             key = (act, der.type if robust is not None else None)
