@@ -901,9 +901,10 @@ class CPFC(Agent):
         for over in found:
             self.counts["model_mismatches"] += 1
             out.append(self._event("WARNING", "model_mismatch", over.text))
-            ders = frozenset(over.check.ders)
-            if (not self._retune or ders != self.in_use or ders in self._retuned_sets
-                    or self._retuning is not None):
+            step = getattr(over, "check", None)      # None: a slow recovery after a switch
+            ders = frozenset(step.ders) if step is not None else frozenset()
+            if (not self._retune or step is None or ders != self.in_use
+                    or ders in self._retuned_sets or self._retuning is not None):
                 continue
             try:
                 data = self.model_watch.step_data(over)
@@ -916,8 +917,8 @@ class CPFC(Agent):
                                                    tuple(d for d in self._ids if d in ders),
                                                    data), t_ns)
             out.append(self._event("INFO", "model_retune",
-                                   f"fitting the DER types of entry {over.check.entry} to the "
-                                   f"step at {over.check.t_s:g} s and tuning "
+                                   f"fitting the DER types of entry {step.entry} to the "
+                                   f"step at {step.t_s:g} s and tuning "
                                    f"{len(ders)} DERs again over the set the fit implies"))
         return out
 

@@ -63,6 +63,9 @@ class OverDesignWatch:
         self.series = RunSeries()
         self._band_pct = band_pct
         self._early = early_settlings
+        #: P_IP samples from this instant on are kept whatever the steps need (ns; None: no
+        #: such wish), for a watch of its own on the same series
+        self.keep_from_ns: int | None = None
         self._end_ns: int | None = None
         self._checked = 0                  # steps (P_ref changes) already checked
         self._due_ns = 0                   # no step can close before this P_IP sample
@@ -117,6 +120,8 @@ class OverDesignWatch:
         cutoff = series.p_ip_t_ns[-1] - GRACE_NS
         if self._checked < len(starts):
             cutoff = min(cutoff, starts[self._checked])
+        if self.keep_from_ns is not None:
+            cutoff = min(cutoff, self.keep_from_ns)
         t = np.asarray(series.p_ip_t_ns, dtype=np.int64)
         keep = t >= cutoff
         series.p_ip_t_ns = array("q", t[keep].tobytes())

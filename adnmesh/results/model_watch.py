@@ -19,13 +19,45 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from adnmesh.results.design_check import FIGURE_TOLERANCE, entry_at
 from adnmesh.results.design_watch import GRACE_NS, OverDesign, OverDesignWatch
 
-__all__ = ["JUDGED_AFTER_SETTLINGS", "ModelWatch", "StepData"]
+__all__ = ["JUDGED_AFTER_SETTLINGS", "ModelWatch", "SlowRecovery", "StepData"]
 
 #: a step is judged (and fitted) at the latest this many of its entry's design settling times
 #: after it, or when its window ends if that is sooner
 JUDGED_AFTER_SETTLINGS = 3
+
+
+@dataclass(frozen=True)
+class SlowRecovery:
+    """A gain switch after which P_IP took longer to come back to P_ref than the new entry
+    predicts (see :meth:`ModelWatch.observe`): the switch (s of the run), the new entry and
+    its DERs, the error at the switch (W), its largest size in the window (W), the time it
+    took to stay within the band (s; None: not within the window), what it may take (s) and
+    the window (s)."""
+
+    t_s: float
+    entry: int | None
+    ders: tuple[str, ...]
+    peak_after_s: float
+    largest_w: float
+    recovered_s: float | None
+    limit_s: float
+    window_s: float
+
+    @property
+    def text(self) -> str:
+        took = (f"took {self.recovered_s:.3f} s" if self.recovered_s is not None
+                else "was not back by the end of the window")
+        shown = ", ".join(self.ders[:6]) + (f", ... ({len(self.ders)})"
+                                            if len(self.ders) > 6 else "")
+        return (f"recovery after the gain switch at {self.t_s:g} s to entry {self.entry} "
+                f"({shown}) SLOWER THAN DESIGNED: P_IP - P_ref, largest "
+                f"{self.largest_w / 1e3:+.3f} kW {self.peak_after_s:.3f} s after the switch, "
+                f"{took} from there to stay within the band, against {self.limit_s:.3f} s at "
+                f"most (the entry's design settling time +{100 * FIGURE_TOLERANCE:g} %, and "
+                f"the handover)")
 
 
 @dataclass(frozen=True)
@@ -55,14 +87,37 @@ class ModelWatch:
         self._types = tuple(dict.fromkeys(self._type_of.values()))
         self._t_com_ns = int(round(config.t_com_s * 1e9))
         self._keep = keep_setpoints
+        self._band = config.constraints.settling_band_pct / 100.0
+        self._switches: list[tuple[int, float]] = []    # (t_ns, handover s) to be judged
+        self._held = array("q")         # P_IP samples that say the DERs are held, while judging
         self._t_ns = array("q")
         self._setpoints = {t: array("d") for t in self._types}
 
-    def observe(self, message_type: str, body: dict) -> list[OverDesign]:
-        """The steps over their design that one message (envelope fields and body, plain
-        data) closes."""
-        found = self.watch.observe_body(message_type, body)
+    def observe(self, message_type: str, body: dict) -> list[OverDesign | SlowRecovery]:
+        """The steps over their design and the slow recoveries after gain switches that one
+        message (envelope fields and body, plain data) closes.
+
+        **After a gain switch** (not one made because the DERs move the other way, which
+        belongs to its step) the new entry predicts how the error the lost DERs leave dies
+        out: an output disturbance ``e`` decays as ``e (1 - y(t))``, ``y`` the entry's step
+        response, so within its design settling time. The window runs to the next step or
+        window-ending event, at most :data:`JUDGED_AFTER_SETTLINGS` design settling times. If
+        the largest error in it, ``e``, exceeds the settling band of the last step of P_ref
+        (nothing to recover otherwise) and no P_IP sample from then on says the DERs are held
+        at their limits (a lack of power, not of speed), the error must stay within
+        ``max(band of e, band of that step)`` from ``(1 +``
+        :data:`~adnmesh.results.design_check.FIGURE_TOLERANCE` ``)`` design settling times
+        plus the switch's handover after that largest error on.
+        """
+        found = list(self.watch.observe_body(message_type, body))
+        if message_type == "p_y" and isinstance(body.get("switch"), dict) \
+                and not body["switch"].get("direction"):
+            self._switches.append((body["t_send_ns"], float(body["switch"].get("handover_s", 0))))
+            self.watch.keep_from_ns = self._switches[0][0]
         if message_type == "p_ip":
+            if body.get("held") and self._switches:
+                self._held.append(body["t_send_ns"])
+            found += self._recoveries()
             self._forget()
         return found
 
@@ -97,6 +152,65 @@ class ModelWatch:
         setpoints = {ty: np.array(v, dtype=float)[at] for ty, v in self._setpoints.items()}
         moving = {ty: v for ty, v in setpoints.items() if np.ptp(v) > 0}
         return StepData(period_s, y[first:last], moving)
+
+    def _recoveries(self) -> list[SlowRecovery]:
+        """Judge the gain switches whose window has closed (see :meth:`observe`)."""
+        series = self.watch.series
+        now = series.p_ip_t_ns[-1]
+        out = []
+        while self._switches:
+            t_sw, handover_s = self._switches[0]
+            announced = entry_at(series.entries, t_sw)
+            design = None if announced is None else announced.get("design")
+            ends = [t for t in (*series.p_ref_t_ns, *series.windows.instants) if t > t_sw]
+            if design:
+                ends.append(t_sw + int(JUDGED_AFTER_SETTLINGS
+                                       * float(design["settling_time_s"]) * 1e9))
+            end = min(ends) if ends else None
+            if end is None or now < end + GRACE_NS:
+                break
+            self._switches.pop(0)
+            if design:
+                found = self._recovery(t_sw, end, announced, float(design["settling_time_s"]),
+                                       handover_s)
+                if found is not None:
+                    out.append(found)
+        self.watch.keep_from_ns = self._switches[0][0] if self._switches else None
+        if not self._switches:
+            self._held = array("q")
+        return out
+
+    def _recovery(self, t_sw: int, end: int, announced: dict, settling_s: float,
+                  handover_s: float) -> SlowRecovery | None:
+        series = self.watch.series
+        t = np.array(series.p_ip_t_ns, dtype=np.int64)
+        inside = (t >= t_sw) & (t < end)
+        if inside.sum() < 2:
+            return None
+        t, y = t[inside], np.array(series.p_ip_w, dtype=float)[inside]
+        ref_t = np.array(series.p_ref_t_ns, dtype=np.int64)
+        ref = np.array(series.p_ref_w, dtype=float)
+        at = int(np.searchsorted(ref_t, t_sw, side="right")) - 1
+        if at < 1:
+            return None                  # no step yet: no band to measure against
+        error = y - ref[at]
+        peak = int(np.argmax(np.abs(error)))
+        floor = self._band * abs(ref[at] - ref[at - 1])
+        held = np.array(self._held, dtype=np.int64)
+        if abs(error[peak]) <= floor or np.any((held >= t[peak]) & (held < end)):
+            return None        # nothing to recover, or the DERs at their limits: no dynamics
+        band = max(self._band * abs(error[peak]), floor)
+        outside = np.flatnonzero(np.abs(error) > band)
+        window_s = (end - t_sw) * 1e-9
+        limit_s = (1 + FIGURE_TOLERANCE) * settling_s + handover_s
+        settled = outside[-1] + 1 < len(t)
+        recovered = (t[outside[-1] + 1] - t[peak]) * 1e-9 if settled else None
+        if (recovered is not None and recovered <= limit_s) or (
+                recovered is None and (end - t[peak]) * 1e-9 <= limit_s):
+            return None
+        return SlowRecovery(t_sw * 1e-9, announced.get("entry"), tuple(announced.get("ders", ())),
+                            (t[peak] - t_sw) * 1e-9, float(error[peak]), recovered, limit_s,
+                            window_s)
 
     def _forget(self) -> None:
         """Drop the set-points before the oldest P_IP sample the watch still holds (less a
