@@ -29,7 +29,7 @@ import math
 from dataclasses import dataclass
 
 __all__ = ["FIGURE_TOLERANCE", "DesignCheck", "FigureCheck", "design_checks", "design_lines",
-           "entry_at"]
+           "ders_shown", "entry_at"]
 
 FIGURE_TOLERANCE = 0.10
 """A rise or settling time more than this fraction above its design figure is over the design
@@ -136,11 +136,12 @@ def design_lines(checks, unit: str = "W") -> list[str]:
                              f"({100 * (f.measured / f.design - 1):+.0f} %, more than "
                              f"+{100 * FIGURE_TOLERANCE:g} %)")
         lines.append(f"  step at {check.t_s:g} s ({check.step_w / 1e6:+.3f} M{unit}) OVER THE "
-                     f"DESIGN of entry {check.entry}{_ders(check.ders)}: " + "; ".join(parts))
+                     f"DESIGN of entry {check.entry}{ders_shown(check.ders)}: " + "; ".join(parts))
     return lines
 
 
-def _ders(ders) -> str:
+def ders_shown(ders) -> str:
+    """`` (A, B, ...)``: at most six DER ids and how many there are (empty for none)."""
     if not ders:
         return ""
     shown = ", ".join(ders[:6]) + (f", ... ({len(ders)})" if len(ders) > 6 else "")

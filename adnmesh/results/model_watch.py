@@ -7,10 +7,12 @@ It takes the messages the CPFC handles (``p_ip``, ``si``, ``heartbeat``) and sen
 rule of ``adnmesh up``'s summary (:class:`~adnmesh.results.design_watch.OverDesignWatch`: the
 entry's overshoot limit, its rise and settling time plus a tolerance), once a step's window has
 closed or, at the latest, :data:`JUDGED_AFTER_SETTLINGS` of its entry's design settling
-times after the step (so that a retuned entry can serve the next step). For a fit (``retune``) it also keeps the set-points the CPFC commanded, summed per DER
-type, at the instant they reach the DERs (``t_com_s`` after the command); like the P_IP
-samples, only as far back as a step still open needs them. A state machine without a
-network, times in ns of sim time, powers in W.
+times after the step (so that a retuned entry can serve the next step); and the recoveries
+after gain switches slower than the new entry predicts (:meth:`ModelWatch.observe`). For a
+fit (``retune``) it also keeps the set-points the CPFC commanded, summed per DER type, at the
+instant they reach the DERs (``t_com_s`` after the command); like the P_IP samples, only as
+far back as a step still open needs them. A state machine without a network, times in ns of
+sim time, powers in W.
 """
 from __future__ import annotations
 
@@ -19,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from adnmesh.results.design_check import FIGURE_TOLERANCE, entry_at
+from adnmesh.results.design_check import FIGURE_TOLERANCE, ders_shown, entry_at
 from adnmesh.results.design_watch import GRACE_NS, OverDesign, OverDesignWatch
 
 __all__ = ["JUDGED_AFTER_SETTLINGS", "ModelWatch", "SlowRecovery", "StepData"]
@@ -33,9 +35,9 @@ JUDGED_AFTER_SETTLINGS = 3
 class SlowRecovery:
     """A gain switch after which P_IP took longer to come back to P_ref than the new entry
     predicts (see :meth:`ModelWatch.observe`): the switch (s of the run), the new entry and
-    its DERs, the error at the switch (W), its largest size in the window (W), the time it
-    took to stay within the band (s; None: not within the window), what it may take (s) and
-    the window (s)."""
+    its DERs, when after the switch the error was largest (s) and how large (W), the time it
+    then took to stay within the band (s; None: not within the window), what it may take (s)
+    and the window (s)."""
 
     t_s: float
     entry: int | None
@@ -50,10 +52,8 @@ class SlowRecovery:
     def text(self) -> str:
         took = (f"took {self.recovered_s:.3f} s" if self.recovered_s is not None
                 else "was not back by the end of the window")
-        shown = ", ".join(self.ders[:6]) + (f", ... ({len(self.ders)})"
-                                            if len(self.ders) > 6 else "")
-        return (f"recovery after the gain switch at {self.t_s:g} s to entry {self.entry} "
-                f"({shown}) SLOWER THAN DESIGNED: P_IP - P_ref, largest "
+        return (f"recovery after the gain switch at {self.t_s:g} s to entry {self.entry}"
+                f"{ders_shown(self.ders)} SLOWER THAN DESIGNED: P_IP - P_ref, largest "
                 f"{self.largest_w / 1e3:+.3f} kW {self.peak_after_s:.3f} s after the switch, "
                 f"{took} from there to stay within the band, against {self.limit_s:.3f} s at "
                 f"most (the entry's design settling time +{100 * FIGURE_TOLERANCE:g} %, and "
