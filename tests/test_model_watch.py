@@ -95,17 +95,17 @@ def test_the_set_a_fit_implies_holds_the_configs_own(simbench_config, tmp_path) 
 
 WATCHED = """extends: {base}
 scenario:
-  duration_s: 280
+  duration_s: 230
   p_ref_steps:
     - {{t_s: 20,  delta_w: +1.0e+6}}
-    - {{t_s: 170, delta_w: -1.0e+6}}
+    - {{t_s: 120, delta_w: -1.0e+6}}
   availability:
     - {{t_s: 10, available: false, ders: [SGen1, SGen2, SGen3, SGen4, SGen7, SGen8]}}
 runtime:
   model_watch: {mode}
 """
 """The reference case's CHP and PV step (200 s there) early: the wind turbines drop out at
-10 s, the CHPs and PVs alone take +1 MW at 20 s and -1 MW at 170 s."""
+10 s, the CHPs and PVs alone take +1 MW at 20 s and -1 MW at 120 s."""
 
 
 def watched_config(base, mode: str, tmp_path, extra: str = ""):
@@ -119,7 +119,7 @@ def test_the_cpfc_says_each_step_over_its_design_as_the_summary_does(simbench_co
     """``model_watch: event``, in process, without the grid (P_IP the DERs' sum): both steps of
     the CHPs and PVs (detailed models, a table designed on PT1) are over their design; the CPFC
     says each on event/cpfc with the summary's words once 3 design settling times have passed
-    (the second one 93 s after it, well before the run ends), and tunes nothing again."""
+    (the second one 93 s after it, as the run ends), and tunes nothing again."""
     from tuned_tables import tuned_table
 
     from adnmesh.control.cpfc_controller import GainSchedule
@@ -143,7 +143,7 @@ def test_the_cpfc_says_each_step_over_its_design_as_the_summary_does(simbench_co
     steps = reference_step_figures(series.p_ip_t_ns, series.p_ip_w, series.p_ref_t_ns,
                                    series.p_ref_w, series.windows.instants, end_ns)
     lines = [line.strip() for line in design_lines(design_checks(steps, series.entries))]
-    assert len(lines) == 2 and "step at 20 s" in lines[0] and "step at 170 s" in lines[1]
+    assert len(lines) == 2 and "step at 20 s" in lines[0] and "step at 120 s" in lines[1]
     said = [(t, text) for t, kind, text in events if kind == "model_mismatch"]
     assert [text.split(" OVER")[0] for _, text in said] == [line.split(" OVER")[0]
                                                            for line in lines]
@@ -153,7 +153,7 @@ def test_the_cpfc_says_each_step_over_its_design_as_the_summary_does(simbench_co
     designed = float(series.entries[-1]["design"]["settling_time_s"])
     assert designed == pytest.approx(30.66, abs=0.01)
     assert [t / 1e9 for t, _ in said] == pytest.approx([20 + 3 * designed + 1.1,
-                                                        170 + 3 * designed + 1.1], abs=0.011)
+                                                        120 + 3 * designed + 1.1], abs=0.011)
     assert not [kind for _, kind, _ in events if kind.startswith("model_retune")]
     cpfc = run.nodes["cpfc"].agent
     assert cpfc.counts["model_mismatches"] == 2 and cpfc.counts["retunes"] == 0
@@ -167,7 +167,7 @@ def test_up_retunes_the_subset_whose_step_was_over_its_design(simbench_config,
     the detailed models): the +1 MW step of the CHPs and PVs overshoots its certified 1 %; the
     CPFC says so, fits the CHPs' dead time and rise time to it (their ramp: far slower than
     the configured PT1), tunes the subset over the set that implies and switches to that entry,
-    so that the -1 MW step at 170 s is within its design; every event is recorded."""
+    so that the -1 MW step at 120 s is within its design; every event is recorded."""
     import subprocess
     import sys
 
@@ -182,11 +182,11 @@ def test_up_retunes_the_subset_whose_step_was_over_its_design(simbench_config,
     summary = json.loads(summary_path.read_text())
     checks = {c["t_s"]: c for c in summary["design_checks"]}
     assert checks[20.0]["over"] == ["overshoot", "rise", "settling"]
-    assert checks[170.0]["over"] == [] and checks[170.0]["entry"] == 2
-    designed = {f["name"]: f["design"] for f in checks[170.0]["figures"]}
+    assert checks[120.0]["over"] == [] and checks[120.0]["entry"] == 2
+    designed = {f["name"]: f["design"] for f in checks[120.0]["figures"]}
     assert designed["rise"] > 2 * {f["name"]: f["design"]
                                    for f in checks[20.0]["figures"]}["rise"]
-    step = next(s for s in summary["steps"] if s["t_s"] == 170.0)
+    step = next(s for s in summary["steps"] if s["t_s"] == 120.0)
     assert step["figures"]["overshoot_pct"] < 1.0
     events = [m.payload() for m in read_recording(out).messages if m.schema_name == "event"]
     said = [(e["kind"], e["text"]) for e in events if e["kind"].startswith("model_")]
@@ -198,6 +198,10 @@ def test_up_retunes_the_subset_whose_step_was_over_its_design(simbench_config,
     assert 5.0 < fitted_delay < 15.0                # the CHPs' ramp, against 1 s configured
     switches = [s["t_s"] for s in summary["switches"]]
     assert len(switches) == 2 and 110 < switches[1] < 120
+    # up's summary lists what the watch said, in --summary-json and on the console
+    assert [k for _, k, _ in summary["model_watch"]] == [k for k, _ in said]
+    assert "the CPFC's model watch" in result.stdout and "s model_retuned: fitted CHP" in \
+        result.stdout
 
 
 @pytest.mark.parametrize("background", [False, True])

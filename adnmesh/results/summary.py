@@ -78,6 +78,7 @@ SUMMARY_TYPES = frozenset({"p_ip", "p_ref", "q_ref", "p_y", "q_y", "heartbeat", 
 the few the summary reads, not every message type of the wire."""
 
 _ALARM_KINDS = frozenset({"overrun", *ALARM_TIMEOUTS})
+_MODEL_WATCH_KINDS = frozenset({"model_mismatch", "model_retune", "model_retuned"})
 
 WINDOW_EVENTS = {"p_y": "gain_switch", "heartbeat": "der_available", "fault": "fault",
                  "si": "availability", "event": "event"}
@@ -183,6 +184,9 @@ class RunSeries:
         ``ders`` (the weighted DERs, when the message has the weights).
     q_entries : list of dict
         The same of the Q loop's entries (its ``q_y`` messages).
+    model_watch : list of (float, str, str)
+        ``(t_s, kind, text)`` of the CPFC's model watch events (``model_mismatch``,
+        ``model_retune``, ``model_retuned``; docs/method.md#model-watch).
     """
 
     p_ip_t_ns: array = field(default_factory=lambda: array("q"))
@@ -203,6 +207,7 @@ class RunSeries:
     rejoined: list = field(default_factory=list)
     entries: list = field(default_factory=list)
     q_entries: list = field(default_factory=list)
+    model_watch: list = field(default_factory=list)
     windows: StepWindowEnds = field(default_factory=StepWindowEnds, repr=False)
     _previous: dict = field(default_factory=dict, repr=False)   # (type, sender) -> last body
     _si: frozenset | None = field(default=None, repr=False)
@@ -266,6 +271,8 @@ class RunSeries:
             self.faults[body["fault_id"]] = body
         elif message_type == "event":
             self.events.append((body["t_send_ns"] * 1e-9, body["src"], body["kind"]))
+            if body["kind"] in _MODEL_WATCH_KINDS:
+                self.model_watch.append((body["t_send_ns"] * 1e-9, body["kind"], body["text"]))
             if body["kind"] in _ALARM_KINDS:
                 self.alarms.append((body["t_send_ns"] * 1e-9, body["src"], body["kind"],
                                     body.get("subject") or body["src"], body["text"]))
@@ -412,6 +419,7 @@ class RunSummary:
     q_steps: tuple[ReferenceStep, ...] = ()
     coupling: Coupling | None = None
     q_design_checks: tuple[DesignCheck, ...] = ()
+    model_watch: tuple[tuple[float, str, str], ...] = ()
 
     def to_json(self) -> dict:
         """Plain data for ``json.dump`` (NaN and infinities become null)."""
@@ -507,7 +515,7 @@ def summarize(series: RunSeries, *, end_ns: int, band_pct: float = 5.0,
                       realtime, scenario_steps(series, planned_steps, end_ns, sample_s,
                                                (extra or {}).get("ended")),
                       design_checks(steps, series.entries), q_steps, coupling,
-                      design_checks(q_steps, series.q_entries))
+                      design_checks(q_steps, series.q_entries), tuple(series.model_watch))
 
 
 def _cross(steps, t_ns, values, ref_t_ns, ref_values) -> tuple[float | None, float | None]:
@@ -711,6 +719,9 @@ def format_summary(summary: RunSummary):
         if s.p_y_limited_by:
             out.append(f"  at {s.t_s:.2f} s P_Y lay outside the new DERs' output range (every "
                        f"one saturated) and was limited by {s.p_y_limited_by:.3g} first")
+    if summary.model_watch:
+        out.append("the CPFC's model watch (docs/method.md#model-watch):")
+        out += [f"  {t:.2f} s {kind}: {text}" for t, kind, text in summary.model_watch]
     if summary.faults:
         out.append(fault_table(summary.faults))
     if summary.grid is not None:
