@@ -296,3 +296,15 @@ def test_a_slow_recovery_after_a_gain_switch_is_said(simbench_config) -> None:
     assert found.limit_s == pytest.approx(5.5) and found.window_s == pytest.approx(15.0)
     assert "SLOWER THAN DESIGNED" in found.text and "entry 1 (SGen5)" in found.text
     assert _watch_switch(simbench_config, 10.0, held=True) == []
+
+
+def test_a_fit_that_cannot_be_made_leaves_the_entry_and_says_why(simbench_config) -> None:
+    """The retune job never raises: data in which no set-point moved (the DERs held, say)
+    gives no entry and the reason, which the CPFC says (``model_retune``) before it goes on
+    with its entry."""
+    from adnmesh.control.cpfc_controller import _retune_job
+    from adnmesh.results.model_watch import StepData
+
+    still = StepData(0.01, np.full(500, 1.6e7), {"CHP": np.full(500, 2e5)})
+    entry, words = _retune_job(simbench_config, None, ("SGen5", "SGen6"), still)()
+    assert entry is None and words.startswith("the fit or the tuning failed: no set-point")
