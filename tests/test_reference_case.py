@@ -129,7 +129,7 @@ def test_the_step_over_its_design_is_said(reference_run) -> None:
     assert "step at 200 s (+1.000 MW) OVER THE DESIGN of entry 1" in result.stdout
     # and up names the way to a table certified for plants like these
     assert ("1 step(s) broke the overshoot their entry was certified for" in result.stdout
-            and "--robust-out" in result.stdout)
+            and "--robust-out" in result.stdout and "runtime.model_watch: retune" in result.stdout)
     said = [m.payload()["message"] for m in recording.messages
             if m.schema_name == "foxglove.Log" and "OVER THE DESIGN" in m.payload()["message"]]
     assert any("step at 200 s (+1.000 MW) OVER THE DESIGN" in text for text in said)

@@ -457,10 +457,13 @@ def _robust_hint(args, config: Config, checks, out) -> str | None:
     if not over:
         return None
     robust = Path(args.config).with_name(Path(args.config).stem + "-robust.yaml")
+    during = ("" if config.runtime.model_watch == "retune" else
+              " With runtime.model_watch: retune the CPFC tunes such a subset again during the "
+              "run (docs/method.md#model-watch).")
     return (f"{len(over)} step(s) broke the overshoot their entry was certified for: the DERs "
             f"do not behave as the reference model. A table certified for plants like these: "
             f"adnmesh identify {args.config} {out} --steps auto --robust-out {robust}; adnmesh "
-            f"tune {robust} --robust; adnmesh up {robust} (docs/tuning.md#robust-tables)")
+            f"tune {robust} --robust; adnmesh up {robust} (docs/tuning.md#robust-tables).{during}")
 
 
 def _launch_with_view(args, options, launch, err: Console, log):
