@@ -52,9 +52,8 @@ def fit_types(period_s: float, setpoints: dict[str, np.ndarray], measured: np.nd
     if any(v.shape != y.shape for v in u.values()):
         raise ValueError("set-points and measurement must be series of one length")
     moves = {t: float(np.ptp(v)) for t, v in u.items()}
-    scale = float(np.ptp(sum(u.values()))) if u else 0.0
-    total = sum(moves.values())
-    if total <= 1e-9 * max(1.0, float(np.max(np.abs(y)))) or scale <= 0:
+    total = scale = sum(moves.values())      # W: the residuals' unit (types may move apart)
+    if total <= 1e-9 * max(1.0, float(np.max(np.abs(y)))):
         raise ValueError("no set-point moves: nothing to identify")
     fitted = [t for t in u if moves[t] >= MIN_SHARE * total]
     fixed = sum((model_response(configured[t], period_s, u[t], u[t][0]) - u[t][0]

@@ -69,7 +69,7 @@ class OverDesignWatch:
         self._end_ns: int | None = None
         self._checked = 0                  # steps (P_ref changes) already checked
         self._due_ns = 0                   # no step can close before this P_IP sample
-        self._known = (0, 0)               # window ends and P_ref values seen at _due_ns
+        self._known = (0, 0, 0)            # window ends, P_ref values, entries seen at _due_ns
         self._trim_at = _TRIM              # P_IP samples held when the next trim is due
 
     def observe(self, schema_name: str, payload: bytes, t_ns: int) -> list[tuple[int, str]]:
@@ -144,7 +144,7 @@ class OverDesignWatch:
         if not series.p_ip_t_ns or self._checked >= len(series.p_ref_t_ns) - 1:
             return []
         now = series.p_ip_t_ns[-1]
-        known = (len(series.windows.instants), len(series.p_ref_t_ns))
+        known = (len(series.windows.instants), len(series.p_ref_t_ns), len(series.entries))
         if not final and now < self._due_ns and known == self._known:
             return []
         ends = sorted(set(series.windows.instants) | set(series.p_ref_t_ns[1:]))
