@@ -96,7 +96,11 @@ Each start and end of a hold is an event on ``event/cpfc``.
 
 from __future__ import annotations
 
+import functools
 import math
+import os
+import threading
+import time
 from collections import deque
 
 from msgspec import UNSET, to_builtins
@@ -221,6 +225,7 @@ class GainSchedule:
         self._retuned: dict[frozenset, TableEntry] = {}   # entries that replace the table's
         self._retunes: dict[frozenset, tuple] = {}  # set -> as _jobs, of (entry, words)
         self._pool = None
+        self._processes = None           # the retunes' process (realtime runs)
         self.sources: dict[str, int] = {}
 
     def lookup(self, available: frozenset[str], t_ns: int | None = None
@@ -275,11 +280,23 @@ class GainSchedule:
 
     def retune(self, available: frozenset[str], job: Callable[[], tuple], t_ns: int) -> None:
         """Tune ``available`` again by ``job() -> (entry or None, words)`` (the model watch's,
-        docs/method.md#model-watch), as an on-demand tuning runs: at once and released
-        ``tuning_delay_s`` later on the sim clock, in the background in realtime runs. Its
-        entry, once :meth:`retuned` has handed it over, replaces the table's."""
-        if available not in self._retunes:
-            self._retunes[available] = self._start(lambda _config, _ids: job(), [], t_ns)
+        docs/method.md#model-watch): on the sim clock at once, released ``tuning_delay_s``
+        later (deterministic, as an on-demand tuning); in realtime runs in a process of its
+        own at a lower priority (``job`` picklable), so that the fit's seconds of CPU do not
+        hold up the control loop's interpreter. Its entry, once :meth:`retuned` has handed it
+        over, replaces the table's."""
+        if available in self._retunes:
+            return
+        if not self.background:
+            self._retunes[available] = (t_ns + self.tuning_delay_ns, job())
+            return
+        if self._processes is None:     # not a thread: the fit would hold up the PI's samples
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
+            self._processes = ProcessPoolExecutor(
+                1, mp_context=multiprocessing.get_context("spawn"),
+                initializer=_retune_worker, initargs=(os.getpid(),))
+        self._retunes[available] = (self._processes.submit(job),)
 
     def retuned(self, available: frozenset[str], t_ns: int) -> tuple | None:
         """``(entry or None, words)`` of the retune of ``available`` once it is done by
@@ -290,7 +307,10 @@ class GainSchedule:
                                                                     and t_ns < job[0]):
             return None
         del self._retunes[available]
-        entry, words = job[0].result() if len(job) == 1 else job[1]
+        try:
+            entry, words = job[0].result() if len(job) == 1 else job[1]
+        except Exception as exc:           # noqa: BLE001 - the retune's process died: said
+            return None, f"the retune's process failed: {exc!r}"
         if entry is not None and entry.feasible:
             self._retuned[available] = entry
         return entry, words
@@ -318,34 +338,48 @@ class GainSchedule:
 def _retune_job(config: Config, table: SchedulingTable | None, ders: tuple[str, ...], data):
     """``job() -> (entry or None, words)``: fit each moving DER type of ``data`` (a
     :class:`~adnmesh.results.model_watch.StepData`) and tune ``ders`` over the set it implies
-    (:func:`adnmesh.tuning.retune.retune`)."""
+    (:func:`adnmesh.tuning.retune.retune`). Picklable: a realtime run's CPFC runs it in a
+    process of its own."""
+    return functools.partial(_retune, config, table, ders, data)
 
-    def job() -> tuple:
-        from adnmesh.identify.type_fit import fit_types       # scipy, numba: when asked
-        from adnmesh.tuning.retune import retune
-        from adnmesh.tuning.problem import nominal_by_type
 
-        try:
-            fits = fit_types(data.period_s, data.setpoints_w, data.p_ip_w,
-                             {t: a for t, a in nominal_by_type(config, ders).items()
-                              if t in data.setpoints_w})
-            entry, robust = retune(config, table, ders, fits)
-        except Exception as exc:       # noqa: BLE001 - a worker's end: said, the entry stays
-            return None, f"the fit or the tuning failed: {exc}"
-        fitted = "; ".join(f"{t} dead time {f.delay_s:.4g} s, T_rise {f.rise_s:.4g} s "
-                           f"(R² {f.r2:.3f})" for t, f in fits.items())
-        if not entry.feasible:
-            return entry, f"fitted {fitted}; no entry certified over the set ({entry.reason})"
-        fig = entry.figures
-        box = ", ".join(f"{t} b {u.lag_scale[0]:g}-{u.lag_scale[1]:g}, dead time "
-                        f"{u.delay_add_s[0]:+g} to {u.delay_add_s[1]:+g} s"
-                        for t, u in robust.types.items() if t in fits)
-        return entry, (f"fitted {fitted}; tuned {len(ders)} DERs over {box}: K_P "
-                       f"{entry.kp:.4g} 1/W, K_I {entry.ki:.4g} 1/(W s), designed rise "
-                       f"{fig['rise_time_s']:.4g} s, settling {fig['settling_time_s']:.4g} s, "
-                       f"overshoot {fig['overshoot_pct']:.3g} %")
+def _retune(config: Config, table: SchedulingTable | None, ders: tuple[str, ...],
+            data) -> tuple:
+    from adnmesh.identify.type_fit import fit_types       # scipy, numba: when asked
+    from adnmesh.tuning.problem import nominal_by_type
+    from adnmesh.tuning.retune import retune
 
-    return job
+    try:
+        fits = fit_types(data.period_s, data.setpoints_w, data.p_ip_w,
+                         {t: a for t, a in nominal_by_type(config, ders).items()
+                          if t in data.setpoints_w})
+        entry, robust = retune(config, table, ders, fits)
+    except Exception as exc:       # noqa: BLE001 - a worker's end: said, the entry stays
+        return None, f"the fit or the tuning failed: {exc}"
+    fitted = "; ".join(f"{t} dead time {f.delay_s:.4g} s, T_rise {f.rise_s:.4g} s "
+                       f"(R² {f.r2:.3f})" for t, f in fits.items())
+    if not entry.feasible:
+        return entry, f"fitted {fitted}; no entry certified over the set ({entry.reason})"
+    fig = entry.figures
+    box = ", ".join(f"{t} b {u.lag_scale[0]:g}-{u.lag_scale[1]:g}, dead time "
+                    f"{u.delay_add_s[0]:+g} to {u.delay_add_s[1]:+g} s"
+                    for t, u in robust.types.items() if t in fits)
+    return entry, (f"fitted {fitted}; tuned {len(ders)} DERs over {box}: K_P "
+                   f"{entry.kp:.4g} 1/W, K_I {entry.ki:.4g} 1/(W s), designed rise "
+                   f"{fig['rise_time_s']:.4g} s, settling {fig['settling_time_s']:.4g} s, "
+                   f"overshoot {fig['overshoot_pct']:.3g} %")
+
+
+def _retune_worker(parent_pid: int) -> None:
+    """A retune process: below the control loop's priority, and gone with its CPFC."""
+    os.nice(10)
+
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(1.0)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="parent", daemon=True).start()
 
 
 def _tuner(config: Config, table: SchedulingTable | None):
