@@ -256,6 +256,61 @@ def test_a_retuned_entry_replaces_the_tables_once_released(simbench_config, tmp_
             pool.shutdown()
 
 
+def _watch_switch(simbench_config, tau_s: float, held: bool = False):
+    """A ModelWatch fed a run by hand: P_ref steps by 1 MW at 10 s (entry 0), a gain switch at
+    50 s to entry 1 (design settling time 5 s) after which P_IP is 200 kW short and recovers
+    with time constant ``tau_s``; P_IP every 10 ms to 100 s. Returns what it found."""
+    from adnmesh.results.model_watch import ModelWatch
+
+    watch = ModelWatch(simbench_config, keep_setpoints=False)
+    design = {"rise_time_s": 3.0, "settling_time_s": 5.0, "overshoot_pct": 0.0,
+              "overshoot_max_pct": 1.0, "settling_band_pct": 5.0}
+    ders = {"SGen5": 1.0, "SGen6": 1.0}
+    found = []
+    feed = [("p_ref", {"t_send_ns": 0, "p_ref_w": 0.0}),
+            ("p_y", {"t_send_ns": 0, "p_y": 0.0, "entry": 0, "design": design, "w": ders}),
+            ("p_ref", {"t_send_ns": 10 * 10**9, "p_ref_w": 1e6})]
+    for body in feed:
+        found += watch.observe(body[0], {**body[1], "src": "cpfc"})
+    for k in range(10_001):
+        t_ns = k * 10**7
+        if t_ns == 50 * 10**9:
+            found += watch.observe("p_y", {
+                "t_send_ns": t_ns, "src": "cpfc", "p_y": 0.5, "entry": 1, "w": {"SGen5": 1.0},
+                "design": design, "switch": {"p_y_before": 0.5, "p_y_limited": 0.5,
+                                             "kp_before": 1e-6, "ki_before": 1e-7}})
+        t = k * 0.01
+        p_ip = 0.0 if t < 10 else 1e6 * (1 - np.exp(-(t - 10) / 0.5))
+        if t >= 50:
+            p_ip -= 2e5 * np.exp(-(t - 50) / tau_s)
+        body = {"t_send_ns": t_ns, "src": "measurement", "p_ip_w": p_ip}
+        if held and 55 <= t < 56:
+            body["held"] = "up"
+        found += watch.observe("p_ip", body)
+    return found
+
+
+def test_a_slow_recovery_after_a_gain_switch_is_said(simbench_config) -> None:
+    """After a switch the error the lost DERs left must be back within the band (the larger of
+    5 % of it and 5 % of the last step) within the new entry's design settling time + 10 %:
+    200 kW recovering with a time constant of 1 s is (1.39 s), with 10 s it is not (13.86 s
+    against 5.5 s), said once the window has closed (3 design settling times after the
+    switch, a grace later); DERs held at their limits (no power to recover with) are no
+    model mismatch."""
+    from adnmesh.results.model_watch import SlowRecovery
+
+    assert _watch_switch(simbench_config, 1.0) == []
+    slow = _watch_switch(simbench_config, 10.0)
+    assert len(slow) == 1 and isinstance(slow[0], SlowRecovery)
+    found = slow[0]
+    assert (found.t_s, found.entry, found.ders) == (50.0, 1, ("SGen5",))
+    assert found.largest_w == pytest.approx(-2e5, rel=1e-9)
+    assert found.recovered_s == pytest.approx(10 * np.log(4), abs=0.011)
+    assert found.limit_s == pytest.approx(5.5) and found.window_s == pytest.approx(15.0)
+    assert "SLOWER THAN DESIGNED" in found.text and "entry 1 (SGen5)" in found.text
+    assert _watch_switch(simbench_config, 10.0, held=True) == []
+
+
 def test_a_fit_that_cannot_be_made_leaves_the_entry_and_says_why(simbench_config) -> None:
     """The retune job never raises: data in which no set-point moved (the DERs held, say)
     gives no entry and the reason, which the CPFC says (``model_retune``) before it goes on
