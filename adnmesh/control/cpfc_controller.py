@@ -266,14 +266,9 @@ class GainSchedule:
         job = self._jobs.get(available)
         if job is None:
             return available in self._tuned
-        if len(job) == 1:
-            if not job[0].done():
-                return False
-            entry = job[0].result()
-        elif t_ns < job[0]:
+        if not _done(job, t_ns):
             return False
-        else:
-            entry = job[1]
+        entry = job[0].result() if len(job) == 1 else job[1]
         self._tuned[available] = entry
         del self._jobs[available]
         return True
@@ -303,8 +298,7 @@ class GainSchedule:
         ``t_ns`` (once; None before); a feasible entry is then what :meth:`lookup` returns
         for ``available``."""
         job = self._retunes.get(available)
-        if job is None or (len(job) == 1 and not job[0].done()) or (len(job) == 2
-                                                                    and t_ns < job[0]):
+        if job is None or not _done(job, t_ns):
             return None
         del self._retunes[available]
         try:
@@ -333,6 +327,12 @@ class GainSchedule:
     def _count(self, entry, source):
         self.sources[source] = self.sources.get(source, 0) + 1
         return entry, source
+
+
+def _done(job: tuple, t_ns: int) -> bool:
+    """Whether a tuning job is done by ``t_ns``: ``(future,)`` (background) once the future
+    is, ``(ready at ns, result)`` (sim clock) from that instant on."""
+    return job[0].done() if len(job) == 1 else t_ns >= job[0]
 
 
 def _retune_job(config: Config, table: SchedulingTable | None, ders: tuple[str, ...], data):

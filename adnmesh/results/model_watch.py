@@ -89,6 +89,8 @@ class ModelWatch:
         self._keep = keep_setpoints
         self._band = config.constraints.settling_band_pct / 100.0
         self._switches: list[tuple[int, float]] = []    # (t_ns, handover s) to be judged
+        self._due_ns = 0                # the first switch's window cannot close before this
+        self._known = (0, 0, 0)         # P_ref values, window ends, entries seen at _due_ns
         self._held = array("q")         # P_IP samples that say the DERs are held, while judging
         self._t_ns = array("q")
         self._setpoints = {t: array("d") for t in self._types}
@@ -114,6 +116,7 @@ class ModelWatch:
                 and not body["switch"].get("direction"):
             self._switches.append((body["t_send_ns"], float(body["switch"].get("handover_s", 0))))
             self.watch.keep_from_ns = self._switches[0][0]
+            self._due_ns = 0
         if message_type == "p_ip":
             if body.get("held") and self._switches:
                 self._held.append(body["t_send_ns"])
@@ -155,8 +158,13 @@ class ModelWatch:
 
     def _recoveries(self) -> list[SlowRecovery]:
         """Judge the gain switches whose window has closed (see :meth:`observe`)."""
+        if not self._switches:
+            return []
         series = self.watch.series
         now = series.p_ip_t_ns[-1]
+        known = (len(series.p_ref_t_ns), len(series.windows.instants), len(series.entries))
+        if now < self._due_ns and known == self._known:
+            return []                   # nothing that could close a window came since
         out = []
         while self._switches:
             t_sw, handover_s = self._switches[0]
@@ -168,6 +176,8 @@ class ModelWatch:
                                        * float(design["settling_time_s"]) * 1e9))
             end = min(ends) if ends else None
             if end is None or now < end + GRACE_NS:
+                self._due_ns = 2**63 if end is None else end + GRACE_NS
+                self._known = known
                 break
             self._switches.pop(0)
             if design:
