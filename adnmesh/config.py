@@ -815,6 +815,12 @@ class Runtime(Section):
     hundreds of DERs on one machine. The messages and the recording are the same either way;
     a process is then a failure domain: an internal error in one DER's code ends its
     process and every DER in it (an injected kill still ends one DER only)."""
+    agent_start: Literal["fork", "exec"] = "fork"
+    """How ``adnmesh up`` starts the agent processes on its host: ``fork``, from one
+    interpreter that has imported the agent programs and loaded this config once
+    (docs/runtime.md#how-agents-start: start-up in a fraction of the time, the imported pages
+    shared); ``exec``, each as its own ``python -m adnmesh.agents.<kind>`` program. The
+    processes, their messages and the recording are the same either way."""
     model_watch: Literal["off", "event", "retune"] = "off"
     """After each step of P_ref, the CPFC compares P_IP's response with what its table entry
     was certified for (docs/method.md#model-watch): ``event`` says a step over its design on

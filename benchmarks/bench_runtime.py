@@ -370,24 +370,38 @@ def pss_kb(pid: int) -> int | None:
 
 
 def agent_pids(parent: int) -> dict[str, int]:
-    """The children of ``parent`` that run an agent program: agent (``cpfc``, ``der
-    SGen1``...) -> pid."""
-    found = {}
+    """The processes below ``parent`` that run an agent program: agent (``cpfc``, ``der
+    SGen1``...) -> pid; a program started as such is known by its command line, an agent forked
+    by the fork server (``runtime.agent_start: fork``) by its name (``/proc/PID/comm``), the
+    fork server itself as ``fork server``."""
+    parents = {}
     for stat in Path("/proc").glob("[0-9]*/stat"):
         try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-            if int(fields[1]) != parent:
-                continue
-            argv = (stat.parent / "cmdline").read_bytes().split(b"\0")
-        except (OSError, IndexError):
+            parents[int(stat.parent.name)] = int(stat.read_text().rsplit(")", 1)[1].split()[1])
+        except (OSError, IndexError, ValueError):
+            continue
+    below, todo = set(), [parent]
+    while todo:
+        here = todo.pop()
+        children = {pid for pid, ppid in parents.items() if ppid == here} - below
+        below |= children
+        todo += children
+    found = {}
+    for pid in below:
+        try:
+            argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+            name = Path(f"/proc/{pid}/comm").read_text().strip()
+        except OSError:
             continue
         words = [a.decode() for a in argv if a]
-        program = next((w for w in words if w.startswith("adnmesh.agents.")), None)
-        if program is not None:
+        program = next((w for w in words if w.startswith("adnmesh.")), None)
+        if program == "adnmesh.runtime.forkserver":
+            found["fork server" if name == "adnmesh forks" else name] = pid
+        elif program is not None and program.startswith("adnmesh.agents."):
             kind = program.rsplit(".", 1)[1]
             if "--der" in words:
                 kind += " " + words[words.index("--der") + 1]
-            found[kind] = int(stat.parent.name)
+            found[kind] = pid
     return found
 
 

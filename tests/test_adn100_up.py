@@ -15,7 +15,7 @@ import yaml
 
 from adnmesh.config import load_config
 
-from up_runs import REPO, alive, children_of
+from up_runs import REPO, alive, descendants_of
 
 pytestmark = [pytest.mark.slow, pytest.mark.machine_alone]
 
@@ -58,7 +58,7 @@ def test_adn100_runs_with_on_demand_tuning_and_every_step_within_the_constraints
         out, err = proc.communicate(timeout=TIMEOUT_S)
     finally:
         if proc.poll() is None:                   # timed out: end it and its agents by PID
-            agents = children_of(proc.pid)
+            agents = descendants_of(proc.pid)
             proc.send_signal(signal.SIGTERM)
             try:
                 proc.wait(timeout=60)

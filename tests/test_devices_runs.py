@@ -17,7 +17,7 @@ import pytest
 
 from adnmesh.recording import read_recording
 from adnmesh.runtime.bus import free_port
-from up_runs import alive, children_of, processes_mentioning, up_argv, write_case
+from up_runs import alive, descendants_of, processes_mentioning, up_argv, write_case
 
 pytestmark = pytest.mark.slow
 
@@ -83,7 +83,7 @@ def test_a_realtime_run_with_ders_behind_both_protocols_survives_a_device_restar
     try:
         ready = read_line(up.stderr, "agents ready", 90)
         assert "agents ready" in ready, ready
-        spawned = children_of(up.pid)
+        spawned = descendants_of(up.pid)
         # the RTU drops off the net 2 s into the run and comes back 2.5 s later (wall clock:
         # the run's input here, not a synchronisation)
         time.sleep(2.0)

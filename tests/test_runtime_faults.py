@@ -30,6 +30,7 @@ from up_runs import (
     children_of,
     data_messages,
     finish,
+    process_name,
     processes_mentioning,
     run_up,
     start_long_run,
@@ -144,8 +145,7 @@ def test_the_steps_a_dead_cpfc_never_sent_are_said(tmp_path: Path) -> None:
                                                    {"t_s": 100, "delta_w": 1.0e6}]}
     proc, agents, config = start_long_run(tmp_path, "headless", "--summary-json",
                                           str(tmp_path / "headless.json"), scenario=scenario)
-    (cpfc,) = [pid for pid in agents
-               if b"adnmesh.agents.cpfc" in Path(f"/proc/{pid}/cmdline").read_bytes()]
+    (cpfc,) = [pid for pid in agents if process_name(pid) == "cpfc"]
     os.kill(cpfc, signal.SIGKILL)
     returncode, err = finish(proc, agents, config)
     assert returncode == 1, err

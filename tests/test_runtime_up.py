@@ -188,11 +188,16 @@ def test_gain_switch_is_bumpless_in_the_distributed_run(reference_run) -> None:
 
 
 def test_two_sim_runs_with_the_same_seed_send_identical_messages(tmp_path: Path) -> None:
-    noisy = {"runtime": {"links": {"cpfc_to_der": {"jitter_s": 0.02, "loss": 0.05},
-                                   "der_to_availability": {"jitter_s": 0.05, "loss": 0.1}}}}
-    config, table = write_case(tmp_path, "noisy", **noisy)
-    _, first, _ = run_up(tmp_path, config, table, "first")
-    _, second, _ = run_up(tmp_path, config, table, "second")
+    """... whether the agents are forked from the fork server (the default) or started as
+    programs (``runtime.agent_start: exec``)."""
+    links = {"cpfc_to_der": {"jitter_s": 0.02, "loss": 0.05},
+             "der_to_availability": {"jitter_s": 0.05, "loss": 0.1}}
+    config, table = write_case(tmp_path, "noisy", runtime={"links": links})
+    as_programs = write_case(tmp_path, "noisy-exec",
+                             runtime={"links": links, "agent_start": "exec"})
+    first_run, first, _ = run_up(tmp_path, config, table, "first")
+    assert "fork server" not in first_run.stderr        # forked, not started as programs
+    _, second, _ = run_up(tmp_path, *as_programs, "second")
     assert data_messages(first) == data_messages(second)
     _, other, summary = run_up(tmp_path, config, table, "other", "--seed", "8")
     assert data_messages(other) != data_messages(first)

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import pytest
 
-from up_runs import alive, children_of, write_case
+from up_runs import alive, descendants_of, write_case
 
 REPO = Path(__file__).resolve().parent.parent
 UP_TIMEOUT_S = 180
@@ -53,7 +53,7 @@ def _run_up(argv: list[str], cwd: Path, env: dict[str, str]) -> subprocess.Compl
     try:
         out, err = proc.communicate(timeout=UP_TIMEOUT_S)
     except subprocess.TimeoutExpired:
-        agents = children_of(proc.pid)
+        agents = descendants_of(proc.pid)
         proc.kill()
         for pid in agents:
             if alive(pid):

@@ -20,6 +20,7 @@ import pytest
 import yaml
 
 from adnmesh.config import load_config
+from adnmesh.runtime.forkserver import SERVER_NAME
 from adnmesh.tuning.table import SchedulingTable, TableEntry, save_table
 
 REPO = Path(__file__).resolve().parent.parent
@@ -87,6 +88,30 @@ def children_of(pid: int) -> set[int]:
     return found
 
 
+def descendants_of(pid: int) -> set[int]:
+    """PIDs of every process below ``pid``: ``up``'s agents are children of its fork server
+    (``runtime.agent_start: fork``), or its own children (``exec``)."""
+    found, todo = set(), [pid]
+    while todo:
+        below = children_of(todo.pop()) - found
+        found |= below
+        todo += below
+    return found
+
+
+def agents_among(pids: set[int]) -> set[int]:
+    """Those of ``pids`` that run an agent (not the fork server, named by its ``comm``)."""
+    return {pid for pid in pids if process_name(pid) != SERVER_NAME}
+
+
+def process_name(pid: int) -> str:
+    """``/proc/PID/comm``: a forked agent's name (``cpfc``, ``der SGen1``), "" if gone."""
+    try:
+        return Path(f"/proc/{pid}/comm").read_text().strip()
+    except FileNotFoundError:
+        return ""
+
+
 def alive(pid: int) -> bool:
     """True if ``pid`` exists and is not a zombie."""
     try:
@@ -133,8 +158,8 @@ def start_long_run(tmp_path: Path, name: str, *extra: str, **changes):
         proc.kill()
         proc.wait()
         pytest.fail("adnmesh up did not get ready: " + "".join(lines))
-    agents = children_of(proc.pid)
-    assert len(agents) == 5
+    agents = descendants_of(proc.pid)      # the agents and the fork server
+    assert len(agents_among(agents)) == 5
     return proc, agents, config
 
 

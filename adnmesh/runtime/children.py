@@ -14,7 +14,6 @@ itself waits as long for ``up``), and then as dead.
 from __future__ import annotations
 
 import os
-import signal
 import subprocess
 import sys
 import threading
@@ -117,6 +116,7 @@ class AgentProcesses:
         self._lock = threading.Lock()        # _ended: changed by Zenoh callbacks
         self.env: dict[str, str] = {}        # more environment for the processes
         self.left: set[str] = set()          # hosted agents that left their running process
+        self.forkserver = None               # a started ForkServer: agents are forked from it
 
     def session_ended(self, agent_id: str) -> None:
         """An agent's session ended without a goodbye: an external one is dead unless it is
@@ -151,7 +151,11 @@ class AgentProcesses:
         """Start ``argv`` as the one process of every agent of ``agent_ids``."""
         env = dict(os.environ, **self.env, **{PARENT_ENV: str(os.getpid())})
         env.setdefault("ZENOH_RUNTIME", AGENT_ZENOH_RUNTIME)
-        proc = subprocess.Popen(argv, env=env, start_new_session=True, stdin=subprocess.DEVNULL)
+        proc = None if self.forkserver is None else \
+            self.forkserver.spawn(argv, env, _process_name(agent_ids))
+        if proc is None:
+            proc = subprocess.Popen(argv, env=env, start_new_session=True,
+                                    stdin=subprocess.DEVNULL)
         for agent_id in agent_ids:
             self.procs[agent_id] = proc
             self.left.discard(agent_id)
@@ -224,11 +228,15 @@ class AgentProcesses:
         """SIGKILL every process still running (by PID); return their agent ids."""
         killed = [a for a, p in self.procs.items() if p.poll() is None and a not in self.left]
         for proc in self._processes():
-            if proc.poll() is None:
-                try:
-                    os.kill(proc.pid, signal.SIGKILL)
-                except ProcessLookupError:
-                    pass
+            proc.kill()      # by PID, unless it has ended (and been reaped) already
         for proc in self._processes():
             proc.wait()
         return killed
+
+
+def _process_name(agent_ids: list[str]) -> str:
+    """The name a forked agent process takes (``/proc/PID/comm``, 15 bytes): ``der SGen1``,
+    ``cpfc``, ``der x50`` for a process hosting 50 DERs."""
+    if len(agent_ids) > 1:
+        return f"der x{len(agent_ids)}"
+    return agent_ids[0].replace("/", " ")

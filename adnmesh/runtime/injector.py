@@ -19,8 +19,6 @@ Everything it does is an event on ``event/up``.
 
 from __future__ import annotations
 
-import os
-import signal
 import subprocess
 import threading
 import time
@@ -113,12 +111,9 @@ class FaultInjector:
         again; an external agent is not ours to end)."""
         children = self.launch.children
         proc = children.procs.get(agent)
-        if proc is None or children.shares_process(agent) or proc.poll() is not None:
+        if proc is None or children.shares_process(agent):
             return
-        try:
-            os.kill(proc.pid, signal.SIGKILL)
-        except ProcessLookupError:
-            pass
+        proc.kill()     # by PID, unless it has ended already
 
     def on_killed(self, message) -> None:
         """An agent's last report before its injected kill."""
@@ -244,7 +239,7 @@ class FaultInjector:
             try:
                 old.wait(timeout=3.0)
             except subprocess.TimeoutExpired:   # still there: kill it by PID
-                os.kill(old.pid, signal.SIGKILL)
+                old.kill()
                 old.wait()
         launch.spawn(agent, resume_ns=at_ns)
         with self._lock:

@@ -62,8 +62,9 @@ from adnmesh.recording import PUBLISHED_METADATA, UNCOUNTED_METADATA, Recorder
 from adnmesh.runtime import acl
 from adnmesh.runtime.accounting import account_agents
 from adnmesh.runtime.bus import DEFAULT_HOST, free_port, router_config
-from adnmesh.runtime.children import AgentProcesses, agent_argv, hosted_ders_argv
+from adnmesh.runtime.children import PARENT_ENV, AgentProcesses, agent_argv, hosted_ders_argv
 from adnmesh.runtime.device_simulators import DeviceSimulators
+from adnmesh.runtime.forkserver import ForkServer
 from adnmesh.runtime.identity import router_identity
 from adnmesh.runtime.injector import FaultInjector
 from adnmesh.runtime.launcher_bus import LauncherOutbox, SimClockDriver
@@ -560,12 +561,19 @@ def _metadata(options: UpOptions) -> dict[str, str]:
 
 
 def startup(launch: _Launch) -> str | None:
-    """Spawn every agent and wait until all are ready; return why that failed, or None."""
+    """Spawn every agent and wait until all are ready; return why that failed, or None. The
+    start-up time counts from the first agent process started: the fork server, if used."""
     options, t0 = launch.options, time.monotonic()
+    server = launch.children.forkserver
+    if server is not None:
+        t0 = min(t0, server.started_at)
     _raise_priority(launch)
     local = [a for a in launch.topology.agents if a not in options.external]
     for group in launch.process_groups(local):
         launch.spawn_hosting(group)
+    if server is not None and server.failed is not None:
+        options.log(f"warning: the agents' fork server failed ({server.failed}); agents "
+                    "start as programs")
     profile = "" if options.certs is None else " (secure: mutual TLS, access control)"
     options.log(f"router on {launch.endpoint}{profile}; started {len(local)} agents "
                 f"(pids {launch.children.pids()})")
@@ -836,6 +844,7 @@ def run(options: UpOptions) -> UpResult:
     result = launch.result
     previous = _catch_signals(launch.interrupted, launch.roster.changed)
     simulators = DeviceSimulators(options.config, options.log)
+    _start_forkserver(launch)
     try:
         devices_down = simulators.start(options.available_w, launch._model_params,
                                         options.startup_timeout_s)
@@ -850,6 +859,8 @@ def run(options: UpOptions) -> UpResult:
         verify(launch)
     finally:
         launch.children.kill_all()
+        if launch.children.forkserver is not None:
+            launch.children.forkserver.close()
         simulators.stop()
         _close_recording(launch)
         for signum, handler in previous.items():
@@ -867,6 +878,17 @@ def run(options: UpOptions) -> UpResult:
     if launch.clock is not None:
         result.grants = launch.clock.grants_issued
     return result
+
+
+def _start_forkserver(launch: _Launch) -> None:
+    """``runtime.agent_start: fork``: start the fork server now, so that it loads while ``up``
+    opens its router (:mod:`adnmesh.runtime.forkserver`)."""
+    if launch.config.runtime.agent_start != "fork" or \
+            not set(launch.topology.agents) - set(launch.options.external):
+        return
+    server = ForkServer()
+    server.start(str(launch.config.path), dict(os.environ, **{PARENT_ENV: str(os.getpid())}))
+    launch.children.forkserver = server
 
 
 def recording_failure(recorder: Recorder) -> str:

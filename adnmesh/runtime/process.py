@@ -67,7 +67,7 @@ from adnmesh.wire.keys import Keys
 from adnmesh.wire.outbox import Outbox
 
 __all__ = ["AgentProcess", "add_agent_arguments", "die_with_parent", "load_config_or_exit",
-           "open_session", "subscription_patterns"]
+           "open_session", "preload_config", "subscription_patterns"]
 
 _WAIT_S = 1.0       # longest sleep between checks of the stop flag, s
 _BYE_WAIT_S = 5.0   # longest wait after the goodbye for `up` to confirm it, s
@@ -139,10 +139,42 @@ def open_session(args, identity: str) -> zenoh.Session:
         raise SystemExit(1) from None
 
 
-def load_config_or_exit(path: str):
-    """Load the adnmesh config; on an error print one line and exit with code 2."""
+_PRELOADED: dict[str, tuple[tuple, object]] = {}
+"""Configs loaded before the agent was forked (:mod:`adnmesh.runtime.forkserver`): absolute
+path -> (the file's identity then, the config)."""
+
+
+def _file_identity(path: str) -> tuple:
+    stat = os.stat(path)
+    return stat.st_ino, stat.st_size, stat.st_mtime_ns
+
+
+def preload_config(path: str):
+    """Load and validate the config at ``path`` for the agents forked from this process
+    (:func:`load_config_or_exit` then takes it while the file is unchanged) and return it; a
+    config that does not load is left to each agent to say (None)."""
     from adnmesh.config import load_config
     from adnmesh.errors import ConfigError
+    try:
+        identity = _file_identity(path)
+        config = load_config(path)
+    except (OSError, ConfigError):
+        return None
+    _PRELOADED[os.path.abspath(path)] = (identity, config)
+    return config
+
+
+def load_config_or_exit(path: str):
+    """Load the adnmesh config (the one loaded before this agent was forked, if its file is
+    unchanged); on an error print one line and exit with code 2."""
+    from adnmesh.config import load_config
+    from adnmesh.errors import ConfigError
+    preloaded = _PRELOADED.get(os.path.abspath(path))
+    try:
+        if preloaded is not None and preloaded[0] == _file_identity(path):
+            return preloaded[1]
+    except OSError:
+        pass
     try:
         return load_config(path)
     except ConfigError as exc:

@@ -1,0 +1,34 @@
+"""A program for the fork server's tests (``tests/test_forkserver.py``): forked as an agent
+would be, ``main(argv)`` does what ``argv`` says and says what it found in a JSON file."""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+
+def main(argv: list[str]) -> int:
+    action, *rest = argv
+    if action == "exit":
+        return int(rest[0])
+    if action == "raise":
+        raise RuntimeError("the probe raises")
+    if action == "wait":                # until killed (bounded: a test that forgets it)
+        time.sleep(60)
+        return 0
+    if action == "tell":                # tell OUT CONFIG: what the child looks like
+        out, config = rest
+        from adnmesh.runtime.process import _PRELOADED, load_config_or_exit
+        preloaded = _PRELOADED.get(os.path.abspath(config))
+        Path(out).write_text(json.dumps({
+            "pid": os.getpid(), "ppid": os.getppid(), "sid": os.getsid(0),
+            "argv": sys.argv, "env": dict(os.environ),
+            "comm": Path("/proc/self/comm").read_text().strip(),
+            "stdin": os.readlink("/proc/self/fd/0"),
+            "config_preloaded": preloaded is not None
+            and load_config_or_exit(config) is preloaded[1]}))
+        return 0
+    raise SystemExit(f"fork_probe: unknown action {action!r}")
