@@ -113,3 +113,112 @@ def test_the_keys_of_every_der_of_a_kind_are_one_wildcard_subscriber() -> None:
         "adn/g/der/*/state": frozenset({"adn/g/der/A/state", "adn/g/der/B/state"}),
         "adn/g/der/A/heartbeat": None, "adn/g/faults": None, "adn/g/cpfc/p_y": None}
     assert subscription_patterns(keys, wildcards=False) == {k: None for k in keys}
+
+
+class _Publisher:
+    def __init__(self, key, puts):
+        self.key, self.puts = key, puts
+
+    def put(self, payload, attachment=None):
+        self.puts.append((self.key, payload, attachment))
+
+
+class _Session:
+    def __init__(self):
+        self.puts = []
+
+    def declare_publisher(self, key, **_):
+        return _Publisher(key, self.puts)
+
+
+class _Tap:
+    def __init__(self):
+        self.recorded = []
+
+    def record_own(self, key, message, payload):
+        self.recorded.append((key, payload))
+
+
+def test_the_grants_to_one_hosting_process_go_in_one_sample_and_are_recorded_each() -> None:
+    """The sim clock's grants of one batch to the DERs of one process: one Zenoh sample on
+    ``clock/grants/<first DER>`` naming them (issue 41: one grant sample per process instead
+    of one per DER); recorded under each DER's own grant key, as one process per DER has them.
+    A DER alone in its process gets its grant on its own key."""
+    from adnmesh.runtime.launcher_bus import LauncherOutbox, SimClockDriver
+    from adnmesh.sim.clock import Grant
+    from adnmesh.wire.envelope import decode
+    from adnmesh.wire.keys import Keys
+
+    keys, session, tap = Keys("g"), _Session(), _Tap()
+    hosts = {"der/A": "der/A", "der/B": "der/A"}
+    driver = SimClockDriver(None, keys, LauncherOutbox(session, tap), lambda: None,
+                            host_of=hosts.get)
+
+    class _Coordinator:
+        finished = False
+
+        def now_ns(self):
+            return 7
+
+    driver.coordinator = _Coordinator()
+    driver._send([Grant("der/A", 200, 3), Grant("cpfc", 200, 5), Grant("der/B", 200, 4)])
+    assert [(k, a) for k, _, a in session.puts] == [
+        ("adn/g/clock/grant/cpfc", None), ("adn/g/clock/grants/der/A", b"der/A\nder/B")]
+    batch = session.puts[1][1].split(b"\n")
+    assert [k for k, _ in tap.recorded] == ["adn/g/clock/grant/cpfc", "adn/g/clock/grant/der/A",
+                                            "adn/g/clock/grant/der/B"]
+    assert [p for _, p in tap.recorded[1:]] == batch
+    granted = [decode(keys.of("clock_grant", a), p) for a, p in zip(("der/A", "der/B"), batch)]
+    assert [(g.until_ns, g.expect, g.t_send_ns) for g in granted] == [(200, 3, 7), (200, 4, 7)]
+
+
+class _Hosted:
+    def __init__(self, agent):
+        self.agent, self.took, self.rejected = agent, [], []
+        self.samples = {"clock_in": 0}
+
+    def take_grant(self, payload, counted):
+        self.took.append(payload)
+        self.samples["clock_in"] += counted
+
+    def reject(self, key, reason):
+        self.rejected.append((key, reason))
+
+    def guarded(self, callback):
+        return callback
+
+
+class _Sample:
+    def __init__(self, payload, attachment):
+        self.payload = _Bytes(payload)
+        self.attachment = None if attachment is None else _Bytes(attachment)
+
+
+class _Bytes:
+    def __init__(self, data):
+        self.data = data
+
+    def to_bytes(self):
+        return self.data
+
+
+@pytest.mark.parametrize("payload, names, rejected", [
+    (b"g1\ng2", b"der/A\nder/B", False),
+    (b"g1\ng2", b"der/A", True),                  # names and grants do not pair up
+    (b"g1", None, True),                          # no names
+    (b"g1\ng2", b"der/A\nder/C", True),           # an agent not hosted here
+])
+def test_a_hosting_process_hands_each_grant_of_its_sample_to_its_agent(payload, names,
+                                                                        rejected) -> None:
+    from adnmesh.runtime.host import _on_grants
+    from adnmesh.wire.keys import Keys
+
+    agents = [_Hosted("der/A"), _Hosted("der/B")]
+    _on_grants(agents, Keys("g"))(_Sample(payload, names))
+    if rejected:
+        assert [a.took for a in agents] == [[], []]
+        assert agents[0].rejected[0][0] == "adn/g/clock/grants/der/A"
+        assert "grant sample" in agents[0].rejected[0][1]
+    else:
+        assert [a.took for a in agents] == [[b"g1"], [b"g2"]] and not agents[0].rejected
+    assert [a.samples["clock_in"] for a in agents] == [1, 0]     # one sample, counted once

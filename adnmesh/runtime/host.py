@@ -29,6 +29,7 @@ import zenoh
 
 from adnmesh.runtime.process import AgentProcess, die_with_parent
 from adnmesh.sim.node import Node
+from adnmesh.wire.envelope import split_frame
 from adnmesh.wire.keys import Keys
 
 __all__ = ["serve_hosted"]
@@ -43,6 +44,28 @@ def _fan_out(callbacks: list):
         for callback in callbacks:
             callback(sample)
     return deliver
+
+
+def _on_grants(agents: list[AgentProcess], keys: Keys):
+    """The Zenoh callback of the process's grants, one sample from the sim clock per batch
+    (:meth:`~adnmesh.wire.keys.Keys.host_grants`): each grant to its agent, as if it had come
+    on the agent's own key; a sample whose names and grants do not pair up, or that names an
+    agent the process does not host, is rejected and counted."""
+    by_id = {agent.agent: agent for agent in agents}
+
+    def deliver(sample: zenoh.Sample) -> None:
+        names = [] if sample.attachment is None else \
+            sample.attachment.to_bytes().decode("utf-8", "replace").split("\n")
+        payloads = split_frame(sample.payload.to_bytes())
+        if len(names) != len(payloads) or not set(names) <= by_id.keys():
+            agents[0].samples["clock_in"] += 1
+            agents[0].reject(keys.host_grants(agents[0].agent),
+                             f"grant sample: {len(payloads)} grant(s) for the agents named "
+                             f"({len(names)}), or an agent not hosted here")
+            return
+        for i, (name, payload) in enumerate(zip(names, payloads)):
+            by_id[name].take_grant(payload, counted=i == 0)
+    return agents[0].guarded(deliver)
 
 
 def serve_hosted(session: zenoh.Session, nodes: list[Node], grid: str) -> int:
@@ -64,6 +87,9 @@ def serve_hosted(session: zenoh.Session, nodes: list[Node], grid: str) -> int:
                 by_key.setdefault(key, []).append(callback)
         handles = [session.declare_subscriber(key, _fan_out(callbacks))
                    for key, callbacks in by_key.items()]
+        keys = Keys(grid)
+        handles.append(session.declare_subscriber(keys.host_grants(agents[0].agent),
+                                                  _on_grants(agents, keys)))
         for agent in agents:
             agent.startup(subscribe=False)
         handles.append(session.liveliness().declare_subscriber(

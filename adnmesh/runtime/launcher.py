@@ -294,7 +294,8 @@ class _Launch:
                                       on_rejoin=self.injector.on_rejoin)
             self.clock = SimClockDriver(coordinator, self.keys, self.outbox,
                                         self.roster.changed.set,
-                                        on_violation=self.injector.quarantine)
+                                        on_violation=self.injector.quarantine,
+                                        host_of=self.children.host_of)
         bus = session.declare_subscriber(self.keys.all, zenoh.handlers.FifoChannel(_BUS_QUEUE),
                                          allowed_origin=zenoh.Locality.REMOTE)
         self._bus = threading.Thread(target=self._take_bus, args=(bus.handler,),

@@ -48,6 +48,25 @@ class LauncherOutbox:
             publisher.put(payload)
             self._tap.record_own(key, message, payload)
 
+    def send_together(self, sample_key: str, messages: list[tuple[str, str, int, dict]]
+                      ) -> None:
+        """Publish several messages of ``up`` in one sample on ``sample_key`` (the grants of
+        one hosting process): ``(key, recipient, t_ns, body)`` each, enveloped and recorded
+        under its own key as :meth:`send` does; the attachment names the recipients."""
+        with self.lock:
+            publisher = self._publishers.get(sample_key)
+            if publisher is None:
+                publisher = self._publishers[sample_key] = self._session.declare_publisher(
+                    sample_key, congestion_control=zenoh.CongestionControl.BLOCK,
+                    allowed_destination=zenoh.Locality.REMOTE)
+            payloads = []
+            for key, _, t_ns, body in messages:
+                message = self._outbox.send(key, t_ns, body, None)
+                payloads.append(encode(message))
+                self._tap.record_own(key, message, payloads[-1])
+            publisher.put(b"\n".join(payloads),
+                          attachment="\n".join(r for _, r, _, _ in messages).encode())
+
     def counts(self) -> dict[str, int]:
         """Messages sent per key."""
         with self.lock:
@@ -69,11 +88,16 @@ class SimClockDriver:
         ``(agent, what)``: a DER's report broke the clock protocol (a second report without a
         grant: someone else reports with its identity). Without it, or for another agent, the
         clock fails.
+    host_of : callable, optional
+        ``agent -> host or None``: the process hosting ``agent`` with other agents
+        (:mod:`adnmesh.runtime.host`): the grants of one batch to the agents of one host go in
+        one sample (:meth:`~adnmesh.wire.keys.Keys.host_grants`), each recorded as before.
     """
 
     def __init__(self, coordinator: Coordinator, keys: Keys, outbox: LauncherOutbox,
-                 on_change, on_violation=None) -> None:
+                 on_change, on_violation=None, host_of=None) -> None:
         self.coordinator = coordinator
+        self._host_of = host_of or (lambda agent: None)
         self._keys = keys
         self._outbox = outbox
         self._on_change = on_change
@@ -157,9 +181,17 @@ class SimClockDriver:
         if grants:
             self.last_grant_s = time.monotonic()
             t = self.recent_ns = self.coordinator.now_ns()
+        hosted: dict[str, list] = {}
         for g in grants:
-            self._outbox.send(self._keys.of("clock_grant", g.agent), t, until_ns=g.until_ns,
-                              expect=g.expect)
+            key = self._keys.of("clock_grant", g.agent)
+            host = self._host_of(g.agent)
+            if host is None:
+                self._outbox.send(key, t, until_ns=g.until_ns, expect=g.expect)
+            else:
+                hosted.setdefault(host, []).append(
+                    (key, g.agent, t, {"until_ns": g.until_ns, "expect": g.expect}))
+        for host, messages in hosted.items():
+            self._outbox.send_together(self._keys.host_grants(host), messages)
         if self.coordinator.finished and not self.finished:
             self.finished = True
             self._on_change()

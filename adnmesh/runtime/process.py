@@ -282,7 +282,7 @@ class AgentProcess:
         self._signals: dict = {}
         self.overruns: OverrunWatch | None = None
         # the Zenoh callback for the liveliness of adnmesh up (see startup)
-        self.on_up_alive = self._guarded(self._on_up_alive)
+        self.on_up_alive = self.guarded(self._on_up_alive)
 
     # -- phases ------------------------------------------------------------------------------
 
@@ -308,7 +308,7 @@ class AgentProcess:
         except Exception as exc:   # the agent's own code (realtime: on this thread)
             self._crash(exc)
 
-    def _guarded(self, callback):
+    def guarded(self, callback):
         """``callback`` for Zenoh: an exception in it ends the process (:meth:`_crash`)."""
         def run(sample: zenoh.Sample) -> None:
             try:
@@ -347,7 +347,7 @@ class AgentProcess:
         callback passes on only those keys (:func:`subscription_patterns`): one Zenoh delivery
         thread instead of one per key. The secure profile's access control names exact keys."""
         keys = self.keys
-        on_data, on_clock = self._guarded(self._on_data), self._guarded(self._on_clock)
+        on_data, on_clock = self.guarded(self._on_data), self.guarded(self._on_clock)
         found = {}
         for expr, members in subscription_patterns(self.node.subscriptions,
                                                    self.publishers).items():
@@ -492,14 +492,31 @@ class AgentProcess:
         key = str(sample.key_expr)
         self.samples["clock_in"] += 1
         for payload in split_frame(sample.payload.to_bytes()):
-            try:
-                message = decode(key, payload)
-            except MessageError as exc:
-                with self.lock:
-                    self.node.gate.reject(key, exc.reason)
-                continue
+            self._take_clock_payload(key, payload)
+
+    def take_grant(self, payload: bytes, counted: bool) -> None:
+        """A grant of this agent that came in its host's sample of grants
+        (:mod:`adnmesh.runtime.host`); ``counted``: count that sample as this agent's (one
+        agent of the sample counts it)."""
+        if self.left:
+            return
+        self.samples["clock_in"] += counted
+        self._take_clock_payload(self.keys.of("clock_grant", self.agent), payload)
+
+    def _take_clock_payload(self, key: str, payload: bytes) -> None:
+        try:
+            message = decode(key, payload)
+        except MessageError as exc:
             with self.lock:
-                self._take_clock(key, message)
+                self.node.gate.reject(key, exc.reason)
+            return
+        with self.lock:
+            self._take_clock(key, message)
+
+    def reject(self, key: str, reason: str) -> None:
+        """Count a message on ``key`` rejected for ``reason`` (by the host, for this agent)."""
+        with self.lock:
+            self.node.gate.reject(key, reason)
 
     def _take_clock(self, key: str, message) -> None:   # with the lock held
         if message.type == "clock_grant":      # processed here: the main thread sleeps on

@@ -52,6 +52,12 @@ class Keys:
         key = row.key if who is None else row.key.replace(f"{{{row.placeholder}}}", who)
         return f"adn/{self.grid}/{key}"
 
+    def host_grants(self, host: str) -> str:
+        """Where the clock's grants to the agents of one hosting process go, in one sample
+        (``host``: the process's first agent; each grant is the ``clock_grant`` envelope of
+        its agent's key, the sample's attachment names the agents, one per line)."""
+        return f"adn/{self.grid}/clock/grants/{host}"
+
     def liveliness(self, party: str) -> str:
         """Liveliness token of a running agent (``up`` itself is party ``up``)."""
         return f"adn/{self.grid}/alive/{party}"
