@@ -369,11 +369,8 @@ def pss_kb(pid: int) -> int | None:
     return None
 
 
-def agent_pids(parent: int) -> dict[str, int]:
-    """The processes below ``parent`` that run an agent program: agent (``cpfc``, ``der
-    SGen1``...) -> pid; a program started as such is known by its command line, an agent forked
-    by the fork server (``runtime.agent_start: fork``) by its name (``/proc/PID/comm``), the
-    fork server itself as ``fork server``."""
+def descendants(parent: int) -> set[int]:
+    """Every process below ``parent`` (from /proc)."""
     parents = {}
     for stat in Path("/proc").glob("[0-9]*/stat"):
         try:
@@ -386,8 +383,16 @@ def agent_pids(parent: int) -> dict[str, int]:
         children = {pid for pid, ppid in parents.items() if ppid == here} - below
         below |= children
         todo += children
+    return below
+
+
+def agent_pids(parent: int) -> dict[str, int]:
+    """The processes below ``parent`` that run an agent program: agent (``cpfc``, ``der
+    SGen1``...) -> pid; a program started as such is known by its command line, an agent forked
+    by the fork server (``runtime.agent_start: fork``) by its name (``/proc/PID/comm``), the
+    fork server itself as ``fork server``."""
     found = {}
-    for pid in below:
+    for pid in descendants(parent):
         try:
             argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
             name = Path(f"/proc/{pid}/comm").read_text().strip()
@@ -454,6 +459,36 @@ def memory_run(tree: Path, config_path: Path, table: Path, workdir: Path) -> dic
             "load_before": load_before}
 
 
+def helics_memory_run(python: str, steps: int, nfeds: int, core: str) -> dict:
+    """One run of the HELICS baseline with the PSS of its broker and federates sampled every
+    0.25 s: the sample half-way through the samples that have every process, MB."""
+    script = REPO.parent / "shared" / "bench" / "helics" / "run_helics.py"
+    if not script.exists():
+        script = Path("/work/shared/bench/helics/run_helics.py")
+    load_before = load()
+    runner = subprocess.Popen([python, str(script), "--nfeds", str(nfeds), "--core", core,
+                               "--steps", str(steps), "--port", str(25000 + os.getpid() % 1000),
+                               "--timeout", "1800"], stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL)
+    samples = []
+    try:
+        while runner.poll() is None:
+            pss = [pss_kb(pid) for pid in descendants(runner.pid)]
+            pss = [kb / 1024 for kb in pss if kb is not None]
+            samples.append((len(pss), sum(pss), max(pss, default=0.0)))
+            time.sleep(0.25)
+    finally:
+        if runner.poll() is None:
+            runner.kill()       # our own child, by handle (PID)
+        runner.wait()
+    most = max(n for n, _, _ in samples)
+    full = [s for s in samples if s[0] == most]
+    processes, total, largest = full[len(full) // 2]
+    return {"processes": processes, "total": round(total, 1),
+            "per_process": round(total / processes, 1), "largest": round(largest, 1),
+            "load_before": load_before}
+
+
 def worktree(rev: str) -> Path:
     """A detached worktree of ``rev`` under /tmp (made once)."""
     sha = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short=12", rev],
@@ -488,8 +523,22 @@ def memory_compare(args, table: Path, workdir: Path) -> dict:
                   f"{r['pss_mb']['ready']['total']} MB, mid-run "
                   f"{r['pss_mb']['mid_run']['total']} MB (load {r['load_before']})",
                   flush=True)
+    if not args.skip_helics:
+        runs["HELICS"] = []
+        for _ in range(args.repeat):
+            r = helics_memory_run(args.helics_python, args.helics_steps, 14, args.helics_core)
+            runs["HELICS"].append(r)
+            print(f"        HELICS: PSS mid-run {r['total']} MB in {r['processes']} processes "
+                  f"(broker and federates; {r['per_process']} MB each, largest "
+                  f"{r['largest']} MB; load {r['load_before']})", flush=True)
     summary = {}
     for name, found in runs.items():
+        if name == "HELICS":
+            summary[name] = {k: spread(found, k) for k in ("total", "per_process", "largest")}
+            print(f"  HELICS: PSS mid-run, MB (min .. max): total "
+                  f"{summary[name]['total']['min']:g}..{summary[name]['total']['max']:g}",
+                  flush=True)
+            continue
         out = summary[name] = {"startup_s": spread(found, "startup_s"), "pss_mb": {}}
         show_range(f"{name}: start-up to agents ready", out, "startup_s", " s")
         for when in ("ready", "mid_run"):
@@ -499,6 +548,12 @@ def memory_compare(args, table: Path, workdir: Path) -> dict:
             print(f"  {name}: PSS at {when}, MB (min .. max): " + ", ".join(
                 f"{k} {v['min']:g}..{v['max']:g}" for k, v in pss.items() if k != "agents"),
                 flush=True)
+    if "HELICS" in summary:
+        helics = summary["HELICS"]["total"]["median"]
+        for name in trees:
+            mine = summary[name]["pss_mb"]["mid_run"]["total"]["median"]
+            print(f"  {name} / HELICS, summed PSS mid-run (medians): {mine / helics:.2f}x",
+                  flush=True)
     return {"probes": probes, "runs": runs, "summary": summary}
 
 

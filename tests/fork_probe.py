@@ -19,6 +19,12 @@ def main(argv: list[str]) -> int:
     if action == "wait":                # until killed (bounded: a test that forgets it)
         time.sleep(60)
         return 0
+    if action == "pool":                # pool OUT: a spawned worker, as the CPFC's retune
+        from concurrent.futures import ProcessPoolExecutor
+        from multiprocessing import get_context
+        with ProcessPoolExecutor(1, mp_context=get_context("spawn")) as pool:
+            Path(rest[0]).write_text(str(pool.submit(pow, 2, 10).result(timeout=60)))
+        return 0
     if action == "tell":                # tell OUT CONFIG: what the child looks like
         out, config = rest
         from adnmesh.runtime.process import _PRELOADED, load_config_or_exit

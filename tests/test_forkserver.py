@@ -62,6 +62,15 @@ def test_a_forked_child_is_the_program_it_would_be(server, tmp_path) -> None:
     assert not json.loads(out.read_text())["config_preloaded"]
 
 
+def test_a_forked_child_can_spawn_worker_processes(server, tmp_path) -> None:
+    """The CPFC's retune runs in a spawned process (realtime runs): that works from a forked
+    agent, whose ``__main__`` is the fork server's module."""
+    forks, _ = server
+    out = tmp_path / "pool.txt"
+    assert forks.spawn(_probe("pool", str(out)), _env(), "cpfc").wait(timeout=90) == 0
+    assert out.read_text() == "1024"
+
+
 def test_exit_statuses_are_those_of_the_program(server) -> None:
     forks, _ = server
     assert forks.spawn(_probe("exit", "3"), _env(), "three").wait(timeout=30) == 3
@@ -90,3 +99,21 @@ def test_a_dead_server_takes_its_children_and_up_starts_programs(server, tmp_pat
     assert isinstance(children.procs["der/SGen1"], subprocess.Popen)
     children.wait_all(30)
     assert children.dead() == [("der/SGen1", 4)]
+
+
+def test_a_server_that_does_not_answer_is_ended_with_its_children(server, monkeypatch) -> None:
+    """``up``'s last step kills every agent by PID and waits for each to be reported ended: a
+    fork server that does not answer (stopped here) is itself killed after a bound, and its
+    children with it, so that ``up`` never hangs on it."""
+    import adnmesh.runtime.children as children_module
+
+    forks, _ = server
+    monkeypatch.setattr(children_module, "KILL_WAIT_S", 0.5)
+    children = AgentProcesses()
+    children.forkserver = forks
+    children.spawn("der/SGen1", _probe("wait"))
+    child = children.procs["der/SGen1"]
+    assert alive(child.pid)
+    os.kill(forks.proc.pid, signal.SIGSTOP)
+    assert children.kill_all() == ["der/SGen1"]
+    assert child.returncode == -signal.SIGKILL and forks.proc.poll() is not None

@@ -48,6 +48,10 @@ worker was woken for work it seldom found, which cost a fifth of a run's context
 about 8 % of its CPU time on two cores."""
 
 
+KILL_WAIT_S = 10.0
+"""How long ``up`` waits for an agent it SIGKILLed to be reported ended, wall s; a forked
+agent's end comes from the fork server, which is then ended itself if it has not said it."""
+
 CONNECT_TIMEOUT_S = 30.0
 """How long an agent ``up`` starts keeps trying to reach ``up``'s router, s: the router listens
 before the agents start, but on a saturated machine (100 agents connecting at once) a first
@@ -242,7 +246,12 @@ class AgentProcesses:
         for proc in self._processes():
             proc.kill()      # by PID, unless it has ended (and been reaped) already
         for proc in self._processes():
-            proc.wait()
+            try:
+                proc.wait(timeout=KILL_WAIT_S)
+            except subprocess.TimeoutExpired:   # a fork server that does not answer: end it,
+                if self.forkserver is not None:  # and its children with it
+                    self.forkserver.abort()
+                proc.wait()
         return killed
 
 

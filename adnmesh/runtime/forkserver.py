@@ -343,6 +343,12 @@ class ForkServer:
             except OSError:
                 pass
 
+    def abort(self) -> None:
+        """SIGKILL the server by PID: its children die with it (``PR_SET_PDEATHSIG``), and are
+        reported ended with -SIGKILL."""
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.kill()
+
     def close(self, timeout_s: float = 10.0) -> None:
         """Tell the server to exit once its children have ended; wait that long, then kill it
         (and so, by ``PR_SET_PDEATHSIG``, what is left of them)."""
