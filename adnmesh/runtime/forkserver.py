@@ -47,6 +47,8 @@ import sys
 import threading
 import time
 
+from adnmesh.runtime.children import PARENT_ENV
+
 __all__ = ["ForkServer", "ForkedProcess", "PRELOADED_MODULES", "READY_TIMEOUT_S", "SERVER_NAME"]
 
 PRELOADED_MODULES = (
@@ -122,7 +124,7 @@ def _become_agent(request: dict, closing: tuple[int, ...]) -> tuple:
     os.environ.clear()
     os.environ.update(request["env"])
     # the agent dies with the process it was forked from, which dies with up
-    os.environ["ADNMESH_PARENT_PID"] = str(server)
+    os.environ[PARENT_ENV] = str(server)
     _prctl(_PR_SET_NAME, request.get("name", "agent")[:15].encode())
     _, _, module, *args = request["argv"]
     sys.argv = [module, *args]
