@@ -38,14 +38,9 @@ class LauncherOutbox:
         """Publish a message of ``up`` sent at sim time ``t_ns`` (delivered then, or at
         ``t_deliver_ns``) and record it."""
         with self.lock:
-            publisher = self._publishers.get(key)
-            if publisher is None:
-                publisher = self._publishers[key] = self._session.declare_publisher(
-                    key, congestion_control=zenoh.CongestionControl.BLOCK,
-                    allowed_destination=zenoh.Locality.REMOTE)
             message = self._outbox.send(key, t_ns, body, t_deliver_ns)
             payload = encode(message)
-            publisher.put(payload)
+            self._publisher(key).put(payload)
             self._tap.record_own(key, message, payload)
 
     def send_together(self, sample_key: str, messages: list[tuple[str, str, int, dict]]
@@ -54,18 +49,21 @@ class LauncherOutbox:
         one hosting process): ``(key, recipient, t_ns, body)`` each, enveloped and recorded
         under its own key as :meth:`send` does; the attachment names the recipients."""
         with self.lock:
-            publisher = self._publishers.get(sample_key)
-            if publisher is None:
-                publisher = self._publishers[sample_key] = self._session.declare_publisher(
-                    sample_key, congestion_control=zenoh.CongestionControl.BLOCK,
-                    allowed_destination=zenoh.Locality.REMOTE)
             payloads = []
             for key, _, t_ns, body in messages:
                 message = self._outbox.send(key, t_ns, body, None)
                 payloads.append(encode(message))
                 self._tap.record_own(key, message, payloads[-1])
-            publisher.put(b"\n".join(payloads),
-                          attachment="\n".join(r for _, r, _, _ in messages).encode())
+            self._publisher(sample_key).put(
+                b"\n".join(payloads), attachment="\n".join(r for _, r, _, _ in messages).encode())
+
+    def _publisher(self, key: str) -> zenoh.Publisher:   # with the lock held
+        publisher = self._publishers.get(key)
+        if publisher is None:
+            publisher = self._publishers[key] = self._session.declare_publisher(
+                key, congestion_control=zenoh.CongestionControl.BLOCK,
+                allowed_destination=zenoh.Locality.REMOTE)
+        return publisher
 
     def counts(self) -> dict[str, int]:
         """Messages sent per key."""
