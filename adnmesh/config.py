@@ -820,7 +820,7 @@ class Runtime(Section):
     interpreter that has imported the agent programs and loaded this config once
     (docs/runtime.md#how-agents-start: start-up in a fraction of the time, the imported pages
     shared); ``exec``, each as its own ``python -m adnmesh.agents.<kind>`` program. The
-    processes, their messages and the recording are the same either way."""
+    agents' messages and the recording are the same either way."""
     model_watch: Literal["off", "event", "retune"] = "off"
     """After each step of P_ref, the CPFC compares P_IP's response with what its table entry
     was certified for (docs/method.md#model-watch): ``event`` says a step over its design on
