@@ -1,5 +1,7 @@
 """A program for the fork server's tests (``tests/test_forkserver.py``): forked as an agent
-would be, ``main(argv)`` does what ``argv`` says and says what it found in a JSON file."""
+would be, ``main(argv)`` does what ``argv`` says and says what it found in a JSON file. Run as
+``python -m fork_probe CONFIG REPLY_FD`` it is a fork server that refuses every fork (as one
+whose ``fork()`` fails for want of memory or processes)."""
 
 from __future__ import annotations
 
@@ -38,3 +40,10 @@ def main(argv: list[str]) -> int:
             and load_config_or_exit(config) is preloaded[1]}))
         return 0
     raise SystemExit(f"fork_probe: unknown action {action!r}")
+
+
+if __name__ == "__main__":
+    reply = int(sys.argv[2])
+    os.write(reply, b"ready\n")
+    for _ in sys.stdin:
+        os.write(reply, b"refused OSError: [Errno 11] Resource temporarily unavailable\n")

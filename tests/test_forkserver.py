@@ -118,3 +118,44 @@ def test_a_server_that_does_not_answer_is_ended_with_its_children(server, monkey
     assert children.kill_all() == ["der/SGen1"]
     assert child.returncode == -signal.SIGKILL
     assert forks.proc.wait(timeout=30) == -signal.SIGKILL    # the server, killed by PID
+
+
+def test_the_server_refuses_a_request_it_cannot_read_and_goes_on(server) -> None:
+    forks, _ = server
+    assert forks._send("not json")            # nobody waits for its answer: read it here
+    assert forks._await(lambda: bool(forks._answers), 30)
+    assert forks._answers.pop(0).startswith("JSONDecodeError")
+    assert forks.spawn(_probe("exit", "5"), _env(), "five").wait(timeout=30) == 5
+
+
+def test_a_refused_fork_starts_as_a_program_and_is_said(tmp_path) -> None:
+    """A fork the server cannot make (``fork()`` fails: memory, processes) is refused; ``up``
+    says so in one line and starts that agent as a program; the server stays in use."""
+    config, _ = write_case(tmp_path)
+    said = []
+    forks = ForkServer(say=said.append)
+    forks.start(str(config), _env(), program="fork_probe")    # a server that refuses forks
+    try:
+        children = AgentProcesses()
+        children.forkserver = forks
+        children.spawn("der/SGen9", [sys.executable, "-c", "raise SystemExit(6)"])
+        assert isinstance(children.procs["der/SGen9"], subprocess.Popen)
+        children.wait_all(30)
+        assert children.dead() == [("der/SGen9", 6)]
+        assert said == ["warning: the fork server refused to fork der SGen9 (OSError: [Errno "
+                        "11] Resource temporarily unavailable); it starts as a program"]
+        assert forks.failed is None
+    finally:
+        forks.close(timeout_s=10)
+
+
+def test_host_of_names_the_hosting_process_until_the_agent_leaves_it() -> None:
+    children = AgentProcesses()
+    children.forkserver = None
+    children.spawn_hosting(["der/A", "der/B"], [sys.executable, "-c", "pass"])
+    children.spawn("cpfc", [sys.executable, "-c", "pass"])
+    assert [children.host_of(a) for a in ("der/A", "der/B", "cpfc")] == ["der/A", "der/A", None]
+    children.leave("der/B")
+    children.spawn("der/B", [sys.executable, "-c", "pass"])      # restarted alone
+    assert [children.host_of(a) for a in ("der/A", "der/B")] == ["der/A", None]
+    children.wait_all(30)

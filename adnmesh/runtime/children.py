@@ -121,7 +121,7 @@ class AgentProcesses:
         self.env: dict[str, str] = {}        # more environment for the processes
         self.left: set[str] = set()          # hosted agents that left their running process
         self.forkserver = None               # a started ForkServer: agents are forked from it
-        self._hosts: dict[int, str] = {}     # id() of a hosting process -> its first agent
+        self._hosts: dict[str, str | None] = {}   # agent -> first agent of its hosting process
 
     def session_ended(self, agent_id: str) -> None:
         """An agent's session ended without a goodbye: an external one is dead unless it is
@@ -161,20 +161,18 @@ class AgentProcesses:
         if proc is None:
             proc = subprocess.Popen(argv, env=env, start_new_session=True,
                                     stdin=subprocess.DEVNULL)
+        host = agent_ids[0] if len(agent_ids) > 1 else None
         for agent_id in agent_ids:
+            self._hosts[agent_id] = host
             self.procs[agent_id] = proc
             self.left.discard(agent_id)
-        if len(agent_ids) > 1:
-            self._hosts[id(proc)] = agent_ids[0]
 
     def host_of(self, agent_id: str) -> str | None:
         """The first agent of the process that hosts ``agent_id`` with others (the name of its
         grant sample, :meth:`~adnmesh.wire.keys.Keys.host_grants`), None for an agent in a
         process of its own or one that left its host."""
-        proc = self.procs.get(agent_id)
-        if proc is None or agent_id in self.left:
-            return None
-        return self._hosts.get(id(proc))
+        host = self._hosts.get(agent_id)
+        return None if agent_id in self.left else host
 
     def shares_process(self, agent_id: str) -> bool:
         """``agent_id``'s process hosts other agents that have not left it."""

@@ -14,15 +14,17 @@ arguments and environment: the child begins a session of its own, takes the envi
 gives it, drops the fork server's file descriptors and signal handlers, names itself
 (``/proc/PID/comm``: ``der SGen1``, ``cpfc``...) and calls the kind's ``main``; its exit status
 is what ``python -m`` would give. It dies with the fork server (``PR_SET_PDEATHSIG``), and the
-fork server with ``up``. The fork server has no thread of its own: it imports no Zenoh runtime
-before it forks (a session is opened only in the child).
+fork server with ``up``. The fork server starts no thread of its own and no Zenoh runtime (a
+session is opened only in the child); numpy's OpenBLAS pool, which OpenBLAS makes safe across
+a fork, is the one other thread it has.
 
 The protocol, a line each way (``up`` writes requests on the server's stdin and reads replies
 from a pipe; the server's stdout and stderr are ``up``'s, and so its agents'):
 
 - server: ``ready`` once loaded (or ``failed WHY`` and it exits);
 - ``up``: ``{"argv": [...], "env": {...}, "name": "..."}`` (JSON; ``argv`` as for ``python``:
-  ``[exe, "-m", "adnmesh.agents.<kind>", args...]``) -- server: ``started PID``;
+  ``[exe, "-m", "adnmesh.agents.<kind>", args...]``) -- server: ``started PID``, or
+  ``refused WHY`` (a fork that failed: ``up`` starts that agent as a program);
 - ``up``: ``signal PID SIGNUM`` -- sent only while the server has not reaped PID (the server is
   its parent, so the PID cannot have been reused);
 - server: ``exited PID STATUS`` (``waitpid``'s status) when a child ends;
@@ -30,7 +32,10 @@ from a pipe; the server's stdout and stderr are ``up``'s, and so its agents'):
 
 ``up``'s side is :class:`ForkServer`, whose :class:`ForkedProcess` stands for a
 :class:`subprocess.Popen` where ``up`` tracks its agents (PID, ``poll``, ``wait``, ``kill``).
-A fork server that cannot start or dies makes ``up`` start the remaining agents as programs.
+A fork server that cannot start, is not ready within :data:`READY_TIMEOUT_S`, does not answer
+a fork within :data:`FORK_TIMEOUT_S` or dies makes ``up`` start the remaining agents as
+programs, and say so in one line; a late answer to a fork ``up`` gave up on is killed, so that
+no agent runs twice.
 """
 
 from __future__ import annotations
@@ -49,7 +54,8 @@ import time
 
 from adnmesh.runtime.children import PARENT_ENV
 
-__all__ = ["ForkServer", "ForkedProcess", "PRELOADED_MODULES", "READY_TIMEOUT_S", "SERVER_NAME"]
+__all__ = ["FORK_TIMEOUT_S", "ForkServer", "ForkedProcess", "PRELOADED_MODULES", "READY_TIMEOUT_S",
+           "SERVER_NAME"]
 
 PRELOADED_MODULES = (
     "adnmesh.agents.der", "adnmesh.agents.cpfc", "adnmesh.agents.measurement",
@@ -73,9 +79,13 @@ SERVER_NAME = "adnmesh forks"
 """The fork server's process name (``/proc/PID/comm``); its agents take theirs (``der SGen1``,
 ``cpfc``...): forked, they keep its command line."""
 
-READY_TIMEOUT_S = 60.0
-"""How long ``up`` waits for the fork server's ``ready`` (or a ``started``) before it starts
-the agents as programs instead, wall s: its imports take about 0.5 s on a quiet machine."""
+READY_TIMEOUT_S = 15.0
+"""How long ``up`` waits for the fork server's ``ready`` before it starts the agents as
+programs instead, wall s: its imports take 0.5-1.5 s here; ``up``'s start-up timeout (60 s
+and more) then still lies ahead of the programs."""
+
+FORK_TIMEOUT_S = 15.0
+"""How long ``up`` waits for the answer to one fork, wall s (a fork takes milliseconds)."""
 
 _PR_SET_NAME = 15
 _PR_SET_PDEATHSIG = 1
@@ -183,8 +193,12 @@ def serve(config_path: str, reply_fd: int) -> int:
                 if pid in children:
                     os.kill(pid, signum)
                 continue
-            request = json.loads(line)
-            pid = os.fork()
+            try:
+                request = json.loads(line)
+                pid = os.fork()
+            except (ValueError, OSError) as exc:    # up starts that agent as a program
+                _write(reply_fd, f"refused {type(exc).__name__}: {exc}".replace("\n", " ")[:500])
+                continue
             if pid == 0:
                 main, args = _become_agent(request, (reply_fd, wake_r, wake_w))
                 return main(args)
@@ -239,31 +253,38 @@ class ForkedProcess:
 
 class ForkServer:
     """``up``'s handle on its fork server: :meth:`start` it early (it loads while ``up``
-    prepares), :meth:`spawn` agents, :meth:`close` at the end."""
+    prepares), :meth:`spawn` agents, :meth:`close` at the end. ``say`` takes the one line
+    said when the server cannot be used (or refuses a fork): the agents then start as
+    programs."""
 
-    def __init__(self) -> None:
+    def __init__(self, say=lambda line: None) -> None:
         self.changed = threading.Condition()
         self.proc: subprocess.Popen | None = None
         self.failed: str | None = None        # why it cannot be used (then: programs)
+        self._say = say
         self._ready = False
-        self._started: list[int] = []
+        self._answers: list[int | str] = []   # PID started, or why a fork was refused
+        self._abandoned = 0                   # forks given up on: their late PIDs are killed
         self._children: dict[int, ForkedProcess] = {}
         self._early: dict[int, int] = {}      # exit codes of children not yet handed out
-        self._lock = threading.Lock()          # one request and its reply at a time
+        self._lock = threading.Lock()          # one request and its answer at a time
+        self._stdin = threading.Lock()         # one line at a time on the server's stdin
         self._reader: threading.Thread | None = None
+        self._closing = False                  # close() was called: its end is no failure
         self.started_at = time.monotonic()     # when start() was called, monotonic s
 
-    def start(self, config_path: str, env: dict[str, str]) -> None:
-        """Start the server on ``config_path`` with ``env`` (``up``'s PID in it)."""
+    def start(self, config_path: str, env: dict[str, str], program: str = __name__) -> None:
+        """Start the server on ``config_path`` with ``env`` (``up``'s PID in it); ``program``:
+        the module run as the server (``python -m PROGRAM CONFIG REPLY_FD``), this one."""
         self.started_at = time.monotonic()
         reply_r, reply_w = os.pipe()
         try:
             self.proc = subprocess.Popen(
-                [sys.executable, "-m", __name__, config_path, str(reply_w)], env=env,
+                [sys.executable, "-m", program, config_path, str(reply_w)], env=env,
                 stdin=subprocess.PIPE, pass_fds=(reply_w,), start_new_session=True)
         except OSError as exc:
             os.close(reply_r)
-            self.failed = f"cannot start it: {exc}"
+            self._fail(f"cannot start it: {exc}")
             return
         finally:
             os.close(reply_w)
@@ -271,79 +292,119 @@ class ForkServer:
                                         name="adnmesh-up-forkserver", daemon=True)
         self._reader.start()
 
-    def _read(self, fd: int) -> None:
-        with os.fdopen(fd, "rb") as replies:
-            for raw in replies:
-                word, _, rest = raw.decode().strip().partition(" ")
-                with self.changed:
-                    if word == "ready":
-                        self._ready = True
-                    elif word == "started":
-                        self._started.append(int(rest))
-                    elif word == "exited":
-                        pid, status = (int(x) for x in rest.split())
-                        code = os.waitstatus_to_exitcode(status)
-                        child = self._children.pop(pid, None)
-                        if child is None:
-                            self._early[pid] = code
-                        else:
-                            child.returncode = code
-                    elif word == "failed":
-                        self.failed = rest
-                    self.changed.notify_all()
-        with self.changed:       # the server is gone, and its children with it
-            self.failed = self.failed or "it ended"
-            for child in self._children.values():
-                child.returncode = -signal.SIGKILL
-            self._children.clear()
+    def _fail(self, why: str) -> None:
+        """The server is not to be used any more: say why, once (not when it ends because
+        :meth:`close` told it to)."""
+        with self.changed:
+            first = self.failed is None and not self._closing
+            self.failed = self.failed or why
             self.changed.notify_all()
+        if first:
+            self._say(f"warning: the agents' fork server failed ({why}); agents start as "
+                      "programs")
+
+    def _read(self, fd: int) -> None:
+        try:
+            with os.fdopen(fd, "rb") as replies:
+                for raw in replies:
+                    self._take_reply(raw.decode(errors="replace").strip())
+        finally:                 # the server is gone, and its children with it
+            with self.changed:
+                for child in self._children.values():
+                    child.returncode = -signal.SIGKILL
+                self._children.clear()
+            self._fail("it ended")
+
+    def _take_reply(self, line: str) -> None:
+        word, _, rest = line.partition(" ")
+        if word == "failed":
+            self._fail(rest)
+            return
+        late = None
+        with self.changed:
+            if word == "ready":
+                self._ready = True
+            elif word in ("started", "refused"):
+                answer = int(rest) if word == "started" else rest
+                if self._abandoned:       # up gave up on this fork and started a program
+                    self._abandoned -= 1
+                    late = answer if word == "started" else None
+                else:
+                    self._answers.append(answer)
+            elif word == "exited":
+                pid, status = (int(x) for x in rest.split())
+                code = os.waitstatus_to_exitcode(status)
+                child = self._children.pop(pid, None)
+                if child is None:
+                    self._early[pid] = code
+                else:
+                    child.returncode = code
+            self.changed.notify_all()
+        if late is not None:
+            self._send(f"signal {late} {int(signal.SIGKILL)}")
 
     def _await(self, test, timeout_s: float) -> bool:
         with self.changed:
             return self.changed.wait_for(lambda: test() or self.failed is not None, timeout_s) \
                 and test()
 
+    def _send(self, line: str) -> bool:
+        """Write one line to the server's stdin; False if it cannot take it."""
+        with self._stdin:
+            if self.proc is None or self.proc.stdin.closed:
+                return False
+            try:
+                self.proc.stdin.write(line.encode() + b"\n")
+                self.proc.stdin.flush()
+            except (OSError, ValueError):
+                return False
+        return True
+
     def spawn(self, argv: list[str], env: dict[str, str], name: str) -> ForkedProcess | None:
         """Fork the agent program ``argv`` (``[exe, "-m", module, args...]``) with ``env``;
-        None if the server cannot (see :attr:`failed`): start it as a program then."""
+        None if the server cannot (see :attr:`failed`) or refused this fork: start it as a
+        program then."""
         if self.proc is None or self.failed is not None:
             return None
         with self._lock:
             if not self._await(lambda: self._ready, READY_TIMEOUT_S):
-                self.failed = self.failed or f"not ready after {READY_TIMEOUT_S:g} s"
+                self._fail(f"not ready after {READY_TIMEOUT_S:g} s")
                 return None
+            if not self._send(json.dumps({"argv": argv, "env": env, "name": name})):
+                self._fail("its stdin is closed")
+                return None
+            if not self._await(lambda: bool(self._answers), FORK_TIMEOUT_S):
+                with self.changed:
+                    if not self._answers:      # a late answer is killed (no agent twice)
+                        self._abandoned += 1
+                self._fail(f"no answer to a fork within {FORK_TIMEOUT_S:g} s")
+                if not self._answers:
+                    return None
             with self.changed:
-                self._started.clear()
-            try:
-                self.proc.stdin.write(json.dumps({"argv": argv, "env": env, "name": name})
-                                      .encode() + b"\n")
-                self.proc.stdin.flush()
-            except OSError as exc:
-                self.failed = f"its pipe broke: {exc}"
+                answer = self._answers.pop(0)
+                if isinstance(answer, str):
+                    refused = answer
+                else:
+                    refused = None
+                    child = ForkedProcess(self, answer, argv)
+                    child.returncode = self._early.pop(child.pid, None)
+                    if child.returncode is None:
+                        if self._reader_done():    # the server is gone: so is its child
+                            child.returncode = -signal.SIGKILL
+                        else:
+                            self._children[child.pid] = child
+            if refused is not None:
+                self._say(f"warning: the fork server refused to fork {name} ({refused}); it "
+                          "starts as a program")
                 return None
-            if not self._await(lambda: bool(self._started), READY_TIMEOUT_S):
-                self.failed = self.failed or "no answer to a fork"
-                return None
-            with self.changed:
-                child = ForkedProcess(self, self._started.pop(), argv)
-                child.returncode = self._early.pop(child.pid, None)
-                if child.returncode is None:
-                    if self.failed is not None:      # the server is gone: so is its child
-                        child.returncode = -signal.SIGKILL
-                    else:
-                        self._children[child.pid] = child
             return child
+
+    def _reader_done(self) -> bool:
+        return self._reader is None or not self._reader.is_alive()
 
     def signal(self, pid: int, signum: int) -> None:
         """Have the server send ``signum`` to its child ``pid`` (if it has not reaped it)."""
-        with self._lock:
-            if self.proc is None or self.proc.stdin.closed:
-                return
-            try:
-                self.proc.stdin.write(f"signal {pid} {int(signum)}\n".encode())
-                self.proc.stdin.flush()
-            except OSError:
-                pass
+        self._send(f"signal {pid} {int(signum)}")
 
     def abort(self) -> None:
         """SIGKILL the server by PID: its children die with it (``PR_SET_PDEATHSIG``), and are
@@ -356,7 +417,8 @@ class ForkServer:
         (and so, by ``PR_SET_PDEATHSIG``, what is left of them)."""
         if self.proc is None:
             return
-        with self._lock:
+        self._closing = True
+        with self._stdin:
             try:
                 self.proc.stdin.close()
             except OSError:

@@ -565,16 +565,15 @@ def startup(launch: _Launch) -> str | None:
     """Spawn every agent and wait until all are ready; return why that failed, or None. The
     start-up time counts from the first agent process started: the fork server, if used."""
     options, t0 = launch.options, time.monotonic()
-    server = launch.children.forkserver
-    if server is not None:
-        t0 = min(t0, server.started_at)
     _raise_priority(launch)
     local = [a for a in launch.topology.agents if a not in options.external]
     for group in launch.process_groups(local):
         launch.spawn_hosting(group)
-    if server is not None and server.failed is not None:
-        options.log(f"warning: the agents' fork server failed ({server.failed}); agents "
-                    "start as programs")
+    server, spawned = launch.children.forkserver, t0
+    if server is not None and server.failed is None:
+        t0 = min(t0, server.started_at)     # the agents' start began with the server's
+    elif server is not None:
+        t0 = spawned = time.monotonic()     # programs after a failed server: the full timeout
     profile = "" if options.certs is None else " (secure: mutual TLS, access control)"
     options.log(f"router on {launch.endpoint}{profile}; started {len(local)} agents "
                 f"(pids {launch.children.pids()})")
@@ -582,7 +581,7 @@ def startup(launch: _Launch) -> str | None:
         options.log(f"waiting up to {options.startup_timeout_s:g} s for "
                     f"{len(options.external)} external agent(s): "
                     f"{', '.join(sorted(options.external))}")
-    deadline = t0 + options.startup_timeout_s
+    deadline = spawned + options.startup_timeout_s
     reason = None
     while reason is None and launch.roster.not_ready():
         reason = launch.startup_failure()
@@ -887,7 +886,7 @@ def _start_forkserver(launch: _Launch) -> None:
     if launch.config.runtime.agent_start != "fork" or \
             not set(launch.topology.agents) - set(launch.options.external):
         return
-    server = ForkServer()
+    server = ForkServer(say=launch.options.log)
     server.start(str(launch.config.path), dict(os.environ, **{PARENT_ENV: str(os.getpid())}))
     launch.children.forkserver = server
 
