@@ -141,6 +141,20 @@ def _become_agent(request: dict, closing: tuple[int, ...]) -> tuple:
     return importlib.import_module(module).main, args
 
 
+def _reap(children: set[int], reply_fd: int) -> None:
+    """Reap every child that has ended and say its status (``exited PID STATUS``)."""
+    while children:
+        try:
+            pid, status = os.waitpid(-1, os.WNOHANG)
+        except ChildProcessError:
+            children.clear()
+            return
+        if pid == 0:
+            return
+        children.discard(pid)
+        _write(reply_fd, f"exited {pid} {status}")
+
+
 def serve(config_path: str, reply_fd: int) -> int:
     """The fork server's loop (see the module docstring); in a forked child, the agent's
     ``main`` runs and its result is returned instead."""
@@ -168,16 +182,7 @@ def serve(config_path: str, reply_fd: int) -> int:
         readable, _, _ = select.select([0, wake_r] if not closing else [wake_r], [], [], 1.0)
         if wake_r in readable:
             os.read(wake_r, 4096)
-        while children:
-            try:
-                pid, status = os.waitpid(-1, os.WNOHANG)
-            except ChildProcessError:
-                children.clear()
-                break
-            if pid == 0:
-                break
-            children.discard(pid)
-            _write(reply_fd, f"exited {pid} {status}")
+        _reap(children, reply_fd)
         if 0 not in readable:
             continue
         chunk = os.read(0, 65536)
