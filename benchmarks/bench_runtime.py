@@ -459,12 +459,16 @@ def memory_run(tree: Path, config_path: Path, table: Path, workdir: Path) -> dic
             "load_before": load_before}
 
 
+def helics_script() -> Path:
+    """The HELICS baseline's runner, ``../shared/bench/helics/run_helics.py``."""
+    script = REPO.parent / "shared" / "bench" / "helics" / "run_helics.py"
+    return script if script.exists() else Path("/work/shared/bench/helics/run_helics.py")
+
+
 def helics_memory_run(python: str, steps: int, nfeds: int, core: str) -> dict:
     """One run of the HELICS baseline with the PSS of its broker and federates sampled every
     0.25 s: the sample half-way through the samples that have every process, MB."""
-    script = REPO.parent / "shared" / "bench" / "helics" / "run_helics.py"
-    if not script.exists():
-        script = Path("/work/shared/bench/helics/run_helics.py")
+    script = helics_script()
     load_before = load()
     runner = subprocess.Popen([python, str(script), "--nfeds", str(nfeds), "--core", core,
                                "--steps", str(steps), "--port", str(25000 + os.getpid() % 1000),
@@ -680,9 +684,7 @@ def speed_compare(args, table: Path, workdir: Path) -> dict:
 def run_helics(python: str, steps: int, nfeds: int, core: str) -> dict:
     """One run of the HELICS baseline: the JSON line of ``run_helics.py``."""
     load_before = load()
-    script = REPO.parent / "shared" / "bench" / "helics" / "run_helics.py"
-    if not script.exists():
-        script = Path("/work/shared/bench/helics/run_helics.py")
+    script = helics_script()
     result = subprocess.run([python, str(script), "--nfeds", str(nfeds), "--core", core,
                              "--steps", str(steps), "--port", str(24000 + os.getpid() % 1000),
                              "--timeout", "1800"],

@@ -258,6 +258,7 @@ class AgentProcess:
         self.node = node
         self.keys = Keys(grid)
         self.agent = node.agent_id
+        self._grant_key = self.keys.of("clock_grant", self.agent)   # a grant from a host
         self.lock = threading.Condition()    # guards everything below and the node
         self.grants: deque = deque()
         self.start: object | None = None     # the clock_start message
@@ -501,14 +502,13 @@ class AgentProcess:
         if self.left:
             return
         self.samples["clock_in"] += counted
-        self._take_clock_payload(self.keys.of("clock_grant", self.agent), payload)
+        self._take_clock_payload(self._grant_key, payload)
 
     def _take_clock_payload(self, key: str, payload: bytes) -> None:
         try:
             message = decode(key, payload)
         except MessageError as exc:
-            with self.lock:
-                self.node.gate.reject(key, exc.reason)
+            self.reject(key, exc.reason)
             return
         with self.lock:
             self._take_clock(key, message)
