@@ -23,7 +23,7 @@ PACKAGE = Path(__file__).resolve().parent.parent / "adnmesh"
 LAYERS = (
     ("__init__", "config", "errors", "names", "files", "reactive"),
     ("loopmodel", "grid", "dermodels"),
-    ("tuning", "analysis", "adn", "identify"),
+    ("tuning", "analysis", "adn", "identify", "cascade"),
     ("wire",),
     ("control",),
     ("sim",),

@@ -45,7 +45,7 @@ from adnmesh.loopmodel.plant import Plant
 from adnmesh.loopmodel.step_figures import StepFigureAccumulator
 
 __all__ = ["StepInfo", "simulate_step", "step_info", "step_info_from_samples", "choose_step",
-           "choose_steps", "integral_rate"]
+           "choose_steps", "integral_rate", "commensurate_unit"]
 
 _SETTLED_BAND = 0.005
 #: samples per block of precomputed delay taps (bounds their memory to ~100 MB)
@@ -90,7 +90,7 @@ class StepInfo:
 
 
 @functools.lru_cache(maxsize=256)
-def _commensurate_unit(delays: tuple[float, ...]) -> float:
+def commensurate_unit(delays: tuple[float, ...]) -> float:
     """Largest t with every delay an integer multiple of t (1 us resolution), s; 0 if none."""
     us = [int(round(float(Fraction(d).limit_denominator(10**6)) * 1e6)) for d in delays if d > 0]
     if not us:
@@ -109,7 +109,7 @@ def choose_steps(plant: Plant, bandwidth_rad_s=None) -> np.ndarray:
         h = np.where(np.isfinite(bw) & (bw > 0), np.minimum(h, 0.05 / np.where(bw > 0, bw, 1.0)),
                      h)
     h = np.minimum(h, float(plant.path_delays_s.min()))
-    unit = _commensurate_unit(tuple(np.append(plant.path_delays_s, plant.t_meas_s).tolist()))
+    unit = commensurate_unit(tuple(np.append(plant.path_delays_s, plant.t_meas_s).tolist()))
     if unit > 0:
         snap = unit >= h / 100
         h = np.where(snap, unit / np.ceil(unit / h - 1e-9), h)

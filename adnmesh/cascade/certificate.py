@@ -1,0 +1,129 @@
+"""The upper loop's certificate: its figures on the exact cascade, the verdict against the
+design constraints, and the back-off that restores them.
+
+The figures are those of a table entry (disk margin, overshoot, rise and settling times), but
+of the *nested* loop: the upper PI over the ADNs' exact closed loops with every delay
+(:mod:`adnmesh.cascade.nested_loop`, :mod:`adnmesh.cascade.nested_step`). The step response is
+simulated until it has stayed within 0.5 % of its final value for the last quarter of the
+horizon, and at least for ``20 / omega_c`` and four times the slowest lag plus every delay;
+a response not settled by :data:`MAX_HORIZON_S` reports infinite settling times.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from adnmesh.cascade.nested_loop import UpperLoop, upper_loop
+from adnmesh.cascade.nested_step import choose_step, simulate
+from adnmesh.cascade.structure import Cascade
+from adnmesh.loopmodel.step_figures import step_figures
+
+__all__ = ["CascadeFigures", "cascade_figures", "back_off", "settled_horizon", "MAX_HORIZON_S",
+           "BACK_OFF_STEP"]
+
+#: longest simulated horizon, s
+MAX_HORIZON_S = 20000.0
+#: factor on both upper gains per back-off step
+BACK_OFF_STEP = 0.97
+_SETTLED = 0.005
+
+
+@dataclass(frozen=True)
+class CascadeFigures:
+    """Figures of the upper loop on the exact cascade (NaN where not applicable).
+
+    Attributes
+    ----------
+    stable : bool
+        Lower loops and upper loop stable.
+    lower_stable : bool
+    disk_margin : float
+        Balanced disk margin alpha of the upper loop, 0 if unstable.
+    disk_omega : float
+        rad/s.
+    overshoot_pct, rise_time_s, settling_time_s, settling_time_2pct_s : float
+        Step figures of the nested loop (upper reference -> sum of the ADNs' infeed), %, s.
+    step_s : float
+        Simulation step, s.
+    """
+
+    stable: bool
+    lower_stable: bool
+    disk_margin: float
+    disk_omega: float
+    overshoot_pct: float
+    rise_time_s: float
+    settling_time_s: float
+    settling_time_2pct_s: float
+    step_s: float
+
+    def problem(self, disk_margin_min: float, overshoot_max_pct: float) -> str | None:
+        """Why the loop fails the constraints (one line), or None if it meets them."""
+        if not self.lower_stable:
+            return "a lower ADN's own loop is unstable"
+        if not self.stable:
+            return "the upper loop is unstable"
+        if self.disk_margin < disk_margin_min:
+            return f"disk margin {self.disk_margin:.3f} < {disk_margin_min:g}"
+        if not self.overshoot_pct < overshoot_max_pct:
+            return f"overshoot {self.overshoot_pct:.3f} % >= {overshoot_max_pct:g} %"
+        return None
+
+    def to_json(self) -> dict:
+        """Plain numbers (NaN and infinity as None)."""
+        return {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
+                for k, v in asdict(self).items()}
+
+
+def settled_horizon(cascade: Cascade, bandwidth_rad_s: float) -> float:
+    """The shortest horizon simulated, s: ``20 / bandwidth`` and 4 x (slowest lag + every
+    delay of the cascade)."""
+    slow = max(float(a.time_constants_s.max()) for adn in cascade.adns
+               for a in adn.plant.actuators)
+    floor = 4.0 * (slow + sum(cascade.delays_s))
+    if math.isfinite(bandwidth_rad_s) and bandwidth_rad_s > 0:
+        floor = max(floor, 20.0 / bandwidth_rad_s)
+    return floor
+
+
+def _settled_step(cascade: Cascade, upper, bandwidth_rad_s: float, band_pct: float):
+    """Simulate, doubling the horizon until the response has settled; its figures."""
+    h = choose_step(cascade, bandwidth_rad_s)
+    horizon = settled_horizon(cascade, bandwidth_rad_s)
+    while True:
+        run = simulate(cascade, upper, horizon, h)
+        tail = run.y[int(0.75 * run.y.size):]
+        if np.abs(tail - 1.0).max() <= _SETTLED or horizon >= MAX_HORIZON_S:
+            break
+        horizon = min(2.0 * horizon, MAX_HORIZON_S)
+    return step_figures(run.t_s, run.y, band_pct), h
+
+
+def cascade_figures(cascade: Cascade, kp: float, ki: float, band_pct: float = 5.0,
+                    loop: UpperLoop | None = None) -> CascadeFigures:
+    """Figures of the cascade under the upper PI ``(kp, ki)`` (1/W, 1/(W s))."""
+    loop = upper_loop(cascade, kp, ki) if loop is None else loop
+    nan = float("nan")
+    if not loop.stable:
+        return CascadeFigures(False, loop.lower_stable, 0.0, nan, nan, nan, nan, nan, nan)
+    fig, h = _settled_step(cascade, (kp, ki), loop.disk_omega, band_pct)
+    return CascadeFigures(True, True, loop.disk_margin, loop.disk_omega, fig.overshoot_pct,
+                          fig.rise_time_s, fig.settling_time_s, fig.settling_time_2pct_s, h)
+
+
+def back_off(cascade: Cascade, kp: float, ki: float, disk_margin_min: float,
+             overshoot_max_pct: float, band_pct: float = 5.0, most: int = 150):
+    """The largest ``BACK_OFF_STEP ** n`` (n <= ``most``) by which both upper gains must be
+    scaled for the cascade to meet the constraints: ``(factor, figures)``; factor is None
+    (figures of the last try) if none does."""
+    factor = 1.0
+    for _ in range(most + 1):
+        fig = cascade_figures(cascade, kp * factor, ki * factor, band_pct)
+        if fig.problem(disk_margin_min, overshoot_max_pct) is None:
+            return factor, fig
+        if not fig.lower_stable:
+            break
+        factor *= BACK_OFF_STEP
+    return None, fig
