@@ -40,6 +40,8 @@ __all__ = [
     "MAX_CONFIG_BYTES", "MAX_DELAY_PER_LAG", "MAX_IN_FLIGHT", "MAX_SPAN_PER_DELAY", "PRefStep",
     "CAPABILITY_PRESETS", "QRefStep", "QU", "Reactive", "Runtime", "VoltageStep",
     "Scenario", "Section", "Study", "Maintenance", "MinOutputShare", "json_schema", "load_config",
+    "Hierarchy", "HierarchyAdn", "HierarchyFile", "MAX_ADNS", "hierarchy_json_schema",
+    "load_hierarchy",
 ]
 
 DERType = Literal["WT", "CHP", "PV", "HYDRO", "GEN"]
@@ -1390,6 +1392,84 @@ def json_schema() -> dict[str, Any]:
     schema["if"] = {"not": {"required": ["extends"]}}
     schema["then"] = {"required": required}
     return {"$schema": "https://json-schema.org/draft/2020-12/schema", **schema}
+
+
+# --- a hierarchy: an upper controller over MV ADNs (docs/hierarchy.md) --------------------------
+
+MAX_ADNS = 11
+"""The most ADNs one upper controller drives (its table has 2^n - 1 entries)."""
+
+
+class HierarchyAdn(Section):
+    """One MV ADN as an actuator of the upper controller."""
+
+    id: _Identifier
+    """Its name at the upper level (the upper table's actuator id)."""
+    config: _Name
+    """Its own adnmesh config (a file name relative to this file)."""
+    t_com_s: _Delay
+    """Inter-site delay upper CPFC -> this ADN's CPFC, s."""
+
+
+class HierarchyFile(Section):
+    """An upper controller over MV ADNs: the content of a hierarchy file (YAML)."""
+
+    model_config = ConfigDict(title="adnmesh hierarchy")
+
+    name: _Identifier
+    """Name of the upper grid."""
+    t_meas_s: _Lag
+    """Delay of the upper measurement (the exchange the upper controller acts on), s."""
+    constraints: Constraints = Constraints()
+    """Design constraints of the upper table, checked on the exact cascade."""
+    adns: Annotated[tuple[HierarchyAdn, ...], Field(strict=False, min_length=1,
+                                                    max_length=MAX_ADNS)]
+    """The ADNs the upper controller drives, in file order."""
+
+    @model_validator(mode="after")
+    def _distinct(self) -> HierarchyFile:
+        _unique([a.id for a in self.adns], lambda i: ("adns", i, "id"), "ADN id")
+        return self
+
+
+class Hierarchy(HierarchyFile):
+    """A validated hierarchy file and the file it came from (see :func:`load_hierarchy`)."""
+
+    path: Path
+    """The file it was loaded from."""
+    sha256: str
+    """SHA-256 of the file's bytes (hex)."""
+
+    def config_path(self, adn: HierarchyAdn) -> Path:
+        """The ADN's config file, resolved next to the hierarchy file."""
+        return (Path(self.path).parent / adn.config).resolve()
+
+
+def hierarchy_json_schema() -> dict[str, Any]:
+    """Return the JSON Schema (draft 2020-12) of a hierarchy file."""
+    return {"$schema": "https://json-schema.org/draft/2020-12/schema",
+            **HierarchyFile.model_json_schema()}
+
+
+def load_hierarchy(path: str | Path) -> Hierarchy:
+    """Load and validate a hierarchy file (the ADNs' configs are not read).
+
+    Raises
+    ------
+    ConfigError
+        For the first problem found, one line naming the file and the key path.
+    """
+    path = Path(path)
+    document, data = _document(path, (path.resolve(),))
+    if document is None:
+        keys = ", ".join(HierarchyFile.model_fields)
+        raise ConfigError(f"{path}: empty hierarchy file (expected a mapping with keys: {keys})")
+    try:
+        content = HierarchyFile.model_validate(document)
+    except ValidationError as exc:
+        raise ConfigError(f"{path}: {_describe(exc.errors(include_url=False)[0])}") from None
+    return Hierarchy.model_construct(**dict(content), path=path,
+                                     sha256=hashlib.sha256(data).hexdigest())
 
 
 def load_config(path: str | Path) -> Config:

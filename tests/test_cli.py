@@ -122,14 +122,15 @@ def test_installed_console_script_prints_no_traceback(tmp_path: Path) -> None:
     assert "Traceback" not in result.stderr
 
 
-def test_schema_config_is_the_committed_file(configs_dir: Path, capsys) -> None:
-    """configs/config.schema.json is what 'adnmesh schema config' prints: it cannot drift."""
-    assert main(["schema", "config"]) == 0
+@pytest.mark.parametrize("name", ["config", "hierarchy"])
+def test_schema_is_the_committed_file(configs_dir: Path, capsys, name: str) -> None:
+    """configs/NAME.schema.json is what 'adnmesh schema NAME' prints: it cannot drift."""
+    assert main(["schema", name]) == 0
     out, err = capsys.readouterr()
     assert err == ""
-    assert out == (configs_dir / "config.schema.json").read_text(), (
-        "configs/config.schema.json is stale: run 'adnmesh schema config > "
-        "configs/config.schema.json'")
+    assert out == (configs_dir / f"{name}.schema.json").read_text(), (
+        f"configs/{name}.schema.json is stale: run 'adnmesh schema {name} > "
+        f"configs/{name}.schema.json'")
 
 
 def test_schema_config_is_a_json_schema_with_units(capsys) -> None:
@@ -152,10 +153,10 @@ def test_schema_config_is_a_json_schema_with_units(capsys) -> None:
 
 
 def test_schema_takes_a_name_from_its_registry(capsys) -> None:
-    assert list(schema_command.SCHEMAS) == ["config", "messages"]
+    assert list(schema_command.SCHEMAS) == ["config", "hierarchy", "messages"]
     assert main(["schema", "wire"]) == 2
     err = capsys.readouterr().err
-    assert "invalid choice: 'wire' (choose from 'config', 'messages')" in err
+    assert "invalid choice: 'wire' (choose from 'config', 'hierarchy', 'messages')" in err
     assert main(["schema", "messages"]) == 0
     messages = json.loads(capsys.readouterr().out)
     assert messages["p_ip"]["properties"]["p_ip_w"]["maximum"] == 1e15

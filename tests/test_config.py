@@ -18,10 +18,13 @@ import yaml
 from pydantic import ValidationError
 
 from adnmesh.cli import main
-from adnmesh.config import PT1_RISE_TIME_FACTOR, Config, ConfigFile, load_config
+from adnmesh.config import PT1_RISE_TIME_FACTOR, Config, ConfigFile, load_config, load_hierarchy
 from adnmesh.errors import ConfigError
 
-CONFIGS = sorted((Path(__file__).resolve().parent.parent / "configs").rglob("*.yaml"))
+_ALL = sorted((Path(__file__).resolve().parent.parent / "configs").rglob("*.yaml"))
+#: hierarchy files (adnmesh cascade) live in configs/examples/hierarchy/
+HIERARCHIES = [p for p in _ALL if p.parent.name == "hierarchy"]
+CONFIGS = [p for p in _ALL if p not in HIERARCHIES]
 
 # docs/method.md#reference-case: id -> (type, P_inst [W], T_delay [s], T_rise [s])
 REFERENCE_TABLE = {
@@ -153,6 +156,23 @@ def test_every_config_in_configs_loads_and_names_its_schema(path: Path, configs_
     assert first_line.startswith(prefix)
     schema_path = (path.parent / first_line.removeprefix(prefix)).resolve()
     assert schema_path == configs_dir / "config.schema.json"
+    schema = json.loads(schema_path.read_text())
+    jsonschema.Draft202012Validator(schema).validate(yaml.safe_load(path.read_text()))
+
+
+@pytest.mark.parametrize("path", HIERARCHIES, ids=lambda path: path.name)
+def test_every_hierarchy_file_loads_and_names_its_schema(path: Path, configs_dir: Path) -> None:
+    """Every hierarchy file is valid for the loader and its JSON Schema, names the schema on
+    its first line, and every ADN's config loads."""
+    hierarchy = load_hierarchy(path)
+    assert hierarchy.adns
+    for adn in hierarchy.adns:
+        assert load_config(hierarchy.config_path(adn)).ders
+    first_line = path.read_text().splitlines()[0]
+    prefix = "# yaml-language-server: $schema="
+    assert first_line.startswith(prefix)
+    schema_path = (path.parent / first_line.removeprefix(prefix)).resolve()
+    assert schema_path == configs_dir / "hierarchy.schema.json"
     schema = json.loads(schema_path.read_text())
     jsonschema.Draft202012Validator(schema).validate(yaml.safe_load(path.read_text()))
 

@@ -19,7 +19,8 @@ Lipschitz certificate (``T_i`` has no closed-form bounds); the tests hold it to 
 poles of a python-control model with Padé approximants.
 
 The disk margin (balanced) is ``1 / max |S - 1/2|`` with ``S = 1 / (1 + L_up)``: the grid's
-largest values, each refined by a bounded scalar search in ``log omega``.
+three largest local maxima, each refined by a bounded scalar search in ``log omega`` between
+its neighbours.
 """
 from __future__ import annotations
 
@@ -116,7 +117,9 @@ def _winding(cascade: Cascade, kp: float, ki: float):
 def _disk(cascade: Cascade, kp: float, ki: float, omega: np.ndarray, f: np.ndarray):
     """``(alpha, omega_c)``: the largest ``|S - 1/2|`` refined around the grid's top peaks."""
     dist = np.abs(1.0 / f - 0.5)
-    peaks = [i for i in np.argsort(dist)[::-1][:5]]
+    inner = np.nonzero((dist[1:-1] >= dist[:-2]) & (dist[1:-1] >= dist[2:]))[0] + 1
+    local = np.concatenate(([0], inner, [dist.size - 1]))
+    peaks = local[np.argsort(dist[local])[::-1][:3]]
     best, at = float(dist.max()), float(omega[int(np.argmax(dist))])
 
     def neg(logw: float) -> float:

@@ -127,7 +127,9 @@ def _run(n, h, phi, gl, gr, c_out, owner, k_w, n_path, m, lower, n_site, n_meas,
          n_up_meas, closed, kp, ki):  # pragma: no cover - compiled
     """The method of steps over ``n`` steps; returns ``(y, y_adn)`` in W (per unit step)."""
     g = owner.size
-    x = np.zeros(phi.shape[0])
+    ns = phi.shape[0]
+    x = np.zeros(ns)
+    x_next = np.zeros(ns)
     y = np.zeros(n + 1)
     y_adn = np.zeros((m, n + 1))
     u = np.zeros(n + 1)            # upper P_Y, right limits
@@ -152,11 +154,22 @@ def _run(n, h, phi, gl, gr, c_out, owner, k_w, n_path, m, lower, n_site, n_meas,
             a, r = owner[j], k - n_path[j]
             in_r[j] = k_w[j] * lo[a, r] if r >= 0 else 0.0
             in_l[j] = k_w[j] * (lo[a, r + 1] - lo_jump[a, r + 1]) if r + 1 >= 0 else 0.0
-        x = phi @ x + gl @ in_r + gr @ in_l
-        out = c_out @ x
+        for r in range(ns):
+            acc = 0.0
+            for c in range(ns):
+                acc += phi[r, c] * x[c]
+            for j in range(g):
+                acc += gl[r, j] * in_r[j] + gr[r, j] * in_l[j]
+            x_next[r] = acc
+        x, x_next = x_next, x
+        total = 0.0
         for j in range(g):
-            y_adn[owner[j], k + 1] += out[j]
-        y[k + 1] = y_adn[:, k + 1].sum()
+            out = 0.0
+            for c in range(ns):
+                out += c_out[j, c] * x[c]
+            y_adn[owner[j], k + 1] += out
+            total += out
+        y[k + 1] = total
         if closed:
             back = k + 1 - n_up_meas
             e_new = 1.0 - (y[back] if back >= 0 else 0.0)

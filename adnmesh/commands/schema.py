@@ -1,7 +1,8 @@
 """``adnmesh schema NAME``: print the JSON Schema of one of adnmesh's file formats.
 
 :data:`SCHEMAS` is the registry: a name and the function that returns its schema. The committed
-``configs/config.schema.json`` is ``adnmesh schema config`` (a test keeps them equal); editors
+``configs/config.schema.json`` is ``adnmesh schema config`` and ``configs/hierarchy.schema.json``
+``adnmesh schema hierarchy`` (a test keeps them equal); editors
 with the YAML language server use it through the first line of every config,
 ``# yaml-language-server: $schema=config.schema.json``.
 """
@@ -24,6 +25,7 @@ def _messages() -> dict[str, Any]:
 
 
 SCHEMAS: dict[str, Callable[[], dict[str, Any]]] = {"config": config.json_schema,
+                                                   "hierarchy": config.hierarchy_json_schema,
                                                    "messages": _messages}
 """Schema name -> function returning the JSON Schema (a dict)."""
 
@@ -35,8 +37,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         help="print the JSON Schema of a file format",
         description="Print the JSON Schema (draft 2020-12) of NAME to stdout: 'config' is the "
         "format of a config file, with every key's meaning and unit "
-        "(configs/config.schema.json is its output); 'messages' the bus messages, one schema "
-        "per message type (the schemas every recording carries). Exit code 0, 2 for an "
+        "(configs/config.schema.json is its output); 'hierarchy' the format of a hierarchy "
+        "file (adnmesh cascade; configs/hierarchy.schema.json); 'messages' the bus messages, "
+        "one schema per message type (the schemas every recording carries). Exit code 0, 2 for an "
         "unknown NAME.",
     )
     parser.add_argument("name", metavar="NAME", choices=list(SCHEMAS),

@@ -1,0 +1,158 @@
+"""The upper table: gain-scheduled on which ADNs are available, tuned on their equivalent
+models, certified on the exact cascade.
+
+1. Each ADN is described by its active entry (:func:`lower_adn`) and the equivalent model of
+   its closed loop (:mod:`adnmesh.cascade.equivalent`).
+2. The upper level is written as an ordinary adnmesh config (:func:`upper_config_document`):
+   one actuator per ADN, of installed power its capacity ``C_i``, dead time ``D_eq,i`` plus its
+   inter-site delay, rise time ``T_eq,i ln 9``; so every subset of ADNs is tuned by the table
+   machinery every ADN's own table comes from (paper path search, Find W, certificate).
+3. Every entry is then certified on the exact cascade (:func:`certify_entries`): the upper PI
+   with the entry's weights over the available ADNs' exact closed loops and delays. Where the
+   equivalent model was optimistic, both gains are backed off by the smallest power of
+   :data:`~adnmesh.cascade.certificate.BACK_OFF_STEP` that meets the constraints; the entry's
+   figures become those of the cascade, and the equivalent model's rise time is kept beside
+   them.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+from adnmesh.cascade.certificate import CascadeFigures, back_off, cascade_figures
+from adnmesh.cascade.equivalent import Equivalent
+from adnmesh.cascade.lower_adn import LowerAdn
+from adnmesh.cascade.structure import Cascade
+from adnmesh.loopmodel.plant import plant_from_ders
+from adnmesh.tuning.table import SchedulingTable, TableEntry
+
+__all__ = ["Site", "lower_adn", "upper_config_document", "certify_entries", "cascade_of",
+           "CertifiedRow"]
+
+#: grid of the equivalent models' delays in the upper config, s (the configs' delays are
+#: taken to whole milliseconds by the cascade's simulation)
+DELAY_GRID_S = 1e-3
+
+
+@dataclass(frozen=True)
+class Site:
+    """One ADN at its site, as the upper level sees it."""
+
+    id: str
+    adn: LowerAdn
+    t_com_s: float
+    equivalent: Equivalent
+
+
+@dataclass(frozen=True)
+class CertifiedRow:
+    """One upper entry before and after its certificate on the exact cascade."""
+
+    adns: tuple[str, ...]
+    back_off: float | None
+    cascade: CascadeFigures
+    equivalent_rise_time_s: float
+    equivalent_overshoot_pct: float
+    equivalent_disk_margin: float
+
+
+def lower_adn(config, entry: TableEntry, name: str) -> LowerAdn:
+    """The ADN of ``config`` under its table ``entry`` (weights applied, its design T_com)."""
+    ders = config.ders_by_id(entry.ders)
+    plant = plant_from_ders(ders, config.design_t_com_s, config.t_meas_s, entry.w,
+                            rise_per_lag=config.rise_per_lag)
+    return LowerAdn(name, plant, float(entry.kp), float(entry.ki),
+                    float(sum(d.p_inst_w for d in ders)))
+
+
+def upper_config_document(hierarchy, sites: list[Site]) -> dict:
+    """The upper level as an adnmesh config document (YAML-ready): one ``GEN`` actuator per
+    ADN with its equivalent model; ``t_com_s`` the shortest inter-site delay (at least 1 ms)
+    and each ADN's remainder in its dead time, to whole milliseconds."""
+    t_com = max(min(s.t_com_s for s in sites), DELAY_GRID_S)
+    ders = []
+    for site in sites:
+        eq = site.equivalent
+        delay = max(eq.delay_s + site.t_com_s - t_com, 0.0)
+        ders.append({"id": site.id, "type": "GEN", "p_inst_w": site.adn.capacity_w,
+                     "t_delay_s": round(delay / DELAY_GRID_S) * DELAY_GRID_S,
+                     "t_rise_s": float(f"{eq.t_rise_s:.6g}"), "sgen": site.id})
+    constraints = hierarchy.constraints.model_dump(exclude={"robust"})
+    constraints["sampled_pi"] = False
+    return {"grid": hierarchy.name, "t_com_s": t_com, "t_meas_s": hierarchy.t_meas_s,
+            "constraints": constraints, "ders": ders, "scenario": {"duration_s": 600.0}}
+
+
+def cascade_of(sites: dict[str, Site], entry: TableEntry, t_meas_s: float) -> Cascade:
+    """The exact cascade of an upper entry: its ADNs with ``K_i = w_i C_i`` (W)."""
+    chosen = [sites[i] for i in entry.ders]
+    return Cascade(tuple(s.adn for s in chosen),
+                   tuple(entry.w[s.id] * s.adn.capacity_w for s in chosen),
+                   tuple(s.t_com_s for s in chosen), t_meas_s)
+
+
+def _certified(entry: TableEntry, factor: float | None, fig: CascadeFigures, constraints):
+    """The entry with the backed-off gains and the cascade's figures."""
+    finite = lambda v: v if v is not None and math.isfinite(v) else None  # noqa: E731
+    figures = dict(entry.figures)
+    figures.update({"rise_time_s": finite(fig.rise_time_s),
+                    "settling_time_s": finite(fig.settling_time_s),
+                    "overshoot_pct": finite(fig.overshoot_pct), "disk_margin": fig.disk_margin,
+                    "gain_margin": None, "phase_margin_deg": None, "delay_margin_s": None,
+                    "equivalent_rise_time_s": entry.figures.get("rise_time_s"),
+                    "cascade_back_off": factor, "certified_on": "cascade"})
+    if factor is None:
+        return replace(entry, feasible=False, figures=figures,
+                       reason=fig.problem(constraints.disk_margin_min,
+                                          constraints.overshoot_max_pct))
+    return replace(entry, kp=entry.kp * factor, ki=entry.ki * factor, figures=figures)
+
+
+def certify_entries(table: SchedulingTable, sites: dict[str, Site], t_meas_s: float,
+                    constraints, on_entry=None) -> list[CertifiedRow]:
+    """Certify (and back off) every feasible entry of ``table`` on the exact cascade, in
+    place; ``on_entry(done, total)`` after each. Returns one row per entry."""
+    rows = []
+    entries = list(table.entries.values())
+    for done, entry in enumerate(entries, 1):
+        if entry.feasible:
+            factor, fig = back_off(cascade_of(sites, entry, t_meas_s), entry.kp, entry.ki,
+                                   constraints.disk_margin_min, constraints.overshoot_max_pct,
+                                   constraints.settling_band_pct)
+            table.add(_certified(entry, factor, fig, constraints))
+            rows.append(CertifiedRow(entry.ders, factor, fig,
+                                     entry.figures.get("rise_time_s", math.nan),
+                                     entry.figures.get("overshoot_pct", math.nan),
+                                     entry.figures.get("disk_margin", math.nan)))
+        if on_entry:
+            on_entry(done, len(entries))
+    if table.static is not None and table.static.feasible:
+        table.static = _certified_static(table, sites, t_meas_s, constraints)
+    return rows
+
+
+def _certified_static(table, sites, t_meas_s, constraints) -> TableEntry:
+    """The static pair backed off until the cascade of every subset meets the constraints."""
+    static = table.static
+    factor = 1.0
+    worst = None
+    for entry in table.entries.values():
+        subset = replace(static, ders=entry.ders, w={i: 1.0 for i in entry.ders})
+        cascade = cascade_of(sites, subset, t_meas_s)
+        found, fig = back_off(cascade, static.kp * factor, static.ki * factor,
+                              constraints.disk_margin_min, constraints.overshoot_max_pct,
+                              constraints.settling_band_pct)
+        if found is None:
+            return _certified(static, None, fig, constraints)
+        factor *= found
+        worst = fig if worst is None or fig.rise_time_s > worst.rise_time_s else worst
+    # a lower factor found for a later subset: the earlier ones are checked again at it
+    for entry in table.entries.values():
+        cascade = cascade_of(sites, replace(static, ders=entry.ders,
+                                            w={i: 1.0 for i in entry.ders}), t_meas_s)
+        fig = cascade_figures(cascade, static.kp * factor, static.ki * factor,
+                              constraints.settling_band_pct)
+        if fig.problem(constraints.disk_margin_min, constraints.overshoot_max_pct):
+            return _certified(static, None, fig, constraints)
+        worst = fig if fig.rise_time_s > worst.rise_time_s else worst
+    return _certified(static, factor, worst, constraints)

@@ -1,0 +1,238 @@
+"""``adnmesh cascade HIERARCHY``: the upper table of an ADN hierarchy, certified as a cascade."""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import csv
+import sys
+import time
+from pathlib import Path
+
+import yaml
+
+from adnmesh.commands import output_path
+from adnmesh.errors import ConfigError
+
+__all__ = ["add_parser", "run", "SWEEP_ALL_UP_TO"]
+
+#: ADNs of at most this many DERs have every subset swept by --switches
+SWEEP_ALL_UP_TO = 11
+
+
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    """Add the ``cascade`` subparser."""
+    parser = subparsers.add_parser(
+        "cascade",
+        help="tune and certify an upper controller over MV ADNs (docs/hierarchy.md)",
+        description="Read a hierarchy file (an upper controller over MV ADNs, each with its own "
+        "config), take each ADN's entry for all its DERs (from its table, or tuned now), fit "
+        "the equivalent model of its closed loop, tune the upper table on those models and "
+        "certify every entry on the exact cascade (upper PI over the ADNs' exact closed loops "
+        "and delays), backing off the gains where needed. Writes OUT/<name>.upper.yaml, its "
+        "table in OUT/tables/ and OUT/<name>.cascade.csv. Exit code 0 when written, 2 for a "
+        "user error.",
+    )
+    parser.add_argument("hierarchy", metavar="HIERARCHY",
+                        help="hierarchy file (YAML), e.g. configs/examples/hierarchy/hv.yaml")
+    parser.add_argument("--out", type=Path,
+                        help="output folder (default: <name>-upper next to the hierarchy file)")
+    parser.add_argument("--switches", action="store_true",
+                        help="also apply the lower-switch rule to every entry of each ADN's "
+                        "table (all its subsets up to %d DERs, its scenario's beyond; tuned "
+                        "now where it has no table) under the upper entry for all ADNs, and "
+                        "write OUT/<name>.switches.csv" % SWEEP_ALL_UP_TO)
+    return parser
+
+
+@contextlib.contextmanager
+def _progress(label: str):
+    """A progress bar on stderr; yields the ``on_entry(done, total)`` callback."""
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    with Progress(TextColumn(label), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  console=Console(stderr=True, highlight=False)) as bar:
+        task = bar.add_task(label, total=None)
+        yield lambda done, total: bar.update(task, completed=done, total=total)
+
+
+def _lower_entry(config, say):
+    """The ADN's entry for all its DERs: its table's, else tuned now."""
+    from adnmesh.tuning.ondemand import tune_subset
+    from adnmesh.tuning.table import default_table_path, load_table
+
+    ids = list(config.der_ids())
+    path = default_table_path(config)
+    if path.exists():
+        entry = load_table(path, config).lookup(ids)
+        if entry is not None:
+            return entry, f"its table {path}"
+    say(f"  {config.path}: no table entry for all {len(ids)} DERs; tuning it now")
+    return tune_subset(config, ids), "tuned now"
+
+
+def _sites(hierarchy, say):
+    """Each ADN as a :class:`~adnmesh.cascade.upper_table.Site`."""
+    from adnmesh.cascade.equivalent import equivalent
+    from adnmesh.cascade.upper_table import Site, lower_adn
+    from adnmesh.config import load_config
+
+    sites = []
+    for adn in hierarchy.adns:
+        try:
+            config = load_config(hierarchy.config_path(adn))
+        except ConfigError as exc:
+            raise ConfigError(f"{hierarchy.path}: adns {adn.id}: {exc}") from None
+        entry, source = _lower_entry(config, say)
+        if not entry.feasible:
+            raise ConfigError(f"{hierarchy.path}: adns {adn.id}: no PI pair meets its own "
+                              f"constraints for all its DERs ({entry.reason})")
+        lower = lower_adn(config, entry, adn.id)
+        eq = equivalent(lower, config.constraints.settling_band_pct)
+        say(f"  {adn.id}: {len(entry.ders)} DERs, {lower.capacity_w / 1e6:.3f} MW, entry from "
+            f"{source}; closed loop rise {eq.rise_time_s:.3g} s, overshoot "
+            f"{eq.overshoot_pct:.3g} %; equivalent dead time {eq.delay_s:.3g} s, lag "
+            f"{eq.lag_s:.3g} s")
+        sites.append(Site(adn.id, lower, adn.t_com_s, eq))
+    return sites
+
+
+def _write_upper_config(hierarchy, sites, out: Path) -> Path:
+    from adnmesh.cascade.upper_table import upper_config_document
+
+    path = output_path(out / f"{hierarchy.name}.upper.yaml", "--out")
+    header = (f"# The upper level of {hierarchy.path.name}, written by adnmesh cascade: one actuator "
+              "per ADN,\n# its equivalent closed-loop model (docs/hierarchy.md). Not for editing: "
+              "written again by the command.\n")
+    path.write_text(header + yaml.safe_dump(upper_config_document(hierarchy, sites),
+                                            sort_keys=False))
+    return path
+
+
+def _write_rows(rows, path: Path) -> None:
+    keys = ("adns", "back_off", "stable", "disk_margin", "overshoot_pct", "rise_time_s",
+            "settling_time_s", "equivalent_rise_time_s", "equivalent_overshoot_pct",
+            "equivalent_disk_margin")
+    with path.open("w", newline="") as f:
+        out = csv.writer(f)
+        out.writerow(keys)
+        for r in rows:
+            c = r.cascade
+            out.writerow([" ".join(r.adns), r.back_off, c.stable, c.disk_margin,
+                          c.overshoot_pct, c.rise_time_s, c.settling_time_s,
+                          r.equivalent_rise_time_s, r.equivalent_overshoot_pct,
+                          r.equivalent_disk_margin])
+
+
+def run(args: argparse.Namespace) -> int:
+    """Tune the upper table and certify it on the exact cascade."""
+    from adnmesh.cascade.upper_table import certify_entries
+    from adnmesh.config import load_config, load_hierarchy
+    from adnmesh.tuning import tune_table
+    from adnmesh.tuning.table import default_table_path, save_table
+
+    hierarchy = load_hierarchy(args.hierarchy)
+    out = args.out or hierarchy.path.parent / f"{hierarchy.name}-upper"
+    output_path(out, "--out", directory=True)
+    say = lambda text: print(text, file=sys.stderr)  # noqa: E731
+    t0 = time.perf_counter()
+    say(f"{hierarchy.name}: {len(hierarchy.adns)} ADNs")
+    sites = _sites(hierarchy, say)
+    upper = load_config(_write_upper_config(hierarchy, sites, out))
+    table = tune_table(upper, "paper")
+    say(f"upper table tuned on the equivalent models: {len(table.entries)} entries in "
+        f"{time.perf_counter() - t0:.1f} s; certifying each on the exact cascade")
+    with _progress("certifying") as step:
+        rows = certify_entries(table, {s.id: s for s in sites}, hierarchy.t_meas_s,
+                               upper.constraints, on_entry=step)
+    table_path = output_path(default_table_path(upper), "--out (the table)")
+    save_table(table, table_path)
+    csv_path = out / f"{hierarchy.name}.cascade.csv"
+    _write_rows(rows, csv_path)
+    _report(rows, table, time.perf_counter() - t0, out, table_path, csv_path)
+    if args.switches:
+        _sweep(hierarchy, sites, table, out, say)
+    return 0
+
+
+def _lower_entries(config, name: str):
+    """Every entry of the ADN's table to sweep: ``[(ders, LowerAdn)]``."""
+    from adnmesh.cascade.upper_table import lower_adn
+    from adnmesh.tuning import tune_table
+    from adnmesh.tuning.subset_selection import select_subsets
+    from adnmesh.tuning.table import default_table_path, load_table
+
+    spec = "all" if len(config.ders) <= SWEEP_ALL_UP_TO else "scenario"
+    subsets = select_subsets(config, spec)
+    path = default_table_path(config)
+    table = load_table(path, config) if path.exists() else None
+    wanted = subsets if subsets is not None else None
+    if table is None or any(table.lookup(s) is None for s in (wanted or [])) or (
+            wanted is None and not table.complete):
+        with _progress(f"tuning {name}'s table ({spec} subsets, global search)") as step:
+            table = tune_table(config, "global", subsets=wanted, on_progress=step)
+    rows = []
+    for entry in table.entries.values():
+        if entry.feasible:
+            rows.append((entry.ders, lower_adn(config, entry, name)))
+    return rows
+
+
+def _sweep(hierarchy, sites, table, out: Path, say) -> None:
+    """The lower-switch rule over every ADN's entries, under the upper entry for all ADNs."""
+    from adnmesh.cascade.switches import switch_sweep
+    from adnmesh.cascade.upper_table import cascade_of
+    from adnmesh.config import load_config
+
+    full = table.lookup(s.id for s in sites)
+    if full is None or not full.feasible:
+        say("--switches: the upper table has no certified entry for all ADNs; nothing to sweep")
+        return
+    cascade = cascade_of({s.id: s for s in sites}, full, hierarchy.t_meas_s)
+    path = out / f"{hierarchy.name}.switches.csv"
+    constraints = hierarchy.constraints
+    with path.open("w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(("adn", "ders", "back_off", "stable", "disk_margin", "overshoot_pct",
+                         "rise_time_s", "settling_time_s"))
+        for position, (adn, site) in enumerate(zip(hierarchy.adns, sites)):
+            config = load_config(hierarchy.config_path(adn))
+            entries = _lower_entries(config, adn.id)
+            with _progress(f"switches of {adn.id}") as step:
+                rows = switch_sweep(cascade, position, full.w[adn.id], full.kp, full.ki,
+                                    entries, constraints, on_entry=step)
+            for r in rows:
+                c = r.figures
+                writer.writerow((r.adn, " ".join(r.ders), r.back_off, c.stable, c.disk_margin,
+                                 c.overshoot_pct, c.rise_time_s, c.settling_time_s))
+            kept = sum(r.back_off == 1.0 for r in rows)
+            factors = [r.back_off for r in rows if r.back_off is not None]
+            lost = sum(r.back_off is None for r in rows)
+            print(f"  switches of {adn.id}: {len(rows)} entries; the upper gains hold for {kept}, "
+                  f"back off for {len(factors) - kept} (strongest x{min(factors):.3g})"
+                  + (f", no factor for {lost}" if lost else ""))
+    print(f"wrote {path}")
+
+
+def _report(rows, table, seconds: float, out: Path, table_path: Path, csv_path: Path) -> None:
+    backed = [r for r in rows if r.back_off is not None and r.back_off < 1.0]
+    failed = [r for r in rows if r.back_off is None]
+    certified = [r for r in rows if r.back_off is not None]
+    print(f"wrote {out}: the upper config, {table_path.name} ({len(table.entries)} entries) and "
+          f"{csv_path.name}, in {seconds:.1f} s")
+    print(f"  certified on the exact cascade: {len(certified)} of {len(rows)} entries; "
+          f"{len(backed)} needed a back-off, {len(failed)} none that meets the constraints")
+    if certified:
+        low = min(certified, key=lambda r: r.cascade.disk_margin)
+        high = max(certified, key=lambda r: r.cascade.overshoot_pct)
+        worst = min(r.back_off for r in certified)
+        print(f"  lowest disk margin {low.cascade.disk_margin:.3f} ({' '.join(low.adns)}), "
+              f"highest overshoot {high.cascade.overshoot_pct:.3g} % "
+              f"({' '.join(high.adns)}), strongest back-off x{worst:.3g}")
+    for r in failed[:5]:
+        print(f"  not certified {' '.join(r.adns)}: {table.lookup(r.adns).reason}")
+    if not (table.static and table.static.feasible):
+        return
+    s = table.static
+    print(f"  static pair over every subset: K_P {s.kp:.4g} 1/W, K_I {s.ki:.4g} 1/(W s), back-off "
+          f"x{s.figures['cascade_back_off']:.3g}")
