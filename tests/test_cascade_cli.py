@@ -98,6 +98,12 @@ def test_every_upper_entry_is_certified_on_the_exact_cascade(written) -> None:
     factor = {r["adns"]: float(r["back_off"]) for r in rows}
     assert factor["wind"] == 1.0 and factor["chp"] < 0.5 and factor["wind chp"] < 1.0
     assert all(float(r["equivalent_disk_margin"]) >= 1.5 for r in rows)
+    # where a back-off was needed the entry is tuned on the cascade: never slower than backed off
+    for r in rows:
+        assert float(r["rise_time_s"]) <= float(r["backed_off_rise_time_s"])
+    chp = next(r for r in rows if r["adns"] == "chp")
+    assert float(chp["rise_time_s"]) < 0.9 * float(chp["backed_off_rise_time_s"])
+    assert table.lookup(["chp"]).figures["refined_on_cascade"] is True
 
 
 def test_the_switch_sweep_covers_every_lower_entry(written) -> None:
@@ -111,9 +117,18 @@ def test_the_switch_sweep_covers_every_lower_entry(written) -> None:
     for r in rows:
         assert r["back_off"] and 0 < float(r["back_off"]) <= 1.0
         assert float(r["disk_margin"]) >= 1.5 and float(r["overshoot_pct"]) < 1.0
-    # the CHP ADN with its WT alone is faster: the upper gains come down a step for it
-    assert [r["ders"] for r in rows if float(r["back_off"]) < 1.0] == ["SGen1"]
-    assert "switches of chp: 7 entries; the upper gains hold for 6, back off for 1" in printed
+    # at its own full entry an ADN gives back the upper entry's certificate, unchanged
+    full = [r for r in rows if r["ders"] in ("SGen1 SGen2", "SGen1 SGen5 SGen6")]
+    assert [float(r["back_off"]) for r in full] == [1.0, 1.0]
+    assert full[0]["disk_margin"] == full[1]["disk_margin"]
+    # losing a plant changes the upper loop enough to need the rule somewhere
+    backed = [r for r in rows if float(r["back_off"]) < 1.0]
+    assert backed
+    for adn in ("wind", "chp"):
+        mine = [r for r in rows if r["adn"] == adn]
+        held = sum(float(r["back_off"]) == 1.0 for r in mine)
+        assert (f"switches of {adn}: {len(mine)} entries; the upper gains hold for {held}, "
+                f"back off for {len(mine) - held}") in printed
 
 
 @pytest.mark.parametrize("body, message", [

@@ -12,7 +12,9 @@ models, certified on the exact cascade.
    equivalent model was optimistic, both gains are backed off by the smallest power of
    :data:`~adnmesh.cascade.certificate.BACK_OFF_STEP` that meets the constraints; the entry's
    figures become those of the cascade, and the equivalent model's rise time is kept beside
-   them.
+   them. An entry that needed a back-off is then tuned on the exact cascade itself
+   (:mod:`adnmesh.cascade.refine`: the ratio ``K_I/K_P`` searched, each ratio at its largest
+   certified gains), since the back-off keeps the equivalent models' ratio.
 """
 from __future__ import annotations
 
@@ -22,6 +24,7 @@ from dataclasses import dataclass, replace
 from adnmesh.cascade.certificate import CascadeFigures, back_off, cascade_figures
 from adnmesh.cascade.equivalent import Equivalent
 from adnmesh.cascade.lower_adn import LowerAdn
+from adnmesh.cascade.refine import refine
 from adnmesh.cascade.structure import Cascade
 from adnmesh.loopmodel.plant import plant_from_ders
 from adnmesh.tuning.table import SchedulingTable, TableEntry
@@ -46,11 +49,13 @@ class Site:
 
 @dataclass(frozen=True)
 class CertifiedRow:
-    """One upper entry before and after its certificate on the exact cascade."""
+    """One upper entry before and after its certificate on the exact cascade: the back-off
+    factor and the rise time it gave, and the final figures (after the refinement, if any)."""
 
     adns: tuple[str, ...]
     back_off: float | None
     cascade: CascadeFigures
+    backed_off_rise_time_s: float
     equivalent_rise_time_s: float
     equivalent_overshoot_pct: float
     equivalent_disk_margin: float
@@ -91,8 +96,10 @@ def cascade_of(sites: dict[str, Site], entry: TableEntry, t_meas_s: float) -> Ca
                    tuple(s.t_com_s for s in chosen), t_meas_s)
 
 
-def _certified(entry: TableEntry, factor: float | None, fig: CascadeFigures, constraints):
-    """The entry with the backed-off gains and the cascade's figures."""
+def _certified(entry: TableEntry, factor: float | None, fig: CascadeFigures, constraints,
+               gains: tuple[float, float] | None = None):
+    """The entry with the backed-off (or ``gains``: the refined) gains and the cascade's
+    figures."""
     finite = lambda v: v if v is not None and math.isfinite(v) else None  # noqa: E731
     figures = dict(entry.figures)
     figures.update({"rise_time_s": finite(fig.rise_time_s),
@@ -105,22 +112,33 @@ def _certified(entry: TableEntry, factor: float | None, fig: CascadeFigures, con
         return replace(entry, feasible=False, figures=figures,
                        reason=fig.problem(constraints.disk_margin_min,
                                           constraints.overshoot_max_pct))
+    if gains is not None:
+        figures["refined_on_cascade"] = True
+        return replace(entry, kp=gains[0], ki=gains[1], figures=figures)
     return replace(entry, kp=entry.kp * factor, ki=entry.ki * factor, figures=figures)
 
 
 def certify_entries(table: SchedulingTable, sites: dict[str, Site], t_meas_s: float,
-                    constraints, on_entry=None) -> list[CertifiedRow]:
+                    constraints, on_entry=None, refine_backed_off: bool = True
+                    ) -> list[CertifiedRow]:
     """Certify (and back off) every feasible entry of ``table`` on the exact cascade, in
-    place; ``on_entry(done, total)`` after each. Returns one row per entry."""
+    place; an entry that needed a back-off is then tuned on the exact cascade
+    (:func:`~adnmesh.cascade.refine.refine`) unless ``refine_backed_off`` is false;
+    ``on_entry(done, total)`` after each. Returns one row per entry (its final figures)."""
     rows = []
     entries = list(table.entries.values())
     for done, entry in enumerate(entries, 1):
         if entry.feasible:
-            factor, fig = back_off(cascade_of(sites, entry, t_meas_s), entry.kp, entry.ki,
-                                   constraints.disk_margin_min, constraints.overshoot_max_pct,
-                                   constraints.settling_band_pct)
-            table.add(_certified(entry, factor, fig, constraints))
-            rows.append(CertifiedRow(entry.ders, factor, fig,
+            cascade = cascade_of(sites, entry, t_meas_s)
+            factor, fig = back_off(cascade, entry.kp, entry.ki, constraints.disk_margin_min,
+                                   constraints.overshoot_max_pct, constraints.settling_band_pct)
+            gains, backed_off_rise = None, fig.rise_time_s
+            if factor is not None and factor < 1.0 and refine_backed_off:
+                kp, ki, fig = refine(cascade, entry.kp * factor, entry.ki * factor, fig,
+                                     constraints)
+                gains = (kp, ki)
+            table.add(_certified(entry, factor, fig, constraints, gains))
+            rows.append(CertifiedRow(entry.ders, factor, fig, backed_off_rise,
                                      entry.figures.get("rise_time_s", math.nan),
                                      entry.figures.get("overshoot_pct", math.nan),
                                      entry.figures.get("disk_margin", math.nan)))
