@@ -28,9 +28,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "config), take each ADN's entry for all its DERs (from its table, or tuned now), fit "
         "the equivalent model of its closed loop, tune the upper table on those models and "
         "certify every entry on the exact cascade (upper PI over the ADNs' exact closed loops "
-        "and delays), backing off the gains where needed. Writes OUT/<name>.upper.yaml, its "
-        "table in OUT/tables/ and OUT/<name>.cascade.csv. Exit code 0 when written, 2 for a "
-        "user error.",
+        "and delays), backing off the gains where needed and then tuning them on the cascade. "
+        "Writes OUT/<name>.upper.yaml, its table in OUT/tables/, OUT/<name>.cascade.csv and "
+        "OUT/<name>.cascade.png. Exit code 0 when written, 2 for a user error.",
     )
     parser.add_argument("hierarchy", metavar="HIERARCHY",
                         help="hierarchy file (YAML), e.g. configs/examples/hierarchy/hv.yaml")
@@ -109,6 +109,30 @@ def _write_upper_config(hierarchy, sites, out: Path) -> Path:
     return path
 
 
+def _plot(hierarchy, upper, table, sites, out: Path) -> Path:
+    """The entry for all ADNs and each ADN alone, exact against equivalent (a PNG)."""
+    from adnmesh.cascade.figure import plot_entries
+    from adnmesh.cascade.upper_table import cascade_of
+    from adnmesh.loopmodel.plant import plant_from_ders
+
+    ids = [a.id for a in hierarchy.adns]
+    wanted = [ids] + ([[i] for i in ids] if len(ids) > 1 else [])
+    panels = []
+    for subset in wanted:
+        entry = table.lookup(subset)
+        if entry is None or not entry.feasible:
+            continue
+        plant = plant_from_ders(upper.ders_by_id(entry.ders), upper.design_t_com_s,
+                                upper.t_meas_s, entry.w, rise_per_lag=upper.rise_per_lag)
+        settle = entry.figures.get("settling_time_s") or 60.0
+        title = (f"{' + '.join(entry.ders)}: rise {entry.figures['rise_time_s']:.3g} s, "
+                 f"alpha {entry.figures['disk_margin']:.3g}")
+        panels.append((title, cascade_of(sites, entry, hierarchy.t_meas_s), plant, entry.kp,
+                       entry.ki, 2.5 * settle))
+    return plot_entries(panels, hierarchy.constraints.overshoot_max_pct,
+                        out / f"{hierarchy.name}.cascade.png")
+
+
 def _write_rows(rows, path: Path) -> None:
     keys = ("adns", "back_off", "backed_off_rise_time_s", "stable", "disk_margin",
             "overshoot_pct", "rise_time_s", "settling_time_s", "equivalent_rise_time_s",
@@ -150,7 +174,9 @@ def run(args: argparse.Namespace) -> int:
     save_table(table, table_path)
     csv_path = out / f"{hierarchy.name}.cascade.csv"
     _write_rows(rows, csv_path)
+    png = _plot(hierarchy, upper, table, {s.id: s for s in sites}, out)
     _report(rows, table, time.perf_counter() - t0, out, table_path, csv_path)
+    print(f"  figure: {png}")
     if args.switches:
         _sweep(hierarchy, sites, table, out, say)
     return 0
