@@ -1221,6 +1221,8 @@ _PROBLEMS = {
     "less_than": "must be less than {lt}, got {got}",
     "less_than_equal": "must be at most {le}, got {got}",
     "nonzero": "must be a non-zero number, got {got}",
+    "whole_ms": "must be a whole number of milliseconds (the cascade takes every delay "
+                "exactly), got {got}",
     "finite_number": "must be a finite number, got {got}",
 }
 """Problem per pydantic error type (``_0``: bound zero); others: pydantic's text, one line."""
@@ -1400,6 +1402,16 @@ MAX_ADNS = 11
 """The most ADNs one upper controller drives (its table has 2^n - 1 entries)."""
 
 
+def _whole_ms(value: float) -> float:
+    if abs(value * 1000 - round(value * 1000)) > 1e-6:
+        raise PydanticCustomError("whole_ms", "must be a whole number of milliseconds")
+    return value
+
+
+_MsDelay = Annotated[_Delay, AfterValidator(_whole_ms)]
+_MsLag = Annotated[_Lag, AfterValidator(_whole_ms)]
+
+
 class HierarchyAdn(Section):
     """One MV ADN as an actuator of the upper controller."""
 
@@ -1407,8 +1419,8 @@ class HierarchyAdn(Section):
     """Its name at the upper level (the upper table's actuator id)."""
     config: _Name
     """Its own adnmesh config (a file name relative to this file)."""
-    t_com_s: _Delay
-    """Inter-site delay upper CPFC -> this ADN's CPFC, s."""
+    t_com_s: _MsDelay
+    """Inter-site delay upper CPFC -> this ADN's CPFC, s (whole milliseconds)."""
 
 
 class HierarchyFile(Section):
@@ -1418,8 +1430,9 @@ class HierarchyFile(Section):
 
     name: _Identifier
     """Name of the upper grid."""
-    t_meas_s: _Lag
-    """Delay of the upper measurement (the exchange the upper controller acts on), s."""
+    t_meas_s: _MsLag
+    """Delay of the upper measurement (the exchange the upper controller acts on), s (whole
+    milliseconds)."""
     constraints: Constraints = Constraints()
     """Design constraints of the upper table, checked on the exact cascade."""
     adns: Annotated[tuple[HierarchyAdn, ...], Field(strict=False, min_length=1,

@@ -73,6 +73,7 @@ def sites_of(path: Path) -> dict:
 def test_every_upper_entry_is_certified_on_the_exact_cascade(written) -> None:
     path, out, _ = written
     upper = load_config(out / "hv-two.upper.yaml")
+    assert (out / "hv-two.cascade.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert [d.id for d in upper.ders] == ["wind", "chp"]
     table = load_table(default_table_path(upper), upper)
     assert len(table.entries) == 3
@@ -137,6 +138,9 @@ def test_the_switch_sweep_covers_every_lower_entry(written) -> None:
     (GOOD.replace("t_meas_s", "t_mes_s"), "did you mean 't_meas_s'"),
     (GOOD.replace("two-wt.yaml", "missing.yaml"), "adns wind: "),
     (GOOD.replace("t_com_s: 0.3", "t_com_s: -1"), "adns[1].t_com_s"),
+    (GOOD.replace("t_com_s: 0.3", "t_com_s: 0.3004"),
+     "adns[1].t_com_s: must be a whole number of milliseconds"),
+    (GOOD.replace("t_meas_s: 0.2", "t_meas_s: 0"), "t_meas_s: "),
 ])
 def test_a_bad_hierarchy_file_is_one_line_and_exit_2(tmp_path, capsys, body, message) -> None:
     path = hierarchy_file(tmp_path, body)
@@ -144,3 +148,12 @@ def test_a_bad_hierarchy_file_is_one_line_and_exit_2(tmp_path, capsys, body, mes
     err = capsys.readouterr().err
     errors = [line for line in err.splitlines() if line.startswith("adnmesh: error: ")]
     assert len(errors) == 1 and message in errors[0] and "Traceback" not in err
+
+
+def test_an_adn_whose_delays_share_no_millisecond_is_one_line(tmp_path, capsys) -> None:
+    path = hierarchy_file(tmp_path, GOOD)
+    (tmp_path / "chp.yaml").write_text(CHP_ADN.replace("t_delay_s: 0.01", "t_delay_s: 0.01037"))
+    assert main(["cascade", str(path), "--out", str(tmp_path / "out")]) == 2
+    errors = [line for line in capsys.readouterr().err.splitlines()
+              if line.startswith("adnmesh: error: ")]
+    assert len(errors) == 1 and "adns chp: the cascade's delays share no unit" in errors[0]

@@ -88,7 +88,10 @@ def _sites(hierarchy, say):
             raise ConfigError(f"{hierarchy.path}: adns {adn.id}: no PI pair meets its own "
                               f"constraints for all its DERs ({entry.reason})")
         lower = lower_adn(config, entry, adn.id)
-        eq = equivalent(lower, config.constraints.settling_band_pct)
+        try:
+            eq = equivalent(lower, config.constraints.settling_band_pct)
+        except ValueError as exc:      # delays the exact simulation cannot take
+            raise ConfigError(f"{hierarchy.path}: adns {adn.id}: {exc}") from None
         say(f"  {adn.id}: {len(entry.ders)} DERs, {lower.capacity_w / 1e6:.3f} MW, entry from "
             f"{source}; closed loop rise {eq.rise_time_s:.3g} s, overshoot "
             f"{eq.overshoot_pct:.3g} %; equivalent dead time {eq.delay_s:.3g} s, lag "
