@@ -1472,17 +1472,7 @@ def load_hierarchy(path: str | Path) -> Hierarchy:
     ConfigError
         For the first problem found, one line naming the file and the key path.
     """
-    path = Path(path)
-    document, data = _document(path, (path.resolve(),))
-    if document is None:
-        keys = ", ".join(HierarchyFile.model_fields)
-        raise ConfigError(f"{path}: empty hierarchy file (expected a mapping with keys: {keys})")
-    try:
-        content = HierarchyFile.model_validate(document)
-    except ValidationError as exc:
-        raise ConfigError(f"{path}: {_describe(exc.errors(include_url=False)[0])}") from None
-    return Hierarchy.model_construct(**dict(content), path=path,
-                                     sha256=hashlib.sha256(data).hexdigest())
+    return _loaded(Path(path), HierarchyFile, Hierarchy, "hierarchy file")
 
 
 def load_config(path: str | Path) -> Config:
@@ -1503,15 +1493,20 @@ def load_config(path: str | Path) -> Config:
     ConfigError
         For the first problem found; the message is one line naming the file and the key path.
     """
-    path = Path(path)
+    return _loaded(Path(path), ConfigFile, Config, "config")
+
+
+def _loaded(path: Path, content_type, loaded_type, what: str):
+    """The file's document (with what it extends) validated as ``content_type`` and
+    returned as ``loaded_type`` with its path and the sha256 of the bytes read."""
     document, data = _document(path, (path.resolve(),))
     if document is None:
-        keys = ", ".join(ConfigFile.model_fields)
-        raise ConfigError(f"{path}: empty config (expected a mapping with keys: {keys})")
+        keys = ", ".join(content_type.model_fields)
+        raise ConfigError(f"{path}: empty {what} (expected a mapping with keys: {keys})")
     try:
-        content = ConfigFile.model_validate(document)
+        content = content_type.model_validate(document)
     except ValidationError as exc:
         where = f"{path} (with what it extends)" if isinstance(_base_of(path), str) else path
         raise ConfigError(f"{where}: {_describe(exc.errors(include_url=False)[0])}") from None
-    return Config.model_construct(**dict(content), path=path,
-                                  sha256=hashlib.sha256(data).hexdigest())
+    return loaded_type.model_construct(**dict(content), path=path,
+                                       sha256=hashlib.sha256(data).hexdigest())

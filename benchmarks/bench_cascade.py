@@ -26,21 +26,11 @@ import numpy as np
 
 from adnmesh.cascade.certificate import cascade_figures
 from adnmesh.cascade.control_models import cascade_models
-from adnmesh.cascade.equivalent import equivalent
-from adnmesh.cascade.upper_table import Site, cascade_of, lower_adn
-from adnmesh.config import load_config, load_hierarchy
+from adnmesh.cascade.upper_table import cascade_of
+from adnmesh.commands.cascade import hierarchy_sites
+from adnmesh.config import load_hierarchy
 from adnmesh.loopmodel.step_figures import step_figures
-from adnmesh.tuning.ondemand import tune_subset
 from adnmesh.tuning.table import TableEntry
-
-
-def sites_of(hierarchy) -> dict:
-    out = {}
-    for adn in hierarchy.adns:
-        config = load_config(hierarchy.config_path(adn))
-        lower = lower_adn(config, tune_subset(config, list(config.der_ids())), adn.id)
-        out[adn.id] = Site(adn.id, lower, adn.t_com_s, equivalent(lower))
-    return out
 
 
 def python_control(cascade, kp, ki, horizon):
@@ -58,7 +48,7 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=5)
     args = parser.parse_args()
     hierarchy = load_hierarchy(args.hierarchy)
-    sites = sites_of(hierarchy)
+    sites = {s.id: s for s in hierarchy_sites(hierarchy)}
     ids = [a.id for a in hierarchy.adns]
     # one PI pair per entry, per W of its DC gain: stable, with some overshoot
     entries = []

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from adnmesh.cascade.control_models import cascade_models
-from adnmesh.cascade.equivalent import equivalent
 from adnmesh.cascade.nested_loop import upper_loop
-from adnmesh.cascade.upper_table import Site, cascade_of, lower_adn
+from adnmesh.cascade.upper_table import cascade_of
 from adnmesh.cli import main
+from adnmesh.commands.cascade import hierarchy_sites
 from adnmesh.config import load_config, load_hierarchy
 from adnmesh.loopmodel.step_figures import step_figures
 from adnmesh.tuning.table import default_table_path, load_table
@@ -59,15 +59,8 @@ def written(tmp_path_factory):
 
 
 def sites_of(path: Path) -> dict:
-    """The sites as the command builds them, rebuilt here from the ADNs' own configs."""
-    from adnmesh.tuning.ondemand import tune_subset
-    hierarchy = load_hierarchy(path)
-    out = {}
-    for adn in hierarchy.adns:
-        config = load_config(hierarchy.config_path(adn))
-        lower = lower_adn(config, tune_subset(config, list(config.der_ids())), adn.id)
-        out[adn.id] = Site(adn.id, lower, adn.t_com_s, equivalent(lower))
-    return out
+    """The sites as the command builds them."""
+    return {s.id: s for s in hierarchy_sites(load_hierarchy(path))}
 
 
 def test_every_upper_entry_is_certified_on_the_exact_cascade(written) -> None:

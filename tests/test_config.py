@@ -151,13 +151,7 @@ def test_every_config_in_configs_loads_and_names_its_schema(path: Path, configs_
     and names the schema on its first line for editors with the YAML language server."""
     config = load_config(path)
     assert config.path == path and config.ders
-    first_line = path.read_text().splitlines()[0]
-    prefix = "# yaml-language-server: $schema="
-    assert first_line.startswith(prefix)
-    schema_path = (path.parent / first_line.removeprefix(prefix)).resolve()
-    assert schema_path == configs_dir / "config.schema.json"
-    schema = json.loads(schema_path.read_text())
-    jsonschema.Draft202012Validator(schema).validate(yaml.safe_load(path.read_text()))
+    names_its_schema(path, configs_dir / "config.schema.json")
 
 
 @pytest.mark.parametrize("path", HIERARCHIES, ids=lambda path: path.name)
@@ -168,11 +162,16 @@ def test_every_hierarchy_file_loads_and_names_its_schema(path: Path, configs_dir
     assert hierarchy.adns
     for adn in hierarchy.adns:
         assert load_config(hierarchy.config_path(adn)).ders
+    names_its_schema(path, configs_dir / "hierarchy.schema.json")
+
+
+def names_its_schema(path: Path, schema_path: Path) -> None:
+    """``path`` names ``schema_path`` on its first line for the YAML language server, and is
+    valid for it (an independent validator)."""
     first_line = path.read_text().splitlines()[0]
     prefix = "# yaml-language-server: $schema="
     assert first_line.startswith(prefix)
-    schema_path = (path.parent / first_line.removeprefix(prefix)).resolve()
-    assert schema_path == configs_dir / "hierarchy.schema.json"
+    assert (path.parent / first_line.removeprefix(prefix)).resolve() == schema_path
     schema = json.loads(schema_path.read_text())
     jsonschema.Draft202012Validator(schema).validate(yaml.safe_load(path.read_text()))
 

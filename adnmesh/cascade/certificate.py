@@ -6,28 +6,23 @@ of the *nested* loop: the upper PI over the ADNs' exact closed loops with every 
 (:mod:`adnmesh.cascade.nested_loop`, :mod:`adnmesh.cascade.nested_step`). The step response is
 simulated until it has stayed within 0.5 % of its final value for the last quarter of the
 horizon, and at least for ``20 / omega_c`` and four times the slowest lag plus every delay;
-a response not settled by :data:`MAX_HORIZON_S` reports infinite settling times.
+a response not settled by :data:`~adnmesh.cascade.nested_step.MAX_HORIZON_S` (or
+:data:`~adnmesh.cascade.nested_step.MAX_STEPS` steps) reports infinite settling times.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
 
-import numpy as np
-
 from adnmesh.cascade.nested_loop import UpperLoop, upper_loop
-from adnmesh.cascade.nested_step import choose_step, simulate
+from adnmesh.cascade.nested_step import choose_step, simulate_until_settled
 from adnmesh.cascade.structure import Cascade
 from adnmesh.loopmodel.step_figures import step_figures
 
-__all__ = ["CascadeFigures", "cascade_figures", "back_off", "settled_horizon", "MAX_HORIZON_S",
-           "BACK_OFF_STEP"]
+__all__ = ["CascadeFigures", "cascade_figures", "back_off", "settled_horizon", "BACK_OFF_STEP"]
 
-#: longest simulated horizon, s
-MAX_HORIZON_S = 20000.0
 #: factor on both upper gains per back-off step
 BACK_OFF_STEP = 0.97
-_SETTLED = 0.005
 
 
 @dataclass(frozen=True)
@@ -89,15 +84,9 @@ def settled_horizon(cascade: Cascade, bandwidth_rad_s: float) -> float:
 
 
 def _settled_step(cascade: Cascade, upper, bandwidth_rad_s: float, band_pct: float):
-    """Simulate, doubling the horizon until the response has settled; its figures."""
+    """Simulate until the response has settled; its figures and the step."""
     h = choose_step(cascade, bandwidth_rad_s)
-    horizon = settled_horizon(cascade, bandwidth_rad_s)
-    while True:
-        run = simulate(cascade, upper, horizon, h)
-        tail = run.y[int(0.75 * run.y.size):]
-        if np.abs(tail - 1.0).max() <= _SETTLED or horizon >= MAX_HORIZON_S:
-            break
-        horizon = min(2.0 * horizon, MAX_HORIZON_S)
+    run = simulate_until_settled(cascade, upper, settled_horizon(cascade, bandwidth_rad_s), h)
     return step_figures(run.t_s, run.y, band_pct), h
 
 

@@ -24,13 +24,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from adnmesh.cascade.lower_adn import LowerAdn
-from adnmesh.cascade.nested_step import simulate
+from adnmesh.cascade.nested_step import simulate_until_settled
 from adnmesh.cascade.structure import Cascade
 from adnmesh.loopmodel.step_figures import step_figures
 
 __all__ = ["Equivalent", "equivalent", "first_crossing"]
-
-_SETTLED = 0.005
 
 
 @dataclass(frozen=True)
@@ -75,16 +73,11 @@ def equivalent(adn: LowerAdn, band_pct: float = 5.0) -> Equivalent:
     alone = Cascade((adn,), (1.0,), (0.0,), 0.0)
     slow = max(float(a.time_constants_s.max()) for a in adn.plant.actuators)
     horizon = 4.0 * (slow + sum(adn.delays_s)) + 20.0 / (adn.ki * float(adn.plant.total_gain_w))
-    while True:
-        run = simulate(alone, None, horizon)
-        tail = run.y[int(0.75 * run.y.size):]
-        if np.abs(tail - 1.0).max() <= _SETTLED or horizon > 2e4:
-            break
-        horizon *= 2.0
+    run = simulate_until_settled(alone, None, horizon)
     t10, t90 = first_crossing(run.t_s, run.y, 0.1), first_crossing(run.t_s, run.y, 0.9)
     if not (math.isfinite(t10) and math.isfinite(t90)):
         raise ValueError(f"ADN {adn.name}: its closed loop does not reach 90 % in "
-                         f"{horizon:g} s")
+                         f"{run.t_s[-1]:g} s")
     lag = max((t90 - t10) / math.log(9.0), 1e-6)
     delay = t10 - lag * math.log(10.0 / 9.0)
     if delay < 0:

@@ -28,10 +28,16 @@ import scipy.linalg
 from adnmesh.cascade.structure import Cascade
 from adnmesh.loopmodel.step_response import commensurate_unit
 
-__all__ = ["NestedStep", "choose_step", "simulate"]
+__all__ = ["NestedStep", "choose_step", "simulate", "simulate_until_settled", "MAX_HORIZON_S",
+           "MAX_STEPS"]
 
 #: the step's target error: h as in the reference loop's simulation (s)
 _H_MAX_S = 0.05
+#: longest simulated horizon, s, and most steps simulated (bounds memory to ~100 MB per ADN)
+MAX_HORIZON_S = 20000.0
+MAX_STEPS = 4_000_000
+#: settled: within this of the final value over the last quarter of the horizon
+_SETTLED = 0.005
 
 
 class NestedStep:
@@ -120,6 +126,22 @@ def simulate(cascade: Cascade, upper: tuple[float, float] | None, t_end_s: float
                     closed, float(kp), float(ki))
     scale = 1.0 if closed else 1.0 / cascade.total_gain_w
     return NestedStep(np.arange(n + 1) * h, y * scale, y_adn * scale, h)
+
+
+def simulate_until_settled(cascade: Cascade, upper: tuple[float, float] | None,
+                           horizon_s: float, h: float | None = None) -> NestedStep:
+    """:func:`simulate` from ``horizon_s`` on, doubling the horizon until the response has
+    stayed within 0.5 % of its final value for the last quarter of it, up to
+    :data:`MAX_HORIZON_S` or :data:`MAX_STEPS` steps (then it is returned unsettled)."""
+    h = choose_step(cascade) if h is None else float(h)
+    longest = min(MAX_HORIZON_S, MAX_STEPS * h)
+    horizon = min(horizon_s, longest)
+    while True:
+        run = simulate(cascade, upper, horizon, h)
+        tail = run.y[int(0.75 * run.y.size):]
+        if np.abs(tail - 1.0).max() <= _SETTLED or horizon >= longest:
+            return run
+        horizon = min(2.0 * horizon, longest)
 
 
 @numba.njit(cache=True)

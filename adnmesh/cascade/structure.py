@@ -69,7 +69,7 @@ class Cascade:
         return out
 
     def open_loop(self, kp: float, ki: float, omega: np.ndarray) -> np.ndarray:
-        """``L_up(j omega)`` for the upper PI (``kp`` dimensionless per W, ``ki`` per W s)."""
+        """``L_up(j omega)``, complex, for the upper PI ``kp`` (1/W), ``ki`` (1/(W s))."""
         omega = np.asarray(omega, dtype=float)
         return ((kp + ki / (1j * omega)) * np.exp(-1j * omega * self.t_meas_s)
                 * self.plant_response(omega))

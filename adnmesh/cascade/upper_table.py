@@ -153,7 +153,6 @@ def _certified_static(table, sites, t_meas_s, constraints) -> TableEntry:
     """The static pair backed off until the cascade of every subset meets the constraints."""
     static = table.static
     factor = 1.0
-    worst = None
     for entry in table.entries.values():
         subset = replace(static, ders=entry.ders, w={i: 1.0 for i in entry.ders})
         cascade = cascade_of(sites, subset, t_meas_s)
@@ -163,8 +162,9 @@ def _certified_static(table, sites, t_meas_s, constraints) -> TableEntry:
         if found is None:
             return _certified(static, None, fig, constraints)
         factor *= found
-        worst = fig if worst is None or fig.rise_time_s > worst.rise_time_s else worst
-    # a lower factor found for a later subset: the earlier ones are checked again at it
+    # a lower factor found for a later subset: the earlier ones are checked again at it, and
+    # the slowest figures are those at the final factor
+    worst = None
     for entry in table.entries.values():
         cascade = cascade_of(sites, replace(static, ders=entry.ders,
                                             w={i: 1.0 for i in entry.ders}), t_meas_s)
@@ -172,5 +172,9 @@ def _certified_static(table, sites, t_meas_s, constraints) -> TableEntry:
                               constraints.settling_band_pct)
         if fig.problem(constraints.disk_margin_min, constraints.overshoot_max_pct):
             return _certified(static, None, fig, constraints)
-        worst = fig if fig.rise_time_s > worst.rise_time_s else worst
-    return _certified(static, factor, worst, constraints)
+        if worst is None or fig.rise_time_s > worst[1].rise_time_s:
+            worst = (entry.ders, fig)
+    certified = _certified(static, factor, worst[1], constraints)
+    certified.figures.update(worst_rise_time_s=worst[1].rise_time_s,
+                             worst_rise_time_subset=list(worst[0]))
+    return certified

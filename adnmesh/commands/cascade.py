@@ -13,7 +13,7 @@ import yaml
 from adnmesh.commands import output_path
 from adnmesh.errors import ConfigError
 
-__all__ = ["add_parser", "run", "SWEEP_ALL_UP_TO"]
+__all__ = ["add_parser", "run", "hierarchy_sites", "SWEEP_ALL_UP_TO"]
 
 #: ADNs of at most this many DERs have every subset swept by --switches
 SWEEP_ALL_UP_TO = 11
@@ -71,8 +71,10 @@ def _lower_entry(config, say):
     return tune_subset(config, ids), "tuned now"
 
 
-def _sites(hierarchy, say):
-    """Each ADN as a :class:`~adnmesh.cascade.upper_table.Site`."""
+def hierarchy_sites(hierarchy, say=lambda text: None):
+    """Each ADN of ``hierarchy`` as a :class:`~adnmesh.cascade.upper_table.Site`: its entry for
+    all its DERs (its table's, else tuned now), its closed loop and equivalent model; ``say``
+    gets a line per ADN."""
     from adnmesh.cascade.equivalent import equivalent
     from adnmesh.cascade.upper_table import Site, lower_adn
     from adnmesh.config import load_config
@@ -165,7 +167,7 @@ def run(args: argparse.Namespace) -> int:
     say = lambda text: print(text, file=sys.stderr)  # noqa: E731
     t0 = time.perf_counter()
     say(f"{hierarchy.name}: {len(hierarchy.adns)} ADNs")
-    sites = _sites(hierarchy, say)
+    sites = hierarchy_sites(hierarchy, say)
     upper = load_config(_write_upper_config(hierarchy, sites, out))
     table = tune_table(upper, "paper")
     say(f"upper table tuned on the equivalent models: {len(table.entries)} entries in "
