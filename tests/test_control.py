@@ -638,3 +638,34 @@ def test_der_heartbeat_acknowledges_its_last_p_y_and_mode_changes_at_once(config
     assert (1000 * MS, "control", 0.25) in [(t, b["mode"], b["p_y"]) for t, b in sent]
     assert (1100 * MS, "watchdog", 0.25) in [(t, b["mode"], b["p_y"]) for t, b in sent]
     assert der.setpoint_w == 0.0 and der.counts["watchdog_trips"] == 1
+
+
+def test_cpfc_announces_its_entry_as_an_actuator_of_the_level_above(config, table) -> None:
+    """docs/hierarchy.md: with the first output of every entry the CPFC sends what the level
+    above needs, the entry's exact closed loop; decoded, it is the loop of the entry."""
+    import msgspec
+    import numpy as np
+    from adnmesh.cascade.lower_adn import announced
+    from adnmesh.cascade.upper_table import lower_adn
+    from adnmesh.wire.messages import AdnActuator
+
+    cpfc = CPFC(config, GainSchedule(config, table))
+    out = run_cpfc(cpfc, 5000 * MS, p_meas=lambda t: -2.5e6,
+                   si_at=(4500 * MS, {"SGen1": True, "SGen2": False}))
+    sent = [(t, o) for t, o in out if o.key == Keys(config.grid).of("adn_actuator")]
+    assert [t for t, _ in sent] == [0, 4500 * MS]
+    both, one = (o.body for _, o in sent)
+    assert both["ders"] == ["SGen1", "SGen2"] and one["ders"] == ["SGen1"]
+    assert (both["entry"], one["entry"]) == (0, 1)
+    assert both["capacity_w"] == sum(d.p_inst_w for d in config.ders)
+    assert both["range_down_w"] == 0.5e6                # SGen2's schedule
+    assert both["range_up_w"] == both["capacity_w"] - 0.5e6
+    assert (one["kp"], one["ki"]) == (1e-7, 3.84e-7)
+    # through the wire format and back: the loop of the table entry, exactly
+    wire = {"v": 1, "type": "adn_actuator", "src": "cpfc", "seq": 0, "t_send_ns": 0,
+            "t_deliver_ns": 0, **both}
+    decoded = msgspec.json.decode(msgspec.json.encode(wire), type=AdnActuator)
+    entry = table.lookup(["SGen1", "SGen2"])
+    omega = np.geomspace(1e-3, 1e2, 50)
+    assert np.array_equal(announced("x", decoded).closed_loop(omega),
+                          lower_adn(config, entry, "x").closed_loop(omega))

@@ -17,9 +17,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from adnmesh.loopmodel.frequency_response import loop_response
-from adnmesh.loopmodel.plant import Plant
+from adnmesh.loopmodel.plant import Actuator, Plant
 
-__all__ = ["LowerAdn"]
+__all__ = ["LowerAdn", "announced"]
 
 
 @dataclass(frozen=True)
@@ -64,3 +64,14 @@ class LowerAdn:
         omega = np.asarray(omega, dtype=float)
         loop = loop_response(self.plant, self.kp, self.ki, omega)[0]
         return loop * np.exp(1j * omega * self.plant.t_meas_s) / (1.0 + loop)
+
+
+def announced(name: str, message) -> LowerAdn:
+    """The ADN as its CPFC announced itself in an ``adn_actuator`` message (an object with the
+    fields of :class:`adnmesh.wire.messages.AdnActuator`: ``groups`` of ``t_delay_s``,
+    ``t_lag_s``, ``model``, ``gain_w``; ``t_com_s``, ``t_meas_s``, ``kp``, ``ki``,
+    ``capacity_w``)."""
+    groups = [g for g in message.groups if g.gain_w > 0]
+    plant = Plant(tuple(Actuator(g.t_delay_s, g.t_lag_s, g.model) for g in groups),
+                  np.array([g.gain_w for g in groups]), message.t_com_s, message.t_meas_s)
+    return LowerAdn(name, plant, message.kp, message.ki, message.capacity_w)

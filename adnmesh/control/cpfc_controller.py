@@ -116,7 +116,7 @@ from adnmesh.control.operating_point import available_power_w, initial_p_ip_w
 from adnmesh.control.pi import SampledPI, SwitchRecord
 from adnmesh.names import der_id_of
 from adnmesh.wire.keys import Keys
-from adnmesh.wire.messages import Design, Envelope, Switch
+from adnmesh.wire.messages import ActuatorGroup, Design, Envelope, Switch
 from adnmesh.wire.units import ns
 from adnmesh.tuning.subset_selection import able_to_move
 from adnmesh.tuning.table import SchedulingTable, TableEntry
@@ -725,7 +725,8 @@ class CPFC(Agent):
         if self._pending is not None:
             self._apply_switch(t_ns, body, out)
         body["entry"] = self.entry_index
-        if self.entry_index != self._announced:
+        announce = self.entry_index != self._announced
+        if announce:
             self._announced = self.entry_index
             design = self._design(self.entry)
             if design is not None:
@@ -736,6 +737,8 @@ class CPFC(Agent):
         if self.hold is not None:
             body["hold"] = self.hold
         out.append(Outgoing(self.keys.of(loop.output_kind), body))
+        if announce and loop is P_LOOP and self.weights:
+            out.append(Outgoing(self.keys.of("adn_actuator"), self._actuator()))
         self._p_y_sent = body[loop.output_field]
         if self.model_watch is not None:
             self._watch_sent(t_ns, out)
@@ -1120,6 +1123,24 @@ class CPFC(Agent):
         constraints = self.config.constraints
         return Design(*(float(v) for v in values), constraints.overshoot_max_pct,
                       constraints.settling_band_pct)
+
+    def _actuator(self) -> dict:
+        """What the ADN offers the level above under its entry now (docs/hierarchy.md): the
+        body of an ``adn_actuator`` message, with the entry's exact closed loop."""
+        from adnmesh.loopmodel.plant import plant_from_ders    # scipy: only when announced
+
+        config = self.config
+        ders = config.ders_by_id([d for d in self._ids if d in self.weights])
+        plant = plant_from_ders(ders, config.design_t_com_s, config.t_meas_s, self.weights,
+                                rise_per_lag=config.rise_per_lag)
+        groups = [ActuatorGroup(a.t_delay_s, a.t_lag_s, a.model, float(g))
+                  for a, g in zip(plant.actuators, plant.gains_w)]
+        return {"entry": self.entry_index, "ders": [d.id for d in ders],
+                "capacity_w": float(sum(d.p_inst_w for d in ders)),
+                "range_up_w": float(sum(d.p_inst_w - d.p_sched_w for d in ders)),
+                "range_down_w": float(sum(d.p_sched_w for d in ders)),
+                "kp": self.pi.kp, "ki": self.pi.ki, "t_com_s": plant.t_com_s,
+                "t_meas_s": plant.t_meas_s, "groups": groups}
 
     def _share_w(self, der_id: str, weight: float, p_y: float) -> float:
         """DER ``der_id``'s setpoint above its schedule by Eq. 1 with ``weight``, limited, W."""

@@ -29,6 +29,8 @@ from adnmesh.wire.units import NS_MAX
 
 __all__ = [
     "MESSAGE_VERSION",
+    "ActuatorGroup",
+    "AdnActuator",
     "AgentBye",
     "ClockGrant",
     "ClockReport",
@@ -156,6 +158,37 @@ class QY(_Output):
     type: Literal["q_y"]
     q_y: Ratio
     q_ref_var: Power
+
+
+class ActuatorGroup(Struct, forbid_unknown_fields=True):
+    """One group of identical dynamics in an ADN's entry (reference model, docs/method.md):
+    dead time ``t_delay_s`` (s), time constant ``t_lag_s`` of its ``model`` (s), and its gain
+    ``gain_w`` = the sum of its DERs' ``w_d P_inst,d`` (W)."""
+
+    t_delay_s: Seconds
+    t_lag_s: Annotated[float, Meta(gt=0.0, le=1e9, description="s")]
+    model: Literal["pt1", "pt2", "rhpz"]
+    gain_w: Annotated[float, Meta(ge=0.0, le=1e15, description="W")]
+
+
+class AdnActuator(Envelope):
+    """The ADN as an actuator of the level above (docs/hierarchy.md), sent by its CPFC with
+    the first output of every entry: the entry's number and DERs in use, the installed power
+    of those DERs (``capacity_w``, the ADN's C_i, W), its range above and below their
+    schedules (W), and the entry's exact closed loop: PI gains (1/W, 1/(W s)), the loop's
+    design T_com and T_meas (s) and its groups."""
+
+    type: Literal["adn_actuator"]
+    entry: Count
+    ders: Annotated[list[DERId], Meta(max_length=MAX_DERS)]
+    capacity_w: Annotated[float, Meta(ge=0.0, le=1e15, description="W")]
+    range_up_w: Annotated[float, Meta(ge=0.0, le=1e15, description="W")]
+    range_down_w: Annotated[float, Meta(ge=0.0, le=1e15, description="W")]
+    kp: Gain
+    ki: Gain
+    t_com_s: Seconds
+    t_meas_s: Seconds
+    groups: Annotated[list[ActuatorGroup], Meta(max_length=MAX_DERS)]
 
 
 class PRef(Envelope):

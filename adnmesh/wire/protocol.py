@@ -20,6 +20,7 @@ kind                 key (``adn/<grid>/``)      sender          receivers       
 ===================  =========================  ==============  =====================  ===================
 ``p_y``              ``cpfc/p_y``               ``cpfc``        every DER              ``cpfc_to_der``
 ``p_ref``            ``scenario/p_ref``         ``cpfc``        (recorded)             ``local``
+``adn_actuator``     ``cpfc/actuator``          ``cpfc``        (recorded)             ``local``
 ``q_y``              ``cpfc/q_y``               ``cpfc``        every DER              ``cpfc_to_der``
 ``q_ref``            ``scenario/q_ref``         ``cpfc``        (recorded)             ``local``
 ``der_state``        ``der/{der}/state``        the DER         ``measurement``        ``physical``
@@ -180,6 +181,8 @@ PROTOCOL: tuple[MessageKind, ...] = (
         _S("entry", "table entry", "entry", unit="1", step=True))),
     MessageKind("p_ref", "scenario/p_ref", m.PRef, "cpfc", (), "local", (
         _S("p_ref_w", "P_ref", "p_ref", step=True),)),
+    MessageKind("adn_actuator", "cpfc/actuator", m.AdnActuator, "cpfc", (), "local", (
+        _S("capacity_w", "ADN capacity", "adn_capacity", step=True),)),
     MessageKind("q_y", "cpfc/q_y", m.QY, "cpfc", ("der",), "cpfc_to_der", (
         _S("q_y", "Q_Y", "q_y", unit="1"),
         _S("kp", "K_P of Q", "q_kp", unit="1/var", step=True),
