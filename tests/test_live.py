@@ -242,3 +242,29 @@ def test_the_live_view_draws_the_band_and_keeps_each_ders_colour(tmp_path) -> No
     for der in ("SGen2", "SGen10"):
         rgba = live[f"/adn/g/der/{der}/state/p_w"]["SeriesLines:colors"][-1][0]   # the last
         assert (rgba >> 24 & 255, rgba >> 16 & 255, rgba >> 8 & 255) == colors[der]
+
+
+def test_a_step_sample_that_comes_after_a_later_one_is_not_shown_held_before(tmp_path) -> None:
+    """The agents of one clock window send in any order: P_ref's step at 2 s may come after a
+    DER's state of 2 s. The view must not have shown P_ref's old value held at 2 s."""
+    import rerun as rr
+
+    from adnmesh.wire.keys import Keys, route
+    from payloads import payload
+
+    keys = Keys("g")
+    rec = rr.RecordingStream(APPLICATION_ID, recording_id="order")
+    rec.save(tmp_path / "live.rrd")
+    view = LiveView(rec)
+    sent = [(keys.of("p_ref"), {"p_ref_w": -2.5e6}, 0),
+            (keys.of("der_state", "SGen1"), {"p_w": 1e6, "setpoint_w": 1e6, "mode": "control"},
+             2_000_000_000),
+            (keys.of("p_ref"), {"p_ref_w": -1.5e6}, 2_000_000_000)]
+    for seq, (key, body, t_ns) in enumerate(sent):
+        view.take(key, route(key).type, [(payload(key, body, seq=seq, t_send_ns=t_ns), t_ns,
+                                          t_ns)])
+        view.send_pending()                          # a send between the two samples of 2 s
+    view.close()
+    assert view.error is None
+    p_ref = samples(rrd_columns(tmp_path / "live.rrd")["/adn/g/scenario/p_ref/p_ref_w"])
+    assert [v for t, _, v in p_ref if t == 2_000_000_000] == [-1.5]

@@ -5,8 +5,10 @@ only queues them) and, on a background thread every ``period_s`` wall seconds, t
 series and events by the rules ``replay`` uses (:class:`~adnmesh.results.series.LiveCollector`)
 and sends them to a Rerun recording stream in columns, with the styles and the blueprint of
 :mod:`~adnmesh.results.rerun_export`. Step series (P_ref, availability, the gains) are held
-up to the newest sim time seen, as ``replay`` holds them to the run's end. The recorder's
-thread is never blocked by Rerun: a slow viewer only delays the view.
+up to :data:`HOLD_BEHIND_NS` before the newest sim time seen (to it when the view closes), as
+``replay`` holds them to the run's end: the agents of one clock window send in any order, so a sample of a step series can
+come after another agent's later one, and a held value at its time would show the old value
+there. The recorder's thread is never blocked by Rerun: a slow viewer only delays the view.
 """
 
 from __future__ import annotations
@@ -17,8 +19,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from adnmesh.results.rerun_export import (blueprint, held, limit_series, log_style, send_events,
-                                          send_series)
+from adnmesh.results.rerun_export import (HOLD_PERIOD_NS, blueprint, held, limit_series,
+                                          log_style, send_events, send_series)
 from adnmesh.results.rules import Event
 from adnmesh.results.series import LiveCollector, RunData, Series
 
@@ -90,6 +92,7 @@ class LiveView(RecordQueue):
         self._der_ids: list[str] = []            # the DERs seen: their colours
         self.collector = LiveCollector()
         self.now_ns = 0                          # newest send time seen, ns
+        self._behind_ns = HOLD_BEHIND_NS         # step series held up to now_ns - this
         self.sends = 0                           # how many times something was sent
         self.error: str | None = None            # why the view stopped, if it failed
         self._stop = threading.Event()
@@ -109,6 +112,7 @@ class LiveView(RecordQueue):
         self._stop.set()
         if self._thread.is_alive():
             self._thread.join()
+        self._behind_ns = 0                      # everything has come: held to the newest
         self.send_pending()
         if self.rec is not None:
             self.rec.flush()
@@ -175,7 +179,8 @@ class LiveView(RecordQueue):
         self.sends += 1
 
     def _held(self, path: str, series: Series) -> Series:
-        """The new samples of a step series with its value held up to :attr:`now_ns`."""
+        """The new samples of a step series with its value held up to :data:`HOLD_BEHIND_NS`
+        before :attr:`now_ns` (up to it once the view closes)."""
         last = self._last.get(path)
         if last is not None:
             series = dataclasses.replace(
@@ -185,13 +190,18 @@ class LiveView(RecordQueue):
         if not series.t_ns.size:
             return series
         end = series.t_ns[-1], series.log_time_ns[-1], series.values[-1]
-        out = held(series, self.now_ns)
+        out = held(series, self.now_ns - self._behind_ns)
         keep = out.t_ns > (last.sent_ns if last is not None else -1)
         self._last[path] = _Last(int(end[0]), int(end[1]), float(end[2]),
                                  int(out.t_ns[-1]))
         return dataclasses.replace(out, t_ns=out.t_ns[keep], log_time_ns=out.log_time_ns[keep],
                                    values=out.values[keep])
 
+
+HOLD_BEHIND_NS = HOLD_PERIOD_NS
+"""How far behind the newest sim time seen a step series is held, ns: longer than any clock
+window (the sim clock's look-ahead is at most a few hundred ms), so every real sample before it
+has come."""
 
 _EMPTY_I = np.zeros(0, dtype=np.int64)
 _EMPTY_F = np.zeros(0, dtype=np.float64)
