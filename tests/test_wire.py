@@ -28,6 +28,7 @@ from adnmesh.wire.units import NS_MAX, ns
 KEYS = Keys("g")
 SENDER = {KEYS.of(kind, *who): sender for kind, who, sender in [
     ("grid_state", (), "measurement"), ("grid_guard", (), "measurement"), ("p_y", (), "cpfc"), ("p_ref", (), "cpfc"),
+    ("adn_actuator", (), "cpfc"),
     ("q_y", (), "cpfc"), ("q_ref", (), "cpfc"),
     ("der_state", ("SGen1",), "der/SGen1"), ("der_state", ("SGen2",), "der/SGen2"),
     ("heartbeat", ("SGen1",), "der/SGen1"),
@@ -44,6 +45,13 @@ EXAMPLES = {
                "w": {"SGen1": 1.0}, "switch": {"p_y_before": 0.25, "p_y_limited": 0.25,
                                                "kp_before": 1e-7, "ki_before": 3e-7}},
     KEYS.of("p_ref"): {"p_ref_w": -2.5e6},
+    KEYS.of("adn_actuator"): {"entry": 3, "ders": ["SGen1", "SGen5"], "capacity_w": 2.31e6,
+                              "range_up_w": 2.0e6, "range_down_w": 3.1e5, "kp": 1.2e-7,
+                              "ki": 9.5e-8, "t_com_s": 0.15, "t_meas_s": 0.1,
+                              "groups": [{"t_delay_s": 0.01, "t_lag_s": 0.234, "model": "pt1",
+                                          "gain_w": 2e6},
+                                         {"t_delay_s": 1.0, "t_lag_s": 11.18, "model": "pt1",
+                                          "gain_w": 3.1e5}]},
     KEYS.of("q_y"): {"q_y": -0.5, "q_ref_var": 2e5, "kp": 5e-8, "ki": 2e-7, "entry": 0,
                      "w": {"SGen1": 0.5}, "hold": "measurement"},
     KEYS.of("q_ref"): {"q_ref_var": -1.5e5},
@@ -77,6 +85,11 @@ EXAMPLES = {
 
 # (key, body change) -> must be rejected as invalid
 BAD = [
+    (KEYS.of("adn_actuator"), {"groups": [{"t_delay_s": 0.01, "t_lag_s": 0.0, "model": "pt1",
+                                            "gain_w": 1.0}]}),
+    (KEYS.of("adn_actuator"), {"groups": [{"t_delay_s": 0.01, "t_lag_s": 0.2, "model": "pt3",
+                                            "gain_w": 1.0}]}),
+    (KEYS.of("adn_actuator"), {"capacity_w": -1.0}),
     (KEYS.of("p_y"), {"p_y": "high"}),
     (KEYS.of("p_y"), {"kp": 0.0}),
     (KEYS.of("p_y"), {"w": {"SGen1": 1.5}}),
