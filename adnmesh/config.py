@@ -40,7 +40,7 @@ __all__ = [
     "MAX_CONFIG_BYTES", "MAX_DELAY_PER_LAG", "MAX_IN_FLIGHT", "MAX_SPAN_PER_DELAY", "PRefStep",
     "CAPABILITY_PRESETS", "QRefStep", "QU", "Reactive", "Runtime", "VoltageStep",
     "Scenario", "Section", "Study", "Maintenance", "MinOutputShare", "json_schema", "load_config",
-    "Hierarchy", "HierarchyAdn", "HierarchyFile", "MAX_ADNS", "hierarchy_json_schema",
+    "Hierarchy", "HierarchyAdn", "HierarchyConstraints", "HierarchyFile", "MAX_ADNS", "hierarchy_json_schema",
     "load_hierarchy",
 ]
 
@@ -1423,6 +1423,17 @@ class HierarchyAdn(Section):
     """Inter-site delay upper CPFC -> this ADN's CPFC, s (whole milliseconds)."""
 
 
+class HierarchyConstraints(Section):
+    """Design constraints of the upper table, checked on the exact cascade."""
+
+    disk_margin_min: Annotated[float, Field(gt=0, lt=2)] = 1.5
+    """Lowest acceptable balanced disk margin alpha of the upper loop (0 < alpha < 2)."""
+    overshoot_max_pct: Annotated[float, Field(gt=0, le=100)] = 1.0
+    """The upper step response's overshoot must stay below this, % of the final value."""
+    settling_band_pct: Annotated[float, Field(gt=0, le=50)] = 5.0
+    """Band for the settling time, % of the final value."""
+
+
 class HierarchyFile(Section):
     """An upper controller over MV ADNs: the content of a hierarchy file (YAML)."""
 
@@ -1433,7 +1444,7 @@ class HierarchyFile(Section):
     t_meas_s: _MsLag
     """Delay of the upper measurement (the exchange the upper controller acts on), s (whole
     milliseconds)."""
-    constraints: Constraints = Constraints()
+    constraints: HierarchyConstraints = HierarchyConstraints()
     """Design constraints of the upper table, checked on the exact cascade."""
     adns: Annotated[tuple[HierarchyAdn, ...], Field(strict=False, min_length=1,
                                                     max_length=MAX_ADNS)]

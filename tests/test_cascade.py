@@ -106,9 +106,13 @@ def test_equivalent_model_has_the_closed_loops_10_and_90_percent_times(lower):
     assert eq.rise_time_s == pytest.approx(t90 - t10, abs=5e-3)
     model = lambda s: 1.0 - np.exp(-np.maximum(s - eq.delay_s, 0.0) / eq.lag_s)  # noqa: E731
     assert model(t90) == pytest.approx(0.9, abs=1e-3)
-    if eq.delay_s > 0:
+    dead = float(lower.plant.path_delays_s.min())        # nothing moves before it
+    exact = simulate(Cascade((lower,), (1.0,), (0.0,), 0.0), None, 2.0)
+    assert np.abs(exact.y[exact.t_s < dead - 1e-9]).max() == 0.0 and exact.y[-1] > 0
+    assert eq.delay_s >= dead - 1e-12
+    if eq.delay_s > dead + 1e-9:
         assert model(t10) == pytest.approx(0.1, abs=1e-3)
-    else:       # faster than any lag at first: no dead time, the 90 % time kept
+    else:       # faster than a lag from its 10 % time: its true dead time, the 90 % time kept
         assert model(t10) < 0.1
 
 
@@ -125,8 +129,10 @@ def test_back_off_finds_the_largest_step_that_meets_the_constraints():
 
 
 def test_delays_without_a_common_millisecond_are_refused():
-    odd = Cascade((A,), (1.0,), (0.2003,), 0.2)
-    with pytest.raises(ValueError, match="share no unit"):
+    tenth = Cascade((A,), (1.0,), (0.2003,), 0.2)           # a unit of 0.1 ms: taken
+    assert choose_step(tenth) == pytest.approx(1e-4)
+    odd = Cascade((A,), (1.0,), (0.20003,), 0.2)
+    with pytest.raises(ValueError, match="share no unit of at least 0.1 ms"):
         simulate(odd, (KP, KI), 10.0)
     finer = Cascade((A,), (1.0,), (0.2000003,), 0.2)       # below the 1 us the unit is taken to
     with pytest.raises(ValueError, match="not a whole number of steps"):

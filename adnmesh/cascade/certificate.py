@@ -34,6 +34,9 @@ class CascadeFigures:
     stable : bool
         Lower loops and upper loop stable.
     lower_stable : bool
+    resolved : bool
+        The upper loop's winding grid met its refinement rule (if not: no verdict, taken as
+        failing).
     disk_margin : float
         Balanced disk margin alpha of the upper loop, 0 if unstable.
     disk_omega : float
@@ -46,6 +49,7 @@ class CascadeFigures:
 
     stable: bool
     lower_stable: bool
+    resolved: bool
     disk_margin: float
     disk_omega: float
     overshoot_pct: float
@@ -58,6 +62,8 @@ class CascadeFigures:
         """Why the loop fails the constraints (one line), or None if it meets them."""
         if not self.lower_stable:
             return "a lower ADN's own loop is unstable"
+        if not self.resolved:
+            return "the upper loop's stability could not be resolved (treated as unstable)"
         if not self.stable:
             return "the upper loop is unstable"
         if self.disk_margin < disk_margin_min:
@@ -96,9 +102,10 @@ def cascade_figures(cascade: Cascade, kp: float, ki: float, band_pct: float = 5.
     loop = upper_loop(cascade, kp, ki) if loop is None else loop
     nan = float("nan")
     if not loop.stable:
-        return CascadeFigures(False, loop.lower_stable, 0.0, nan, nan, nan, nan, nan, nan)
+        return CascadeFigures(False, loop.lower_stable, loop.resolved, 0.0, nan, nan, nan, nan,
+                              nan, nan)
     fig, h = _settled_step(cascade, (kp, ki), loop.disk_omega, band_pct)
-    return CascadeFigures(True, True, loop.disk_margin, loop.disk_omega, fig.overshoot_pct,
+    return CascadeFigures(True, True, True, loop.disk_margin, loop.disk_omega, fig.overshoot_pct,
                           fig.rise_time_s, fig.settling_time_s, fig.settling_time_2pct_s, h)
 
 

@@ -9,9 +9,10 @@ model with the same 10 % and 90 % times as the exact closed-loop step response `
     t10 = D_eq + T_eq ln(10/9),    t90 = D_eq + T_eq ln 10,
     so  T_eq = (t90 - t10) / ln 9,  D_eq = t10 - T_eq ln(10/9).
 
-A loop that starts faster than any first-order lag (its PI's proportional kick through a fast
-plant: ``D_eq`` would be negative) gets ``D_eq = 0`` and the lag with its 90 % time,
-``T_eq = t90 / ln 10``: what the upper loop's speed depends on.
+A loop that starts faster than a first-order lag would from its 10 % time (its PI's
+proportional kick through a fast group: the fit's ``D_eq`` would fall below the loop's true
+dead time, its shortest forward delay ``T_com + T_delay,g``) gets that dead time and the lag
+with its 90 % time, ``T_eq = (t90 - D_eq) / ln 10``: what the upper loop's speed depends on.
 
 The model is for tuning only: every upper entry is certified on the exact cascade
 (:mod:`adnmesh.cascade.certificate`).
@@ -80,7 +81,9 @@ def equivalent(adn: LowerAdn, band_pct: float = 5.0) -> Equivalent:
                          f"{run.t_s[-1]:g} s")
     lag = max((t90 - t10) / math.log(9.0), 1e-6)
     delay = t10 - lag * math.log(10.0 / 9.0)
-    if delay < 0:
-        delay, lag = 0.0, t90 / math.log(10.0)
+    dead = float(adn.plant.path_delays_s[adn.plant.gains_w > 0].min())
+    if delay < dead:
+        delay = dead
+        lag = max((t90 - dead) / math.log(10.0), 1e-6)
     fig = step_figures(run.t_s, run.y, band_pct)
     return Equivalent(delay, lag, t90 - t10, fig.overshoot_pct, fig.settling_time_s)

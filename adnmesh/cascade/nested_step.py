@@ -7,7 +7,8 @@ method is that of :mod:`adnmesh.loopmodel.step_response`, applied to the nested 
 - every DER group of every ADN is discretised exactly for an input linear between samples
   (:meth:`~adnmesh.loopmodel.plant.Actuator.foh_discretisation`),
 - every delay (inter-site, upper measurement, each ADN's T_com, T_delay,g, T_meas) is a whole
-  number of steps ``h``: ``h`` divides their common unit (:func:`choose_step`),
+  number of steps ``h``: ``h`` divides their common unit, at least 0.1 ms
+  (:func:`choose_step`),
 - both PIs integrate by the trapezoidal rule, and the step's jump (``K_P`` of the upper PI,
   then ``K_P,i K_i K_P`` of each lower PI when it arrives) is carried as left and right
   limits, so the only approximation is the hold of the PI outputs between samples: global
@@ -29,13 +30,15 @@ from adnmesh.cascade.structure import Cascade
 from adnmesh.loopmodel.step_response import commensurate_unit
 
 __all__ = ["NestedStep", "choose_step", "simulate", "simulate_until_settled", "MAX_HORIZON_S",
-           "MAX_STEPS"]
+           "MAX_STEPS", "MIN_UNIT_S"]
 
 #: the step's target error: h as in the reference loop's simulation (s)
 _H_MAX_S = 0.05
-#: longest simulated horizon, s, and most steps simulated (bounds memory to ~100 MB per ADN)
+#: longest simulated horizon, s, and most steps simulated (bounds memory to ~24 MB per ADN)
 MAX_HORIZON_S = 20000.0
-MAX_STEPS = 4_000_000
+MAX_STEPS = 1_000_000
+#: the smallest common unit of the delays the simulation takes, s
+MIN_UNIT_S = 1e-4
 #: settled: within this of the final value over the last quarter of the horizon
 _SETTLED = 0.005
 
@@ -52,8 +55,8 @@ def choose_step(cascade: Cascade, bandwidth_rad_s: float | None = None) -> float
     """Simulation step h, s: at most half the fastest lag, ``0.05 / bandwidth``, 50 ms and
     the shortest lower forward delay, and a whole fraction of the delays' common unit.
 
-    Raises ValueError when the delays share no unit of at least h/100 (they are then not
-    representable exactly on a practical grid; round them to 1 ms)."""
+    Raises ValueError when the delays share no unit of at least :data:`MIN_UNIT_S` (they are
+    then not representable exactly on a practical grid; whole milliseconds always are)."""
     taus = [float(a.time_constants_s.min()) for adn in cascade.adns
             for a, g in zip(adn.plant.actuators, adn.plant.gains_w) if g > 0]
     h = min(0.5 * min(taus), _H_MAX_S,
@@ -62,9 +65,9 @@ def choose_step(cascade: Cascade, bandwidth_rad_s: float | None = None) -> float
         h = min(h, 0.05 / bandwidth_rad_s)
     delays = tuple(d for d in cascade.delays_s if d > 0)
     unit = commensurate_unit(delays)
-    if delays and unit < h / 100:
-        raise ValueError(f"the cascade's delays share no unit of at least {h / 100 * 1e3:.3g} ms "
-                         "(round them to whole milliseconds)")
+    if delays and unit < MIN_UNIT_S - 1e-12:
+        raise ValueError(f"the cascade's delays share no unit of at least {MIN_UNIT_S * 1e3:g} "
+                         f"ms (their unit is {unit * 1e6:.3g} us; whole milliseconds always do)")
     return unit / math.ceil(unit / h - 1e-9) if delays else h
 
 

@@ -11,8 +11,8 @@ models, certified on the exact cascade.
    with the entry's weights over the available ADNs' exact closed loops and delays. Where the
    equivalent model was optimistic, both gains are backed off by the smallest power of
    :data:`~adnmesh.cascade.certificate.BACK_OFF_STEP` that meets the constraints; the entry's
-   figures become those of the cascade, and the equivalent model's rise time is kept beside
-   them. An entry that needed a back-off is then tuned on the exact cascade itself
+   figures become those of the cascade, and what the equivalent models gave is kept under
+   ``equivalent``. An entry that needed a back-off is then tuned on the exact cascade itself
    (:mod:`adnmesh.cascade.refine`: the ratio ``K_I/K_P`` searched, each ratio at its largest
    certified gains), since the back-off keeps the equivalent models' ratio.
 """
@@ -82,8 +82,7 @@ def upper_config_document(hierarchy, sites: list[Site]) -> dict:
         ders.append({"id": site.id, "type": "GEN", "p_inst_w": site.adn.capacity_w,
                      "t_delay_s": round(delay / DELAY_GRID_S) * DELAY_GRID_S,
                      "t_rise_s": float(f"{eq.t_rise_s:.6g}"), "sgen": site.id})
-    constraints = hierarchy.constraints.model_dump(exclude={"robust"})
-    constraints["sampled_pi"] = False
+    constraints = hierarchy.constraints.model_dump() | {"sampled_pi": False}
     return {"grid": hierarchy.name, "t_com_s": t_com, "t_meas_s": hierarchy.t_meas_s,
             "constraints": constraints, "ders": ders, "scenario": {"duration_s": 600.0}}
 
@@ -96,18 +95,30 @@ def cascade_of(sites: dict[str, Site], entry: TableEntry, t_meas_s: float) -> Ca
                    tuple(s.t_com_s for s in chosen), t_meas_s)
 
 
+def _finite(value):
+    return value if value is not None and math.isfinite(value) else None
+
+
+def _number(value) -> float:
+    return math.nan if value is None else float(value)
+
+
+def _cascade_figures(fig: CascadeFigures, factor: float | None) -> dict:
+    """The table's figures of an entry from its cascade (margins other than the disk margin
+    are not computed on the cascade: None)."""
+    return {"rise_time_s": _finite(fig.rise_time_s),
+            "settling_time_s": _finite(fig.settling_time_s),
+            "settling_time_2pct_s": _finite(fig.settling_time_2pct_s),
+            "overshoot_pct": _finite(fig.overshoot_pct), "disk_margin": fig.disk_margin,
+            "gain_margin": None, "phase_margin_deg": None, "delay_margin_s": None,
+            "cascade_back_off": factor, "certified_on": "cascade"}
+
+
 def _certified(entry: TableEntry, factor: float | None, fig: CascadeFigures, constraints,
                gains: tuple[float, float] | None = None):
     """The entry with the backed-off (or ``gains``: the refined) gains and the cascade's
-    figures."""
-    finite = lambda v: v if v is not None and math.isfinite(v) else None  # noqa: E731
-    figures = dict(entry.figures)
-    figures.update({"rise_time_s": finite(fig.rise_time_s),
-                    "settling_time_s": finite(fig.settling_time_s),
-                    "overshoot_pct": finite(fig.overshoot_pct), "disk_margin": fig.disk_margin,
-                    "gain_margin": None, "phase_margin_deg": None, "delay_margin_s": None,
-                    "equivalent_rise_time_s": entry.figures.get("rise_time_s"),
-                    "cascade_back_off": factor, "certified_on": "cascade"})
+    figures; what the tuning on the equivalent models found is kept under ``equivalent``."""
+    figures = _cascade_figures(fig, factor) | {"equivalent": dict(entry.figures)}
     if factor is None:
         return replace(entry, feasible=False, figures=figures,
                        reason=fig.problem(constraints.disk_margin_min,
@@ -139,9 +150,9 @@ def certify_entries(table: SchedulingTable, sites: dict[str, Site], t_meas_s: fl
                 gains = (kp, ki)
             table.add(_certified(entry, factor, fig, constraints, gains))
             rows.append(CertifiedRow(entry.ders, factor, fig, backed_off_rise,
-                                     entry.figures.get("rise_time_s", math.nan),
-                                     entry.figures.get("overshoot_pct", math.nan),
-                                     entry.figures.get("disk_margin", math.nan)))
+                                     _number(entry.figures.get("rise_time_s")),
+                                     _number(entry.figures.get("overshoot_pct")),
+                                     _number(entry.figures.get("disk_margin"))))
         if on_entry:
             on_entry(done, len(entries))
     if table.static is not None and table.static.feasible:
@@ -162,9 +173,9 @@ def _certified_static(table, sites, t_meas_s, constraints) -> TableEntry:
         if found is None:
             return _certified(static, None, fig, constraints)
         factor *= found
-    # a lower factor found for a later subset: the earlier ones are checked again at it, and
-    # the slowest figures are those at the final factor
-    worst = None
+    # a lower factor found for a later subset: the earlier ones are checked again at it; the
+    # figures are the worst over every subset at the final factor
+    figs = []
     for entry in table.entries.values():
         cascade = cascade_of(sites, replace(static, ders=entry.ders,
                                             w={i: 1.0 for i in entry.ders}), t_meas_s)
@@ -172,9 +183,13 @@ def _certified_static(table, sites, t_meas_s, constraints) -> TableEntry:
                               constraints.settling_band_pct)
         if fig.problem(constraints.disk_margin_min, constraints.overshoot_max_pct):
             return _certified(static, None, fig, constraints)
-        if worst is None or fig.rise_time_s > worst[1].rise_time_s:
-            worst = (entry.ders, fig)
-    certified = _certified(static, factor, worst[1], constraints)
-    certified.figures.update(worst_rise_time_s=worst[1].rise_time_s,
-                             worst_rise_time_subset=list(worst[0]))
+        figs.append((entry.ders, fig))
+    slowest = max(figs, key=lambda f: f[1].rise_time_s)
+    certified = _certified(static, factor, slowest[1], constraints)
+    certified.figures.update(
+        worst_rise_time_s=_finite(slowest[1].rise_time_s),
+        worst_rise_time_subset=list(slowest[0]),
+        min_disk_margin=min(f.disk_margin for _, f in figs),
+        max_overshoot_pct=_finite(max(f.overshoot_pct for _, f in figs)),
+        max_settling_time_s=_finite(max(f.settling_time_s for _, f in figs)))
     return certified

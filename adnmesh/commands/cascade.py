@@ -114,8 +114,9 @@ def _write_upper_config(hierarchy, sites, out: Path) -> Path:
     return path
 
 
-def _plot(hierarchy, upper, table, sites, out: Path) -> Path:
-    """The entry for all ADNs and each ADN alone, exact against equivalent (a PNG)."""
+def _plot(hierarchy, upper, table, sites, out: Path) -> Path | None:
+    """The entry for all ADNs and each ADN alone, exact against equivalent (a PNG; None if
+    none of them is certified)."""
     from adnmesh.cascade.figure import plot_entries
     from adnmesh.cascade.upper_table import cascade_of
     from adnmesh.loopmodel.plant import plant_from_ders
@@ -130,12 +131,18 @@ def _plot(hierarchy, upper, table, sites, out: Path) -> Path:
         plant = plant_from_ders(upper.ders_by_id(entry.ders), upper.design_t_com_s,
                                 upper.t_meas_s, entry.w, rise_per_lag=upper.rise_per_lag)
         settle = entry.figures.get("settling_time_s") or 60.0
-        title = (f"{' + '.join(entry.ders)}: rise {entry.figures['rise_time_s']:.3g} s, "
+        title = (f"{' + '.join(entry.ders)}: rise {_seconds(entry.figures['rise_time_s'])}, "
                  f"alpha {entry.figures['disk_margin']:.3g}")
         panels.append((title, cascade_of(sites, entry, hierarchy.t_meas_s), plant, entry.kp,
                        entry.ki, 2.5 * settle))
+    if not panels:
+        return None
     return plot_entries(panels, hierarchy.constraints.overshoot_max_pct,
                         out / f"{hierarchy.name}.cascade.png")
+
+
+def _seconds(value) -> str:
+    return "not reached" if value is None else f"{value:.3g} s"
 
 
 def _write_rows(rows, path: Path) -> None:
@@ -156,19 +163,40 @@ def _write_rows(rows, path: Path) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Tune the upper table and certify it on the exact cascade."""
-    from adnmesh.cascade.upper_table import certify_entries
-    from adnmesh.config import load_config, load_hierarchy
-    from adnmesh.tuning import tune_table
-    from adnmesh.tuning.table import default_table_path, save_table
+    from adnmesh.config import load_hierarchy
 
     hierarchy = load_hierarchy(args.hierarchy)
     out = args.out or hierarchy.path.parent / f"{hierarchy.name}-upper"
     output_path(out, "--out", directory=True)
+    with _numerics_said(hierarchy):
+        return _run(args, hierarchy, out)
+
+
+@contextlib.contextmanager
+def _numerics_said(hierarchy):
+    """A cascade the numerics cannot take (delays without a common unit, a loop that does not
+    rise) as one line naming the hierarchy file."""
+    try:
+        yield
+    except ValueError as exc:
+        raise ConfigError(f"{hierarchy.path}: {exc}") from None
+
+
+def _run(args: argparse.Namespace, hierarchy, out: Path) -> int:
+    from adnmesh.cascade.upper_table import certify_entries
+    from adnmesh.config import load_config
+    from adnmesh.tuning import tune_table
+    from adnmesh.tuning.table import default_table_path, save_table
+
     say = lambda text: print(text, file=sys.stderr)  # noqa: E731
     t0 = time.perf_counter()
     say(f"{hierarchy.name}: {len(hierarchy.adns)} ADNs")
     sites = hierarchy_sites(hierarchy, say)
-    upper = load_config(_write_upper_config(hierarchy, sites, out))
+    written = _write_upper_config(hierarchy, sites, out)
+    try:
+        upper = load_config(written)
+    except ConfigError as exc:
+        raise ConfigError(f"{hierarchy.path}: the upper level as a config: {exc}") from None
     table = tune_table(upper, "paper")
     say(f"upper table tuned on the equivalent models: {len(table.entries)} entries in "
         f"{time.perf_counter() - t0:.1f} s; certifying each on the exact cascade")
@@ -181,7 +209,8 @@ def run(args: argparse.Namespace) -> int:
     _write_rows(rows, csv_path)
     png = _plot(hierarchy, upper, table, {s.id: s for s in sites}, out)
     _report(rows, table, time.perf_counter() - t0, out, table_path, csv_path)
-    print(f"  figure: {png}")
+    print(f"  figure: {png}" if png else "  no figure: neither the entry for all ADNs nor one "
+          "for a single ADN is certified")
     if args.switches:
         _sweep(hierarchy, sites, table, out, say)
     return 0
@@ -240,8 +269,9 @@ def _sweep(hierarchy, sites, table, out: Path, say) -> None:
             kept = sum(r.back_off == 1.0 for r in rows)
             factors = [r.back_off for r in rows if r.back_off is not None]
             lost = sum(r.back_off is None for r in rows)
+            strongest = f" (strongest x{min(factors):.3g})" if factors else ""
             print(f"  switches of {adn.id}: {len(rows)} entries; the upper gains hold for {kept}, "
-                  f"back off for {len(factors) - kept} (strongest x{min(factors):.3g})"
+                  f"back off for {len(factors) - kept}{strongest}"
                   + (f", no factor for {lost}" if lost else ""))
     print(f"wrote {path}")
 

@@ -737,7 +737,7 @@ class CPFC(Agent):
         if self.hold is not None:
             body["hold"] = self.hold
         out.append(Outgoing(self.keys.of(loop.output_kind), body))
-        if announce and loop is P_LOOP and self.weights:
+        if announce and loop is P_LOOP and any(w > 0 for w in self.weights.values()):
             out.append(Outgoing(self.keys.of("adn_actuator"), self._actuator()))
         self._p_y_sent = body[loop.output_field]
         if self.model_watch is not None:
@@ -1127,10 +1127,10 @@ class CPFC(Agent):
     def _actuator(self) -> dict:
         """What the ADN offers the level above under its entry now (docs/hierarchy.md): the
         body of an ``adn_actuator`` message, with the entry's exact closed loop."""
-        from adnmesh.loopmodel.plant import plant_from_ders    # scipy: only when announced
+        from adnmesh.loopmodel.plant import plant_from_ders
 
         config = self.config
-        ders = config.ders_by_id([d for d in self._ids if d in self.weights])
+        ders = config.ders_by_id([d for d in self._ids if self.weights.get(d, 0.0) > 0])
         plant = plant_from_ders(ders, config.design_t_com_s, config.t_meas_s, self.weights,
                                 rise_per_lag=config.rise_per_lag)
         groups = [ActuatorGroup(a.t_delay_s, a.t_lag_s, a.model, float(g))

@@ -25,7 +25,6 @@ from functools import cached_property
 from typing import Iterable, Sequence
 
 import numpy as np
-import scipy.linalg
 
 __all__ = ["MODELS", "Actuator", "Plant", "plant_from_ders", "RISE_PER_LAG"]
 
@@ -119,6 +118,7 @@ class Actuator:
 @functools.lru_cache(maxsize=4096)
 def _foh(act: Actuator, h: float):
     """Augmented-matrix exponential: input u(t) = u0 + v t on [0, h] with v = (u1 - u0)/h."""
+    import scipy.linalg     # here: a plant's structure (the CPFC's announcement) needs no scipy
     a, b, c = act.state_space()
     n = a.shape[0]
     aug = np.zeros((n + 2, n + 2))
