@@ -669,3 +669,17 @@ def test_cpfc_announces_its_entry_as_an_actuator_of_the_level_above(config, tabl
     omega = np.geomspace(1e-3, 1e2, 50)
     assert np.array_equal(announced("x", decoded).closed_loop(omega),
                           lower_adn(config, entry, "x").closed_loop(omega))
+
+
+def test_cpfc_announces_the_ders_it_keeps_when_no_entry_has_gains_for_them(config) -> None:
+    """No entry and no static pair for the DERs left: the CPFC keeps its gains on them, and
+    the level above hears of the smaller ADN (the same entry number, fewer DERs)."""
+    table = SchedulingTable(config.sha256, {}, "test", config.der_ids())
+    table.add(TableEntry(("SGen1", "SGen2"), 5e-8, 1.92e-7, {"SGen1": 1.0, "SGen2": 0.8}))
+    cpfc = CPFC(config, GainSchedule(config, table, on_demand=False))
+    out = run_cpfc(cpfc, 5000 * MS, p_meas=lambda t: -2.5e6,
+                   si_at=(4500 * MS, {"SGen1": True, "SGen2": False}))
+    sent = [(t, o.body) for t, o in out if o.key == Keys(config.grid).of("adn_actuator")]
+    assert [(t, b["entry"], b["ders"]) for t, b in sent] == [
+        (0, 0, ["SGen1", "SGen2"]), (4500 * MS, 0, ["SGen1"])]
+    assert sent[1][1]["capacity_w"] == config.ders_by_id(["SGen1"])[0].p_inst_w

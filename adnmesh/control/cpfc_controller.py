@@ -509,6 +509,7 @@ class CPFC(Agent):
         self._p_ref_sent: float | None = None
         self._p_y_sent = 0.0                    # the P_Y of the last p_y message (DERs hold it)
         self._announced: int | None = None      # the entry whose design figures were sent
+        self._as_actuator: tuple | None = None  # what the last adn_actuator said: entry, DERs
         self._event_key = self.keys.of("event", self.agent_id)
         self.switches: list[SwitchEvent] = []
         self.counts: dict[str, int] = {"samples": 0, "no_gains": 0, "rejected_si": 0,
@@ -737,8 +738,12 @@ class CPFC(Agent):
         if self.hold is not None:
             body["hold"] = self.hold
         out.append(Outgoing(self.keys.of(loop.output_kind), body))
-        if announce and loop is P_LOOP and any(w > 0 for w in self.weights.values()):
-            out.append(Outgoing(self.keys.of("adn_actuator"), self._actuator()))
+        if loop is P_LOOP:
+            # a new entry, or the same gains on other DERs (no entry for the set: held on)
+            acting = (self.entry_index, tuple(d for d in self._ids if self.weights.get(d, 0) > 0))
+            if acting[1] and acting != self._as_actuator:
+                self._as_actuator = acting
+                out.append(Outgoing(self.keys.of("adn_actuator"), self._actuator()))
         self._p_y_sent = body[loop.output_field]
         if self.model_watch is not None:
             self._watch_sent(t_ns, out)

@@ -173,7 +173,8 @@ class ActuatorGroup(Struct, forbid_unknown_fields=True):
 
 class AdnActuator(Envelope):
     """The ADN as an actuator of the level above (docs/hierarchy.md), sent by its CPFC with
-    the first output of every entry: the entry's number and DERs in use, the installed power
+    the first output of every entry and when its gains go on to other DERs (no entry for the
+    set left): the entry's number and DERs in use, the installed power
     of those DERs (``capacity_w``, the ADN's C_i, W), its range above and below their
     schedules (W), and the entry's exact closed loop: PI gains (1/W, 1/(W s)), the loop's
     design T_com and T_meas (s) and its groups."""
