@@ -184,6 +184,29 @@ def test_gain_switch_is_bumpless_in_the_distributed_run(reference_run) -> None:
     assert summary["switches"][0]["p_y_jump"] == 0.0
 
 
+def test_the_cpfc_announced_each_entry_as_an_actuator(reference_run) -> None:
+    """docs/hierarchy.md#what-an-adn-announces: the recording holds the ADN as an actuator at
+    the start and at the switch, and each announcement rebuilds its entry's closed loop."""
+    import msgspec
+
+    from adnmesh.cascade.lower_adn import announced
+    from adnmesh.cascade.upper_table import lower_adn
+    from adnmesh.wire.messages import AdnActuator
+
+    _, config_path, table_path, _, recording, _ = reference_run
+    config = load_config(config_path)
+    table = load_table(table_path, config)
+    sent = [msgspec.json.decode(m.data, type=AdnActuator) for m in recording.messages
+            if m.topic.endswith("/cpfc/actuator")]
+    assert [(a.t_send_ns, a.entry) for a in sent] == [(0, 0), (8_200_000_000, 1)]
+    assert len(sent[1].ders) == len(sent[0].ders) - 1
+    omega = np.geomspace(1e-3, 1e2, 40)
+    for a in sent:
+        entry = table.lookup(a.ders)
+        assert np.array_equal(announced("x", a).closed_loop(omega),
+                              lower_adn(config, entry, "x").closed_loop(omega))
+
+
 # --- 7b: same config and seed, same messages ------------------------------------------------------
 
 
