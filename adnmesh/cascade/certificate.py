@@ -12,9 +12,9 @@ a response not settled by :data:`~adnmesh.cascade.nested_step.MAX_HORIZON_S` (or
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
-from adnmesh.cascade.nested_loop import UpperLoop, upper_loop
+from adnmesh.cascade.nested_loop import upper_loop
 from adnmesh.cascade.nested_step import choose_step, simulate_until_settled
 from adnmesh.cascade.structure import Cascade
 from adnmesh.loopmodel.step_figures import step_figures
@@ -72,12 +72,6 @@ class CascadeFigures:
             return f"overshoot {self.overshoot_pct:.3f} % >= {overshoot_max_pct:g} %"
         return None
 
-    def to_json(self) -> dict:
-        """Plain numbers (NaN and infinity as None)."""
-        return {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
-                for k, v in asdict(self).items()}
-
-
 def settled_horizon(cascade: Cascade, bandwidth_rad_s: float) -> float:
     """The shortest horizon simulated, s: ``20 / bandwidth`` and 4 x (slowest lag + every
     delay of the cascade)."""
@@ -96,10 +90,10 @@ def _settled_step(cascade: Cascade, upper, bandwidth_rad_s: float, band_pct: flo
     return step_figures(run.t_s, run.y, band_pct), h
 
 
-def cascade_figures(cascade: Cascade, kp: float, ki: float, band_pct: float = 5.0,
-                    loop: UpperLoop | None = None) -> CascadeFigures:
+def cascade_figures(cascade: Cascade, kp: float, ki: float,
+                    band_pct: float = 5.0) -> CascadeFigures:
     """Figures of the cascade under the upper PI ``(kp, ki)`` (1/W, 1/(W s))."""
-    loop = upper_loop(cascade, kp, ki) if loop is None else loop
+    loop = upper_loop(cascade, kp, ki)
     nan = float("nan")
     if not loop.stable:
         return CascadeFigures(False, loop.lower_stable, loop.resolved, 0.0, nan, nan, nan, nan,

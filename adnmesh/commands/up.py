@@ -478,14 +478,9 @@ def _launch_with_view(args, options, launch, err: Console, log):
     on_events = bar.events if bar is not None else None
     view = None
     if target is not None or bar is not None:     # without a target: the bar's events only
-        from adnmesh.results.live import hold_behind_ns
-        from adnmesh.sim.topology import Topology
-
         grid = options.config.grid_model
-        windows = Topology.from_config(options.config).lookahead_ns.values()
         view = open_view(target, options.run_id, log, on_events=on_events,
-                         limits=grid.limits if grid is not None else None,
-                         hold_behind_ns=hold_behind_ns(max(windows, default=0)))
+                         limits=grid.limits if grid is not None else None)
     options.view = view
     options.progress = bar.update if bar is not None else None
     try:

@@ -510,6 +510,7 @@ class CPFC(Agent):
         self._p_y_sent = 0.0                    # the P_Y of the last p_y message (DERs hold it)
         self._announced: int | None = None      # the entry whose design figures were sent
         self._as_actuator: tuple | None = None  # what the last adn_actuator said: entry, DERs
+        self._reannounce = True                 # weights set since the last look at them
         self._event_key = self.keys.of("event", self.agent_id)
         self.switches: list[SwitchEvent] = []
         self.counts: dict[str, int] = {"samples": 0, "no_gains": 0, "rejected_si": 0,
@@ -738,8 +739,9 @@ class CPFC(Agent):
         if self.hold is not None:
             body["hold"] = self.hold
         out.append(Outgoing(self.keys.of(loop.output_kind), body))
-        if loop is P_LOOP:
+        if loop is P_LOOP and self._reannounce:
             # a new entry, or the same gains on other DERs (no entry for the set: held on)
+            self._reannounce = False
             acting = (self.entry_index, tuple(d for d in self._ids if self.weights.get(d, 0) > 0))
             if acting[1] and acting != self._as_actuator:
                 self._as_actuator = acting
@@ -989,6 +991,7 @@ class CPFC(Agent):
 
     def _switch(self, t_ns: int, available: frozenset[str]) -> SwitchRecord | None:
         redirected, self._redirected = self._redirected, False
+        self._reannounce = True
         self.available = available
         in_use = self.in_use = self._in_use(available)
         entry, source = self.schedule.lookup(in_use, t_ns) if in_use else (None, "none")

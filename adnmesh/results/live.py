@@ -24,7 +24,7 @@ from adnmesh.results.rerun_export import (HOLD_PERIOD_NS, blueprint, held, limit
 from adnmesh.results.rules import Event
 from adnmesh.results.series import LiveCollector, RunData, Series
 
-__all__ = ["hold_behind_ns", "LiveView", "RecordQueue", "VIEW_PERIOD_S"]
+__all__ = ["LiveView", "RecordQueue", "VIEW_PERIOD_S"]
 
 VIEW_PERIOD_S = 0.5
 """How often the view is sent what came, wall s."""
@@ -85,16 +85,14 @@ class LiveView(RecordQueue):
 
     def __init__(self, rec, *, t0_ns: int = 0, period_s: float = VIEW_PERIOD_S,
                  on_events: Callable[[list[Event]], None] | None = None,
-                 viewer_pid: int | None = None, limits=None,
-                 hold_behind_ns: int | None = None) -> None:
+                 viewer_pid: int | None = None, limits=None) -> None:
         super().__init__()
         self.rec, self.t0_ns, self.period_s, self.on_events = rec, t0_ns, period_s, on_events
         self.viewer_pid, self.limits = viewer_pid, limits
         self._der_ids: list[str] = []            # the DERs seen: their colours
         self.collector = LiveCollector()
         self.now_ns = 0                          # newest send time seen, ns
-        # step series held up to now_ns - this
-        self._behind_ns = HOLD_BEHIND_NS if hold_behind_ns is None else int(hold_behind_ns)
+        self._behind_ns = HOLD_BEHIND_NS         # step series held up to now_ns - this
         self.sends = 0                           # how many times something was sent
         self.error: str | None = None            # why the view stopped, if it failed
         self._stop = threading.Event()
@@ -201,15 +199,9 @@ class LiveView(RecordQueue):
 
 
 HOLD_BEHIND_NS = HOLD_PERIOD_NS
-"""How far behind the newest sim time seen a step series is held by default, ns. ``up`` gives
-the view twice its run's longest clock window if that is longer
-(:func:`hold_behind_ns`), so every real sample before it has come."""
-
-
-def hold_behind_ns(longest_window_ns: int) -> int:
-    """How far behind the newest sim time a run whose clock windows are at most
-    ``longest_window_ns`` long holds its step series, ns."""
-    return max(HOLD_BEHIND_NS, 2 * int(longest_window_ns))
+"""How far behind the newest sim time seen a step series is held, ns: longer than the clock
+windows of the shipped configs (300 ms for the reference case), so every real sample before it
+has come. A run whose windows are longer than this could still show a held value early."""
 
 _EMPTY_I = np.zeros(0, dtype=np.int64)
 _EMPTY_F = np.zeros(0, dtype=np.float64)

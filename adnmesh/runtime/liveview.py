@@ -86,7 +86,7 @@ class ViewProcess(RecordQueue):
 
     def __init__(self, sink: tuple, run_id: str, on_events=None,
                  viewer_pid: int | None = None, period_s: float = VIEW_PERIOD_S,
-                 limits=None, hold_behind_ns: int | None = None) -> None:
+                 limits=None) -> None:
         super().__init__()
         self.viewer_pid, self.on_events, self.period_s = viewer_pid, on_events, period_s
         self.error: str | None = None
@@ -95,8 +95,7 @@ class ViewProcess(RecordQueue):
         context = multiprocessing.get_context("spawn")
         self._conn, child = context.Pipe()
         self._process = context.Process(target=_serve, args=(child, sink, run_id,
-                                                             on_events is not None, limits,
-                                                             hold_behind_ns),
+                                                             on_events is not None, limits),
                                         name="adnmesh-live-view", daemon=True)
         self._process.start()
         child.close()
@@ -149,8 +148,7 @@ class ViewProcess(RecordQueue):
                 return
 
 
-def _serve(conn, sink: tuple, run_id: str, events: bool, limits=None,
-           hold_behind_ns: int | None = None) -> None:
+def _serve(conn, sink: tuple, run_id: str, events: bool, limits=None) -> None:
     """The child process: messages from ``conn`` into a :class:`LiveView`, until None."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)     # up ends it, after the run
     try:
@@ -168,7 +166,7 @@ def _serve(conn, sink: tuple, run_id: str, events: bool, limits=None,
             rec.connect_grpc(sink[1])
         rec.send_recording_name(run_id)
     view = LiveView(rec, on_events=(lambda found: conn.send(("events", found)))
-                    if events else None, limits=limits, hold_behind_ns=hold_behind_ns)
+                    if events else None, limits=limits)
     try:
         while (pending := conn.recv()) is not None:
             for topic, schema_name, records in pending:
@@ -181,12 +179,10 @@ def _serve(conn, sink: tuple, run_id: str, events: bool, limits=None,
 
 
 def open_view(target: ViewTarget | None, run_id: str, log: Callable[[str], None],
-              on_events=None, limits=None, hold_behind_ns: int | None = None
-              ) -> ViewProcess | None:
+              on_events=None, limits=None) -> ViewProcess | None:
     """Open the view of ``target`` (None: events only, for ``on_events``) and return it
     started (None: a native viewer without a display, said in one line through ``log``).
-    ``limits`` (the config's ``grid_model.limits``) is drawn beside the grid's extremes;
-    ``hold_behind_ns`` as :class:`~adnmesh.results.live.LiveView`'s."""
+    ``limits`` (the config's ``grid_model.limits``) is drawn beside the grid's extremes."""
     if target is None:
         return ViewProcess(("none", None), run_id, on_events)
     if target.kind == "native" and not _has_display():
@@ -196,8 +192,7 @@ def open_view(target: ViewTarget | None, run_id: str, log: Callable[[str], None]
     if target.kind == "file":
         target.path.parent.mkdir(parents=True, exist_ok=True)
         log(f"live view: streaming to {target.path}")
-        return ViewProcess(("file", str(target.path)), run_id, on_events, limits=limits,
-                           hold_behind_ns=hold_behind_ns)
+        return ViewProcess(("file", str(target.path)), run_id, on_events, limits=limits)
     grpc_port, web_port = free_port(), free_port()
     viewer = subprocess.Popen(viewer_argv(target.kind == "web", grpc_port, web_port),
                               stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
@@ -208,4 +203,4 @@ def open_view(target: ViewTarget | None, run_id: str, log: Callable[[str], None]
     log(f"live view: {where} (pid {viewer.pid}; it stays open after the run: "
         f"kill {viewer.pid} to close it)")
     return ViewProcess(("grpc", grpc_url(grpc_port, DEFAULT_HOST)), run_id, on_events,
-                       viewer.pid, limits=limits, hold_behind_ns=hold_behind_ns)
+                       viewer.pid, limits=limits)
