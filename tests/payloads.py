@@ -30,6 +30,7 @@ BODIES = {
                      "range_down_w": 0.0, "kp": 1e-7, "ki": 3e-7, "t_com_s": 0.15,
                      "t_meas_s": 0.1, "groups": [{"t_delay_s": 0.01, "t_lag_s": 0.234,
                                                   "model": "pt1", "gain_w": 2e6}]},
+    "adn_offset": {"offset_w": 2.5e5},
     "q_y": {"q_y": -0.25, "q_ref_var": 1e5, "kp": 5e-8, "ki": 2e-7, "entry": 1},
     "q_ref": {"q_ref_var": 2.5e5},
     "der_state": {"p_w": 1e5, "setpoint_w": 2e5, "mode": "control"},

@@ -28,7 +28,8 @@ from adnmesh.wire.units import NS_MAX, ns
 KEYS = Keys("g")
 SENDER = {KEYS.of(kind, *who): sender for kind, who, sender in [
     ("grid_state", (), "measurement"), ("grid_guard", (), "measurement"), ("p_y", (), "cpfc"), ("p_ref", (), "cpfc"),
-    ("adn_actuator", (), "cpfc"),
+    ("adn_actuator", (), "cpfc"), ("adn_offset", ("SGen1",), "der/SGen1"),
+    ("adn_exchange", (), "measurement"),
     ("q_y", (), "cpfc"), ("q_ref", (), "cpfc"),
     ("der_state", ("SGen1",), "der/SGen1"), ("der_state", ("SGen2",), "der/SGen2"),
     ("heartbeat", ("SGen1",), "der/SGen1"),
@@ -61,6 +62,8 @@ EXAMPLES = {
                                     "q_held": -1},
     KEYS.of("heartbeat", "SGen1"): {"available": False, "mode": "watchdog", "p_y": 0.0, "entry": 2},
     KEYS.of("p_ip"): {"p_ip_w": 3.5, "q_ip_var": -2.5e5},
+    KEYS.of("adn_offset", "SGen1"): {"offset_w": -2.5e5},
+    KEYS.of("adn_exchange"): {"p_ip_w": 1.2e7},
     KEYS.of("grid_state"): {"v_min_pu": 0.98, "v_max_pu": 1.03, "line_loading_max_pct": 41.5,
                       "trafo_loading_max_pct": 30.0, "q_ip_var": 3.5e5, "samples": 100,
                       "outside_band": 2, "not_converged": 0, "outside_s": 0.02,

@@ -59,6 +59,12 @@ limit). In guard mode ``block`` it holds (``hold: grid``)
 against every error that would move the DERs further in their direction, and follows one
 that moves them back.
 
+**In a hierarchy of ADNs** (docs/hierarchy.md) the level above asks for an offset of P_ref from
+the ADN's own schedule (``adn_offset`` from the ADN's site agent); the CPFC takes the offset it
+last heard into P_ref at each sample, and keeps it when the level above falls silent. An offset
+moves the DERs without a step of the schedule, so the direction of directional availability is
+decided at the ADN's own steps only.
+
 **Said when over**: the first P_Y of every entry with certified figures carries them
 (``design``: docs/method.md#said-when-over), so a recording knows what each step's entry was
 certified for.
@@ -493,6 +499,9 @@ class CPFC(Agent):
                        if steps is None else list(steps))
         self._known = frozenset(self._ids if known_ids is None else known_ids)
         self._next_step = 0
+        # the level above's share (a hierarchy of ADNs): the offset of P_ref it asks for, W,
+        # and the part of it already in p_ref_w
+        self.offset_w = self._offset_in_ref_w = 0.0
         self.available = self.in_use = frozenset(self._ids)
         self._pending: frozenset[str] | None = None
         self._awaiting: frozenset[str] | None = None     # set whose tuning is running
@@ -563,6 +572,8 @@ class CPFC(Agent):
             self.actuators_held = 0 if held is UNSET else (1 if held == "up" else -1)
         elif message.type == "heartbeat":
             self._ack(t_ns, message)
+        elif message.type == "adn_offset" and loop is P_LOOP:
+            self.offset_w = message.offset_w    # taken into P_ref at the next sample
         elif message.type == "grid_guard":
             return self._guard(message)
         elif message.type == "si":
@@ -768,11 +779,15 @@ class CPFC(Agent):
     # -- the steps of a sample -----------------------------------------------------------------
 
     def _reference(self) -> list[Outgoing]:
-        """Apply the P_ref steps due; the p_ref message when it changed."""
+        """Apply the P_ref steps due and the level above's offset as it last said it; the
+        p_ref message when P_ref changed."""
         t_ns = self.next_sample_ns
         while self._next_step < len(self._steps) and self._steps[self._next_step][0] <= t_ns:
             self.p_ref_w += self._steps[self._next_step][1]
             self._next_step += 1
+        if self.offset_w != self._offset_in_ref_w:
+            self.p_ref_w += self.offset_w - self._offset_in_ref_w
+            self._offset_in_ref_w = self.offset_w
         if self.p_ref_w == self._p_ref_sent:
             return []
         self._p_ref_sent = self.p_ref_w

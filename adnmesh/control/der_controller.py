@@ -85,8 +85,14 @@ class DERController(Agent):
     """Local controller of DER ``der`` (agent id ``der/<id>``; see the module docstring)."""
 
     def __init__(self, der: DER, config: Config, p_avail_w: float | None = None,
-                 params=None, device: PlantDevice | None = None) -> None:
+                 params=None, device: PlantDevice | None = None,
+                 watchdog_holds: bool = False) -> None:
         self.der = der
+        # the watchdog keeps the last setpoint instead of the schedule, and so does a command
+        # without a weight for it after the watchdog, until a weight comes (an ADN as a DER of
+        # the level above: cut off from it, it runs on its last reference; adn_site.py)
+        self.watchdog_holds = watchdog_holds
+        self._holding = False
         self.p_avail_w = usable_available_w(der, p_avail_w)
         self.agent_id = der_agent_id(der.id)
         keys = Keys(config.grid)
@@ -211,7 +217,9 @@ class DERController(Agent):
             out.append(Outgoing(self._event_key, {
                 "level": "WARNING", "kind": "watchdog_fallback", "subject": self.agent_id,
                 "text": f"{self.der.id}: no valid command for "
-                        f"{self.watchdog_ns / 1e9:g} s, back to its schedule"}))
+                        f"{self.watchdog_ns / 1e9:g} s, " + (
+                            "holding its last set-point" if self.watchdog_holds
+                            else "back to its schedule")}))
         if (self.available, self.watchdog_expired) != self._inputs:
             self._update_setpoint(t_ns)   # else on_message has set it from the same inputs
         if t_ns == self.next_sample_ns:
@@ -340,9 +348,14 @@ class DERController(Agent):
             setpoint, mode = der.p_sched_w, "schedule"
             self._handover = None            # it belongs to the control it interrupts
         elif self.watchdog_expired:
-            setpoint, mode = der.p_sched_w, "watchdog"
+            self._holding = self.watchdog_holds
+            setpoint = self.setpoint_w if self._holding else der.p_sched_w
+            mode = "watchdog"
             self._handover = None
+        elif self._holding and self.weight == 0:
+            setpoint, mode = self.setpoint_w, "control"
         else:
+            self._holding = False
             wanted = self.p_y * self.weight * der.p_inst_w + der.p_sched_w
             if self._handover is not None:
                 wanted += self._handover_offset_w(t_ns)

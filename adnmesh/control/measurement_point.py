@@ -13,6 +13,10 @@ the CPFC on ``measurement/p_ip`` over the ``measurement_to_cpfc`` link (delay ``
   highest line and transformer loading, the samples outside ``grid_model.limits``);
 - without it: ``P_IP = runtime.rest_of_grid_w + Σ_d P_d``.
 
+As a level of a hierarchy of ADNs (docs/hierarchy.md) it also sends each sample's P_IP at once,
+over the ``physical`` path, on ``measurement/exchange``: the ADN's exchange with the level above,
+for its site agent.
+
 With reactive power control (the config's ``reactive``) the DERs' reactive infeeds enter the
 power flow as their sgens' ``q_mvar`` (without a grid model ``Q_IP = reactive.rest_of_grid_var +
 Σ_d Q_d``), every ``p_ip`` carries Q_IP, and ``q_held`` says when every DER following Q_Y is
@@ -52,9 +56,11 @@ class Measurement(Agent):
 
     agent_id = "measurement"
 
-    def __init__(self, config: Config) -> None:
+    def __init__(self, config: Config, exchange: bool = False) -> None:
         keys = Keys(config.grid)
         self._p_ip_key, self._grid_key = keys.of("p_ip"), keys.of("grid_state")
+        # a level of a hierarchy of ADNs: each P_IP also goes, at once, to the site agent
+        self._exchange_key = keys.of("adn_exchange") if exchange else None
         self._event_key = keys.of("event", self.agent_id)
         self.period_ns = ns(config.runtime.measurement_period_s)
         self.rest_of_grid_w = config.runtime.rest_of_grid_w
@@ -163,6 +169,12 @@ class Measurement(Agent):
         return out
 
     def on_timer(self, t_ns: int) -> list[Outgoing]:
+        out = self._sample(t_ns)
+        if self._exchange_key is not None:     # out[0] is the sample's p_ip
+            out.append(Outgoing(self._exchange_key, {"p_ip_w": out[0].body["p_ip_w"]}))
+        return out
+
+    def _sample(self, t_ns: int) -> list[Outgoing]:
         self.next_sample_ns += self.period_ns
         self.counts["samples"] += 1
         events = self._silent(t_ns)

@@ -109,18 +109,22 @@ class Node:
         causality). Realtime: a message due before the end of the last :meth:`advance` (its
         instant was processed, so its order among that instant's events may differ from the sim
         run's) is processed at once and counted as late.
+    node_id : str, optional
+        The agent's name in ``topology`` and to the clock, if not its agent id (a hierarchy
+        of ADNs: ``<grid>:<agent id>``, :mod:`adnmesh.sim.hierarchy_topology`).
     """
 
     def __init__(self, agent: Agent, topology: Topology, seed: int, *, start_ns: int = 0,
-                 strict: bool = True) -> None:
+                 strict: bool = True, node_id: str | None = None) -> None:
         self.agent = agent
         self.agent_id = agent.agent_id
-        self.subscriptions = topology.subscriptions[agent.agent_id]
+        self.node_id = node_id = node_id or agent.agent_id
+        self.subscriptions = topology.subscriptions[node_id]
         self._topology = topology
         self.seed = seed
-        self._sending = {key: _Sending(Link(topology.link(agent.agent_id, key), seed,
+        self._sending = {key: _Sending(Link(topology.link(node_id, key), seed,
                                             agent.agent_id))
-                         for key in topology.publishes(agent.agent_id)}
+                         for key in topology.publishes(node_id)}
         self.outbox = Outbox(agent.agent_id)
         self.gate = Gate(self.subscriptions, topology.der_ids, outside_reason="not_subscribed",
                          start_ns=start_ns, capacity_w=topology.capacity_w)
@@ -364,5 +368,5 @@ class Node:
             sending.window_count = 0
         self._window_keys = []
         killed = self.kill_ns if self.killed else None
-        return Report(self.agent_id, None if killed is not None else self.next_event_ns(),
+        return Report(self.node_id, None if killed is not None else self.next_event_ns(),
                       self.counts.received, sent, killed)

@@ -26,8 +26,7 @@ from typing import NamedTuple
 import numpy as np
 
 from adnmesh.config import Config, LinkSettings
-from adnmesh.names import (ICT_LINKS, LAUNCHER, OPERATOR, PER_DER_KIND, agent_ids, der_agent_id,
-                           der_id_of)
+from adnmesh.names import ICT_LINKS, LAUNCHER, OPERATOR, PER_DER_KIND, agent_ids, der_agent_id
 from adnmesh.sim.links import LinkParams
 from adnmesh.wire.keys import Keys
 from adnmesh.wire.protocol import EVERY_AGENT, PROTOCOL, MessageKind
@@ -91,16 +90,18 @@ class Topology:
 
     @property
     def der_ids(self) -> frozenset[str]:
-        """The DER ids of the run."""
-        return frozenset(d for a in self.agents if (d := der_id_of(a)) is not None)
+        """The DER ids of the run (those with an installed power)."""
+        return frozenset(self.capacity_w)
 
     @classmethod
-    def from_config(cls, config: Config) -> Topology:
+    def from_config(cls, config: Config, features: frozenset[str] = frozenset()) -> Topology:
+        """The topology of ``config``'s run; ``features`` adds protocol features the config
+        does not say (``hierarchy``: the grid is a level of a hierarchy of ADNs)."""
         keys = Keys(config.grid)
         der_ids = [d.id for d in config.ders]
         agents = agent_ids(der_ids)
         params = _link_params(config)
-        features = config.features()
+        features = config.features() | features
         routes = tuple(_routes(keys, agents, der_ids, features))
         links: dict[tuple[str, str], LinkParams] = {}
         receivers: dict[str, tuple[str, ...]] = {}

@@ -31,6 +31,7 @@ __all__ = [
     "MESSAGE_VERSION",
     "ActuatorGroup",
     "AdnActuator",
+    "AdnOffset",
     "AgentBye",
     "ClockGrant",
     "ClockReport",
@@ -190,6 +191,14 @@ class AdnActuator(Envelope):
     t_com_s: Seconds
     t_meas_s: Seconds
     groups: Annotated[list[ActuatorGroup], Meta(max_length=MAX_DERS)]
+
+
+class AdnOffset(Envelope):
+    """The level above's share for one ADN, sent by the ADN's site agent to the ADN's CPFC: the
+    offset of its reference P_ref from its own schedule, W (docs/hierarchy.md)."""
+
+    type: Literal["adn_offset"]
+    offset_w: Power
 
 
 class PRef(Envelope):

@@ -21,6 +21,8 @@ kind                 key (``adn/<grid>/``)      sender          receivers       
 ``p_y``              ``cpfc/p_y``               ``cpfc``        every DER              ``cpfc_to_der``
 ``p_ref``            ``scenario/p_ref``         ``cpfc``        (recorded)             ``local``
 ``adn_actuator``     ``cpfc/actuator``          ``cpfc``        (recorded)             ``local``
+``adn_offset``       ``der/{der}/offset``       the DER (site)  the ADN's ``cpfc``     ``local``
+``adn_exchange``     ``measurement/exchange``   ``measurement`` the ADN's site         ``physical``
 ``q_y``              ``cpfc/q_y``               ``cpfc``        every DER              ``cpfc_to_der``
 ``q_ref``            ``scenario/q_ref``         ``cpfc``        (recorded)             ``local``
 ``der_state``        ``der/{der}/state``        the DER         ``measurement``        ``physical``
@@ -39,6 +41,12 @@ kind                 key (``adn/<grid>/``)      sender          receivers       
 ``agent_bye``        ``clock/bye/{agent}``      the agent       ``up``                 (sim clock)
 ``clock_kill``       ``clock/kill/{agent}``     ``up``          the agent              (a kill noted: die)
 ===================  =========================  ==============  =====================  ===================
+
+The two ``hierarchy`` kinds cross from one grid to another in a hierarchy of ADNs
+(docs/hierarchy.md): ``adn_offset`` is sent in the upper grid by the site agent that stands as
+the ADN's DER there, and received by the ADN's CPFC; ``adn_exchange`` is the ADN's exchange with
+the level above at each sample, received by its site agent. The table names no receiver of
+theirs; the hierarchy's topology (:mod:`adnmesh.sim.hierarchy_topology`) adds them.
 
 **Adding a message kind** is one struct in :mod:`adnmesh.wire.messages` and one row here; an
 agent then returns ``Outgoing(keys.of("<kind>"), {...})`` and handles the message in
@@ -183,6 +191,10 @@ PROTOCOL: tuple[MessageKind, ...] = (
         _S("p_ref_w", "P_ref", "p_ref", step=True),)),
     MessageKind("adn_actuator", "cpfc/actuator", m.AdnActuator, "cpfc", (), "local", (
         _S("capacity_w", "ADN capacity", "adn_capacity", step=True),)),
+    MessageKind("adn_offset", "der/{der}/offset", m.AdnOffset, "der", (), "local", (
+        _S("offset_w", "{der} reference offset", "adn_offset", step=True),), feature="hierarchy"),
+    MessageKind("adn_exchange", "measurement/exchange", m.PIP, "measurement", (), "physical",
+                quiet=True, feature="hierarchy"),
     MessageKind("q_y", "cpfc/q_y", m.QY, "cpfc", ("der",), "cpfc_to_der", (
         _S("q_y", "Q_Y", "q_y", unit="1"),
         _S("kp", "K_P of Q", "q_kp", unit="1/var", step=True),
