@@ -1421,6 +1421,10 @@ class HierarchyAdn(Section):
     """Its own adnmesh config (a file name relative to this file)."""
     t_com_s: _MsDelay
     """Inter-site delay upper CPFC -> this ADN's CPFC, s (whole milliseconds)."""
+    keep_steps: bool = False
+    """In the hierarchy's run, keep the steps of P_ref of the ADN's own scenario as its
+    schedule (default: its reference is its operating point plus the offset from above; the
+    availability changes of its scenario always apply)."""
 
 
 class HierarchyConstraints(Section):
@@ -1449,10 +1453,20 @@ class HierarchyFile(Section):
     adns: Annotated[tuple[HierarchyAdn, ...], Field(strict=False, min_length=1,
                                                     max_length=MAX_ADNS)]
     """The ADNs the upper controller drives, in file order."""
+    scenario: Scenario = Scenario(duration_s=600.0)
+    """The upper level's run (``adnmesh cascade --run``): its duration, the steps of the
+    reference of the sum of the ADNs' exchanges, ADNs leaving and returning (by id)."""
+    faults: _Events[Fault] = ()
+    """Faults of the upper level's run; ``der_offline`` of an ADN cuts its site off from the
+    level above."""
 
     @model_validator(mode="after")
     def _distinct(self) -> HierarchyFile:
         _unique([a.id for a in self.adns], lambda i: ("adns", i, "id"), "ADN id")
+        for i, adn in enumerate(self.adns):
+            if adn.id == self.name:
+                raise _problem(("adns", i, "id"), f"must differ from the hierarchy's name "
+                                                  f"{self.name!r} (each grid has its own keys)")
         return self
 
 

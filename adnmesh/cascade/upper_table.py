@@ -29,8 +29,8 @@ from adnmesh.cascade.structure import Cascade
 from adnmesh.loopmodel.plant import plant_from_ders
 from adnmesh.tuning.table import SchedulingTable, TableEntry
 
-__all__ = ["Site", "lower_adn", "upper_config_document", "certify_entries", "cascade_of",
-           "CertifiedRow"]
+__all__ = ["Site", "lower_adn", "upper_config_document", "upper_t_com_s", "certify_entries",
+           "cascade_of", "CertifiedRow"]
 
 #: grid of the equivalent models' delays in the upper config, s (the configs' delays are
 #: taken to whole milliseconds by the cascade's simulation)
@@ -45,6 +45,10 @@ class Site:
     adn: LowerAdn
     t_com_s: float
     equivalent: Equivalent
+    p_sched_w: float = 0.0
+    """Its room below its schedule: the schedules of the entry's DERs, W."""
+    p_ip0_w: float = 0.0
+    """Its exchange with the level above in its operating point, W (MV -> HV positive)."""
 
 
 @dataclass(frozen=True)
@@ -73,18 +77,33 @@ def lower_adn(config, entry: TableEntry, name: str) -> LowerAdn:
 def upper_config_document(hierarchy, sites: list[Site]) -> dict:
     """The upper level as an adnmesh config document (YAML-ready): one ``GEN`` actuator per
     ADN with its equivalent model; ``t_com_s`` the shortest inter-site delay (at least 1 ms)
-    and each ADN's remainder in its dead time, to whole milliseconds."""
-    t_com = max(min(s.t_com_s for s in sites), DELAY_GRID_S)
+    and each ADN's remainder in its dead time, to whole milliseconds. Each ADN's DER runs from
+    0 to its installed power with its room below its schedule as ``p_sched_w``, and
+    ``rest_of_grid_w`` makes the upper P_IP the sum of the ADNs' exchanges; the scenario and
+    faults are the hierarchy file's."""
+    t_com = upper_t_com_s(sites)
     ders = []
     for site in sites:
         eq = site.equivalent
         delay = max(eq.delay_s + site.t_com_s - t_com, 0.0)
         ders.append({"id": site.id, "type": "GEN", "p_inst_w": site.adn.capacity_w,
+                     "p_sched_w": site.p_sched_w,
                      "t_delay_s": round(delay / DELAY_GRID_S) * DELAY_GRID_S,
                      "t_rise_s": float(f"{eq.t_rise_s:.6g}"), "sgen": site.id})
     constraints = hierarchy.constraints.model_dump() | {"sampled_pi": False}
+    runtime = {"rest_of_grid_w": sum(s.p_ip0_w - s.p_sched_w for s in sites)}
+    if hierarchy.faults:
+        runtime["faults"] = [f.model_dump(mode="json", exclude_none=True)
+                             for f in hierarchy.faults]
     return {"grid": hierarchy.name, "t_com_s": t_com, "t_meas_s": hierarchy.t_meas_s,
-            "constraints": constraints, "ders": ders, "scenario": {"duration_s": 600.0}}
+            "constraints": constraints, "ders": ders,
+            "scenario": hierarchy.scenario.model_dump(mode="json", exclude_defaults=True) | {
+                "duration_s": hierarchy.scenario.duration_s}, "runtime": runtime}
+
+
+def upper_t_com_s(sites: list[Site]) -> float:
+    """The upper config's ``t_com_s``: the shortest inter-site delay, at least 1 ms, s."""
+    return max(min(s.t_com_s for s in sites), DELAY_GRID_S)
 
 
 def cascade_of(sites: dict[str, Site], entry: TableEntry, t_meas_s: float) -> Cascade:

@@ -41,6 +41,11 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         "table (all its subsets up to %d DERs, its scenario's beyond; tuned "
                         "now where it has no table) under the upper entry for all ADNs, and "
                         "write OUT/<name>.switches.csv" % SWEEP_ALL_UP_TO)
+    parser.add_argument("--run", action="store_true", dest="run_levels",
+                        help="then run the hierarchy on the sim clock in this process (every "
+                        "level's agents, the hierarchy file's scenario and faults), write "
+                        "OUT/<name>.run.mcap and OUT/<name>.run.png and say each upper step "
+                        "against the constraints")
     return parser
 
 
@@ -78,6 +83,7 @@ def hierarchy_sites(hierarchy, say=lambda text: None):
     from adnmesh.cascade.equivalent import equivalent
     from adnmesh.cascade.upper_table import Site, lower_adn
     from adnmesh.config import load_config
+    from adnmesh.control.operating_point import initial_p_ip_w
 
     sites = []
     for adn in hierarchy.adns:
@@ -98,7 +104,9 @@ def hierarchy_sites(hierarchy, say=lambda text: None):
             f"{source}; closed loop rise {eq.rise_time_s:.3g} s, overshoot "
             f"{eq.overshoot_pct:.3g} %; equivalent dead time {eq.delay_s:.3g} s, lag "
             f"{eq.lag_s:.3g} s")
-        sites.append(Site(adn.id, lower, adn.t_com_s, eq))
+        sites.append(Site(adn.id, lower, adn.t_com_s, eq,
+                          p_sched_w=sum(d.p_sched_w for d in config.ders_by_id(entry.ders)),
+                          p_ip0_w=initial_p_ip_w(config)))
     return sites
 
 
@@ -213,6 +221,31 @@ def _run(args: argparse.Namespace, hierarchy, out: Path) -> int:
           "for a single ADN is certified")
     if args.switches:
         _sweep(hierarchy, sites, table, out, say)
+    if args.run_levels:
+        return _simulate(hierarchy, sites, upper, table, out)
+    return 0
+
+
+def _simulate(hierarchy, sites, upper, table, out: Path) -> int:
+    """``--run``: the hierarchy in this process on the sim clock, its recording, figure and
+    steps."""
+    from adnmesh.study.hierarchy import hierarchy_levels, simulate
+    from adnmesh.study.hierarchy_outputs import (plot_run, step_lines, switch_lines,
+                                                 write_recording)
+
+    levels = hierarchy_levels(hierarchy, upper, table, sites)
+    with _progress(f"running {hierarchy.name} (sim s)") as step:
+        end_s = upper.scenario.duration_s
+        result = simulate(*levels, on_progress=lambda t_ns: step(round(t_ns / 1e9), end_s))
+    mcap = write_recording(result, out / f"{hierarchy.name}.run.mcap", hierarchy)
+    png = plot_run(result, levels, out / f"{hierarchy.name}.run.png")
+    agents = len(result.run.nodes)
+    print(f"ran {hierarchy.name}: {len(levels[1])} ADNs, {agents} agents, {result.end_s:g} s in "
+          f"{result.wall_s:.1f} s ({result.speed:.1f}x real time), "
+          f"{len(result.run.messages)} messages")
+    for line in step_lines(result) + switch_lines(result, upper.grid):
+        print(line)
+    print(f"  recording: {mcap}\n  figure: {png}")
     return 0
 
 

@@ -63,6 +63,7 @@ from adnmesh.results.rules import (EVENTS, Event, StepWindowEnds, availability_c
 __all__ = [
     "GridFigures",
     "RunSeries",
+    "note_entry",
     "RunSummary",
     "SUMMARY_TYPES",
     "ScenarioStep",
@@ -252,9 +253,9 @@ class RunSeries:
             self.q_ref_t_ns.append(body["t_send_ns"])
             self.q_ref_var.append(body["q_ref_var"])
         elif message_type == "q_y" and ("switch" in body or "design" in body):
-            _note_entry(self.q_entries, body)
+            note_entry(self.q_entries, body)
         elif message_type == "p_y" and ("switch" in body or "design" in body):
-            _note_entry(self.entries, body)
+            note_entry(self.entries, body)
             if "switch" in body:
                 switch = body["switch"]
                 self.switches.append({"t_ns": body["t_send_ns"],
@@ -305,7 +306,7 @@ class RunSeries:
             self.windows.take(Event(body["t_send_ns"], kind, level, text, "", data))
 
 
-def _note_entry(entries: list, body: dict) -> None:
+def note_entry(entries: list, body: dict) -> None:
     """Keep the table entry a ``p_y``/``q_y`` message with a switch record or design figures
     announces (see :attr:`RunSeries.entries`)."""
     if "switch" in body or not entries or entries[-1]["entry"] != body.get("entry"):

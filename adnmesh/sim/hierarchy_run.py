@@ -1,0 +1,206 @@
+"""Run a hierarchy of ADNs in one process on the sim clock (docs/hierarchy.md).
+
+The upper grid's agents (its CPFC on the upper table, its availability monitor, its measurement
+of the sum of the ADNs' exchanges) and every ADN's agents (its CPFC, measurement, availability
+monitor and DERs, on its own config and table) run as the nodes of one hierarchy topology
+(:mod:`adnmesh.sim.hierarchy_topology`) under one coordinator, exactly as
+:mod:`adnmesh.sim.local` runs one grid: the same agent state machines, the same nodes and ICT
+links, the same clock. The upper grid's DER for ADN ``a`` is its site agent
+(:class:`~adnmesh.control.adn_site.AdnSite`); each ADN's measurement also sends its exchange to
+it. Faults of every level's config are injected as ``adnmesh up`` injects them (kills with
+restarts included); a site cut off from the level above is the upper config's ``der_offline``
+of its ADN.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+from adnmesh.config import Config
+from adnmesh.control.registry import build_agent
+from adnmesh.names import LAUNCHER, der_id_of
+from adnmesh.sim.clock import Coordinator
+from adnmesh.sim.faults import FaultPlan, fault_events, resend_body
+from adnmesh.sim.hierarchy_topology import grid_of, hierarchy_topology, qualified
+from adnmesh.sim.node import Node
+from adnmesh.wire.envelope import encode
+from adnmesh.wire.keys import Keys
+from adnmesh.wire.outbox import Outbox
+from adnmesh.wire.units import ns
+
+__all__ = ["HierarchyRun", "Level", "run_hierarchy"]
+
+
+@dataclass(frozen=True)
+class Level:
+    """One grid of the hierarchy: its config and its CPFC's gain schedule
+    (:class:`~adnmesh.control.cpfc_controller.GainSchedule`)."""
+
+    config: Config
+    schedule: object
+
+
+@dataclass
+class HierarchyRun:
+    """The result of :func:`run_hierarchy`.
+
+    Attributes
+    ----------
+    messages : list of (str, bytes)
+        Every published ``(key, payload)`` of every grid, in the order they were sent.
+    nodes : dict
+        ``<grid>:<agent id>`` -> its :class:`~adnmesh.sim.node.Node` (the last one of a
+        restarted agent).
+    coordinator : Coordinator
+        The clock.
+    """
+
+    messages: list[tuple[str, bytes]] = field(default_factory=list)
+    nodes: dict[str, Node] = field(default_factory=dict)
+    coordinator: Coordinator | None = None
+
+
+class _HierarchyRunner:
+    """What ``adnmesh up`` does for one grid, for every grid of a hierarchy."""
+
+    def __init__(self, upper: Level, adns: Mapping[str, Level],
+                 offset_delay_s: Mapping[str, float], end_ns: int) -> None:
+        self.upper, self.adns = upper, dict(adns)
+        self.levels = {upper.config.grid: upper,
+                       **{level.config.grid: level for level in adns.values()}}
+        self._adn_of_grid = {level.config.grid: a for a, level in adns.items()}
+        self.topology = hierarchy_topology(upper.config, {a: lv.config for a, lv in adns.items()},
+                                           offset_delay_s)
+        self.run = HierarchyRun()
+        self.coordinator = self.run.coordinator = Coordinator(self.topology, end_ns,
+                                                              on_rejoin=self._rejoined)
+        self.outbox = Outbox(LAUNCHER)
+        self.plans = {grid: FaultPlan(lv.config, tuple(grid_of(a)[1] for a in self._agents(grid)))
+                      for grid, lv in self.levels.items()}
+        for name in self.topology.agents:
+            self.run.nodes[name] = self._node(name, 0)
+
+    def _agents(self, grid: str) -> list[str]:
+        return [a for a in self.topology.agents if grid_of(a)[0] == grid]
+
+    def _agent(self, name: str):
+        from adnmesh.control.adn_site import AdnSite
+        from adnmesh.control.measurement_point import Measurement
+        from adnmesh.control.operating_point import initial_p_ip_w
+
+        grid, agent_id = grid_of(name)
+        level = self.levels[grid]
+        if level is self.upper and der_id_of(agent_id) in self.adns:
+            adn = der_id_of(agent_id)
+            (der,) = level.config.ders_by_id([adn])
+            return AdnSite(der, level.config, initial_p_ip_w(self.adns[adn].config))
+        if level is not self.upper and agent_id == "measurement":
+            return Measurement(level.config, exchange=True)
+        return build_agent(agent_id, level.config, level.schedule)
+
+    def _node(self, name: str, start_ns: int) -> Node:
+        seed = self.levels[grid_of(name)[0]].config.runtime.seed
+        return Node(self._agent(name), self.topology, seed, start_ns=start_ns, node_id=name)
+
+    def send_own(self, key: str, t_send: int, body: dict, t_deliver: int | None = None) -> None:
+        """A message of ``up``: recorded, delivered to the key's receivers."""
+        self.deliver(key, encode(self.outbox.send(key, t_send, body, t_deliver)))
+
+    def deliver(self, key: str, payload: bytes) -> None:
+        self.run.messages.append((key, payload))
+        for receiver in self.topology.receivers.get(key, ()):
+            self.run.nodes[receiver].receive(key, payload)
+
+    def inject(self, grid: str, planned, t_send: int, body: dict | None = None) -> None:
+        body = planned.body if body is None else body
+        self.coordinator.inject(self._agents(grid))
+        self.send_own(Keys(grid).of("fault"), t_send, body, max(body["start_ns"], t_send))
+
+    def start(self) -> deque:
+        for node in self.run.nodes.values():
+            self.coordinator.on_report(node.report())
+        for grid, plan in self.plans.items():
+            plan.from_config(self.levels[grid].config)
+            for planned in plan.faults:
+                self.inject(grid, planned, 0)
+                self.send_own(Keys(grid).of("event", LAUNCHER), 0, fault_events(planned))
+            for agent, at in plan.restarts():
+                self.coordinator.plan_restart(qualified(grid, agent), at)
+        return deque(self.coordinator.start())
+
+    def step(self, grant) -> list:
+        node = self.run.nodes[grant.agent]
+        if node.counts.received < grant.expect:
+            raise RuntimeError(f"{grant.agent}: expected {grant.expect} messages, "
+                               f"received {node.counts.received}")
+        for key, payload in node.advance(grant.until_ns):
+            self.deliver(key, payload)
+        report = node.report()
+        grants = self.coordinator.on_report(report)
+        if report.killed_ns is not None:
+            grants += self._killed(grant.agent, report.killed_ns)
+        return grants
+
+    def _killed(self, name: str, at_ns: int) -> list:
+        grid, agent = grid_of(name)
+        restart = [t for a, t in self.plans[grid].restarts() if a == agent and t > at_ns]
+        self.send_own(Keys(grid).of("event", LAUNCHER), at_ns, {
+            "level": "WARNING", "kind": "killed", "subject": agent,
+            "text": f"{agent} of {grid} killed at {at_ns / 1e9:g} s (injected fault)"})
+        if not restart:
+            return []
+        node = self.run.nodes[name] = self._node(name, min(restart))
+        return self.coordinator.on_report(node.report())
+
+    def _rejoined(self, name: str, now: int) -> None:
+        grid, agent = grid_of(name)
+        self.send_own(Keys(grid).of("event", LAUNCHER), now, {
+            "level": "INFO", "kind": "rejoined", "subject": agent,
+            "text": f"{agent} of {grid} restarted and rejoined at {now / 1e9:g} s"})
+        for planned in self.plans[grid].faults:
+            body = resend_body(planned, now)
+            if body is not None:
+                self.inject(grid, planned, now, body)
+
+
+def run_hierarchy(upper: Level, adns: Mapping[str, Level], offset_delay_s: Mapping[str, float],
+                  *, end_s: float | None = None, on_progress=None) -> HierarchyRun:
+    """Run the hierarchy (to ``end_s``, default the upper config's duration) in this process.
+
+    Parameters
+    ----------
+    upper : Level
+        The upper grid: the config ``adnmesh cascade`` wrote and its table's schedule.
+    adns : mapping
+        ADN id (a DER of the upper config) -> its level.
+    offset_delay_s : mapping
+        ADN id -> delay of its offset link, s (its inter-site delay less the upper config's
+        ``t_com_s``).
+    on_progress : callable, optional
+        ``on_progress(t_ns)`` with the sim time every level has reached, every 1,000 grants
+        and at the end.
+
+    Raises
+    ------
+    ValueError
+        Levels that do not make a hierarchy (:func:`~adnmesh.sim.hierarchy_topology.
+        hierarchy_topology`).
+    RuntimeError
+        The clock stopped before the end.
+    """
+    duration = upper.config.scenario.duration_s if end_s is None else end_s
+    runner = _HierarchyRunner(upper, adns, offset_delay_s, ns(duration))
+    grants = runner.start()
+    done = 0
+    while grants:
+        grants.extend(runner.step(grants.popleft()))
+        done += 1
+        if on_progress is not None and done % 1000 == 0:
+            on_progress(runner.coordinator.now_ns())
+    if not runner.coordinator.finished:
+        raise RuntimeError("the sim clock stopped before the end of the run")
+    if on_progress is not None:
+        on_progress(runner.coordinator.end_ns)
+    return runner.run

@@ -1,0 +1,227 @@
+"""A hierarchy of ADNs on the sim clock: the site agent, the ADN taking its reference offset
+from above, the hierarchy's topology, and one shared ``adnmesh cascade --run`` of two small
+ADNs with two upper steps, a site cut off and back, and plants leaving both ADNs."""
+import contextlib
+import csv
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from adnmesh.cli import main
+from adnmesh.config import load_config
+from adnmesh.control.adn_site import AdnSite
+from adnmesh.control.cpfc_controller import CPFC, GainSchedule
+from adnmesh.loopmodel.step_figures import step_figures
+from adnmesh.recording import read_recording
+from adnmesh.sim.hierarchy_topology import hierarchy_topology, qualified
+from adnmesh.wire.keys import Keys
+from adnmesh.wire.units import ns
+from payloads import message
+
+EXAMPLES = Path(__file__).resolve().parent.parent / "configs" / "examples"
+
+HIERARCHY = f"""name: hv
+t_meas_s: 0.2
+constraints: {{disk_margin_min: 1.5, overshoot_max_pct: 1.0}}
+adns:
+  - {{id: wtchp, config: {EXAMPLES / 'wt-chp.yaml'}, t_com_s: 0.3}}
+  - {{id: mixed, config: {EXAMPLES / 'mixed-4.yaml'}, t_com_s: 0.25}}
+scenario:
+  duration_s: 90
+  p_ref_steps: [{{t_s: 5, delta_w: 1.0e+6}}, {{t_s: 20, delta_w: -0.5e+6}}]
+faults:
+  - {{kind: der_offline, der: wtchp, t_s: 35, duration_s: 15}}
+"""
+"""wt-chp loses its WT at 80 s, mixed-4 two of its four plants (their own scenarios)."""
+
+STEP_W = 1.0e6
+FINAL_REF_W = 0.5e6   # the operating point (0) and both steps
+
+
+@pytest.fixture(scope="module")
+def ran(tmp_path_factory):
+    """One ``adnmesh cascade --run``, shared by the tests below: (out folder, printed,
+    recording messages by topic)."""
+    folder = tmp_path_factory.mktemp("hierarchy")
+    path = folder / "h.yaml"
+    path.write_text(HIERARCHY)
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        assert main(["cascade", str(path), "--out", str(folder / "out"), "--run"]) == 0
+    recording = read_recording(folder / "out" / "hv.run.mcap")
+    topics: dict[str, list] = {}
+    for m in recording.messages:
+        topics.setdefault(m.topic, []).append(json.loads(m.data))
+    return folder / "out", printed.getvalue(), topics, recording
+
+
+def series(topics, topic: str, field: str):
+    bodies = sorted(topics[topic], key=lambda b: b["t_send_ns"])
+    return (np.array([b["t_send_ns"] for b in bodies]) / 1e9,
+            np.array([b[field] for b in bodies], dtype=float))
+
+
+def switches(topics, topic: str) -> list[dict]:
+    return sorted((b for b in topics[topic] if "switch" in b), key=lambda b: b["t_send_ns"])
+
+
+def test_the_run_is_one_recording_of_every_level(ran) -> None:
+    out, printed, topics, recording = ran
+    assert recording.complete
+    assert {t.split("/")[1] for t in topics} == {"hv", "wtchp", "mixed"}
+    assert (out / "hv.run.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "ran hv: 2 ADNs, 17 agents, 90 s" in printed
+    # the site agents speak for their ADNs in the upper grid; each ADN's CPFC hears them
+    assert {"adn/hv/der/wtchp/offset", "adn/hv/der/mixed/offset", "adn/wtchp/measurement/exchange",
+            "adn/hv/der/wtchp/state", "adn/hv/der/wtchp/heartbeat"} <= set(topics)
+
+
+def test_the_upper_step_follows_the_cascade_certificate(ran) -> None:
+    """The agents' run against the exact cascade's step (the certificate's own numerics):
+    the first step, with both ADNs, rises and settles as certified."""
+    out, printed, topics, _ = ran
+    rows = {r["adns"]: r for r in csv.DictReader((out / "hv.cascade.csv").open())}
+    certified = rows["wtchp mixed"]
+    t, p = series(topics, "adn/hv/measurement/p_ip", "p_ip_w")
+    t_ref, ref = series(topics, "adn/hv/scenario/p_ref", "p_ref_w")
+    assert ref[0] == pytest.approx(p[0]) and ref[1] - ref[0] == STEP_W
+    inside = (t >= 5.0) & (t < 20.0)
+    f = step_figures(t[inside] - 5.0, (p[inside] - ref[0]) / STEP_W)
+    assert f.rise_time_s == pytest.approx(float(certified["rise_time_s"]), abs=0.02)
+    assert f.settling_time_s == pytest.approx(float(certified["settling_time_s"]), abs=0.02)
+    assert f.overshoot_pct <= 1.0
+    assert "certified: rise" in printed and "OVER THE DESIGN" not in printed
+
+
+def test_a_site_cut_off_is_left_out_bumplessly_and_its_adn_holds_its_reference(ran) -> None:
+    _, printed, topics, _ = ran
+    drop, back = switches(topics, "adn/hv/cpfc/p_y")[:2]
+    # heard of within the heartbeat timeout (2.5 s) and the SI link after the cut at 35 s
+    assert 35.0 < drop["t_send_ns"] / 1e9 < 35.0 + 2.5 + 1.0
+    assert drop["w"].get("wtchp", 0) == 0 and drop["w"]["mixed"] > 0
+    assert 50.0 < back["t_send_ns"] / 1e9 < 52.0 and back["w"]["wtchp"] > 0
+    # the ADN runs on its last reference while cut off: its offset and its P_ref stay
+    t_off, offset = series(topics, "adn/hv/der/wtchp/offset", "offset_w")
+    held = offset[(t_off > 35.0) & (t_off < back["t_send_ns"] / 1e9)]
+    assert held.size > 10 and np.ptp(held) == 0 and held[0] > 0
+    t_ref, _ = series(topics, "adn/wtchp/scenario/p_ref", "p_ref_w")
+    assert not np.any((t_ref > 36.0) & (t_ref < back["t_send_ns"] / 1e9))   # no new P_ref
+    # neither the drop nor the return moves the sum of the exchanges by more than 1 % of a step
+    t, p = series(topics, "adn/hv/measurement/p_ip", "p_ip_w")
+    for switch in (drop, back):
+        at = switch["t_send_ns"] / 1e9
+        window = (t >= at) & (t < min(at + 10.0, 80.0))
+        assert np.max(np.abs(p[window] - FINAL_REF_W)) < 0.01 * STEP_W, at
+    assert "switch at" in printed
+
+
+def test_adns_losing_plants_are_compensated_from_above(ran) -> None:
+    """At 80 s wtchp's WT and two of mixed's plants leave: each ADN switches its own gains,
+    and the upper loop brings the sum back towards its reference (slowly: what is left are
+    CHPs, and the upper gains stay those of the ADNs with all their plants)."""
+    _, _, topics, _ = ran
+    for adn in ("wtchp", "mixed"):
+        (switch,) = [s for s in switches(topics, f"adn/{adn}/cpfc/p_y")
+                     if s["t_send_ns"] > ns(80.0)]
+        assert switch["t_send_ns"] < ns(81.0)
+    t, p = series(topics, "adn/hv/measurement/p_ip", "p_ip_w")
+    after = t > 80.0
+    worst = np.max(np.abs(p[after] - FINAL_REF_W))
+    assert worst > 0.05 * STEP_W                       # the loss is felt ...
+    assert p[-1] - np.min(p[after]) > 0.2 * worst      # ... and taken back from above
+
+
+def test_the_site_agent_turns_set_points_into_offsets_and_holds_when_cut_off() -> None:
+    upper = load_config(EXAMPLES.parent / "simbench.yaml").model_copy(update={"grid": "hv"})
+    der = upper.ders[0].model_copy(update={"p_sched_w": 1e5})
+    site = AdnSite(der, upper, p_ip0_w=3e6)
+    keys = Keys("hv")
+    weights = {d.id: 1.0 for d in upper.ders}
+    out = site.on_message(ns(0.5), message(keys.of("p_y"), ns(0.5), {
+        "p_y": 0.1, "p_ref_w": 0.0, "kp": 1e-7, "ki": 1e-7, "entry": 0, "w": weights}))
+    (sent,) = [o for o in out if o.key == keys.of("adn_offset", der.id)]
+    assert sent.body["offset_w"] == pytest.approx(0.1 * der.p_inst_w)
+    # the ADN's exchange, as the upper DER's infeed: schedule + change from its operating point
+    site.on_message(ns(0.6), message(keys.of("adn_exchange"), ns(0.6), {"p_ip_w": 3.2e6},
+                                     src="measurement"))
+    while site.next_timer_ns() <= ns(0.6):
+        out = site.on_timer(site.next_timer_ns())
+    (state,) = [o for o in out if o.key == keys.of("der_state", der.id)]
+    assert state.body["p_w"] == pytest.approx(1e5 + 2e5)
+    # no command for longer than the watchdog: the offset stays, repeated unchanged
+    offsets = []
+    while site.next_timer_ns() <= ns(4.0):
+        t = site.next_timer_ns()
+        site.on_message(t, message(keys.of("adn_exchange"), t, {"p_ip_w": 3.2e6},
+                                   src="measurement"))
+        offsets += [o.body["offset_w"] for o in site.on_timer(t)
+                    if o.key == keys.of("adn_offset", der.id)]
+    assert site.der_controller.mode == "watchdog" and offsets
+    assert offsets == pytest.approx([0.1 * der.p_inst_w] * len(offsets))
+    # back, but in an entry without it: it keeps the offset until a weight comes
+    out = site.on_message(ns(4.1), message(keys.of("p_y"), ns(4.1), {
+        "p_y": 0.3, "p_ref_w": 0.0, "kp": 1e-7, "ki": 1e-7, "entry": 1,
+        "w": {d: 0.0 for d in weights}}))
+    assert site.plant.offset_w == pytest.approx(0.1 * der.p_inst_w)
+    site.on_message(ns(4.2), message(keys.of("p_y"), ns(4.2), {
+        "p_y": 0.3, "p_ref_w": 0.0, "kp": 1e-7, "ki": 1e-7, "entry": 2, "w": weights}))
+    assert site.plant.offset_w == pytest.approx(0.3 * der.p_inst_w)
+
+
+def test_a_silent_adn_is_an_unavailable_actuator_of_the_level_above() -> None:
+    upper = load_config(EXAMPLES.parent / "simbench.yaml").model_copy(update={"grid": "hv"})
+    site = AdnSite(upper.ders[0], upper, p_ip0_w=0.0)
+    beats = []
+    while site.next_timer_ns() <= ns(3.0):
+        beats += [o.body for o in site.on_timer(site.next_timer_ns())
+                  if o.key.endswith("/heartbeat")]
+    assert beats[0]["available"] and not beats[-1]["available"]
+
+
+def test_the_adns_cpfc_takes_the_offset_from_above_into_its_reference() -> None:
+    config = load_config(EXAMPLES / "wt-chp.yaml")
+    cpfc = CPFC(config, GainSchedule(config, None))
+    keys = Keys(config.grid)
+    first = [o for o in cpfc.on_timer(0) if o.key == keys.of("p_ref")]
+    start = first[0].body["p_ref_w"]
+    cpfc.on_message(ns(0.005), message(Keys("hv").of("adn_offset", "x"), ns(0.005),
+                                       {"offset_w": 2.5e5}))
+    sent = [o for o in cpfc.on_timer(ns(0.01)) if o.key == keys.of("p_ref")]
+    assert sent[0].body["p_ref_w"] == start + 2.5e5
+    # the same offset again changes nothing; a smaller one lowers the reference
+    cpfc.on_message(ns(0.015), message(Keys("hv").of("adn_offset", "x"), ns(0.015),
+                                       {"offset_w": 2.5e5}))
+    assert not [o for o in cpfc.on_timer(ns(0.02)) if o.key == keys.of("p_ref")]
+    cpfc.on_message(ns(0.025), message(Keys("hv").of("adn_offset", "x"), ns(0.025),
+                                       {"offset_w": 1e5}))
+    sent = [o for o in cpfc.on_timer(ns(0.03)) if o.key == keys.of("p_ref")]
+    assert sent[0].body["p_ref_w"] == start + 1e5
+
+
+def test_the_hierarchy_topology_links_each_site_to_its_adn() -> None:
+    upper = load_config(EXAMPLES.parent / "simbench.yaml").model_copy(
+        update={"grid": "hv", "ders": ()})
+    wt = load_config(EXAMPLES / "wt-chp.yaml")
+    upper = upper.model_copy(update={"ders": (wt.ders[0].model_copy(update={"id": "a"}),)})
+    lower = wt.model_copy(update={"grid": "a"})
+    topology = hierarchy_topology(upper, {"a": lower}, {"a": 0.05})
+    site, cpfc = qualified("hv", "der/a"), qualified("a", "cpfc")
+    assert topology.receivers["adn/hv/der/a/offset"] == (cpfc,)
+    assert site in topology.receivers["adn/a/measurement/exchange"]
+    assert topology.lookahead_ns[(site, cpfc)] == ns(0.05)
+    assert all(topology.lookahead_ns[(a, a)] > 0 for a in topology.agents)
+    with pytest.raises(ValueError, match="grid name of its own"):
+        hierarchy_topology(upper, {"a": lower.model_copy(update={"grid": "hv"})}, {"a": 0.0})
+    with pytest.raises(ValueError, match="not DERs of the upper config"):
+        hierarchy_topology(upper, {"b": lower}, {"b": 0.0})
+
+
+def test_an_adn_named_as_its_hierarchy_is_a_one_line_error(tmp_path, capsys) -> None:
+    path = tmp_path / "h.yaml"
+    path.write_text(HIERARCHY.replace("id: mixed", "id: hv"))
+    assert main(["cascade", str(path), "--run"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "must differ from the hierarchy's name" in err
