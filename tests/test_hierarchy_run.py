@@ -150,7 +150,13 @@ def test_the_site_agent_turns_set_points_into_offsets_and_holds_when_cut_off() -
     while site.next_timer_ns() <= ns(0.6):
         out = site.on_timer(site.next_timer_ns())
     (state,) = [o for o in out if o.key == keys.of("der_state", der.id)]
-    assert state.body["p_w"] == pytest.approx(1e5 + 2e5)
+    assert state.body["p_w"] == pytest.approx(1e5 + 2e5) and state.body["held"] == 0
+    # every DER of the ADN at a limit upwards: the upper measurement hears it (anti-windup)
+    site.on_message(ns(0.61), message(keys.of("adn_exchange"), ns(0.61),
+                                      {"p_ip_w": 3.2e6, "held": "up"}, src="measurement"))
+    out = site.on_timer(site.next_timer_ns())
+    (state,) = [o for o in out if o.key == keys.of("der_state", der.id)]
+    assert state.body["held"] == 1
     # no command for longer than the watchdog: the offset stays, repeated unchanged
     offsets = []
     while site.next_timer_ns() <= ns(4.0):
@@ -225,3 +231,19 @@ def test_an_adn_named_as_its_hierarchy_is_a_one_line_error(tmp_path, capsys) -> 
     assert main(["cascade", str(path), "--run"]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "must differ from the hierarchy's name" in err
+
+
+def test_the_adns_measurement_sends_its_exchange_at_once_with_its_limit_state() -> None:
+    from adnmesh.control.measurement_point import Measurement
+
+    config = load_config(EXAMPLES / "wt-chp.yaml")
+    keys = Keys(config.grid)
+    measurement = Measurement(config, exchange=True)
+    for der in config.ders:
+        measurement.on_message(0, message(keys.of("der_state", der.id), 0, {
+            "p_w": 1e5, "setpoint_w": 1e5, "mode": "control", "held": 1}))
+    out = measurement.on_timer(0)
+    (p_ip,) = [o.body for o in out if o.key == keys.of("p_ip")]
+    (exchange,) = [o.body for o in out if o.key == keys.of("adn_exchange")]
+    assert exchange == {"p_ip_w": p_ip["p_ip_w"], "held": "up"}
+    assert not [o for o in Measurement(config).on_timer(0) if o.key == keys.of("adn_exchange")]

@@ -16,6 +16,9 @@ weights, switches, handovers, heartbeats and watchdog) on a plant device that is
   ``P_sched + P_IP − P_IP,0`` (``P_IP,0``: the ADN's operating point), limited to
   ``[0, P_inst]``: the upper DER's range is the ADN's (``adnmesh cascade`` sets ``P_sched`` to
   the ADN's room below its schedule and ``P_inst`` to its installed power).
+- **limits.** The exchange says when every DER that follows the ADN's P_Y is held at a
+  limit (``held``, as the ADN's own P_IP says it to its CPFC); the DER's state says so to the
+  upper measurement, whose P_IP stops the upper integrator that way (the anti-windup).
 - **health.** An ADN whose exchange has not arrived for ``watchdog_timeout_s`` is a stale
   device: unavailable to the level above until it reports again.
 
@@ -58,6 +61,7 @@ class AdnPlant:
         self.der, self.p_ip0_w, self.stale_after_ns = der, p_ip0_w, stale_after_ns
         self.commanded_w = der.p_sched_w      # the DER controller's last set-point, W
         self.p_ip_w = p_ip0_w
+        self.held = 0            # every DER that follows the ADN's P_Y at a limit: +1 up, -1 down
         self.last_exchange_ns = 0
         self.now_ns = 0
         self.counts = {"exchanges": 0}
@@ -70,7 +74,7 @@ class AdnPlant:
         if self.now_ns - self.last_exchange_ns > self.stale_after_ns:
             return DeviceStatus(False, "stale", "no exchange from the ADN's measurement for "
                                 f"{self.stale_after_ns / 1e9:g} s", p_w, None)
-        return DeviceStatus(True, None, "", p_w, None)
+        return DeviceStatus(True, None, "", p_w, None, self.held)
 
     def stats(self) -> dict[str, float]:
         return {k: float(v) for k, v in self.counts.items()}
@@ -118,6 +122,7 @@ class AdnSite(Agent):
     def on_message(self, t_ns: int, message: Envelope) -> list[Outgoing]:
         if message.type == "p_ip":                      # the ADN's exchange
             self.plant.p_ip_w = message.p_ip_w
+            self.plant.held = {"up": 1, "down": -1}.get(message.held, 0)
             self.plant.last_exchange_ns = t_ns
             self.plant.counts["exchanges"] += 1
             return []

@@ -50,7 +50,8 @@ the controller hands every new set-point pair to the device and reports the devi
 measured P (and Q). Whether the plant is held by a rate or range limit (``held``, for the
 CPFC's anti-windup) is said by neither protocol: it comes from the DER's model, which the
 controller keeps running on the same set-points (without it, the CPFC's integrator wound up
-while the CHPs ramped: 7.3 % overshoot at the reference case's 200 s step against 2.0 %). A
+while the CHPs ramped: 7.3 % overshoot at the reference case's 200 s step against 2.0 %),
+unless the device says it itself (``DeviceStatus.held``: an ADN as a DER of the level above). A
 device that is not healthy (unreachable, silent, refusing set-points, a stale measurement, not
 connected to the grid) makes the DER unavailable, as a scenario availability change would
 (heartbeat at once, the schedule as set-point, the CPFC switches), until it is healthy again;
@@ -232,7 +233,9 @@ class DERController(Agent):
                                                                         self.der.p_inst_w)
             state = {"p_w": p_w, "setpoint_w": self.setpoint_w, "mode": self.mode}
             if self.mode == "control" and self.weight > 0:   # a device's by its model (below)
-                state["held"] = self._clamped or held_at(self.params, self.state, t_ns)
+                said = None if device is None else device.held
+                state["held"] = self._clamped or (
+                    held_at(self.params, self.state, t_ns) if said is None else said)
             if self.reactive is not None:
                 q_var = infeed_at(self.q_params, self.q_state, t_ns)
                 if device is not None:

@@ -171,7 +171,9 @@ class Measurement(Agent):
     def on_timer(self, t_ns: int) -> list[Outgoing]:
         out = self._sample(t_ns)
         if self._exchange_key is not None:     # out[0] is the sample's p_ip
-            out.append(Outgoing(self._exchange_key, {"p_ip_w": out[0].body["p_ip_w"]}))
+            body = out[0].body
+            out.append(Outgoing(self._exchange_key, {"p_ip_w": body["p_ip_w"], **{
+                k: body[k] for k in ("held",) if k in body}}))
         return out
 
     def _sample(self, t_ns: int) -> list[Outgoing]:

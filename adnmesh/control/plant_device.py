@@ -32,6 +32,9 @@ class DeviceStatus:
         The last measured active power, W (None: never read).
     q_var : float or None
         The last measured reactive power, var (None: never read or not read).
+    held : int or None
+        Whether the plant is held at a limit, as it says itself: +1 upwards, -1 downwards, 0
+        not (None: it cannot say, as no device protocol here can; the DER's model tells).
     """
 
     ok: bool
@@ -39,6 +42,7 @@ class DeviceStatus:
     detail: str
     p_w: float | None
     q_var: float | None
+    held: int | None = None
 
 
 class PlantDevice(Protocol):
