@@ -247,3 +247,73 @@ def test_the_adns_measurement_sends_its_exchange_at_once_with_its_limit_state() 
     (exchange,) = [o.body for o in out if o.key == keys.of("adn_exchange")]
     assert exchange == {"p_ip_w": p_ip["p_ip_w"], "held": "up"}
     assert not [o for o in Measurement(config).on_timer(0) if o.key == keys.of("adn_exchange")]
+
+
+def test_the_upper_cpfc_backs_off_when_adns_switch_to_slower_loops(ran) -> None:
+    """At 80 s both ADNs switch to entries of slower plants and announce their new loops; the
+    upper CPFC applies the rule: the factor it takes makes the cascade meet the constraints in
+    python-control's evaluation (Padé models), and the gains before it do not."""
+    import control as ct
+
+    from adnmesh.cascade.control_models import cascade_models
+    from adnmesh.cascade.lower_adn import announced
+    from adnmesh.cascade.structure import Cascade
+    from adnmesh.wire.messages import AdnActuator
+    import msgspec
+
+    out, _, topics, recording = ran
+    events = [b for b in topics["adn/hv/event/cpfc"] if b["kind"].startswith("cascade_")]
+    assert [e["kind"] for e in events][-1] == "cascade_retuned"
+    (switch,) = [s for s in switches(topics, "adn/hv/cpfc/p_y") if s["t_send_ns"] > ns(80.0)]
+    factor = switch["kp"] / switch["switch"]["kp_before"]
+    assert 0 < factor < 1 and switch["ki"] / switch["switch"]["ki_before"] == \
+        pytest.approx(factor)
+    # the loops the ADNs announced last, as the upper CPFC heard them
+    lowers = {}
+    for m in recording.messages:
+        if m.topic.endswith("/cpfc/actuator"):
+            body = msgspec.json.decode(m.data, type=AdnActuator)
+            lowers[body.grid] = announced(body.grid, body)
+    upper = load_config(out / "hv.upper.yaml")
+    w = switch["w"]
+    cascade = Cascade(tuple(lowers[a] for a in ("wtchp", "mixed")),
+                      tuple(w[a] * upper.ders_by_id([a])[0].p_inst_w for a in ("wtchp", "mixed")),
+                      (0.3, 0.25), 0.2)
+    t = np.arange(0.0, 400.0, 0.05)
+    for kp, ki, meets in ((switch["kp"], switch["ki"], True),
+                          (switch["switch"]["kp_before"], switch["switch"]["ki_before"], False)):
+        loop, closed = cascade_models(cascade, kp, ki, order=10)
+        dm, _, _ = ct.disk_margins(loop, np.geomspace(1e-4, 1e2, 3000))
+        y = np.squeeze(ct.step_response(closed, T=t).outputs)
+        overshoot = 100 * (np.max(y) - 1)
+        assert (dm >= 1.5 - 1e-3 and overshoot < 1.0 + 1e-2) == meets, (kp, dm, overshoot)
+
+
+def test_an_announcement_the_cascade_cannot_take_is_said_and_the_gains_stay() -> None:
+    """An ADN's loop with a delay off the cascade's 0.1 ms grid: counted, a warning, no
+    retune."""
+    from types import SimpleNamespace
+
+    from adnmesh.cascade.lower_adn import announced
+    from adnmesh.cascade.switches import LowerSwitchRule
+    from adnmesh.wire.messages import ActuatorGroup
+
+    from adnmesh.tuning.table import SchedulingTable, TableEntry
+
+    config = load_config(EXAMPLES / "wt-chp.yaml").model_copy(update={"grid": "hv"})
+    ids = [d.id for d in config.ders]
+    table = SchedulingTable("", {}, "paper", tuple(ids))
+    table.add(TableEntry(tuple(ids), 1e-7, 1e-7, dict.fromkeys(ids, 1.0)))
+    cpfc = CPFC(config, GainSchedule(config, table))
+    good = {"entry": 0, "ders": ["SGen1"], "capacity_w": 2e6, "range_up_w": 2e6,
+            "range_down_w": 0.0, "kp": 1e-7, "ki": 3e-7, "t_com_s": 0.15, "t_meas_s": 0.1,
+            "groups": [{"t_delay_s": 0.01, "t_lag_s": 0.234, "model": "pt1", "gain_w": 2e6}]}
+    start = announced(ids[0], SimpleNamespace(**{**good, "groups": [
+        ActuatorGroup(**good["groups"][0])]}))
+    cpfc.lower_switch_rule = LowerSwitchRule({i: start for i in ids}, dict.fromkeys(ids, 1e6),
+                                             dict.fromkeys(ids, 0.2), 0.2, config.constraints)
+    bad = {**good, "grid": ids[0], "t_com_s": 0.15003}
+    out = cpfc.on_message(ns(1.0), message(Keys("a").of("adn_actuator"), ns(1.0), bad))
+    assert [o.body["kind"] for o in out] == ["cascade_rule"]
+    assert "not evaluated" in out[0].body["text"]
+    assert cpfc.counts["rejected_announcements"] == 1 and cpfc._retuning is None

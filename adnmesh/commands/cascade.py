@@ -293,7 +293,7 @@ def _sweep(hierarchy, sites, table, out: Path, say) -> None:
             config = load_config(hierarchy.config_path(adn))
             entries = _lower_entries(config, adn.id)
             with _progress(f"switches of {adn.id}") as step:
-                rows = switch_sweep(cascade, position, full.w[adn.id], full.kp, full.ki,
+                rows = switch_sweep(cascade, position, full.kp, full.ki,
                                     entries, constraints, on_entry=step)
             for r in rows:
                 c = r.figures

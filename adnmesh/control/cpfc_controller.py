@@ -111,7 +111,7 @@ from collections import deque
 
 from msgspec import UNSET, to_builtins
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -279,14 +279,16 @@ class GainSchedule:
         del self._jobs[available]
         return True
 
-    def retune(self, available: frozenset[str], job: Callable[[], tuple], t_ns: int) -> None:
+    def retune(self, available: frozenset[str], job: Callable[[], tuple], t_ns: int,
+               again: bool = False) -> None:
         """Tune ``available`` again by ``job() -> (entry or None, words)`` (the model watch's,
         docs/method.md#model-watch): on the sim clock at once, released ``tuning_delay_s``
         later (deterministic, as an on-demand tuning); in realtime runs in a process of its
         own at a lower priority (``job`` picklable), so that the fit's seconds of CPU do not
         hold up the control loop's interpreter. Its entry, once :meth:`retuned` has handed it
-        over, replaces the table's."""
-        if available in self._retunes:
+        over, replaces the table's. A retune of the same set still pending stays, unless
+        ``again`` (the cascade rule's newer verdict replaces it)."""
+        if available in self._retunes and not (again and not self.background):
             return
         if not self.background:
             self._retunes[available] = (t_ns + self.tuning_delay_ns, job())
@@ -502,6 +504,11 @@ class CPFC(Agent):
         # the level above's share (a hierarchy of ADNs): the offset of P_ref it asks for, W,
         # and the part of it already in p_ref_w
         self.offset_w = self._offset_in_ref_w = 0.0
+        # the upper CPFC of a hierarchy: the rule for the ADNs' own gain switches
+        # (adnmesh.cascade.switches.LowerSwitchRule; None elsewhere), the factor applied per set
+        self.lower_switch_rule = None
+        self._cascade_factor: dict[frozenset[str], float] = {}
+        self._retune_kind = "model"             # what the pending retune is: model or cascade
         self.available = self.in_use = frozenset(self._ids)
         self._pending: frozenset[str] | None = None
         self._awaiting: frozenset[str] | None = None     # set whose tuning is running
@@ -574,6 +581,8 @@ class CPFC(Agent):
             self._ack(t_ns, message)
         elif message.type == "adn_offset" and loop is P_LOOP:
             self.offset_w = message.offset_w    # taken into P_ref at the next sample
+        elif message.type == "adn_actuator" and self.lower_switch_rule is not None:
+            return self._lower_switched(t_ns, message)
         elif message.type == "grid_guard":
             return self._guard(message)
         elif message.type == "si":
@@ -970,7 +979,7 @@ class CPFC(Agent):
             except ValueError as exc:
                 out.append(self._event("WARNING", "model_retune", f"not tuned again: {exc}"))
                 continue
-            self._retuning = ders
+            self._retuning, self._retune_kind = ders, "model"
             self._retuned_sets.add(ders)
             self.schedule.retune(ders, _retune_job(self.config, self.schedule.table,
                                                    tuple(d for d in self._ids if d in ders),
@@ -988,13 +997,53 @@ class CPFC(Agent):
             return
         ders, self._retuning = self._retuning, None
         entry, words = done
+        kind = self._retune_kind
         if entry is None or not entry.feasible:
-            out.append(self._event("WARNING", "model_retune", f"the entry stays: {words}"))
+            out.append(self._event("WARNING", f"{kind}_retune", f"the entry stays: {words}"))
             return
-        self.counts["retunes"] += 1
-        out.append(self._event("INFO", "model_retuned", words))
+        self.counts["retunes"] = self.counts.get("retunes", 0) + 1
+        out.append(self._event("INFO", f"{kind}_retuned", words))
         if ders == self.in_use and self._pending is None:
             self._pending = self.available
+
+    def _lower_switched(self, t_ns: int, message) -> list[Outgoing]:
+        """An ADN below announced another closed loop (docs/hierarchy.md#lower-switches): the
+        cascade of the set in use with it; its entry's gains backed off by the factor that
+        certifies it again (1: the table's), switched to as a retune is (at the sample after
+        ``tuning_delay_s``, bumplessly). The evaluation runs in the sample's time (about 10 ms
+        per factor tried): hierarchies run on the sim clock only. An announcement the
+        numerics cannot take is counted and said; the gains stay."""
+        rule, table, ders = self.lower_switch_rule, self.schedule.table, self.in_use
+        try:
+            adn = rule.take(message)
+            base = None if adn is None or table is None else table.lookup(sorted(ders))
+            if base is None or not base.feasible or adn not in base.ders:
+                return []
+            factor, fig = rule.back_off(base.ders, base.w, base.kp, base.ki)
+        except ValueError as exc:       # a loop the cascade's numerics cannot take: said
+            self.counts["rejected_announcements"] = \
+                self.counts.get("rejected_announcements", 0) + 1
+            return [self._event("WARNING", "cascade_rule", f"an ADN's announcement is not "
+                                f"evaluated, the upper gains stay: {exc}"[:500])]
+        if factor is None:
+            c = rule.constraints
+            return [self._event("WARNING", "cascade_rule", f"{adn} switched its gains: no "
+                                "back-off certifies the cascade ("
+                                f"{fig.problem(c.disk_margin_min, c.overshoot_max_pct)}); "
+                                "the upper gains stay")]
+        if factor == self._cascade_factor.get(ders, 1.0):
+            return [self._event("INFO", "cascade_rule", f"{adn} switched its gains: the upper "
+                                f"gains stay (x{factor:.3g} certifies the cascade)")]
+        self._cascade_factor[ders] = factor
+        figures = {**base.figures, "rise_time_s": fig.rise_time_s, "overshoot_pct":
+                   fig.overshoot_pct, "settling_time_s": fig.settling_time_s,
+                   "disk_margin": fig.disk_margin, "cascade_back_off": factor}
+        entry = replace(base, kp=base.kp * factor, ki=base.ki * factor, figures=figures)
+        words = (f"{adn} switched its gains: the upper gains x{factor:.3g} certify the cascade "
+                 f"(disk margin {fig.disk_margin:.3g}, overshoot {fig.overshoot_pct:.3g} %)")
+        self._retuning, self._retune_kind = ders, "cascade"
+        self.schedule.retune(ders, lambda: (entry, words), t_ns, again=True)
+        return [self._event("INFO", "cascade_rule", words)]
 
     def _event(self, level: str, kind: str, text: str) -> Outgoing:
         if self.loop is not P_LOOP:
@@ -1163,7 +1212,7 @@ class CPFC(Agent):
                 "range_up_w": float(sum(d.p_inst_w - d.p_sched_w for d in ders)),
                 "range_down_w": float(sum(d.p_sched_w for d in ders)),
                 "kp": self.pi.kp, "ki": self.pi.ki, "t_com_s": plant.t_com_s,
-                "t_meas_s": plant.t_meas_s, "groups": groups}
+                "t_meas_s": plant.t_meas_s, "groups": groups, "grid": config.grid}
 
     def _share_w(self, der_id: str, weight: float, p_y: float) -> float:
         """DER ``der_id``'s setpoint above its schedule by Eq. 1 with ``weight``, limited, W."""

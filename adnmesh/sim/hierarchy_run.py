@@ -14,6 +14,7 @@ of its ADN.
 
 from __future__ import annotations
 
+import copy
 from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -36,10 +37,13 @@ __all__ = ["HierarchyRun", "Level", "run_hierarchy"]
 @dataclass(frozen=True)
 class Level:
     """One grid of the hierarchy: its config and its CPFC's gain schedule
-    (:class:`~adnmesh.control.cpfc_controller.GainSchedule`)."""
+    (:class:`~adnmesh.control.cpfc_controller.GainSchedule`); the upper level's CPFC also
+    applies the rule for the ADNs' own gain switches
+    (:class:`~adnmesh.cascade.switches.LowerSwitchRule`, optional)."""
 
     config: Config
     schedule: object
+    lower_switch_rule: object = None
 
 
 @dataclass
@@ -98,7 +102,10 @@ class _HierarchyRunner:
             return AdnSite(der, level.config, initial_p_ip_w(self.adns[adn].config))
         if level is not self.upper and agent_id == "measurement":
             return Measurement(level.config, exchange=True)
-        return build_agent(agent_id, level.config, level.schedule)
+        agent = build_agent(agent_id, level.config, level.schedule)
+        if agent_id == "cpfc" and level.lower_switch_rule is not None:
+            getattr(agent, "p", agent).lower_switch_rule = copy.deepcopy(level.lower_switch_rule)
+        return agent
 
     def _node(self, name: str, start_ns: int) -> Node:
         seed = self.levels[grid_of(name)[0]].config.runtime.seed

@@ -4,15 +4,16 @@ A hierarchy (docs/hierarchy.md) is several grids on one bus: the upper grid, who
 ADNs, and one grid per ADN. Each grid's own routes are its config's
 (:class:`~adnmesh.sim.topology.Topology`, with the protocol's ``hierarchy`` kinds). Agent ids are
 per grid (every ADN has a ``cpfc``), so here an agent is named ``<grid>:<agent id>``
-(:func:`qualified`); keys already carry their grid. Two routes cross grids, per ADN ``a``:
+(:func:`qualified`); keys already carry their grid. Three routes cross grids, per ADN ``a``:
 
 - ``adn/<upper>/der/<a>/offset`` from the site agent (the upper grid's ``der/<a>``) to the ADN's
   CPFC, over a link whose delay is the part of the ADN's inter-site delay the upper config's
   ``t_com_s`` does not carry (``adnmesh cascade`` puts the shortest inter-site delay there);
-- ``adn/<a>/measurement/exchange`` from the ADN's measurement to the site agent (``physical``).
-
-(The ADN's announcements, ``cpfc/actuator``, stay records: routed to the site without a delay
-they would close a cycle CPFC -> site -> CPFC that the conservative clock cannot advance.)
+- ``adn/<a>/measurement/exchange`` from the ADN's measurement to the site agent (``physical``);
+- ``adn/<a>/cpfc/actuator``, the ADN's announcements, from its CPFC to the upper CPFC over the
+  inter-site link (the ADN's inter-site delay; the upper CPFC applies the rule for lower
+  switches). Not through the site agent: without a delay there, CPFC -> site -> CPFC would be a
+  cycle the conservative clock cannot advance.
 
 The result is an ordinary :class:`~adnmesh.sim.topology.Topology` over the qualified ids, so the
 sim clock's coordinator and the nodes run a hierarchy as they run one grid. Its ``der_ids`` are
@@ -89,6 +90,10 @@ def hierarchy_topology(upper: Config, adns: Mapping[str, Config],
         receivers[offset] = (qualified(config.grid, "cpfc"),)
         exchange = lower.keys.of("adn_exchange")
         receivers[exchange] = (*receivers.get(exchange, ()), site)
+        announcement = lower.keys.of("adn_actuator")
+        links[(qualified(config.grid, "cpfc"), announcement)] = LinkParams.from_settings(
+            "local", LinkSettings(delay_s=upper.t_com_s + offset_delay_s[adn]))
+        receivers[announcement] = (qualified(upper.grid, "cpfc"),)
     routes = [r._replace(receivers=receivers[r.key]) if r.key in receivers else r
               for r in routes]
     return Topology(up.keys, tuple(agents), tuple(routes), links, receivers,

@@ -44,14 +44,19 @@ def _adn_level(hierarchy: Hierarchy, adn) -> Level:
 
 def hierarchy_levels(hierarchy: Hierarchy, upper: Config, upper_table, sites
                      ) -> tuple[Level, dict[str, Level], dict[str, float]]:
-    """The upper level (``upper`` with ``upper_table``), each ADN's level and its offset link
+    """The upper level (``upper`` with ``upper_table``, its CPFC applying the rule for the
+    ADNs' gain switches from their loops as certified), each ADN's level and its offset link
     delay, s (its inter-site delay less the upper ``t_com_s``; ``sites``: the
     :class:`~adnmesh.cascade.upper_table.Site` of each ADN)."""
+    from adnmesh.cascade.switches import LowerSwitchRule
     from adnmesh.control.cpfc_controller import GainSchedule
 
     adns = {adn.id: _adn_level(hierarchy, adn) for adn in hierarchy.adns}
     delays = {s.id: round(s.t_com_s - upper.t_com_s, 6) for s in sites}
-    return Level(upper, GainSchedule(upper, upper_table)), adns, delays
+    rule = LowerSwitchRule({s.id: s.adn for s in sites},
+                           {d.id: d.p_inst_w for d in upper.ders},
+                           {s.id: s.t_com_s for s in sites}, upper.t_meas_s, upper.constraints)
+    return Level(upper, GainSchedule(upper, upper_table), rule), adns, delays
 
 
 @dataclass(frozen=True)

@@ -111,7 +111,9 @@ def switch_lines(result: HierarchyResult, grid: str) -> list[str]:
         reference = ref[np.searchsorted(t_ref, t[inside], side="right") - 1]
         deviation = float(np.max(np.abs(p[inside] - reference))) if inside.any() else math.nan
         used = [a for a, w in body.get("w", {}).items() if w]
-        lines.append(f"  switch at {at / 1e9:g} s to {', '.join(used) or 'no ADN'}: largest "
+        before = body["switch"].get("kp_before")
+        gains = f", gains x{body['kp'] / before:.3g}" if before and body["kp"] != before else ""
+        lines.append(f"  switch at {at / 1e9:g} s to {', '.join(used) or 'no ADN'}{gains}: largest "
                      f"deviation {deviation / 1e3:.3g} kW in the {(end - at) / 1e9:.3g} s after"
                      f" (handover {body['switch'].get('handover_s') or 0:.3g} s)")
     return lines

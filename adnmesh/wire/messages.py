@@ -68,6 +68,7 @@ Ratio = Annotated[float, Meta(ge=-1e9, le=1e9, description="dimensionless")]
 Gain = Annotated[float, Meta(gt=0.0, le=1e3)]
 Weight = Annotated[float, Meta(ge=0.0, le=1.0)]
 DERId = Annotated[str, Meta(pattern=f"^{ID_PATTERN}$", max_length=ID_MAX_CHARS)]
+GridName = DERId                 # a grid's name follows the same rule
 Sender = Annotated[str, Meta(max_length=2 * ID_MAX_CHARS,
                              extra_json_schema={"pattern": f"^({LAUNCHER}|{OPERATOR}|{AGENT_PATTERN})$"})]
 Agent = Annotated[str, Meta(pattern=f"^{AGENT_PATTERN}$", max_length=2 * ID_MAX_CHARS)]
@@ -178,7 +179,8 @@ class AdnActuator(Envelope):
     set left): the entry's number and DERs in use, the installed power
     of those DERs (``capacity_w``, the ADN's C_i, W), its range above and below their
     schedules (W), and the entry's exact closed loop: PI gains (1/W, 1/(W s)), the loop's
-    design T_com and T_meas (s) and its groups."""
+    design T_com and T_meas (s) and its groups; ``grid``: the ADN's grid (its id in a
+    hierarchy)."""
 
     type: Literal["adn_actuator"]
     entry: Count
@@ -191,6 +193,7 @@ class AdnActuator(Envelope):
     t_com_s: Seconds
     t_meas_s: Seconds
     groups: Annotated[list[ActuatorGroup], Meta(max_length=MAX_DERS)]
+    grid: GridName | UnsetType = UNSET
 
 
 class AdnOffset(Envelope):
