@@ -1463,10 +1463,18 @@ class HierarchyFile(Section):
     @model_validator(mode="after")
     def _distinct(self) -> HierarchyFile:
         _unique([a.id for a in self.adns], lambda i: ("adns", i, "id"), "ADN id")
+        ids = [a.id for a in self.adns]
         for i, adn in enumerate(self.adns):
             if adn.id == self.name:
                 raise _problem(("adns", i, "id"), f"must differ from the hierarchy's name "
                                                   f"{self.name!r} (each grid has its own keys)")
+        named = [(("faults", i, "der"), f.der) for i, f in enumerate(self.faults)
+                 if f.der is not None]
+        named += [(("scenario", "availability", i, "ders", j), d)
+                  for i, c in enumerate(self.scenario.availability) for j, d in enumerate(c.ders)]
+        for at, adn in named:
+            if adn not in ids:
+                raise _problem(at, f"unknown ADN id {adn!r} (known: {', '.join(ids)})")
         return self
 
 

@@ -317,3 +317,25 @@ def test_an_announcement_the_cascade_cannot_take_is_said_and_the_gains_stay() ->
     assert [o.body["kind"] for o in out] == ["cascade_rule"]
     assert "not evaluated" in out[0].body["text"]
     assert cpfc.counts["rejected_announcements"] == 1 and cpfc._retuning is None
+
+
+def test_an_adns_own_steps_are_left_out_unless_kept(tmp_path) -> None:
+    from adnmesh.config import load_hierarchy
+    from adnmesh.study.hierarchy import _adn_level
+
+    path = tmp_path / "h.yaml"
+    path.write_text(HIERARCHY.replace("t_com_s: 0.25}", "t_com_s: 0.25, keep_steps: true}"))
+    hierarchy = load_hierarchy(path)
+    dropped, kept = (_adn_level(hierarchy, adn).config for adn in hierarchy.adns)
+    own = load_config(EXAMPLES / "mixed-4.yaml").scenario
+    assert (dropped.grid, kept.grid) == ("wtchp", "mixed")
+    assert dropped.scenario.p_ref_steps == () and dropped.scenario.availability
+    assert kept.scenario == own
+
+
+def test_a_fault_on_an_unknown_adn_is_a_one_line_error_before_any_tuning(tmp_path, capsys) -> None:
+    path = tmp_path / "h.yaml"
+    path.write_text(HIERARCHY.replace("der: wtchp", "der: nowhere"))
+    assert main(["cascade", str(path), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "faults[0].der: unknown ADN id 'nowhere'" in err[0]

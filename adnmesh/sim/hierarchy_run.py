@@ -25,8 +25,8 @@ from adnmesh.names import LAUNCHER, der_id_of
 from adnmesh.sim.clock import Coordinator
 from adnmesh.sim.faults import FaultPlan, fault_events, resend_body
 from adnmesh.sim.hierarchy_topology import grid_of, hierarchy_topology, qualified
+from adnmesh.sim.local import NodesOnOneClock
 from adnmesh.sim.node import Node
-from adnmesh.wire.envelope import encode
 from adnmesh.wire.keys import Keys
 from adnmesh.wire.outbox import Outbox
 from adnmesh.wire.units import ns
@@ -66,7 +66,7 @@ class HierarchyRun:
     coordinator: Coordinator | None = None
 
 
-class _HierarchyRunner:
+class _HierarchyRunner(NodesOnOneClock):
     """What ``adnmesh up`` does for one grid, for every grid of a hierarchy."""
 
     def __init__(self, upper: Level, adns: Mapping[str, Level],
@@ -74,7 +74,6 @@ class _HierarchyRunner:
         self.upper, self.adns = upper, dict(adns)
         self.levels = {upper.config.grid: upper,
                        **{level.config.grid: level for level in adns.values()}}
-        self._adn_of_grid = {level.config.grid: a for a, level in adns.items()}
         self.topology = hierarchy_topology(upper.config, {a: lv.config for a, lv in adns.items()},
                                            offset_delay_s)
         self.run = HierarchyRun()
@@ -111,15 +110,6 @@ class _HierarchyRunner:
         seed = self.levels[grid_of(name)[0]].config.runtime.seed
         return Node(self._agent(name), self.topology, seed, start_ns=start_ns, node_id=name)
 
-    def send_own(self, key: str, t_send: int, body: dict, t_deliver: int | None = None) -> None:
-        """A message of ``up``: recorded, delivered to the key's receivers."""
-        self.deliver(key, encode(self.outbox.send(key, t_send, body, t_deliver)))
-
-    def deliver(self, key: str, payload: bytes) -> None:
-        self.run.messages.append((key, payload))
-        for receiver in self.topology.receivers.get(key, ()):
-            self.run.nodes[receiver].receive(key, payload)
-
     def inject(self, grid: str, planned, t_send: int, body: dict | None = None) -> None:
         body = planned.body if body is None else body
         self.coordinator.inject(self._agents(grid))
@@ -136,19 +126,6 @@ class _HierarchyRunner:
             for agent, at in plan.restarts():
                 self.coordinator.plan_restart(qualified(grid, agent), at)
         return deque(self.coordinator.start())
-
-    def step(self, grant) -> list:
-        node = self.run.nodes[grant.agent]
-        if node.counts.received < grant.expect:
-            raise RuntimeError(f"{grant.agent}: expected {grant.expect} messages, "
-                               f"received {node.counts.received}")
-        for key, payload in node.advance(grant.until_ns):
-            self.deliver(key, payload)
-        report = node.report()
-        grants = self.coordinator.on_report(report)
-        if report.killed_ns is not None:
-            grants += self._killed(grant.agent, report.killed_ns)
-        return grants
 
     def _killed(self, name: str, at_ns: int) -> list:
         grid, agent = grid_of(name)
@@ -199,15 +176,5 @@ def run_hierarchy(upper: Level, adns: Mapping[str, Level], offset_delay_s: Mappi
     """
     duration = upper.config.scenario.duration_s if end_s is None else end_s
     runner = _HierarchyRunner(upper, adns, offset_delay_s, ns(duration))
-    grants = runner.start()
-    done = 0
-    while grants:
-        grants.extend(runner.step(grants.popleft()))
-        done += 1
-        if on_progress is not None and done % 1000 == 0:
-            on_progress(runner.coordinator.now_ns())
-    if not runner.coordinator.finished:
-        raise RuntimeError("the sim clock stopped before the end of the run")
-    if on_progress is not None:
-        on_progress(runner.coordinator.end_ns)
+    runner.drive(on_progress)
     return runner.run

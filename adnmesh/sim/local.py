@@ -24,7 +24,7 @@ from adnmesh.wire.envelope import encode
 from adnmesh.wire.outbox import Outbox
 from adnmesh.wire.units import ns
 
-__all__ = ["LocalRun", "run_local"]
+__all__ = ["LocalRun", "NodesOnOneClock", "run_local"]
 
 
 @dataclass
@@ -48,7 +48,60 @@ class LocalRun:
     coordinator: Coordinator | None = None
 
 
-class _LocalRunner:
+class NodesOnOneClock:
+    """What the in-process runners share (this one and a hierarchy's,
+    :mod:`adnmesh.sim.hierarchy_run`): nodes driven a grant at a time by one coordinator,
+    ``up``'s own messages, and delivery straight to the receivers of the topology.
+
+    A subclass sets ``topology``, ``run`` (with ``nodes`` and ``messages``), ``coordinator``
+    and ``outbox``, and gives ``start() -> grants`` and ``_killed(agent, at_ns) -> grants``.
+    """
+
+    def send_own(self, key: str, t_send: int, body: dict, t_deliver: int | None = None) -> None:
+        """A message of ``up``: recorded, delivered to the key's receivers."""
+        self.deliver(key, encode(self.outbox.send(key, t_send, body, t_deliver)))
+
+    def deliver(self, key: str, payload: bytes) -> None:
+        self.run.messages.append((key, payload))
+        for receiver in self.topology.receivers.get(key, ()):
+            self.run.nodes[receiver].receive(key, payload)
+
+    def step(self, grant) -> list:
+        node = self.run.nodes[grant.agent]
+        if node.counts.received < grant.expect:
+            raise RuntimeError(f"{grant.agent}: expected {grant.expect} messages, "
+                               f"received {node.counts.received}")
+        for key, payload in node.advance(grant.until_ns):
+            self.deliver(key, payload)
+        report = node.report()
+        grants = self.coordinator.on_report(report)
+        if report.killed_ns is not None:
+            grants += self._killed(grant.agent, report.killed_ns)
+        return grants
+
+    def drive(self, on_progress=None) -> None:
+        """Run to the end: ``on_progress(t_ns)`` with the time every node has reached, every
+        1,000 grants and at the end.
+
+        Raises
+        ------
+        RuntimeError
+            The clock stopped before the end.
+        """
+        grants = self.start()
+        done = 0
+        while grants:
+            grants.extend(self.step(grants.popleft()))
+            done += 1
+            if on_progress is not None and done % 1000 == 0:
+                on_progress(self.coordinator.now_ns())
+        if not self.coordinator.finished:
+            raise RuntimeError("the sim clock stopped before the end of the run")
+        if on_progress is not None:
+            on_progress(self.coordinator.end_ns)
+
+
+class _LocalRunner(NodesOnOneClock):
     """What ``adnmesh up`` does, in one process: nodes, clock, faults, restarts."""
 
     def __init__(self, config: Config, schedule, end_ns: int, q_schedule=None,
@@ -71,15 +124,6 @@ class _LocalRunner:
                                 q_schedule=self.q_schedule, model_watch=watch), self.topology,
                     self.config.runtime.seed, start_ns=start_ns)
 
-    def send_own(self, key: str, t_send: int, body: dict, t_deliver: int | None = None) -> None:
-        """A message of ``up``: recorded, delivered to the key's receivers."""
-        self.deliver(key, encode(self.outbox.send(key, t_send, body, t_deliver)))
-
-    def deliver(self, key: str, payload: bytes) -> None:
-        self.run.messages.append((key, payload))
-        for receiver in self.topology.receivers.get(key, ()):
-            self.run.nodes[receiver].receive(key, payload)
-
     def inject(self, planned: PlannedFault, t_send: int, body: dict | None = None) -> None:
         keys = self.topology.keys
         body = planned.body if body is None else body
@@ -97,19 +141,6 @@ class _LocalRunner:
         for agent, at in self.plan.restarts():
             self.coordinator.plan_restart(agent, at)
         return deque(self.coordinator.start())
-
-    def step(self, grant) -> list:
-        node = self.run.nodes[grant.agent]
-        if node.counts.received < grant.expect:
-            raise RuntimeError(f"{grant.agent}: expected {grant.expect} messages, "
-                               f"received {node.counts.received}")
-        for key, payload in node.advance(grant.until_ns):
-            self.deliver(key, payload)
-        report = node.report()
-        grants = self.coordinator.on_report(report)
-        if report.killed_ns is not None:
-            grants += self._killed(grant.agent, report.killed_ns)
-        return grants
 
     def _killed(self, agent: str, at_ns: int) -> list:
         keys = self.topology.keys
@@ -154,9 +185,5 @@ def run_local(config: Config, schedule, *, end_s: float | None = None,
     runner = _LocalRunner(config, schedule,
                           ns(config.scenario.duration_s if end_s is None else end_s), q_schedule,
                           model_watch)
-    grants = runner.start()
-    while grants:
-        grants.extend(runner.step(grants.popleft()))
-    if not runner.coordinator.finished:
-        raise RuntimeError("the sim clock stopped before the end of the run")
+    runner.drive()
     return runner.run
