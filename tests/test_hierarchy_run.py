@@ -30,12 +30,14 @@ adns:
   - {{id: wtchp, config: {EXAMPLES / 'wt-chp.yaml'}, t_com_s: 0.3}}
   - {{id: mixed, config: {EXAMPLES / 'mixed-4.yaml'}, t_com_s: 0.25}}
 scenario:
-  duration_s: 90
+  duration_s: 95
   p_ref_steps: [{{t_s: 5, delta_w: 1.0e+6}}, {{t_s: 20, delta_w: -0.5e+6}}]
 faults:
   - {{kind: der_offline, der: wtchp, t_s: 35, duration_s: 15}}
+  - {{kind: der_offline, der: wtchp, t_s: 85}}
 """
-"""wt-chp loses its WT at 80 s, mixed-4 two of its four plants (their own scenarios)."""
+"""wt-chp loses its WT at 80 s, mixed-4 two of its four plants (their own scenarios); then
+wtchp's site is cut off again, for good."""
 
 STEP_W = 1.0e6
 FINAL_REF_W = 0.5e6   # the operating point (0) and both steps
@@ -73,7 +75,7 @@ def test_the_run_is_one_recording_of_every_level(ran) -> None:
     assert recording.complete
     assert {t.split("/")[1] for t in topics} == {"hv", "wtchp", "mixed"}
     assert (out / "hv.run.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert "ran hv: 2 ADNs, 17 agents, 90 s" in printed
+    assert "ran hv: 2 ADNs, 17 agents, 95 s" in printed
     # the site agents speak for their ADNs in the upper grid; each ADN's CPFC hears them
     assert {"adn/hv/der/wtchp/offset", "adn/hv/der/mixed/offset", "adn/wtchp/measurement/exchange",
             "adn/hv/der/wtchp/state", "adn/hv/der/wtchp/heartbeat"} <= set(topics)
@@ -128,10 +130,10 @@ def test_adns_losing_plants_are_compensated_from_above(ran) -> None:
                      if s["t_send_ns"] > ns(80.0)]
         assert switch["t_send_ns"] < ns(81.0)
     t, p = series(topics, "adn/hv/measurement/p_ip", "p_ip_w")
-    after = t > 80.0
+    after = (t > 80.0) & (t < 85.0)
     worst = np.max(np.abs(p[after] - FINAL_REF_W))
     assert worst > 0.05 * STEP_W                       # the loss is felt ...
-    assert p[-1] - np.min(p[after]) > 0.2 * worst      # ... and taken back from above
+    assert p[after][-1] - np.min(p[after]) > 0.2 * worst   # ... and taken back from above
 
 
 def test_the_site_agent_turns_set_points_into_offsets_and_holds_when_cut_off() -> None:
@@ -262,9 +264,10 @@ def test_the_upper_cpfc_backs_off_when_adns_switch_to_slower_loops(ran) -> None:
     import msgspec
 
     out, _, topics, recording = ran
-    events = [b for b in topics["adn/hv/event/cpfc"] if b["kind"].startswith("cascade_")]
+    events = [b for b in topics["adn/hv/event/cpfc"] if b["kind"].startswith("cascade_")
+              and b["t_send_ns"] < ns(85.0)]
     assert [e["kind"] for e in events][-1] == "cascade_retuned"
-    (switch,) = [s for s in switches(topics, "adn/hv/cpfc/p_y") if s["t_send_ns"] > ns(80.0)]
+    switch = [s for s in switches(topics, "adn/hv/cpfc/p_y") if s["t_send_ns"] > ns(80.0)][0]
     factor = switch["kp"] / switch["switch"]["kp_before"]
     assert 0 < factor < 1 and switch["ki"] / switch["switch"]["ki_before"] == \
         pytest.approx(factor)
@@ -339,3 +342,17 @@ def test_a_fault_on_an_unknown_adn_is_a_one_line_error_before_any_tuning(tmp_pat
     assert main(["cascade", str(path), "--out", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "faults[0].der: unknown ADN id 'nowhere'" in err[0]
+
+
+def test_the_rule_runs_again_when_the_upper_cpfc_switches_to_other_adns(ran) -> None:
+    """wtchp's site is cut off at 85 s, after both ADNs switched to slower loops: the upper
+    CPFC switches to mixed alone with its table entry, evaluates that cascade with mixed's
+    loop as announced, and backs its gains off from there."""
+    _, _, topics, _ = ran
+    late = [s for s in switches(topics, "adn/hv/cpfc/p_y") if s["t_send_ns"] > ns(85.0)]
+    drop, retuned = late[:2]
+    assert drop["w"].get("wtchp", 0) == 0 and retuned["w"] == drop["w"]
+    said = [b for b in topics["adn/hv/event/cpfc"] if b["t_send_ns"] > ns(85.0)]
+    assert said[0]["kind"] == "cascade_rule" and "the ADNs in use changed" in said[0]["text"]
+    assert said[-1]["kind"] == "cascade_retuned"
+    assert 0 < retuned["kp"] / retuned["switch"]["kp_before"] < 1

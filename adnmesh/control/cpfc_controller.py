@@ -508,6 +508,7 @@ class CPFC(Agent):
         # (adnmesh.cascade.switches.LowerSwitchRule; None elsewhere), the factor applied per set
         self.lower_switch_rule = None
         self._cascade_factor: dict[frozenset[str], float] = {}
+        self._rule_set = frozenset(self._ids)   # the set the rule last saw (certified: all)
         self._retune_kind = "model"             # what the pending retune is: model or cascade
         self.available = self.in_use = frozenset(self._ids)
         self._pending: frozenset[str] | None = None
@@ -916,6 +917,8 @@ class CPFC(Agent):
                                   direction or UNSET,
                                   [d for d in self._ids if d in self._kept] or UNSET))
         self._next_weights_ns = t_ns
+        if self.lower_switch_rule is not None and self.in_use != self._rule_set:
+            out += self._cascade_rule(t_ns, "the ADNs in use changed")   # a hierarchy's top
 
     def _try_resume(self, t_ns: int, out: list) -> bool:
         """A restarted CPFC: resume once SI and every available DER's acknowledgement are in
@@ -1008,42 +1011,53 @@ class CPFC(Agent):
 
     def _lower_switched(self, t_ns: int, message) -> list[Outgoing]:
         """An ADN below announced another closed loop (docs/hierarchy.md#lower-switches): the
-        cascade of the set in use with it; its entry's gains backed off by the factor that
-        certifies it again (1: the table's), switched to as a retune is (at the sample after
-        ``tuning_delay_s``, bumplessly). The evaluation runs in the sample's time (about 10 ms
-        per factor tried): hierarchies run on the sim clock only. An announcement the
-        numerics cannot take is counted and said; the gains stay."""
-        rule, table, ders = self.lower_switch_rule, self.schedule.table, self.in_use
+        rule for the set in use, if the ADN is in it (:meth:`_cascade_rule`)."""
         try:
-            adn = rule.take(message)
-            base = None if adn is None or table is None else table.lookup(sorted(ders))
-            if base is None or not base.feasible or adn not in base.ders:
-                return []
-            factor, fig = rule.back_off(base.ders, base.w, base.kp, base.ki)
+            adn = self.lower_switch_rule.take(message)
         except ValueError as exc:       # a loop the cascade's numerics cannot take: said
-            self.counts["rejected_announcements"] = \
-                self.counts.get("rejected_announcements", 0) + 1
-            return [self._event("WARNING", "cascade_rule", f"an ADN's announcement is not "
-                                f"evaluated, the upper gains stay: {exc}"[:500])]
+            return [self._rejected_announcement(exc)]
+        if adn is None or adn not in self.in_use:
+            return []
+        return self._cascade_rule(t_ns, f"{adn} switched its gains", say_stay=True)
+
+    def _cascade_rule(self, t_ns: int, why: str, say_stay: bool = False) -> list[Outgoing]:
+        """The cascade of the set in use with the ADNs' loops as last announced; its table
+        entry's gains backed off by the factor that certifies it (1: the table's), switched to
+        as a retune is (at the sample after ``tuning_delay_s``, bumplessly). The evaluation
+        runs in the sample's time (about 35 ms per factor tried): hierarchies run on the sim
+        clock only. A loop the numerics cannot take is counted and said; the gains stay."""
+        rule, table, ders = self.lower_switch_rule, self.schedule.table, self.in_use
+        self._rule_set = ders
+        base = None if table is None else table.lookup(sorted(ders))
+        if base is None or not base.feasible:
+            return []
+        try:
+            factor, fig = rule.back_off(base.ders, base.w, base.kp, base.ki)
+        except ValueError as exc:
+            return [self._rejected_announcement(exc)]
         if factor is None:
             c = rule.constraints
-            return [self._event("WARNING", "cascade_rule", f"{adn} switched its gains: no "
-                                "back-off certifies the cascade ("
-                                f"{fig.problem(c.disk_margin_min, c.overshoot_max_pct)}); "
-                                "the upper gains stay")]
+            return [self._event("WARNING", "cascade_rule", f"{why}: no back-off certifies the "
+                                f"cascade ({fig.problem(c.disk_margin_min, c.overshoot_max_pct)})"
+                                "; the upper gains stay")]
         if factor == self._cascade_factor.get(ders, 1.0):
-            return [self._event("INFO", "cascade_rule", f"{adn} switched its gains: the upper "
-                                f"gains stay (x{factor:.3g} certifies the cascade)")]
+            return [self._event("INFO", "cascade_rule", f"{why}: the upper gains stay "
+                                f"(x{factor:.3g} certifies the cascade)")] if say_stay else []
         self._cascade_factor[ders] = factor
         figures = {**base.figures, "rise_time_s": fig.rise_time_s, "overshoot_pct":
                    fig.overshoot_pct, "settling_time_s": fig.settling_time_s,
                    "disk_margin": fig.disk_margin, "cascade_back_off": factor}
         entry = replace(base, kp=base.kp * factor, ki=base.ki * factor, figures=figures)
-        words = (f"{adn} switched its gains: the upper gains x{factor:.3g} certify the cascade "
+        words = (f"{why}: the upper gains x{factor:.3g} certify the cascade "
                  f"(disk margin {fig.disk_margin:.3g}, overshoot {fig.overshoot_pct:.3g} %)")
         self._retuning, self._retune_kind = ders, "cascade"
         self.schedule.retune(ders, lambda: (entry, words), t_ns, again=True)
         return [self._event("INFO", "cascade_rule", words)]
+
+    def _rejected_announcement(self, exc: Exception) -> Outgoing:
+        self.counts["rejected_announcements"] = self.counts.get("rejected_announcements", 0) + 1
+        return self._event("WARNING", "cascade_rule", f"an ADN's announcement is not evaluated, "
+                           f"the upper gains stay: {exc}"[:500])
 
     def _event(self, level: str, kind: str, text: str) -> Outgoing:
         if self.loop is not P_LOOP:
