@@ -79,6 +79,17 @@ def test_the_run_is_one_recording_of_every_level(ran) -> None:
     # the site agents speak for their ADNs in the upper grid; each ADN's CPFC hears them
     assert {"adn/hv/der/wtchp/offset", "adn/hv/der/mixed/offset", "adn/wtchp/measurement/exchange",
             "adn/hv/der/wtchp/state", "adn/hv/der/wtchp/heartbeat"} <= set(topics)
+    # each level alone beside it: together every message, each a one-grid recording
+    alone = {g: read_recording(out / f"hv.run.{g}.mcap") for g in ("hv", "wtchp", "mixed")}
+    assert sum(len(r.messages) for r in alone.values()) == len(recording.messages)
+    assert all({t.split("/")[1] for t in r.channels} == {g} for g, r in alone.items())
+
+
+def test_inspect_reads_the_upper_level_alone_with_its_design(ran, capsys) -> None:
+    out = ran[0]
+    assert main(["inspect", str(out / "hv.run.hv.mcap")]) == 0
+    printed = capsys.readouterr().out
+    assert "P_IP after each P_ref step" in printed and "designed" in printed
 
 
 def test_the_upper_step_follows_the_cascade_certificate(ran) -> None:

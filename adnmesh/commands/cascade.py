@@ -245,7 +245,8 @@ def _simulate(hierarchy, sites, upper, table, out: Path) -> int:
           f"{len(result.run.messages)} messages")
     for line in step_lines(result) + switch_lines(result, upper.grid):
         print(line)
-    print(f"  recording: {mcap}\n  figure: {png}")
+    print(f"  recording: {mcap} (every level; each alone beside it, "
+          f"{mcap.stem}.<level>.mcap)\n  figure: {png}")
     return 0
 
 

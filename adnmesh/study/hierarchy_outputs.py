@@ -23,14 +23,23 @@ SWITCH_WINDOW_S = 10.0
 
 
 def write_recording(result: HierarchyResult, path: Path, hierarchy) -> Path:
-    """Every level's messages in one MCAP file (topics ``adn/<grid>/...``; log time the
-    delivery, publish time the sending, ns of sim time)."""
-    metadata = {"clock": "sim", "grid": hierarchy.name, "hierarchy": str(hierarchy.path),
-                "hierarchy_sha256": hierarchy.sha256, "duration_s": f"{result.end_s:g}",
-                "levels": " ".join([hierarchy.name, *(a.id for a in hierarchy.adns)])}
-    with Recorder(path, metadata=metadata, schemas=message_schemas()) as recorder:
-        for key, kind, payload, t_send, t_deliver in recorded(result.run):
-            recorder.write(key, kind, payload, log_time_ns=t_deliver, publish_time_ns=t_send)
+    """Every level's messages in one MCAP file at ``path`` (topics ``adn/<grid>/...``; log
+    time the delivery, publish time the sending, ns of sim time), and each level's alone
+    beside it (``<stem>.<grid>.mcap``: a recording of one grid, as ``adnmesh up`` writes, for
+    ``inspect`` and ``replay``)."""
+    levels = [hierarchy.name, *(a.id for a in hierarchy.adns)]
+    common = {"clock": "sim", "hierarchy": str(hierarchy.path),
+              "hierarchy_sha256": hierarchy.sha256, "duration_s": f"{result.end_s:g}",
+              "levels": " ".join(levels)}
+    rows = recorded(result.run)
+    files = [(path, None), *((path.with_name(f"{path.stem}.{g}.mcap"), g) for g in levels)]
+    for target, grid in files:
+        metadata = common | {"grid": grid or hierarchy.name}
+        with Recorder(target, metadata=metadata, schemas=message_schemas()) as recorder:
+            for key, kind, payload, t_send, t_deliver in rows:
+                if grid is None or key.split("/", 2)[1] == grid:
+                    recorder.write(key, kind, payload, log_time_ns=t_deliver,
+                                   publish_time_ns=t_send)
     return path
 
 
