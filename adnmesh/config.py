@@ -1468,8 +1468,14 @@ class HierarchyFile(Section):
             if adn.id == self.name:
                 raise _problem(("adns", i, "id"), f"must differ from the hierarchy's name "
                                                   f"{self.name!r} (each grid has its own keys)")
+            if adn.t_com_s < 0.001:
+                raise _problem(("adns", i, "t_com_s"), "must be at least 0.001 s (the upper "
+                                                       f"level's shortest delay), got {adn.t_com_s:g}")
         named = [(("faults", i, "der"), f.der) for i, f in enumerate(self.faults)
                  if f.der is not None]
+        named += [(("faults", i, "agent"), f.agent.removeprefix("der/"))
+                  for i, f in enumerate(self.faults)
+                  if f.agent is not None and f.agent.startswith("der/")]
         named += [(("scenario", "availability", i, "ders", j), d)
                   for i, c in enumerate(self.scenario.availability) for j, d in enumerate(c.ders)]
         for at, adn in named:

@@ -278,10 +278,13 @@ def test_the_upper_cpfc_backs_off_when_adns_switch_to_slower_loops(ran) -> None:
     events = [b for b in topics["adn/hv/event/cpfc"] if b["kind"].startswith("cascade_")
               and b["t_send_ns"] < ns(85.0)]
     assert [e["kind"] for e in events][-1] == "cascade_retuned"
-    switch = [s for s in switches(topics, "adn/hv/cpfc/p_y") if s["t_send_ns"] > ns(80.0)][0]
-    factor = switch["kp"] / switch["switch"]["kp_before"]
-    assert 0 < factor < 1 and switch["ki"] / switch["switch"]["ki_before"] == \
-        pytest.approx(factor)
+    # the gains the rule took once both ADNs had announced (each verdict at the next sample)
+    rule = [s for s in switches(topics, "adn/hv/cpfc/p_y") if ns(80.0) < s["t_send_ns"] < ns(85.0)]
+    assert len(rule) == 2 and rule[0]["kp"] > rule[1]["kp"]
+    switch = rule[-1]
+    base = rule[0]["switch"]["kp_before"], rule[0]["switch"]["ki_before"]
+    factor = switch["kp"] / base[0]
+    assert 0 < factor < 1 and switch["ki"] / base[1] == pytest.approx(factor)
     # the loops the ADNs announced last, as the upper CPFC heard them
     lowers = {}
     for m in recording.messages:
@@ -294,8 +297,7 @@ def test_the_upper_cpfc_backs_off_when_adns_switch_to_slower_loops(ran) -> None:
                       tuple(w[a] * upper.ders_by_id([a])[0].p_inst_w for a in ("wtchp", "mixed")),
                       (0.3, 0.25), 0.2)
     t = np.arange(0.0, 400.0, 0.05)
-    for kp, ki, meets in ((switch["kp"], switch["ki"], True),
-                          (switch["switch"]["kp_before"], switch["switch"]["ki_before"], False)):
+    for kp, ki, meets in ((switch["kp"], switch["ki"], True), (*base, False)):
         loop, closed = cascade_models(cascade, kp, ki, order=10)
         dm, _, _ = ct.disk_margins(loop, np.geomspace(1e-4, 1e2, 3000))
         y = np.squeeze(ct.step_response(closed, T=t).outputs)
@@ -367,3 +369,55 @@ def test_the_rule_runs_again_when_the_upper_cpfc_switches_to_other_adns(ran) -> 
     assert said[0]["kind"] == "cascade_rule" and "the ADNs in use changed" in said[0]["text"]
     assert said[-1]["kind"] == "cascade_retuned"
     assert 0 < retuned["kp"] / retuned["switch"]["kp_before"] < 1
+
+
+def test_a_restarted_site_agent_sends_no_offset_before_its_first_command() -> None:
+    upper = load_config(EXAMPLES.parent / "simbench.yaml").model_copy(update={"grid": "hv"})
+    keys = Keys("hv")
+    site = AdnSite(upper.ders[0], upper, p_ip0_w=0.0)
+    site.resume(ns(40.0))
+    offset_key = keys.of("adn_offset", upper.ders[0].id)
+    sent = []
+    while site.next_timer_ns() <= ns(41.0):
+        sent += [o for o in site.on_timer(site.next_timer_ns()) if o.key == offset_key]
+    assert not sent                    # the ADN keeps the offset it last heard
+    out = site.on_message(ns(41.05), message(keys.of("p_y"), ns(41.05), {
+        "p_y": 0.2, "p_ref_w": 0.0, "kp": 1e-7, "ki": 1e-7, "entry": 3,
+        "w": {d.id: 1.0 for d in upper.ders}}))
+    (offset,) = [o.body["offset_w"] for o in out if o.key == offset_key]
+    assert offset == pytest.approx(0.2 * upper.ders[0].p_inst_w)
+
+
+def test_an_adn_below_a_level_announces_itself_again_every_weights_period() -> None:
+    """So that a restarted upper CPFC learns the loops it runs on; alone it does not."""
+    config = load_config(EXAMPLES / "wt-chp.yaml")
+    keys = Keys(config.grid)
+
+    def announced(hear_offset: bool) -> list[int]:
+        cpfc = CPFC(config, GainSchedule(config, None))
+        times = []
+        while cpfc.next_timer_ns() <= ns(2.5):      # DERs unheard of: none in use after
+            t = cpfc.next_timer_ns()
+            if hear_offset and t == ns(0.5):
+                cpfc.on_message(t, message(Keys("hv").of("adn_offset", "x"), t,
+                                           {"offset_w": 1e5}))
+            times += [t for o in cpfc.on_timer(t) if o.key == keys.of("adn_actuator")]
+        return times
+
+    assert announced(False) == [0]
+    assert announced(True) == [0, ns(1.0), ns(2.0)]
+
+
+@pytest.mark.parametrize("change, said", [
+    ("t_com_s: 0.25}", "t_com_s: 0.0}", ),
+    ("der: wtchp, t_s: 85}", "agent: der/nowhere, t_s: 85, restart_after_s: 1}")],
+    ids=["no-delay", "kill-of-no-adn"])
+def test_more_hierarchy_files_that_are_refused_before_any_tuning(tmp_path, capsys, change,
+                                                                 said) -> None:
+    path = tmp_path / "h.yaml"
+    body = HIERARCHY.replace(change, said)
+    body = body.replace("kind: der_offline, agent:", "kind: kill, agent:")
+    path.write_text(body)
+    assert main(["cascade", str(path), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and ("at least 0.001 s" in err[0] or "unknown ADN id 'nowhere'" in err[0])

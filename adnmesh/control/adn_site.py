@@ -108,16 +108,19 @@ class AdnSite(Agent):
         self._repeat_ns = ns(upper.runtime.heartbeat_period_s)
         self._sent_w: float | None = None     # the offset last sent
         self._next_repeat_ns = 0
+        self._restarted = False
         self.counts = {"offsets": 0}
 
     def next_timer_ns(self) -> int:
         return self.der_controller.next_timer_ns()
 
     def resume(self, t_ns: int) -> None:
-        """A restarted site agent: its DER controller resumes; the offset is sent anew."""
+        """A restarted site agent: its DER controller resumes; it sends the offset again from
+        its first command on (until then the ADN's CPFC keeps the last one it heard)."""
         self.der_controller.resume(t_ns)
         self.plant.last_exchange_ns = self.plant.now_ns = t_ns
         self._next_repeat_ns = t_ns
+        self._restarted = True        # no offset before a command: the ADN keeps its last
 
     def on_message(self, t_ns: int, message: Envelope) -> list[Outgoing]:
         if message.type == "p_ip":                      # the ADN's exchange
@@ -133,7 +136,12 @@ class AdnSite(Agent):
         return self._offset(t_ns, self.der_controller.on_timer(t_ns))
 
     def _offset(self, t_ns: int, out: list[Outgoing]) -> list[Outgoing]:
-        """``out`` and the offset, if it changed or is due again."""
+        """``out`` and the offset, if it changed or is due again (a restarted site agent
+        sends none before its first command: it does not know the offset the ADN runs on)."""
+        if self._restarted:
+            if self.der_controller.entry is None:
+                return out
+            self._restarted = False
         offset = self.plant.offset_w
         if offset != self._sent_w or t_ns >= self._next_repeat_ns:
             out.append(Outgoing(self._offset_key, {"offset_w": offset}))

@@ -280,18 +280,19 @@ class GainSchedule:
         return True
 
     def retune(self, available: frozenset[str], job: Callable[[], tuple], t_ns: int,
-               again: bool = False) -> None:
+               again: bool = False, at_once: bool = False) -> None:
         """Tune ``available`` again by ``job() -> (entry or None, words)`` (the model watch's,
         docs/method.md#model-watch): on the sim clock at once, released ``tuning_delay_s``
         later (deterministic, as an on-demand tuning); in realtime runs in a process of its
         own at a lower priority (``job`` picklable), so that the fit's seconds of CPU do not
         hold up the control loop's interpreter. Its entry, once :meth:`retuned` has handed it
         over, replaces the table's. A retune of the same set still pending stays, unless
-        ``again`` (the cascade rule's newer verdict replaces it)."""
-        if available in self._retunes and not (again and not self.background):
+        ``again`` (the cascade rule's newer verdict replaces it). ``at_once``: ``job`` is
+        quick and its entry is ready at once, on either clock (the cascade rule's)."""
+        if available in self._retunes and not (again and (at_once or not self.background)):
             return
-        if not self.background:
-            self._retunes[available] = (t_ns + self.tuning_delay_ns, job())
+        if at_once or not self.background:
+            self._retunes[available] = (t_ns + (0 if at_once else self.tuning_delay_ns), job())
             return
         if self._processes is None:     # not a thread: the fit would hold up the PI's samples
             import multiprocessing
@@ -504,6 +505,10 @@ class CPFC(Agent):
         # the level above's share (a hierarchy of ADNs): the offset of P_ref it asks for, W,
         # and the part of it already in p_ref_w
         self.offset_w = self._offset_in_ref_w = 0.0
+        # heard from a level above: announce the ADN again every weights_period_s too (a
+        # restarted upper CPFC learns the loops it runs on)
+        self._below_a_level = False
+        self._next_announce_ns = 0
         # the upper CPFC of a hierarchy: the rule for the ADNs' own gain switches
         # (adnmesh.cascade.switches.LowerSwitchRule; None elsewhere), the factor applied per set
         self.lower_switch_rule = None
@@ -582,6 +587,7 @@ class CPFC(Agent):
             self._ack(t_ns, message)
         elif message.type == "adn_offset" and loop is P_LOOP:
             self.offset_w = message.offset_w    # taken into P_ref at the next sample
+            self._below_a_level = True
         elif message.type == "adn_actuator" and self.lower_switch_rule is not None:
             return self._lower_switched(t_ns, message)
         elif message.type == "grid_guard":
@@ -766,7 +772,12 @@ class CPFC(Agent):
             acting = (self.entry_index, tuple(d for d in self._ids if self.weights.get(d, 0) > 0))
             if acting[1] and acting != self._as_actuator:
                 self._as_actuator = acting
+                self._next_announce_ns = t_ns + self.weights_period_ns
                 out.append(Outgoing(self.keys.of("adn_actuator"), self._actuator()))
+        elif (loop is P_LOOP and self._below_a_level and t_ns >= self._next_announce_ns
+              and any(w > 0 for w in self.weights.values())):
+            self._next_announce_ns = t_ns + self.weights_period_ns
+            out.append(Outgoing(self.keys.of("adn_actuator"), self._actuator()))
         self._p_y_sent = body[loop.output_field]
         if self.model_watch is not None:
             self._watch_sent(t_ns, out)
@@ -1006,6 +1017,8 @@ class CPFC(Agent):
             return
         self.counts["retunes"] = self.counts.get("retunes", 0) + 1
         out.append(self._event("INFO", f"{kind}_retuned", words))
+        if kind == "cascade":                  # the factor now in use for that set
+            self._cascade_factor[ders] = entry.figures.get("cascade_back_off", 1.0)
         if ders == self.in_use and self._pending is None:
             self._pending = self.available
 
@@ -1023,9 +1036,11 @@ class CPFC(Agent):
     def _cascade_rule(self, t_ns: int, why: str, say_stay: bool = False) -> list[Outgoing]:
         """The cascade of the set in use with the ADNs' loops as last announced; its table
         entry's gains backed off by the factor that certifies it (1: the table's), switched to
-        as a retune is (at the sample after ``tuning_delay_s``, bumplessly). The evaluation
-        runs in the sample's time (about 35 ms per factor tried): hierarchies run on the sim
-        clock only. A loop the numerics cannot take is counted and said; the gains stay."""
+        as a retune is, bumplessly, at the next sample. The factor counts as in use for the set
+        once switched to (a verdict left pending when the set changed is evaluated again on
+        return). The evaluation runs in the sample's time (about 35 ms per factor tried):
+        hierarchies run on the sim clock only. A loop the numerics cannot take is counted and
+        said; the gains stay."""
         rule, table, ders = self.lower_switch_rule, self.schedule.table, self.in_use
         self._rule_set = ders
         base = None if table is None else table.lookup(sorted(ders))
@@ -1043,7 +1058,6 @@ class CPFC(Agent):
         if factor == self._cascade_factor.get(ders, 1.0):
             return [self._event("INFO", "cascade_rule", f"{why}: the upper gains stay "
                                 f"(x{factor:.3g} certifies the cascade)")] if say_stay else []
-        self._cascade_factor[ders] = factor
         figures = {**base.figures, "rise_time_s": fig.rise_time_s, "overshoot_pct":
                    fig.overshoot_pct, "settling_time_s": fig.settling_time_s,
                    "disk_margin": fig.disk_margin, "cascade_back_off": factor}
@@ -1051,7 +1065,7 @@ class CPFC(Agent):
         words = (f"{why}: the upper gains x{factor:.3g} certify the cascade "
                  f"(disk margin {fig.disk_margin:.3g}, overshoot {fig.overshoot_pct:.3g} %)")
         self._retuning, self._retune_kind = ders, "cascade"
-        self.schedule.retune(ders, lambda: (entry, words), t_ns, again=True)
+        self.schedule.retune(ders, lambda: (entry, words), t_ns, again=True, at_once=True)
         return [self._event("INFO", "cascade_rule", words)]
 
     def _rejected_announcement(self, exc: Exception) -> Outgoing:
