@@ -64,6 +64,25 @@ class HierarchyRun:
     messages: list[tuple[str, bytes]] = field(default_factory=list)
     nodes: dict[str, Node] = field(default_factory=dict)
     coordinator: Coordinator | None = None
+    _by_key: dict[str, list[bytes]] | None = field(default=None, repr=False)
+
+    def _index(self) -> dict[str, list[bytes]]:
+        """Key -> its payloads in send order, built at the first call (once the run is
+        over)."""
+        if self._by_key is None:
+            self._by_key = {}
+            for k, payload in self.messages:
+                self._by_key.setdefault(k, []).append(payload)
+        return self._by_key
+
+    def payloads(self, key: str) -> list[bytes]:
+        """Every payload sent on ``key``, in send order."""
+        return self._index().get(key, [])
+
+    @property
+    def keys(self) -> list[str]:
+        """Every key a message was sent on, in order of the first."""
+        return list(self._index())
 
 
 class _HierarchyRunner(NodesOnOneClock):

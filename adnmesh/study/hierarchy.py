@@ -97,25 +97,18 @@ class HierarchyResult:
 def level_series(run: HierarchyRun, key: str, field: str) -> tuple[np.ndarray, np.ndarray]:
     """``(t_ns, values)`` of ``field`` of every message on ``key``, by the time it was sent
     (a measurement's sampling instant)."""
-    t, v = [], []
-    for k, payload in run.messages:
-        if k == key:
-            message = decode(k, payload)
-            t.append(message.t_send_ns)
-            v.append(getattr(message, field))
-    order = np.argsort(np.asarray(t, dtype=np.int64), kind="stable")
-    return np.asarray(t, dtype=np.int64)[order], np.asarray(v, dtype=float)[order]
+    messages = [decode(key, payload) for payload in run.payloads(key)]
+    t = np.asarray([m.t_send_ns for m in messages], dtype=np.int64)
+    order = np.argsort(t, kind="stable")
+    return t[order], np.asarray([getattr(m, field) for m in messages], dtype=float)[order]
 
 
 def _window_ends(run: HierarchyRun) -> list[int]:
     """Instants that end a step's window in the upper level: a gain switch of any level's
     CPFC (the upper one's, or an ADN's that changes the loop under it); :func:`simulate` adds
     every level's availability changes."""
-    ends = []
-    for k, payload in run.messages:
-        if k.endswith("/cpfc/p_y") and b'"switch"' in payload:
-            ends.append(decode(k, payload).t_send_ns)
-    return sorted(ends)
+    return sorted(decode(k, payload).t_send_ns for k in run.keys if k.endswith("/cpfc/p_y")
+                  for payload in run.payloads(k) if b'"switch"' in payload)
 
 
 def simulate(upper: Level, adns: dict[str, Level], offset_delay_s: dict[str, float],
@@ -141,19 +134,30 @@ def simulate(upper: Level, adns: dict[str, Level], offset_delay_s: dict[str, flo
 
 def _entries(run: HierarchyRun, keys: Keys) -> list[dict]:
     """The upper CPFC's entries as its ``p_y`` messages announce them (with design figures)."""
-    key, entries = keys.of("p_y"), []
-    for k, payload in run.messages:
-        if k == key:
-            note_entry(entries, msgspec.json.decode(payload))
+    entries = []
+    for payload in run.payloads(keys.of("p_y")):
+        note_entry(entries, msgspec.json.decode(payload))
     return entries
+
+
+class _Times(msgspec.Struct):
+    """The two times of an envelope (its other fields are not decoded)."""
+
+    t_send_ns: int
+    t_deliver_ns: int
+
+
+_TIMES = msgspec.json.Decoder(_Times)
 
 
 def recorded(run: HierarchyRun):
     """``(key, type, payload, t_send_ns, t_deliver_ns)`` of every message, by delivery time
     (the order a recording keeps)."""
     rows = []
-    for key, payload in run.messages:
-        message = decode(key, payload)
-        rows.append((key, route(key).type, payload, message.t_send_ns, message.t_deliver_ns))
+    for key in run.keys:
+        kind = route(key).type
+        for payload in run.payloads(key):
+            times = _TIMES.decode(payload)
+            rows.append((key, kind, payload, times.t_send_ns, times.t_deliver_ns))
     rows.sort(key=lambda r: r[4])
     return rows

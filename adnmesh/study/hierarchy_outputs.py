@@ -109,8 +109,8 @@ def switch_lines(result: HierarchyResult, grid: str) -> list[str]:
     t, p = level_series(result.run, keys.of("p_ip"), "p_ip_w")
     t_ref, ref = level_series(result.run, keys.of("p_ref"), "p_ref_w")
     lines = []
-    for key, payload in result.run.messages:
-        if key != keys.of("p_y") or b'"switch"' not in payload:
+    for payload in result.run.payloads(keys.of("p_y")):
+        if b'"switch"' not in payload:
             continue
         body = msgspec.json.decode(payload)
         at = body["t_send_ns"]
