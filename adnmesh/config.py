@@ -40,8 +40,8 @@ __all__ = [
     "MAX_CONFIG_BYTES", "MAX_DELAY_PER_LAG", "MAX_IN_FLIGHT", "MAX_SPAN_PER_DELAY", "PRefStep",
     "CAPABILITY_PRESETS", "QRefStep", "QU", "Reactive", "Runtime", "VoltageStep",
     "Scenario", "Section", "Study", "Maintenance", "MinOutputShare", "json_schema", "load_config",
-    "Hierarchy", "HierarchyAdn", "HierarchyConstraints", "HierarchyFile", "MAX_ADNS", "hierarchy_json_schema",
-    "load_hierarchy",
+    "Hierarchy", "HierarchyAdn", "HierarchyConstraints", "HierarchyFile", "HvGrid", "MAX_ADNS",
+    "hierarchy_json_schema", "load_hierarchy",
 ]
 
 DERType = Literal["WT", "CHP", "PV", "HYDRO", "GEN"]
@@ -1425,6 +1425,13 @@ class HierarchyAdn(Section):
     """In the hierarchy's run, keep the steps of P_ref of the ADN's own scenario as its
     schedule (default: its reference is its operating point plus the offset from above; the
     availability changes of its scenario always apply)."""
+    hv_bus: _Name | None = None
+    """With ``hv_grid``: the name of the HV bus the ADN is attached at (its HV/MV
+    transformer's HV side)."""
+    replaces: Annotated[tuple[_Name, ...], Field(strict=False, max_length=100)] | None = None
+    """With ``hv_grid``: the loads and static generators (by name) at ``hv_bus`` that stood
+    for this grid in the HV net and are taken out of it (default: those whose profile, or
+    type, begins with ``mv_``: SimBench's stand-ins for its MV grids)."""
 
 
 class HierarchyConstraints(Section):
@@ -1436,6 +1443,29 @@ class HierarchyConstraints(Section):
     """The upper step response's overshoot must stay below this, % of the final value."""
     settling_band_pct: Annotated[float, Field(gt=0, le=50)] = 5.0
     """Band for the settling time, % of the final value."""
+
+
+class HvGrid(Section):
+    """The HV grid the ADNs are attached to: its AC power flow is the upper level's plant
+    (the upper P_IP is its exchange with the level above, the ADNs' exchanges injected at
+    their HV buses)."""
+
+    simbench_code: _Name | None = None
+    """A SimBench HV code (e.g. ``1-HV-mixed--0-sw``)."""
+    pandapower_net: _Name | None = None
+    """Or a pandapower net file (relative to the hierarchy file)."""
+    study_case: Annotated[str, Field(pattern=r"^[A-Za-z0-9]+$", max_length=16)] | None = None
+    """The study case of its loads, generators and slack voltage (a row of the net's
+    loadcases table; default: lW for a SimBench code, the net as saved for a file)."""
+    load_model: Literal["impedance", "power"] = "impedance"
+    """Its loads as constant impedances or constant power."""
+
+    @model_validator(mode="after")
+    def _one_net(self) -> HvGrid:
+        if (self.simbench_code is None) == (self.pandapower_net is None):
+            raise _problem(("simbench_code",), "give the HV net as simbench_code or as "
+                                               "pandapower_net, one of the two")
+        return self
 
 
 class HierarchyFile(Section):
@@ -1459,6 +1489,20 @@ class HierarchyFile(Section):
     faults: _Events[Fault] = ()
     """Faults of the upper level's run; ``der_offline`` of an ADN cuts its site off from the
     level above."""
+    hv_grid: HvGrid | None = None
+    """The HV grid between the ADNs and the level above (default: none, the upper P_IP is the
+    sum of the ADNs' exchanges); every ADN then names its ``hv_bus``."""
+
+    @model_validator(mode="after")
+    def _attached(self) -> HierarchyFile:
+        for i, adn in enumerate(self.adns):
+            if self.hv_grid is not None and adn.hv_bus is None:
+                raise _problem(("adns", i, "hv_bus"), "is needed with hv_grid: the HV bus the "
+                                                      "ADN is attached at")
+            if self.hv_grid is None and (adn.hv_bus, adn.replaces) != (None, None):
+                raise _problem(("adns", i, "hv_bus" if adn.hv_bus else "replaces"),
+                               "needs hv_grid: the HV net it is part of")
+        return self
 
     @model_validator(mode="after")
     def _distinct(self) -> HierarchyFile:
@@ -1495,6 +1539,13 @@ class Hierarchy(HierarchyFile):
     def config_path(self, adn: HierarchyAdn) -> Path:
         """The ADN's config file, resolved next to the hierarchy file."""
         return (Path(self.path).parent / adn.config).resolve()
+
+    def hv_net_path(self) -> Path | None:
+        """The HV grid's pandapower net file, resolved next to the hierarchy file (None
+        without one)."""
+        if self.hv_grid is None or self.hv_grid.pandapower_net is None:
+            return None
+        return (Path(self.path).parent / self.hv_grid.pandapower_net).resolve()
 
 
 def hierarchy_json_schema() -> dict[str, Any]:

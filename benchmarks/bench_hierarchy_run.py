@@ -24,11 +24,9 @@ import tempfile
 import time
 from pathlib import Path
 
-import yaml
-
-from adnmesh.cascade.upper_table import certify_entries, upper_config_document
-from adnmesh.commands.cascade import hierarchy_sites
-from adnmesh.config import load_config, load_hierarchy
+from adnmesh.cascade.upper_table import certify_entries
+from adnmesh.commands.cascade import upper_level
+from adnmesh.config import load_hierarchy
 from adnmesh.sim.local import run_local
 from adnmesh.study.hierarchy import hierarchy_levels, simulate
 from adnmesh.tuning import tune_table
@@ -36,11 +34,7 @@ from adnmesh.tuning import tune_table
 
 def levels_of(path: str, folder: Path):
     hierarchy = load_hierarchy(path)
-    sites = hierarchy_sites(hierarchy)
-    upper_path = folder / "upper.yaml"
-    upper_path.write_text(yaml.safe_dump(upper_config_document(hierarchy, sites),
-                                         sort_keys=False))
-    upper = load_config(upper_path)
+    sites, upper = upper_level(hierarchy, folder)
     table = tune_table(upper, "paper")
     certify_entries(table, {s.id: s for s in sites}, hierarchy.t_meas_s, upper.constraints)
     return hierarchy, upper, table, sites

@@ -27,8 +27,10 @@ HIERARCHY = f"""name: hv
 t_meas_s: 0.2
 constraints: {{disk_margin_min: 1.5, overshoot_max_pct: 1.0}}
 adns:
-  - {{id: wtchp, config: {EXAMPLES / 'wt-chp.yaml'}, t_com_s: 0.3}}
-  - {{id: mixed, config: {EXAMPLES / 'mixed-4.yaml'}, t_com_s: 0.25}}
+  - {{id: wtchp, config: {EXAMPLES / 'wt-chp.yaml'}, t_com_s: 0.3, hv_bus: HV1 Bus 29}}
+  - {{id: mixed, config: {EXAMPLES / 'mixed-4.yaml'}, t_com_s: 0.25, hv_bus: HV1 Bus 41,
+     replaces: []}}
+hv_grid: {{simbench_code: 1-HV-mixed--0-sw}}
 scenario:
   duration_s: 95
   p_ref_steps: [{{t_s: 5, delta_w: 1.0e+6}}, {{t_s: 20, delta_w: -0.5e+6}}]
@@ -36,11 +38,20 @@ faults:
   - {{kind: der_offline, der: wtchp, t_s: 35, duration_s: 15}}
   - {{kind: der_offline, der: wtchp, t_s: 85}}
 """
-"""wt-chp loses its WT at 80 s, mixed-4 two of its four plants (their own scenarios); then
-wtchp's site is cut off again, for good."""
+"""Both ADNs hang from SimBench's HV grid (wtchp in place of the MV stand-ins at its bus, mixed
+beside them); wt-chp loses its WT at 80 s, mixed-4 two of its four plants (their own
+scenarios); then wtchp's site is cut off again, for good."""
 
 STEP_W = 1.0e6
-FINAL_REF_W = 0.5e6   # the operating point (0) and both steps
+FINAL_W = 0.5e6   # the reference after both steps, above the operating point
+
+
+def final_ref_w(topics) -> float:
+    """The upper reference after both steps, W (the HV grid's exchange at the operating
+    point plus both steps)."""
+    _, ref = series(topics, "adn/hv/scenario/p_ref", "p_ref_w")
+    assert ref[-1] - ref[0] == FINAL_W
+    return float(ref[-1])
 
 
 @pytest.fixture(scope="module")
@@ -58,6 +69,30 @@ def ran(tmp_path_factory):
     for m in recording.messages:
         topics.setdefault(m.topic, []).append(json.loads(m.data))
     return folder / "out", printed.getvalue(), topics, recording
+
+
+def hv_gains(out: Path) -> dict[str, float]:
+    """The HV grid's ``dP_IP/dP`` at each ADN's bus at the operating point, by central
+    differences of pandapower's ``runpp`` on the net the command wrote (loads as
+    impedances, as the upper config solves it)."""
+    import pandapower as pp
+
+    from adnmesh.grid.simbench_net import loads_as_impedances
+
+    net = pp.from_json(str(out / "hv.hv.json"))
+    loads_as_impedances(net)
+    upper = load_config(out / "hv.upper.yaml")
+    gains = {}
+    for der in upper.ders:
+        row = net.sgen.index[net.sgen.name == der.id][0]
+        exchange = []
+        for dp in (-1e-3, 1e-3):      # MW
+            net.sgen.loc[row, "p_mw"] = der.p_sched_w / 1e6 + dp
+            pp.runpp(net)
+            exchange.append(-net.res_ext_grid.p_mw.sum())
+        net.sgen.loc[row, "p_mw"] = der.p_sched_w / 1e6
+        gains[der.id] = (exchange[1] - exchange[0]) / 2e-3
+    return gains
 
 
 def series(topics, topic: str, field: str):
@@ -83,6 +118,83 @@ def test_the_run_is_one_recording_of_every_level(ran) -> None:
     alone = {g: read_recording(out / f"hv.run.{g}.mcap") for g in ("hv", "wtchp", "mixed")}
     assert sum(len(r.messages) for r in alone.values()) == len(recording.messages)
     assert all({t.split("/")[1] for t in r.channels} == {g} for g, r in alone.items())
+
+
+def test_the_upper_level_acts_on_the_hv_grids_exchange(ran) -> None:
+    """The upper P_IP is the HV grid's exchange with the level above (pandapower's ``runpp`` of
+    the net the command wrote, every ADN at its operating point), wtchp in place of its bus's
+    MV stand-ins, mixed beside them."""
+    import pandapower as pp
+
+    from adnmesh.grid.simbench_net import loads_as_impedances
+
+    out, _, topics, _ = ran
+    net = pp.from_json(str(out / "hv.hv.json"))
+    named = lambda kind, name: bool(net[kind].in_service[net[kind].name == name].iloc[0])  # noqa: E731
+    assert not named("load", "HV1 Load 46") and not named("sgen", "HV1 Sgen 49")
+    assert named("load", "HV1 Load 47") and named("sgen", "HV1 Sgen 50")
+    upper = load_config(out / "hv.upper.yaml")
+    for der in upper.ders:
+        net.sgen.loc[net.sgen.name == der.id, "p_mw"] = der.p_sched_w / 1e6
+    loads_as_impedances(net)
+    pp.runpp(net)
+    t, p = series(topics, "adn/hv/measurement/p_ip", "p_ip_w")
+    assert p[0] == pytest.approx(-net.res_ext_grid.p_mw.sum() * 1e6, abs=1.0)
+    assert p[0] > 1e9       # the HV grid's export at lW, not the ADNs' few MW
+
+
+def test_the_two_stage_power_flow_is_the_combined_nets(ran) -> None:
+    """The rural ADN solved alone and its exchange injected at HV1 Bus 17 of the run's HV net
+    (the upper level's model) against ``runpp`` of the HV and MV nets as one (the MV net's 110 kV bus fused with
+    HV1 Bus 17, its external grid gone): at the operating point and with every DER 20 % above
+    its schedule (1.1 MW more)."""
+    import copy
+
+    import pandapower as pp
+    from pandapower.toolbox import fuse_buses, merge_nets
+
+    from adnmesh.control.operating_point import initial_p_ip_w, initial_q_ip_var
+    from adnmesh.grid.hv_attach import Attachment, attach_adns, hv_base
+    from adnmesh.grid.simbench_net import grid_net, loads_as_impedances
+
+    config = load_config(EXAMPLES.parent / "simbench.yaml")
+    p_sched = sum(d.p_sched_w for d in config.ders)
+    capacity = sum(d.p_inst_w for d in config.ders)
+    p0, q0 = initial_p_ip_w(config), initial_q_ip_var(config)
+    attach = Attachment("rural", "HV1 Bus 17", capacity, p0 - p_sched, q0)
+    two_stage = hv_base("pandapower", str(ran[0] / "hv.hv.json"), None)   # 1-HV-mixed at lW
+    attach_adns(two_stage, [attach])
+    loads_as_impedances(two_stage)
+    # the combined net: the HV net with the stand-ins gone and the MV net in their place
+    hv = copy.deepcopy(two_stage)
+    hv.sgen.loc[hv.sgen.name.str.startswith("rural"), "in_service"] = False
+    mv = grid_net(config.simbench_code, "lW", "impedance")
+    for net in (hv, mv):        # merge_nets refuses NaN in boolean columns
+        for column in ("controllable", "reactive_capability_curve"):
+            if column in net.sgen:
+                net.sgen[column] = net.sgen[column].astype(object).fillna(False).astype(bool)
+    mv_slack_bus = int(mv.ext_grid.bus.iloc[0])
+    mv.ext_grid["in_service"] = False
+    combined, lookup = merge_nets(hv, mv, validate=False, return_net2_reindex_lookup=True)
+    hv_bus = int(hv.bus.index[hv.bus.name == "HV1 Bus 17"][0])
+    fuse_buses(combined, hv_bus, {lookup["bus"][mv_slack_bus]})
+    combined.ext_grid = combined.ext_grid[combined.ext_grid.in_service.astype(bool)]
+    mv.ext_grid["in_service"] = True
+    for share in (1.0, 1.2):
+        for d in config.ders:
+            for net in (mv, combined):
+                net.sgen.loc[net.sgen.name == d.sgen, "p_mw"] = share * d.p_sched_w / 1e6
+        pp.runpp(mv)
+        p_ip = -mv.res_ext_grid.p_mw.sum() * 1e6
+        two_stage.sgen.loc[two_stage.sgen.name == "rural", "p_mw"] = (p_sched + p_ip - p0) / 1e6
+        pp.runpp(two_stage)
+        pp.runpp(combined)
+        error_w = (combined.res_ext_grid.p_mw.sum() - two_stage.res_ext_grid.p_mw.sum()) * 1e6
+        # at the operating point below 1 kW of 1.25 GW; 1.1 MW away the ADN's Q (held at its
+        # operating point's) has moved by 0.1 Mvar, and the HV losses with it: a few kW
+        assert abs(error_w) < (1e3 if share == 1.0 else 5e3), (share, error_w)
+        v_hv = two_stage.res_bus.vm_pu[hv_bus]
+        assert abs(v_hv - float(mv.ext_grid.vm_pu.iloc[0])) < 1e-3    # the interface voltage
 
 
 def test_inspect_reads_the_upper_level_alone_with_its_design(ran, capsys) -> None:
@@ -127,7 +239,7 @@ def test_a_site_cut_off_is_left_out_bumplessly_and_its_adn_holds_its_reference(r
     for switch in (drop, back):
         at = switch["t_send_ns"] / 1e9
         window = (t >= at) & (t < min(at + 10.0, 80.0))
-        assert np.max(np.abs(p[window] - FINAL_REF_W)) < 0.01 * STEP_W, at
+        assert np.max(np.abs(p[window] - final_ref_w(topics))) < 0.01 * STEP_W, at
     assert "switch at" in printed
 
 
@@ -142,7 +254,7 @@ def test_adns_losing_plants_are_compensated_from_above(ran) -> None:
         assert switch["t_send_ns"] < ns(81.0)
     t, p = series(topics, "adn/hv/measurement/p_ip", "p_ip_w")
     after = (t > 80.0) & (t < 85.0)
-    worst = np.max(np.abs(p[after] - FINAL_REF_W))
+    worst = np.max(np.abs(p[after] - final_ref_w(topics)))
     assert worst > 0.05 * STEP_W                       # the loss is felt ...
     assert p[after][-1] - np.min(p[after]) > 0.2 * worst   # ... and taken back from above
 
@@ -293,9 +405,10 @@ def test_the_upper_cpfc_backs_off_when_adns_switch_to_slower_loops(ran) -> None:
             lowers[body.grid] = announced(body.grid, body)
     upper = load_config(out / "hv.upper.yaml")
     w = switch["w"]
+    gains = hv_gains(out)     # the HV grid's dP_IP/dP, from pandapower's runpp
     cascade = Cascade(tuple(lowers[a] for a in ("wtchp", "mixed")),
-                      tuple(w[a] * upper.ders_by_id([a])[0].p_inst_w for a in ("wtchp", "mixed")),
-                      (0.3, 0.25), 0.2)
+                      tuple(w[a] * upper.ders_by_id([a])[0].p_inst_w * gains[a]
+                            for a in ("wtchp", "mixed")), (0.3, 0.25), 0.2)
     t = np.arange(0.0, 400.0, 0.05)
     for kp, ki, meets in ((switch["kp"], switch["ki"], True), (*base, False)):
         loop, closed = cascade_models(cascade, kp, ki, order=10)
@@ -340,7 +453,7 @@ def test_an_adns_own_steps_are_left_out_unless_kept(tmp_path) -> None:
     from adnmesh.study.hierarchy import _adn_level
 
     path = tmp_path / "h.yaml"
-    path.write_text(HIERARCHY.replace("t_com_s: 0.25}", "t_com_s: 0.25, keep_steps: true}"))
+    path.write_text(HIERARCHY.replace("t_com_s: 0.25,", "t_com_s: 0.25, keep_steps: true,"))
     hierarchy = load_hierarchy(path)
     dropped, kept = (_adn_level(hierarchy, adn).config for adn in hierarchy.adns)
     own = load_config(EXAMPLES / "mixed-4.yaml").scenario
@@ -409,7 +522,7 @@ def test_an_adn_below_a_level_announces_itself_again_every_weights_period() -> N
 
 
 @pytest.mark.parametrize("change, said", [
-    ("t_com_s: 0.25}", "t_com_s: 0.0}", ),
+    ("t_com_s: 0.25,", "t_com_s: 0.0,", ),
     ("der: wtchp, t_s: 85}", "agent: der/nowhere, t_s: 85, restart_after_s: 1}")],
     ids=["no-delay", "kill-of-no-adn"])
 def test_more_hierarchy_files_that_are_refused_before_any_tuning(tmp_path, capsys, change,

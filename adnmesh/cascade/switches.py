@@ -85,7 +85,9 @@ class LowerSwitchRule:
         ADN id -> its :class:`LowerAdn` now (at the start: under its entry for all its DERs,
         as the upper table was certified).
     gain_w : dict
-        ADN id -> ``C_i`` of the upper config, W (``K_i = w_i C_i``).
+        ADN id -> ``C_i g_i``: its capacity in the upper config times the HV grid's gain at
+        its bus (:attr:`~adnmesh.cascade.upper_table.Site.grid_gain`), W (``K_i = w_i C_i
+        g_i``).
     t_com_s : dict
         ADN id -> its inter-site delay, s.
     t_meas_s : float

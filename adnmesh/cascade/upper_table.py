@@ -49,6 +49,11 @@ class Site:
     """Its room below its schedule: the schedules of the entry's DERs, W."""
     p_ip0_w: float = 0.0
     """Its exchange with the level above in its operating point, W (MV -> HV positive)."""
+    q_ip0_var: float = 0.0
+    """... and its reactive exchange there, var (MV -> HV positive)."""
+    grid_gain: float = 1.0
+    """How the upper P_IP moves with its exchange, W/W: ``∂P_IP/∂P`` of the HV grid at its
+    bus (below 1 by the HV losses it causes); 1 without an HV grid."""
 
 
 @dataclass(frozen=True)
@@ -74,13 +79,15 @@ def lower_adn(config, entry: TableEntry, name: str) -> LowerAdn:
                     float(sum(d.p_inst_w for d in ders)))
 
 
-def upper_config_document(hierarchy, sites: list[Site]) -> dict:
+def upper_config_document(hierarchy, sites: list[Site], hv_net: str | None = None) -> dict:
     """The upper level as an adnmesh config document (YAML-ready): one ``GEN`` actuator per
     ADN with its equivalent model; ``t_com_s`` the shortest inter-site delay (at least 1 ms)
     and each ADN's remainder in its dead time, to whole milliseconds. Each ADN's DER runs from
-    0 to its installed power with its room below its schedule as ``p_sched_w``, and
-    ``rest_of_grid_w`` makes the upper P_IP the sum of the ADNs' exchanges; the scenario and
-    faults are the hierarchy file's."""
+    0 to its installed power with its room below its schedule as ``p_sched_w``. Without an HV
+    grid, ``rest_of_grid_w`` makes the upper P_IP the sum of the ADNs' exchanges; with one
+    (``hv_net``: its net file with the ADNs attached, :mod:`adnmesh.grid.hv_attach`, relative
+    to the config), P_IP is its exchange with the level above. The scenario and faults are
+    the hierarchy file's."""
     t_com = upper_t_com_s(sites)
     ders = []
     for site in sites:
@@ -91,14 +98,16 @@ def upper_config_document(hierarchy, sites: list[Site]) -> dict:
                      "t_delay_s": round(delay / DELAY_GRID_S) * DELAY_GRID_S,
                      "t_rise_s": float(f"{eq.t_rise_s:.6g}"), "sgen": site.id})
     constraints = hierarchy.constraints.model_dump() | {"sampled_pi": False}
-    runtime = {"rest_of_grid_w": sum(s.p_ip0_w - s.p_sched_w for s in sites)}
+    runtime = {} if hv_net else {"rest_of_grid_w": sum(s.p_ip0_w - s.p_sched_w for s in sites)}
     if hierarchy.faults:
         runtime["faults"] = [f.model_dump(mode="json", exclude_none=True)
                              for f in hierarchy.faults]
+    grid = {} if hv_net is None else {"grid_model": {
+        "pandapower_net": hv_net, "load_model": hierarchy.hv_grid.load_model}}
     return {"grid": hierarchy.name, "t_com_s": t_com, "t_meas_s": hierarchy.t_meas_s,
             "constraints": constraints, "ders": ders,
             "scenario": hierarchy.scenario.model_dump(mode="json", exclude_defaults=True) | {
-                "duration_s": hierarchy.scenario.duration_s}, "runtime": runtime}
+                "duration_s": hierarchy.scenario.duration_s}, **grid, "runtime": runtime}
 
 
 def upper_t_com_s(sites: list[Site]) -> float:
@@ -107,10 +116,11 @@ def upper_t_com_s(sites: list[Site]) -> float:
 
 
 def cascade_of(sites: dict[str, Site], entry: TableEntry, t_meas_s: float) -> Cascade:
-    """The exact cascade of an upper entry: its ADNs with ``K_i = w_i C_i`` (W)."""
+    """The exact cascade of an upper entry: its ADNs with ``K_i = w_i C_i g_i`` (W; ``g_i``
+    the site's :attr:`~Site.grid_gain`)."""
     chosen = [sites[i] for i in entry.ders]
     return Cascade(tuple(s.adn for s in chosen),
-                   tuple(entry.w[s.id] * s.adn.capacity_w for s in chosen),
+                   tuple(entry.w[s.id] * s.adn.capacity_w * s.grid_gain for s in chosen),
                    tuple(s.t_com_s for s in chosen), t_meas_s)
 
 

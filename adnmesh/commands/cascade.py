@@ -11,9 +11,9 @@ from pathlib import Path
 import yaml
 
 from adnmesh.commands import output_path
-from adnmesh.errors import ConfigError
+from adnmesh.errors import ConfigError, GridError
 
-__all__ = ["add_parser", "run", "hierarchy_sites", "SWEEP_ALL_UP_TO"]
+__all__ = ["add_parser", "run", "hierarchy_sites", "upper_level", "SWEEP_ALL_UP_TO"]
 
 #: ADNs of at most this many DERs have every subset swept by --switches
 SWEEP_ALL_UP_TO = 11
@@ -83,7 +83,7 @@ def hierarchy_sites(hierarchy, say=lambda text: None):
     from adnmesh.cascade.equivalent import equivalent
     from adnmesh.cascade.upper_table import Site, lower_adn
     from adnmesh.config import load_config
-    from adnmesh.control.operating_point import initial_p_ip_w
+    from adnmesh.control.operating_point import initial_p_ip_w, initial_q_ip_var
 
     sites = []
     for adn in hierarchy.adns:
@@ -106,18 +106,80 @@ def hierarchy_sites(hierarchy, say=lambda text: None):
             f"{eq.lag_s:.3g} s")
         sites.append(Site(adn.id, lower, adn.t_com_s, eq,
                           p_sched_w=sum(d.p_sched_w for d in config.ders_by_id(entry.ders)),
-                          p_ip0_w=initial_p_ip_w(config)))
+                          p_ip0_w=initial_p_ip_w(config), q_ip0_var=initial_q_ip_var(config)))
     return sites
 
 
-def _write_upper_config(hierarchy, sites, out: Path) -> Path:
+def _hv_base(hierarchy):
+    """The HV grid's net at its operating point, each ADN's bus and what it replaces checked
+    (before any tuning); None without an HV grid."""
+    from adnmesh.grid.hv_attach import hv_base, locate
+
+    hv = hierarchy.hv_grid
+    if hv is None:
+        return None
+    source, name = (("simbench", hv.simbench_code) if hv.simbench_code is not None else
+                    ("pandapower", str(hierarchy.hv_net_path())))
+    try:
+        net = hv_base(source, name, hv.study_case)
+        for adn in hierarchy.adns:
+            locate(net, adn.hv_bus, adn.replaces)
+    except GridError as exc:
+        said = str(exc).removeprefix("grid: ").removeprefix("HV grid: ")
+        raise ConfigError(f"{hierarchy.path}: hv_grid: {said}") from None
+    return net
+
+
+def _write_hv_net(hierarchy, sites, net, out: Path, say) -> str | None:
+    """With an HV grid (``net``, :func:`_hv_base`): attach the ADNs, write it
+    (OUT/<name>.hv.json) and say where each ADN hangs; return the file's name (relative to
+    OUT), else None."""
+    from adnmesh.grid.hv_attach import Attachment, attach_adns, write_net
+
+    if net is None:
+        return None
+    by_id = {a.id: a for a in hierarchy.adns}
+    attachments = [Attachment(s.id, by_id[s.id].hv_bus, s.adn.capacity_w,
+                              s.p_ip0_w - s.p_sched_w, s.q_ip0_var, by_id[s.id].replaces)
+                   for s in sites]
+    replaced = attach_adns(net, attachments)
+    path = output_path(out / f"{hierarchy.name}.hv.json", "--out")
+    write_net(net, path)
+    for a in attachments:
+        instead = ", ".join(replaced[a.adn]) or "nothing"
+        say(f"  {a.adn}: at HV bus {a.bus!r} in place of {instead}")
+    return path.name
+
+
+def _with_grid_gains(sites, upper, say):
+    """With an HV grid: each site with ``∂P_IP/∂P`` of the upper grid at its bus, at the
+    operating point (the cascade's ``K_i`` carry it); without one, the sites as they are."""
+    import dataclasses
+
+    from adnmesh.control.operating_point import grid_solver
+    from adnmesh.grid.sensitivity import interface_sensitivities
+
+    solver = grid_solver(upper)
+    if solver is None:
+        return sites
+    p_w = [d.p_sched_w for d in upper.ders]
+    gains = interface_sensitivities(solver, p_w, [0.0] * len(p_w))[0]
+    say("  the HV grid's dP_IP/dP at each ADN's bus: " + ", ".join(
+        f"{d.id} {g:.4f}" for d, g in zip(upper.ders, gains)))
+    by_id = dict(zip(upper.der_ids(), gains))
+    return [dataclasses.replace(s, grid_gain=float(by_id[s.id])) for s in sites]
+
+
+def _write_upper_config(hierarchy, sites, out: Path, say=lambda text: None,
+                        hv=None) -> Path:
     from adnmesh.cascade.upper_table import upper_config_document
 
+    hv_net = _write_hv_net(hierarchy, sites, hv, out, say)
     path = output_path(out / f"{hierarchy.name}.upper.yaml", "--out")
     header = (f"# The upper level of {hierarchy.path.name}, written by adnmesh cascade: one actuator "
               "per ADN,\n# its equivalent closed-loop model (docs/hierarchy.md). Not for editing: "
               "written again by the command.\n")
-    path.write_text(header + yaml.safe_dump(upper_config_document(hierarchy, sites),
+    path.write_text(header + yaml.safe_dump(upper_config_document(hierarchy, sites, hv_net),
                                             sort_keys=False))
     return path
 
@@ -190,21 +252,31 @@ def _numerics_said(hierarchy):
         raise ConfigError(f"{hierarchy.path}: {exc}") from None
 
 
+def upper_level(hierarchy, out: Path, say=lambda text: None):
+    """``(sites, upper config)`` of ``hierarchy``: its HV grid checked (before any tuning),
+    each ADN's entry and loop (:func:`hierarchy_sites`), the upper config (and the HV net)
+    written to ``out``, each site with the HV grid's gain at its bus."""
+    from adnmesh.config import load_config
+
+    hv = _hv_base(hierarchy)
+    sites = hierarchy_sites(hierarchy, say)
+    written = _write_upper_config(hierarchy, sites, out, say, hv)
+    try:
+        upper = load_config(written)
+    except ConfigError as exc:
+        raise ConfigError(f"{hierarchy.path}: the upper level as a config: {exc}") from None
+    return _with_grid_gains(sites, upper, say), upper
+
+
 def _run(args: argparse.Namespace, hierarchy, out: Path) -> int:
     from adnmesh.cascade.upper_table import certify_entries
-    from adnmesh.config import load_config
     from adnmesh.tuning import tune_table
     from adnmesh.tuning.table import default_table_path, save_table
 
     say = lambda text: print(text, file=sys.stderr)  # noqa: E731
     t0 = time.perf_counter()
     say(f"{hierarchy.name}: {len(hierarchy.adns)} ADNs")
-    sites = hierarchy_sites(hierarchy, say)
-    written = _write_upper_config(hierarchy, sites, out)
-    try:
-        upper = load_config(written)
-    except ConfigError as exc:
-        raise ConfigError(f"{hierarchy.path}: the upper level as a config: {exc}") from None
+    sites, upper = upper_level(hierarchy, out, say)
     table = tune_table(upper, "paper")
     say(f"upper table tuned on the equivalent models: {len(table.entries)} entries in "
         f"{time.perf_counter() - t0:.1f} s; certifying each on the exact cascade")

@@ -53,8 +53,9 @@ def hierarchy_levels(hierarchy: Hierarchy, upper: Config, upper_table, sites
 
     adns = {adn.id: _adn_level(hierarchy, adn) for adn in hierarchy.adns}
     delays = {s.id: round(s.t_com_s - upper.t_com_s, 6) for s in sites}
+    gains = {s.id: s.grid_gain for s in sites}
     rule = LowerSwitchRule({s.id: s.adn for s in sites},
-                           {d.id: d.p_inst_w for d in upper.ders},
+                           {d.id: d.p_inst_w * gains[d.id] for d in upper.ders},
                            {s.id: s.t_com_s for s in sites}, upper.t_meas_s, upper.constraints)
     return Level(upper, GainSchedule(upper, upper_table), rule), adns, delays
 
@@ -72,7 +73,7 @@ class HierarchyResult:
     end_s : float
         Its length in sim time, s.
     steps : tuple of ReferenceStep
-        The upper level's steps: the sum of the exchanges after each step of its reference.
+        The upper level's steps: its P_IP after each step of its reference.
     checks : tuple of DesignCheck
         Each step against what the upper entry in use was certified for on the cascade
         (:func:`adnmesh.results.design_check.design_checks`, from the upper CPFC's ``p_y``).

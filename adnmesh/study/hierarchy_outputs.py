@@ -44,7 +44,8 @@ def write_recording(result: HierarchyResult, path: Path, hierarchy) -> Path:
 
 
 def plot_run(result: HierarchyResult, levels, path: Path) -> Path:
-    """Two panels: the sum of the exchanges against the upper reference (MW), and each ADN's
+    """Two panels: the upper P_IP (the HV grid's exchange with the level above, or without an
+    HV grid the sum of the ADNs' exchanges) against the upper reference (MW), and each ADN's
     exchange with the offset the level above asked of it (MW)."""
     upper, adns, _ = levels
     keys = Keys(upper.config.grid)
@@ -53,7 +54,9 @@ def plot_run(result: HierarchyResult, levels, path: Path) -> Path:
     top, bottom = fig.add_subplot(2, 1, 1), fig.add_subplot(2, 1, 2, sharex=None)
     t, p = level_series(result.run, keys.of("p_ip"), "p_ip_w")
     t_ref, ref = level_series(result.run, keys.of("p_ref"), "p_ref_w")
-    top.plot(t / 1e9, p / 1e6, lw=1.4, label="sum of the exchanges (upper P_IP)")
+    what = ("the HV grid's exchange" if upper.config.grid_model is not None else
+            "sum of the exchanges")
+    top.plot(t / 1e9, p / 1e6, lw=1.4, label=f"{what} (upper P_IP)")
     top.step(np.append(t_ref, t[-1]) / 1e9, np.append(ref, ref[-1]) / 1e6, where="post",
              color="k", lw=0.9, ls="--", label="upper P_ref")
     top.set_ylabel("MW")
