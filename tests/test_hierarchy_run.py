@@ -204,6 +204,35 @@ def test_inspect_reads_the_upper_level_alone_with_its_design(ran, capsys) -> Non
     assert "P_IP after each P_ref step" in printed and "designed" in printed
 
 
+def test_inspect_shows_one_grid_of_the_recording_of_every_level(ran, capsys) -> None:
+    """The recording of every level: the upper level's figures by default (its own grid),
+    another's with --grid, in one pass each; each grid's series as read alone."""
+    from adnmesh.results.series import read_run, read_runs
+
+    out = ran[0]
+    merged = out / "hv.run.mcap"
+    assert main(["inspect", str(merged)]) == 0
+    printed = capsys.readouterr().out
+    (line,) = [x for x in printed.splitlines() if x.startswith("3 grids: ")]
+    assert "the figures below are grid hv's" in line
+    assert sorted(line[len("3 grids: "):].split(";")[0].split(", ")) == ["hv", "mixed", "wtchp"]
+    steps = printed.split("P_IP after each P_ref step")[1].split("tracking error")[0]
+    assert "+1.000" in steps and "-0.500" in steps and "designed" in steps   # the upper steps
+    assert main(["inspect", str(merged), "--grid", "mixed", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["figures_of"] == "mixed" and sorted(report["grids"]) == ["hv", "mixed", "wtchp"]
+    assert report["topics"] and all(t["topic"].startswith("adn/mixed/") for t in report["topics"])
+    assert report["figures"]["gain_switches"] == 1       # mixed's own switch at 80 s
+    assert main(["inspect", str(merged), "--grid", "nope"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--grid nope: not a grid of" in err[0] and "wtchp" in err[0]
+    _, parts = read_runs(merged)
+    alone = read_run(merged, grid="wtchp")[0].run.one("p_ip")
+    together = parts["wtchp"][0].one("p_ip")
+    assert np.array_equal(alone.t_ns, together.t_ns) and np.array_equal(alone.values,
+                                                                          together.values)
+
+
 def test_the_upper_step_follows_the_cascade_certificate(ran) -> None:
     """The agents' run against the exact cascade's step (the certificate's own numerics):
     the first step, with both ADNs, rises and settles as certified."""

@@ -14,6 +14,7 @@ from rich.console import Console
 from rich.table import Table
 
 from adnmesh.commands import input_file, output_path
+from adnmesh.errors import UsageError
 from adnmesh.config import Constraints
 from adnmesh.recording import (
     PUBLISHED_METADATA,
@@ -27,7 +28,7 @@ from adnmesh.recording import (
 )
 from adnmesh.results.figures import RunFigures, run_figures, step_table
 from adnmesh.results.rules import natural_key
-from adnmesh.results.series import RunData, read_run
+from adnmesh.results.series import RunData, grid_of_topic, grids_of, read_run, read_runs
 from adnmesh.recording.stream import ScannedRecording
 
 __all__ = ["EXIT_PROBLEMS", "add_parser", "run", "settling_band_pct", "sorted_topics",
@@ -65,6 +66,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--json", action="store_true",
                         help="print one JSON object instead (file, run, topics, counts, "
                         "figures, events; times in s of sim time, powers in W)")
+    parser.add_argument("--grid", metavar="NAME",
+                        help="a recording of several grids (a hierarchy's): only this grid's "
+                        "topics, figures and events (default: each grid's figures in turn)")
     return parser
 
 
@@ -78,13 +82,16 @@ def sorted_topics(recording: ScannedRecording) -> list:
     return sorted(recording.channel_stats.items(), key=lambda item: natural_key(item[0]))
 
 
-def topic_table(recording: ScannedRecording, t0_ns: int) -> Table:
+def topic_table(recording: ScannedRecording, t0_ns: int, grid: str | None = None) -> Table:
     """Return the per-topic table, sorted (:func:`sorted_topics`): type, count, first and last
-    send time, s."""
-    table = Table(title=f"{len(recording.channel_stats)} topics", title_justify="left")
+    send time, s (only the topics of ``grid``, if given)."""
+    rows = [(topic, stats) for topic, stats in sorted_topics(recording)
+            if grid is None or grid_of_topic(topic) == grid]
+    title = f"{len(rows)} topics" + ("" if grid is None else f" of grid {grid}")
+    table = Table(title=title, title_justify="left")
     for column in ("topic", "type", "messages", "first [s]", "last [s]"):
         table.add_column(column, justify="left" if column in ("topic", "type") else "right")
-    for topic, stats in sorted_topics(recording):
+    for topic, stats in rows:
         seen = stats.count > 0
         table.add_row(topic, stats.info.schema_name or "-", str(stats.count),
                       _s(stats.first_publish_ns, t0_ns) if seen else "-",
@@ -279,30 +286,59 @@ def run(args: argparse.Namespace) -> int:
     path = input_file(args.recording)
     if args.recover_to is not None:
         output_path(args.recover_to, "--recover-to")
-    found, messages = read_run(path, also=_SummaryMessages)
-    recording, run_data = found.recording, found.run
+    recording, each, grids = _read(path, args.grid)
+    run_data = each[0][1]
     recovered_to = None
     if not recording.complete:
         recovered_to = args.recover_to or path.with_name(path.stem + ".recovered.mcap")
         recover(path, recovered_to)
-    band = settling_band_pct(recording)
-    figures, summary = run_figures(run_data, band_pct=band), _summary(recording, messages, band)
     problems = validate_recording(read_recording(path), limit=20) if args.validate else None
     if args.json:
-        report = _json_report(path, recording, run_data, figures, summary, recovered_to,
-                              problems)
+        report = _json_report(path, recording, each[0], grids, recovered_to, problems,
+                              args.grid)
         sys.stdout.write(json.dumps(report, indent=1) + "\n")
         ok = report["counts"]["check"] != "mismatch" and not problems
         return 0 if ok else EXIT_PROBLEMS
     console = Console(highlight=False, markup=False, soft_wrap=True,
                       width=None if sys.stdout.isatty() else _PIPE_WIDTH)
     _print_head(console, path, recording, run_data, recovered_to, args.metadata)
-    console.print(topic_table(recording, run_data.t0_ns))
-    _print_figures(console, run_data, figures, summary)
+    console.print(topic_table(recording, run_data.t0_ns, args.grid))
+    if len(grids) > 1:
+        console.print(f"{len(grids)} grids: {', '.join(grids)}; the figures below are grid "
+                      f"{each[0][0]}'s (another grid's: --grid NAME)")
+    for _, grid_data, figures, summary in each:
+        _print_figures(console, grid_data, figures, summary)
     ok = _check_counts(console, recording)
     if problems is not None:
         ok = _print_problems(console, problems, recording.message_count) and ok
     return 0 if ok else EXIT_PROBLEMS
+
+
+def _read(path: Path, grid: str | None):
+    """``(recording, each, grids)``: the file, ``[(grid, run data, figures, summary)]`` of the
+    grid asked for or, in a recording of several (a hierarchy's), of its own (its run
+    metadata's ``grid``: the upper level's) or else the first, and the recording's grids."""
+    if grid is not None:
+        found, messages = read_run(path, also=_SummaryMessages, grid=grid)
+        recording, parts = found.recording, {grid: (found.run, messages)}
+    else:
+        recording, parts = read_runs(path, also=_SummaryMessages)
+    grids = grids_of(recording.channels)
+    if grid is not None and grid not in grids:
+        raise UsageError(f"--grid {grid}: not a grid of {path} (it has: "
+                         f"{', '.join(grids) or 'none'})")
+    band = settling_band_pct(recording)
+    own = recording.run.get("grid")
+    shown = [grid or (own if own in grids else next(iter(grids), None))]
+    each = []
+    for name in shown:
+        if name not in parts:       # a recording without any channel: empty figures
+            found, messages = read_run(path, also=_SummaryMessages)
+            parts[name] = (found.run, messages)
+        run_data, messages = parts[name]
+        each.append((name, run_data, run_figures(run_data, band_pct=band),
+                     _summary(recording, messages, band)))
+    return recording, each, grids
 
 
 _PIPE_WIDTH = 10_000
@@ -346,14 +382,17 @@ def _print_problems(console: Console, problems: list, messages: int) -> bool:
     return True
 
 
-def _json_report(path: Path, recording: ScannedRecording, run_data: RunData,
-                 figures: RunFigures, summary, recovered_to: Path | None,
-                 problems: list | None) -> dict:
-    """``inspect --json``: one object with the file, topics, counts, figures and events.
+def _json_report(path: Path, recording: ScannedRecording, shown: tuple, grids: list,
+                 recovered_to: Path | None, problems: list | None, grid: str | None) -> dict:
+    """``inspect --json``: one object with the file, topics, counts, figures and events
+    (``shown``: ``(grid, run data, figures, summary)`` of the grid the figures are of; ``grids``
+    every grid of the recording).
 
     Times are s of sim time from t0; powers W; gains 1/W and 1/(W s); figures that do not
     exist (no 90 % crossing, not settled in the window) are null.
     """
+    name, run_data, figures, summary = shown
+
     def seconds(t_ns):
         return None if t_ns is None else (t_ns - run_data.t0_ns) / 1e9
 
@@ -362,14 +401,8 @@ def _json_report(path: Path, recording: ScannedRecording, run_data: RunData,
     topics = [{"topic": topic, "type": stats.info.schema_name or None, "messages": stats.count,
                "first_s": seconds(stats.first_publish_ns),
                "last_s": seconds(stats.last_publish_ns)}
-              for topic, stats in sorted_topics(recording)]
-    steps = [{"t_s": s.t_s, "step_w": s.step_w, "p_ref_w": s.p_ref_w, "window_s": s.window_s,
-              "steady_error_w": s.steady_error_w,
-              "settled": bool(s.figures is not None
-                              and np.isfinite(s.figures.settling_time_s)),
-              **({} if s.figures is None else dataclasses.asdict(s.figures))}
-             for s in figures.steps]
-    summary_json = summary.to_json()
+              for topic, stats in sorted_topics(recording)
+              if grid is None or grid_of_topic(topic) == grid]
     return _finite({
         "file": str(path), "complete": recording.complete, "bytes": path.stat().st_size,
         "library": recording.library, "messages": recording.message_count,
@@ -380,6 +413,21 @@ def _json_report(path: Path, recording: ScannedRecording, run_data: RunData,
         "topics": topics,
         "counts": {"check": state, "uncounted": uncounted,
                    "differences": [dataclasses.asdict(d) for d in differences]},
+        "grids": grids, "figures_of": name, **_figures_json(run_data, figures, summary),
+        "schema_check": None if problems is None else [str(p) for p in problems],
+    })
+
+
+def _figures_json(run_data: RunData, figures: RunFigures, summary) -> dict:
+    """``{"figures": ..., "events": ...}`` of one grid for :func:`_json_report`."""
+    steps = [{"t_s": s.t_s, "step_w": s.step_w, "p_ref_w": s.p_ref_w, "window_s": s.window_s,
+              "steady_error_w": s.steady_error_w,
+              "settled": bool(s.figures is not None
+                              and np.isfinite(s.figures.settling_time_s)),
+              **({} if s.figures is None else dataclasses.asdict(s.figures))}
+             for s in figures.steps]
+    summary_json = summary.to_json()
+    return {
         "figures": {"band_pct": figures.band_pct, "steps": steps,
                     "rms_error_w": figures.rms_error_w, "max_error_w": figures.max_error_w,
                     "gain_switches": figures.gain_switches,
@@ -391,10 +439,9 @@ def _json_report(path: Path, recording: ScannedRecording, run_data: RunData,
                     "design_checks": summary_json["design_checks"],
                     "q_steps": summary_json["q_steps"], "coupling": summary_json["coupling"],
                     "q_design_checks": summary_json["q_design_checks"]},
-        "events": [{"t_s": seconds(e.t_ns), "kind": e.kind, "level": e.level, "text": e.text,
-                    "topic": e.topic} for e in _shown_events(run_data)],
-        "schema_check": None if problems is None else [str(p) for p in problems],
-    })
+        "events": [{"t_s": run_data.seconds(e.t_ns), "kind": e.kind, "level": e.level,
+                    "text": e.text, "topic": e.topic} for e in _shown_events(run_data)],
+    }
 
 
 def _finite(value):

@@ -34,7 +34,10 @@ __all__ = [
     "Series",
     "extract",
     "feed_recording",
+    "grid_of_topic",
+    "grids_of",
     "read_run",
+    "read_runs",
     "recorded_grid_limits",
 ]
 
@@ -515,9 +518,21 @@ class RunFile:
     run: RunData
 
 
+def grid_of_topic(topic: str) -> str | None:
+    """The grid of an adnmesh topic (``adn/<grid>/...``), None for another topic."""
+    parts = topic.split("/", 2)
+    return parts[1] if len(parts) == 3 and parts[0] == "adn" else None
+
+
+def grids_of(topics: Iterable[str]) -> list[str]:
+    """The grids of ``topics`` (:func:`grid_of_topic`), in order of first appearance."""
+    return list(dict.fromkeys(g for g in map(grid_of_topic, topics) if g is not None))
+
+
 def read_run(path: str | Path, *, also: Callable[[], object] | None = None,
              series_rules: Mapping[str, Iterable[Field]] = SERIES,
-             event_rules: Mapping[str, EventRule] = EVENTS) -> tuple[RunFile, object]:
+             event_rules: Mapping[str, EventRule] = EVENTS,
+             grid: str | None = None) -> tuple[RunFile, object]:
     """Read the recording ``path`` in one streaming pass: its series and events, as
     :func:`extract` finds them, without holding its messages.
 
@@ -528,6 +543,9 @@ def read_run(path: str | Path, *, also: Callable[[], object] | None = None,
     also : callable, optional
         Makes another consumer of the same pass: an object with a ``sink_for(info)`` method
         (see :func:`~adnmesh.recording.stream.scan`); it is returned beside the result.
+    grid : str, optional
+        Only the messages of this grid (topics ``adn/<grid>/...``; a recording of several,
+        such as a hierarchy's).
 
     Returns
     -------
@@ -539,10 +557,43 @@ def read_run(path: str | Path, *, also: Callable[[], object] | None = None,
     RecordingError
         As :func:`~adnmesh.recording.stream.scan`.
     """
-    collector = _Collector(series_rules, event_rules)
-    other = also() if also is not None else None
+    only = (lambda topic: grid_of_topic(topic) == grid) if grid is not None else None
+    scanned, parts = _read(path, also, series_rules, event_rules,
+                           lambda topic: None if only is None or only(topic) else False)
+    run, other = parts.get(None, (None, None))
+    if run is None:                                # nothing of the grid: empty series
+        run = _Collector(series_rules, event_rules).result(_t0(scanned))
+        other = also() if also is not None else None
+    return RunFile(scanned, run), other
+
+
+def read_runs(path: str | Path, *, also: Callable[[], object] | None = None
+              ) -> tuple[ScannedRecording, dict[str | None, tuple[RunData, object]]]:
+    """Read a recording of several grids (a hierarchy's) in one streaming pass, each grid's
+    series and events apart (:func:`read_run` of each grid, at the cost of one).
+
+    Returns
+    -------
+    (ScannedRecording, dict)
+        The file, and grid -> (its run data, the object ``also`` made for it), in order of the
+        grids' first channels; the topics of no grid (not ``adn/<grid>/...``) under None.
+    """
+    return _read(path, also, SERIES, EVENTS, grid_of_topic)
+
+
+def _read(path, also, series_rules, event_rules, part_of):
+    """One pass over ``path``: ``(scanned, {part: (run data, also's object)})``, each channel
+    to the collector of ``part_of(topic)`` (False: to none)."""
+    parts: dict = {}
 
     def sink_for(info: ChannelInfo) -> Sink | None:
+        part = part_of(info.topic)
+        if part is False:
+            return None
+        if part not in parts:
+            parts[part] = (_Collector(series_rules, event_rules),
+                           also() if also is not None else None)
+        collector, other = parts[part]
         sinks = [s for s in (collector.sink_for(info),
                              other.sink_for(info) if other is not None else None) if s]
         if len(sinks) < 2:
@@ -555,11 +606,12 @@ def read_run(path: str | Path, *, also: Callable[[], object] | None = None,
         from adnmesh.recording.reader import read_recording
 
         recording = read_recording(path)
-        collector = _Collector(series_rules, event_rules)
-        other = also() if also is not None else None
+        parts.clear()
         feed_recording(recording, sink_for)
         scanned = scan(path, lambda info: None)
-    return RunFile(scanned, collector.result(_t0(scanned))), other
+    t0 = _t0(scanned)
+    return scanned, {part: (collector.result(t0), other)
+                     for part, (collector, other) in parts.items()}
 
 
 def recorded_grid_limits(metadata: Mapping[str, str]):
