@@ -347,10 +347,11 @@ def test_the_adns_cpfc_takes_the_offset_from_above_into_its_reference() -> None:
     keys = Keys(config.grid)
     first = [o for o in cpfc.on_timer(0) if o.key == keys.of("p_ref")]
     start = first[0].body["p_ref_w"]
+    assert "offset_w" not in first[0].body        # an ADN alone: no offset said
     cpfc.on_message(ns(0.005), message(Keys("hv").of("adn_offset", "x"), ns(0.005),
                                        {"offset_w": 2.5e5}))
     sent = [o for o in cpfc.on_timer(ns(0.01)) if o.key == keys.of("p_ref")]
-    assert sent[0].body["p_ref_w"] == start + 2.5e5
+    assert sent[0].body == {"p_ref_w": start + 2.5e5, "offset_w": 2.5e5}   # which part it is
     # the same offset again changes nothing; a smaller one lowers the reference
     cpfc.on_message(ns(0.015), message(Keys("hv").of("adn_offset", "x"), ns(0.015),
                                        {"offset_w": 2.5e5}))
@@ -358,7 +359,34 @@ def test_the_adns_cpfc_takes_the_offset_from_above_into_its_reference() -> None:
     cpfc.on_message(ns(0.025), message(Keys("hv").of("adn_offset", "x"), ns(0.025),
                                        {"offset_w": 1e5}))
     sent = [o for o in cpfc.on_timer(ns(0.03)) if o.key == keys.of("p_ref")]
-    assert sent[0].body["p_ref_w"] == start + 1e5
+    assert sent[0].body == {"p_ref_w": start + 1e5, "offset_w": 1e5}
+
+
+def test_an_offset_from_above_is_no_step_of_an_adns_reference() -> None:
+    """The summary's steps (and the figures' and the watches') are the changes of P_ref less
+    the offset it includes: the offset is an input the ADN tracks."""
+    from adnmesh.loopmodel.step_figures import reference_step_figures
+    from adnmesh.results.summary import RunSeries
+
+    t_ref = [0, ns(1.0), ns(1.2), ns(5.0), ns(5.2)]
+    p_ref = [10e6, 10.1e6, 10.15e6, 11.15e6, 11.1e6]
+    offset = [0.0, 0.1e6, 0.15e6, 0.15e6, 0.1e6]      # a step of +1 MW of its own at 5 s
+    t_ip = np.arange(0, ns(10.0), ns(0.1))
+    p_ip = np.where(t_ip < ns(5.0), 10.1e6, 11.1e6)
+    alone = reference_step_figures(t_ip, p_ip, t_ref, p_ref, [], ns(10.0))
+    assert [round(s.t_s, 3) for s in alone] == [1.0, 1.2, 5.0, 5.2]     # every change
+    steps = reference_step_figures(t_ip, p_ip, t_ref, p_ref, [], ns(10.0), offset_w=offset)
+    assert [(round(s.t_s, 3), s.step_w) for s in steps] == [(5.0, 1e6)]
+    assert steps[0].window_s == pytest.approx(5.0)    # to the end: the offsets do not cut it
+    series = RunSeries()
+    for t, p, o in zip(t_ref, p_ref, offset):
+        series.add("p_ref", {"t_send_ns": t, "p_ref_w": p, **({"offset_w": o} if o else {})})
+    assert series.step_records() == [3] and series.step_times_ns() == [ns(5.0)]
+    series.add("p_ref", {"t_send_ns": ns(6.0), "p_ref_w": 12.1e6, "offset_w": 0.1e6})
+    assert series.step_times_ns() == [ns(5.0), ns(6.0)]     # found on from where it was
+    series.p_ref_w, series.p_ref_offset_w = [1.0, 2.0], [0.0, 0.0]   # assigned anew
+    series.p_ref_t_ns = [0, 7]
+    assert series.step_records() == [1]
 
 
 def test_the_hierarchy_topology_links_each_site_to_its_adn() -> None:

@@ -813,8 +813,10 @@ class CPFC(Agent):
             return []
         self._p_ref_sent = self.p_ref_w
         loop = self.loop
-        return [Outgoing(self.keys.of(loop.reference_kind), {loop.reference_field: self.p_ref_w}),
-                *self._clip()]
+        body = {loop.reference_field: self.p_ref_w}
+        if self._below_a_level:           # the offset is an input, not a step of the reference
+            body["offset_w"] = self._offset_in_ref_w
+        return [Outgoing(self.keys.of(loop.reference_kind), body), *self._clip()]
 
     def _clip(self) -> list[Outgoing]:
         """The reference the loop controls to: P_ref within the reachable range; a change of

@@ -221,11 +221,14 @@ def _clean_samples(t_ns, values) -> tuple[np.ndarray, np.ndarray]:
 
 
 def reference_step_figures(p_ip_t_ns, p_ip_w, p_ref_t_ns, p_ref_w, window_ends_ns, end_ns: int,
-                           *, band_pct: float = 5.0, origin_ns: int = 0
+                           *, band_pct: float = 5.0, origin_ns: int = 0, offset_w=None
                            ) -> tuple[ReferenceStep, ...]:
     """Figures of P_IP after every step of P_ref in a run.
 
-    A step is a P_ref value that differs from the one before. Its window runs from the step
+    A step is a P_ref value that differs from the one before. With ``offset_w``, the part of
+    each P_ref record that is the level above's offset (an ADN of a hierarchy), a step is a
+    record whose P_ref less its offset differs from the one before: the offset is an input
+    the loop tracks, not a step of its own reference. Its window runs from the step
     to the first later instant among the next step and ``window_ends_ns`` (exclusive), or to
     the end of the run (inclusive). The P_IP samples in the window, normalised by the
     reference step, ``y = (P_IP - P_ref before) / (P_ref after - P_ref before)``, at their
@@ -248,6 +251,8 @@ def reference_step_figures(p_ip_t_ns, p_ip_w, p_ref_t_ns, p_ref_w, window_ends_n
     window_ends_ns : array_like of int
         Other instants that end a step's window (gain switches, availability changes, fault
         starts and ends), ns.
+    offset_w : array_like of float, optional
+        Per P_ref record, the level above's offset it includes, W (see above).
     end_ns : int
         End of the run, ns.
     band_pct : float
@@ -262,7 +267,14 @@ def reference_step_figures(p_ip_t_ns, p_ip_w, p_ref_t_ns, p_ref_w, window_ends_n
     """
     t_ip, p_ip = _clean_samples(p_ip_t_ns, p_ip_w)
     t_ref, v_ref = _clean_samples(p_ref_t_ns, p_ref_w)
-    change = np.flatnonzero(v_ref[1:] != v_ref[:-1]) + 1
+    own = v_ref
+    if offset_w is not None:
+        v = np.asarray(p_ref_w, dtype=float)
+        _, own = _clean_samples(p_ref_t_ns, np.where(np.isfinite(v), v - np.asarray(
+            offset_w, dtype=float), np.nan))
+        if own.shape != v_ref.shape:
+            raise ValueError("offsets must be finite where P_ref is")
+    change = np.flatnonzero(own[1:] != own[:-1]) + 1
     ends = np.unique(np.concatenate([t_ref[change],
                                      np.asarray(window_ends_ns, dtype=np.int64).ravel()]))
     steps = []

@@ -116,7 +116,7 @@ class OverDesignWatch:
         series = self.series
         if len(series.p_ip_t_ns) < self._trim_at:
             return
-        starts = series.p_ref_t_ns[1:]
+        starts = series.step_times_ns()
         cutoff = series.p_ip_t_ns[-1] - GRACE_NS
         if self._checked < len(starts):
             cutoff = min(cutoff, starts[self._checked])
@@ -141,14 +141,16 @@ class OverDesignWatch:
 
     def _close(self, final: bool) -> list[OverDesign]:
         series = self.series
-        if not series.p_ip_t_ns or self._checked >= len(series.p_ref_t_ns) - 1:
+        if not series.p_ip_t_ns or len(series.p_ref_t_ns) < 2:
             return []
         now = series.p_ip_t_ns[-1]
         known = (len(series.windows.instants), len(series.p_ref_t_ns), len(series.entries))
         if not final and now < self._due_ns and known == self._known:
             return []
-        ends = sorted(set(series.windows.instants) | set(series.p_ref_t_ns[1:]))
-        starts = series.p_ref_t_ns[1:]
+        starts = series.step_times_ns()     # an offset from a level above is no step
+        if self._checked >= len(starts):
+            return []
+        ends = sorted(set(series.windows.instants) | set(starts))
         found = []
         while self._checked < len(starts):
             start = starts[self._checked]
@@ -166,8 +168,8 @@ class OverDesignWatch:
                 break
             steps = reference_step_figures(series.p_ip_t_ns, series.p_ip_w, series.p_ref_t_ns,
                                            series.p_ref_w, [*series.windows.instants, *cut],
-                                           end_ns,
-                                           band_pct=self._band_pct or 5.0)
+                                           end_ns, band_pct=self._band_pct or 5.0,
+                                           offset_w=series.p_ref_offsets())
             step = next((s for s in steps if int(round(s.t_s * 1e9)) == start), None)
             self._checked += 1
             if step is None:

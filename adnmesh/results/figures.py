@@ -69,7 +69,7 @@ def run_figures(run: RunData, *, band_pct: float = 5.0) -> RunFigures:
     if p_ref is not None and p_ip is not None and p_ip.values.size:
         steps = reference_step_figures(p_ip.t_ns, p_ip.values, p_ref.t_ns, p_ref.values,
                                        window_ends(run), run_end_ns(run), band_pct=band_pct,
-                                       origin_ns=run.t0_ns)
+                                       origin_ns=run.t0_ns, offset_w=_offsets(run, p_ref))
         index = np.searchsorted(p_ref.t_ns, p_ip.t_ns, side="right") - 1
         valid = index >= 0
         if valid.any():
@@ -80,6 +80,22 @@ def run_figures(run: RunData, *, band_pct: float = 5.0) -> RunFigures:
                       gain_switches=kinds.count("gain_switch"),
                       availability_changes=max(0, kinds.count("availability") - 1),
                       faults=len(run.fault_spans()), mode_changes=kinds.count("der_mode"))
+
+
+def _offsets(run: RunData, p_ref):
+    """The level above's offset in each P_ref record (an ADN of a hierarchy: the ``offset_w``
+    its p_ref messages carry, the same instants), zeros where a record has none; None without
+    any."""
+    offset = run.one("p_ref_offset")
+    if offset is None or not offset.values.size:
+        return None
+    where = np.searchsorted(offset.t_ns, p_ref.t_ns)
+    inside = where < offset.t_ns.size
+    hit = np.zeros(p_ref.t_ns.size, bool)
+    hit[inside] = offset.t_ns[where[inside]] == p_ref.t_ns[inside]
+    out = np.zeros(p_ref.t_ns.size)
+    out[hit] = offset.values[where[hit]]
+    return out
 
 
 def step_table(steps, band_pct: float, title: str = "P_IP after each P_ref step",

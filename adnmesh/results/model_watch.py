@@ -170,7 +170,7 @@ class ModelWatch:
             t_sw, handover_s = self._switches[0]
             announced = entry_at(series.entries, t_sw)
             design = None if announced is None else announced.get("design")
-            ends = [t for t in (*series.p_ref_t_ns, *series.windows.instants) if t > t_sw]
+            ends = [t for t in (*series.step_times_ns(), *series.windows.instants) if t > t_sw]
             if design:
                 ends.append(t_sw + int(JUDGED_AFTER_SETTLINGS
                                        * float(design["settling_time_s"]) * 1e9))
@@ -200,10 +200,12 @@ class ModelWatch:
         t, y = t[inside], np.array(series.p_ip_w, dtype=float)[inside]
         ref_t = np.array(series.p_ref_t_ns, dtype=np.int64)
         ref = np.array(series.p_ref_w, dtype=float)
-        at = int(np.searchsorted(ref_t, t_sw, side="right")) - 1
-        if at < 1:
+        steps = [k for k in series.step_records() if ref_t[k] <= t_sw]
+        if not steps:
             return None                  # no step yet: no band to measure against
-        error = y - ref[at]
+        at = steps[-1]
+        # P_ref at each sample (an offset from a level above moves it between steps)
+        error = y - ref[np.searchsorted(ref_t, t, side="right") - 1]
         peak = int(np.argmax(np.abs(error)))
         floor = self._band * abs(ref[at] - ref[at - 1])
         held = np.array(self._held, dtype=np.int64)

@@ -155,6 +155,9 @@ class RunSeries:
         sequence assigned works too).
     p_ref_t_ns, p_ref_w : array of int64, array of float64
         Instants at which ``P_ref`` took a new value, and the value (the first is the initial one).
+    p_ref_offset_w : array of float64
+        Per ``P_ref`` record, the level above's offset it includes (an ADN of a hierarchy;
+        else 0), W: its steps are the changes of the rest (:meth:`step_records`).
     q_ip_t_ns, q_ip_var, q_ref_t_ns, q_ref_var : array
         The same of ``Q_IP`` (the ``p_ip`` messages that carry it) and ``Q_REF`` (reactive
         power control), var.
@@ -194,6 +197,7 @@ class RunSeries:
     p_ip_w: array = field(default_factory=lambda: array("d"))
     p_ref_t_ns: array = field(default_factory=lambda: array("q"))
     p_ref_w: array = field(default_factory=lambda: array("d"))
+    p_ref_offset_w: array = field(default_factory=lambda: array("d"))
     q_ip_t_ns: array = field(default_factory=lambda: array("q"))
     q_ip_var: array = field(default_factory=lambda: array("d"))
     q_ref_t_ns: array = field(default_factory=lambda: array("q"))
@@ -211,6 +215,8 @@ class RunSeries:
     model_watch: list = field(default_factory=list)
     windows: StepWindowEnds = field(default_factory=StepWindowEnds, repr=False)
     _previous: dict = field(default_factory=dict, repr=False)   # (type, sender) -> last body
+    _steps: list = field(default_factory=lambda: [None, 1, []], repr=False)
+    # (the P_ref values' object, records looked at, the step records found)
     _si: frozenset | None = field(default=None, repr=False)
 
     def take(self, message) -> None:
@@ -228,6 +234,8 @@ class RunSeries:
         elif kind == "p_ref":
             self.p_ref_t_ns.append(message.t_send_ns)
             self.p_ref_w.append(message.p_ref_w)
+            self.p_ref_offset_w.append(0.0 if message.offset_w is msgspec.UNSET
+                                       else message.offset_w)
         elif kind == "q_ref":
             self.q_ref_t_ns.append(message.t_send_ns)
             self.q_ref_var.append(message.q_ref_var)
@@ -235,6 +243,31 @@ class RunSeries:
                                         or message.switch is not msgspec.UNSET
                                         or message.design is not msgspec.UNSET):
             self.add(kind, msgspec.to_builtins(message))
+
+    def step_records(self) -> list[int]:
+        """The indices of the ``P_ref`` records that are steps: after the first, those whose
+        value less the level above's offset differs from the record before's (found once per
+        record: the records only grow, but for a series assigned anew)."""
+        values, done, found = self._steps
+        n = len(self.p_ref_w)
+        if values is not self.p_ref_w or n < done:
+            done, found = 1, []
+        offsets = self.p_ref_offsets()
+        for k in range(done, n):
+            if self.p_ref_w[k] - offsets[k] != self.p_ref_w[k - 1] - offsets[k - 1]:
+                found.append(k)
+        self._steps = [self.p_ref_w, max(n, 1), found]
+        return list(found)
+
+    def step_times_ns(self) -> list[int]:
+        """The instants of the steps of ``P_ref`` (:meth:`step_records`), ns."""
+        return [self.p_ref_t_ns[k] for k in self.step_records()]
+
+    def p_ref_offsets(self):
+        """The offsets per P_ref record (zeros where a series assigned none)."""
+        if len(self.p_ref_offset_w) == len(self.p_ref_w):
+            return self.p_ref_offset_w
+        return [0.0] * len(self.p_ref_w)
 
     def add(self, message_type: str, body: dict) -> None:
         """Take one decoded message (envelope and body) if the summary needs it."""
@@ -249,6 +282,7 @@ class RunSeries:
         elif message_type == "p_ref":
             self.p_ref_t_ns.append(body["t_send_ns"])
             self.p_ref_w.append(body["p_ref_w"])
+            self.p_ref_offset_w.append(body.get("offset_w", 0.0))
         elif message_type == "q_ref":
             self.q_ref_t_ns.append(body["t_send_ns"])
             self.q_ref_var.append(body["q_ref_var"])
@@ -480,13 +514,14 @@ def summarize(series: RunSeries, *, end_ns: int, band_pct: float = 5.0,
     q_changes = list(series.q_ref_t_ns[1:]) if reactive else []
     steps = reference_step_figures(
         series.p_ip_t_ns, series.p_ip_w, series.p_ref_t_ns, series.p_ref_w,
-        sorted([*series.windows.instants, *q_changes]), end_ns, band_pct=band_pct)
+        sorted([*series.windows.instants, *q_changes]), end_ns, band_pct=band_pct,
+        offset_w=series.p_ref_offsets())
+    p_steps = series.step_times_ns()
     q_steps, coupling = (), None
     if reactive:
         q_steps = reference_step_figures(
             series.q_ip_t_ns, series.q_ip_var, series.q_ref_t_ns, series.q_ref_var,
-            sorted([*series.windows.instants, *series.p_ref_t_ns[1:]]), end_ns,
-            band_pct=band_pct)
+            sorted([*series.windows.instants, *p_steps]), end_ns, band_pct=band_pct)
         coupling = Coupling(*_cross(q_steps, series.p_ip_t_ns, series.p_ip_w,
                                     series.p_ref_t_ns, series.p_ref_w),
                             *_cross(steps, series.q_ip_t_ns, series.q_ip_var,
@@ -497,7 +532,7 @@ def summarize(series: RunSeries, *, end_ns: int, band_pct: float = 5.0,
     for s in series.switches:
         handover_s = float(s.get("handover_s") or 0.0)
         inside = (t_ip >= s["t_ns"]) & (t_ip <= s["t_ns"] + int((window_s + handover_s) * 1e9))
-        next_step = min((t for t in series.p_ref_t_ns[1:] if t > s["t_ns"]), default=None)
+        next_step = min((t for t in p_steps if t > s["t_ns"]), default=None)
         if next_step is not None:                 # what follows is the step's response
             inside &= t_ip < next_step
         deviation = np.abs(p_ip[inside] - _p_ref_at(series, t_ip[inside]))
@@ -564,7 +599,7 @@ def _cpfc_down(series: RunSeries) -> list[tuple[int, float, str]]:
 def scenario_steps(series: RunSeries, planned, end_ns: int, sample_s: float = 0.0,
                    ended: str | None = None) -> tuple[ScenarioStep, ...]:
     """What became of every step of the scenario (see the module docstring)."""
-    records = series.p_ref_t_ns[1:]          # the first record is the initial P_ref
+    records = series.step_times_ns()          # the first record is the initial P_ref
     down = _cpfc_down(series)
     sample_ns = int(round(sample_s * 1e9))
     out = []
@@ -609,9 +644,11 @@ def _faults(series: RunSeries, end_s: float, band_pct: float) -> tuple[FaultFigu
     """Per-fault figures (injected faults and the agents lost); recovery band: ``band_pct`` %
     of the largest P_ref step (1 MW without steps); a step of P_ref ends a fault's after window
     (what follows is the step's)."""
-    steps = np.abs(np.diff(np.asarray(series.p_ref_w, dtype=float)))
+    ref = np.asarray(series.p_ref_w, dtype=float)
+    at = series.step_records()
+    steps = np.abs(ref[at] - ref[np.subtract(at, 1)]) if at else np.zeros(0)
     band_w = band_pct / 100 * (float(steps.max()) if steps.size and steps.max() > 0 else 1e6)
-    scenario = [t * 1e-9 for t in series.p_ref_t_ns[1:]]     # the steps end an after window
+    scenario = [t * 1e-9 for t in series.step_times_ns()]     # the steps end an after window
     faults = [*series.faults.values(), *lost_faults(series)]
     return tuple(fault_figures(faults, series.events,
                                np.asarray(series.p_ip_t_ns) * 1e-9, series.p_ip_w,
@@ -626,9 +663,11 @@ def _steps_short(series: RunSeries, t: np.ndarray, error: np.ndarray, intervals,
     more than ``band_pct`` % of the step, and the guard acted after the step."""
     ref_t = list(series.p_ref_t_ns)
     ref_v = list(series.p_ref_w)
+    records = series.step_records()
     out = []
-    for k in range(1, len(ref_t)):
-        start, stop = ref_t[k], ref_t[k + 1] if k + 1 < len(ref_t) else end_ns
+    for n, k in enumerate(records):
+        start = ref_t[k]
+        stop = ref_t[records[n + 1]] if n + 1 < len(records) else end_ns
         step = abs(ref_v[k] - ref_v[k - 1])
         last = np.flatnonzero((t >= start) & (t < stop))
         if not step or not last.size or not any(a < stop and b > start for a, b in intervals):

@@ -205,10 +205,13 @@ class AdnOffset(Envelope):
 
 
 class PRef(Envelope):
-    """Reference P_ref at the interconnection point, W."""
+    """Reference P_ref at the interconnection point, W; of an ADN below a level (a hierarchy),
+    also the part of it that is the level above's offset, W (its steps are the changes of the
+    rest: docs/hierarchy.md)."""
 
     type: Literal["p_ref"]
     p_ref_w: Power
+    offset_w: Power | UnsetType = UNSET
 
 
 class QRef(Envelope):

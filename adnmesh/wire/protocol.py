@@ -188,7 +188,8 @@ PROTOCOL: tuple[MessageKind, ...] = (
         _S("ki", "K_I", "ki", unit="1/(W s)", step=True),
         _S("entry", "table entry", "entry", unit="1", step=True))),
     MessageKind("p_ref", "scenario/p_ref", m.PRef, "cpfc", (), "local", (
-        _S("p_ref_w", "P_ref", "p_ref", step=True),)),
+        _S("p_ref_w", "P_ref", "p_ref", step=True),
+        _S("offset_w", "P_ref offset from above", "p_ref_offset", step=True))),
     MessageKind("adn_actuator", "cpfc/actuator", m.AdnActuator, "cpfc", (), "local", (
         _S("capacity_w", "ADN capacity", "adn_capacity", step=True),)),
     MessageKind("adn_offset", "der/{der}/offset", m.AdnOffset, "der", (), "local", (
