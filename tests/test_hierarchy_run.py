@@ -387,6 +387,41 @@ def test_an_offset_from_above_is_no_step_of_an_adns_reference() -> None:
     series.p_ref_w, series.p_ref_offset_w = [1.0, 2.0], [0.0, 0.0]   # assigned anew
     series.p_ref_t_ns = [0, 7]
     assert series.step_records() == [1]
+    series.p_ref_offset_w = [0.0, 1.0]                                 # the offsets alone
+    assert series.step_records() == []
+
+
+def test_an_adns_cpfc_says_offsets_that_are_no_steps_at_any_operating_point() -> None:
+    """At a P_ref that is no round number (the rural ADN's 16.55 MW), P_ref less its offset
+    carries rounding: no record of offsets alone is a step, and a step of its own is."""
+    from adnmesh.loopmodel.step_figures import reference_step_figures
+    from adnmesh.results.summary import RunSeries
+
+    config = load_config(EXAMPLES / "wt-chp.yaml")
+    start = 16550347.61628497
+    cpfc = CPFC(config, GainSchedule(config, None), start_ref=start, steps=[(ns(1.0), 1e6)])
+    keys, upper = Keys(config.grid), Keys("hv")
+    series = RunSeries()
+    rng = np.random.default_rng(7)
+    for k in range(200):
+        t = k * cpfc.period_ns
+        if k % 3 == 1:
+            cpfc.on_message(t, message(upper.of("adn_offset", "x"), t,
+                                       {"offset_w": float(rng.uniform(-5e5, 5e5))}))
+        for o in cpfc.on_timer(t):
+            if o.key == keys.of("p_ref"):
+                series.add("p_ref", {"t_send_ns": t, **o.body})
+    assert len(series.p_ref_w) > 50
+    (step,) = series.step_records()
+    assert series.p_ref_t_ns[step] >= ns(1.0) > series.p_ref_t_ns[step - 1]
+    own = np.asarray(series.p_ref_w) - np.asarray(series.p_ref_offsets())
+    assert np.ptp(own[:step]) < 1e-6 and np.ptp(own[step:]) < 1e-6    # only rounding
+    t = np.arange(0, ns(3.0), ns(0.1))
+    figures = reference_step_figures(t, np.full(t.size, start), series.p_ref_t_ns,
+                                     series.p_ref_w, [], ns(3.0),
+                                     offset_w=series.p_ref_offsets())
+    assert len(figures) == 1 and figures[0].step_w == pytest.approx(
+        1e6 + series.p_ref_offsets()[step] - series.p_ref_offsets()[step - 1])
 
 
 def test_the_hierarchy_topology_links_each_site_to_its_adn() -> None:

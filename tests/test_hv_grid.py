@@ -26,6 +26,8 @@ def small_hv_net():
     net.load.loc[load, "profile"] = "mv_rural"
     pp.create_sgen(net, b, p_mw=8.0, name="stand-in sgen", type="mv_rural")
     pp.create_sgen(net, b, p_mw=20.0, name="wind farm", type="Wind")
+    pp.create_bus(net, 110.0, name="off", in_service=False)
+    pp.create_bus(net, 110.0, name="island")          # no line to it
     return net
 
 
@@ -63,6 +65,9 @@ def test_an_adn_takes_the_place_of_its_buses_mv_stand_ins(tmp_path) -> None:
      "'wind' is no load or static generator at bus 'B'"),
     ("hv_bus: B", "hv_grid: {pandapower_net: small.json, study_case: lW}",
      "hv_grid: unknown study case 'lW' (this grid has: none)"),
+    ("hv_bus: 'off'", "hv_grid: {pandapower_net: small.json}", "bus 'off' is out of service"),
+    ("hv_bus: island", "hv_grid: {pandapower_net: small.json}",
+     "bus 'island' is not connected to an external grid"),
 ])
 def test_hierarchy_files_with_a_bad_hv_grid_are_one_line_errors(tmp_path, capsys, adn, extra,
                                                                 said) -> None:

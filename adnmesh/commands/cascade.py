@@ -159,11 +159,14 @@ def _with_grid_gains(sites, upper, say):
     from adnmesh.control.operating_point import grid_solver
     from adnmesh.grid.sensitivity import interface_sensitivities
 
-    solver = grid_solver(upper)
-    if solver is None:
-        return sites
-    p_w = [d.p_sched_w for d in upper.ders]
-    gains = interface_sensitivities(solver, p_w, [0.0] * len(p_w))[0]
+    try:
+        solver = grid_solver(upper)
+        if solver is None:
+            return sites
+        p_w = [d.p_sched_w for d in upper.ders]
+        gains = interface_sensitivities(solver, p_w, [0.0] * len(p_w))[0]
+    except GridError as exc:
+        raise ConfigError(f"{upper.path}: hv_grid with the ADNs attached: {exc}") from None
     say("  the HV grid's dP_IP/dP at each ADN's bus: " + ", ".join(
         f"{d.id} {g:.4f}" for d, g in zip(upper.ders, gains)))
     by_id = dict(zip(upper.der_ids(), gains))

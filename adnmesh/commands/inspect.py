@@ -68,7 +68,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         "figures, events; times in s of sim time, powers in W)")
     parser.add_argument("--grid", metavar="NAME",
                         help="a recording of several grids (a hierarchy's): only this grid's "
-                        "topics, figures and events (default: each grid's figures in turn)")
+                        "topics, figures and events (default: the figures of the recording's "
+                        "own grid, the upper level's)")
     return parser
 
 

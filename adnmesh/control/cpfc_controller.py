@@ -505,6 +505,7 @@ class CPFC(Agent):
         # the level above's share (a hierarchy of ADNs): the offset of P_ref it asks for, W,
         # and the part of it already in p_ref_w
         self.offset_w = self._offset_in_ref_w = 0.0
+        self._own_ref_w = self.p_ref_w      # P_ref without the offset: its steps only
         # heard from a level above: announce the ADN again every weights_period_s too (a
         # restarted upper CPFC learns the loops it runs on)
         self._below_a_level = False
@@ -804,11 +805,12 @@ class CPFC(Agent):
         p_ref message when P_ref changed."""
         t_ns = self.next_sample_ns
         while self._next_step < len(self._steps) and self._steps[self._next_step][0] <= t_ns:
-            self.p_ref_w += self._steps[self._next_step][1]
+            self._own_ref_w += self._steps[self._next_step][1]
             self._next_step += 1
-        if self.offset_w != self._offset_in_ref_w:
-            self.p_ref_w += self.offset_w - self._offset_in_ref_w
-            self._offset_in_ref_w = self.offset_w
+        self._offset_in_ref_w = self.offset_w
+        # the reference is its own part plus the offset, each kept as it is (a running sum of
+        # the offset's changes would drift by rounding)
+        self.p_ref_w = self._own_ref_w + self._offset_in_ref_w
         if self.p_ref_w == self._p_ref_sent:
             return []
         self._p_ref_sent = self.p_ref_w

@@ -137,9 +137,17 @@ def locate(net, bus: str, replaces: tuple[str, ...] | None) -> tuple[int, dict[s
     Raises
     ------
     GridError
-        One line: an unknown or ambiguous bus, a replaced element that is not at the bus.
+        One line: an unknown or ambiguous bus, one out of service or not supplied from an
+        external grid, a replaced element that is not at the bus.
     """
     index = _bus_index(net, bus)
+    if not bool(net.bus.in_service[index]):
+        raise GridError(f"HV grid: bus {bus!r} is out of service")
+    from pandapower.topology import unsupplied_buses
+
+    if index in unsupplied_buses(net):
+        raise GridError(f"HV grid: bus {bus!r} is not connected to an external grid (the "
+                        "level above) through lines and transformers in service")
     return index, replaced_at(net, index, replaces)
 
 

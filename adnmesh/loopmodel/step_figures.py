@@ -220,6 +220,37 @@ def _clean_samples(t_ns, values) -> tuple[np.ndarray, np.ndarray]:
     return t[first], v[first]
 
 
+OWN_STEP_RESOLUTION = 1e-12
+"""A change of a reference less its offset from a level above (an ADN of a hierarchy) is a step
+only if larger than this fraction of the reference (or 1 nW): the difference of a sum and one
+of its terms carries rounding of a few parts in 1e16, which is no step."""
+
+
+def is_own_step(before_w: float, before_offset_w: float, after_w: float,
+                after_offset_w: float) -> bool:
+    """Whether the reference ``after_w`` (its offset ``after_offset_w``) is a step from the one
+    before: without offsets any change; with them, a change of the reference less its offset
+    beyond :data:`OWN_STEP_RESOLUTION`."""
+    if before_offset_w == 0.0 and after_offset_w == 0.0:
+        return after_w != before_w
+    change = (after_w - after_offset_w) - (before_w - before_offset_w)
+    return abs(change) > OWN_STEP_RESOLUTION * max(abs(after_w), abs(before_w), 1e3)
+
+
+def own_steps(values_w, offsets_w) -> np.ndarray:
+    """The indices (from 1) of the records of ``values_w`` that are steps from the one before
+    (:func:`is_own_step`), given each record's offset ``offsets_w``."""
+    v = np.asarray(values_w, dtype=float)
+    o = np.asarray(offsets_w, dtype=float)
+    if v.size < 2:
+        return np.zeros(0, dtype=np.intp)
+    plain = (o[1:] == 0.0) & (o[:-1] == 0.0)
+    change = (v[1:] - o[1:]) - (v[:-1] - o[:-1])
+    scale = np.maximum(np.maximum(np.abs(v[1:]), np.abs(v[:-1])), 1e3)
+    step = np.where(plain, v[1:] != v[:-1], np.abs(change) > OWN_STEP_RESOLUTION * scale)
+    return np.flatnonzero(step) + 1
+
+
 def reference_step_figures(p_ip_t_ns, p_ip_w, p_ref_t_ns, p_ref_w, window_ends_ns, end_ns: int,
                            *, band_pct: float = 5.0, origin_ns: int = 0, offset_w=None
                            ) -> tuple[ReferenceStep, ...]:
@@ -267,14 +298,15 @@ def reference_step_figures(p_ip_t_ns, p_ip_w, p_ref_t_ns, p_ref_w, window_ends_n
     """
     t_ip, p_ip = _clean_samples(p_ip_t_ns, p_ip_w)
     t_ref, v_ref = _clean_samples(p_ref_t_ns, p_ref_w)
-    own = v_ref
-    if offset_w is not None:
+    if offset_w is None:
+        change = np.flatnonzero(v_ref[1:] != v_ref[:-1]) + 1
+    else:
         v = np.asarray(p_ref_w, dtype=float)
-        _, own = _clean_samples(p_ref_t_ns, np.where(np.isfinite(v), v - np.asarray(
+        _, offset = _clean_samples(p_ref_t_ns, np.where(np.isfinite(v), np.asarray(
             offset_w, dtype=float), np.nan))
-        if own.shape != v_ref.shape:
+        if offset.shape != v_ref.shape:
             raise ValueError("offsets must be finite where P_ref is")
-    change = np.flatnonzero(own[1:] != own[:-1]) + 1
+        change = own_steps(v_ref, offset)
     ends = np.unique(np.concatenate([t_ref[change],
                                      np.asarray(window_ends_ns, dtype=np.int64).ravel()]))
     steps = []

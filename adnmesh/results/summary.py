@@ -52,7 +52,7 @@ from dataclasses import asdict, dataclass, field, replace
 import msgspec
 import numpy as np
 
-from adnmesh.loopmodel.step_figures import ReferenceStep, reference_step_figures
+from adnmesh.loopmodel.step_figures import ReferenceStep, is_own_step, reference_step_figures
 from adnmesh.results.design_check import DesignCheck, design_checks, design_lines
 from adnmesh.results.fault_figures import FaultFigures, fault_figures
 from adnmesh.results.realtime_report import ALARM_TIMEOUTS, RealtimeFigures, realtime_lines
@@ -215,8 +215,9 @@ class RunSeries:
     model_watch: list = field(default_factory=list)
     windows: StepWindowEnds = field(default_factory=StepWindowEnds, repr=False)
     _previous: dict = field(default_factory=dict, repr=False)   # (type, sender) -> last body
-    _steps: list = field(default_factory=lambda: [None, 1, []], repr=False)
-    # (the P_ref values' object, records looked at, the step records found)
+    _steps: list = field(default_factory=lambda: [None, None, 1, []], repr=False)
+    # (the P_ref values' and offsets' objects, records looked at, the step records found; the
+    # values are only appended to)
     _si: frozenset | None = field(default=None, repr=False)
 
     def take(self, message) -> None:
@@ -246,17 +247,18 @@ class RunSeries:
 
     def step_records(self) -> list[int]:
         """The indices of the ``P_ref`` records that are steps: after the first, those whose
-        value less the level above's offset differs from the record before's (found once per
-        record: the records only grow, but for a series assigned anew)."""
-        values, done, found = self._steps
+        value less the level above's offset differs from the record before's
+        (:func:`~adnmesh.loopmodel.step_figures.is_own_step`; found once per record: the
+        records only grow, but for a series or offsets assigned anew)."""
+        values, offsets_then, done, found = self._steps
         n = len(self.p_ref_w)
-        if values is not self.p_ref_w or n < done:
+        if values is not self.p_ref_w or offsets_then is not self.p_ref_offset_w or n < done:
             done, found = 1, []
         offsets = self.p_ref_offsets()
-        for k in range(done, n):
-            if self.p_ref_w[k] - offsets[k] != self.p_ref_w[k - 1] - offsets[k - 1]:
-                found.append(k)
-        self._steps = [self.p_ref_w, max(n, 1), found]
+        v = self.p_ref_w
+        found += [k for k in range(done, n)
+                  if is_own_step(v[k - 1], offsets[k - 1], v[k], offsets[k])]
+        self._steps = [self.p_ref_w, self.p_ref_offset_w, max(n, 1), found]
         return list(found)
 
     def step_times_ns(self) -> list[int]:
