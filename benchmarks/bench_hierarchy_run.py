@@ -45,14 +45,18 @@ def main() -> None:
     parser.add_argument("hierarchy")
     parser.add_argument("--repeat", type=int, default=3)
     args = parser.parse_args()
-    with tempfile.TemporaryDirectory() as tmp:
-        hierarchy, upper_config, table, sites = levels_of(args.hierarchy, Path(tmp))
+    with tempfile.TemporaryDirectory() as tmp:    # the upper config's HV net lives there
+        run_rounds(*levels_of(args.hierarchy, Path(tmp)), args.repeat)
+
+
+def run_rounds(hierarchy, upper_config, table, sites, repeat: int) -> None:
+    """The hierarchy and its ADNs alone, ``repeat`` rounds alternating; print the figures."""
     end_s = upper_config.scenario.duration_s
     adns = hierarchy.adns
     ours, alone, messages = [], [], 0
     print(f"{hierarchy.name}: {len(adns)} ADNs, {end_s:g} s; load "
           f"{os.getloadavg()[0]:.1f} at the start", flush=True)
-    for round_ in range(args.repeat):
+    for round_ in range(repeat):
         order = ("hierarchy", "alone") if round_ % 2 == 0 else ("alone", "hierarchy")
         for which in order:
             # fresh levels each time: a gain schedule keeps what it tuned on demand
