@@ -1586,6 +1586,21 @@ def load_config(path: str | Path) -> Config:
     return _loaded(Path(path), ConfigFile, Config, "config")
 
 
+def _not_the_other_kind(path: Path, document, content_type) -> None:
+    """A hierarchy file given where a config is expected (it names ``adns``, no ``ders``), or
+    the other way round, is said as such in one line (not as its first unknown key)."""
+    if not isinstance(document, dict):
+        return
+    if content_type is ConfigFile and "adns" in document and "ders" not in document:
+        raise ConfigError(f"{path}: a hierarchy file (it names adns), not an ADN's config: "
+                          "'adnmesh cascade FILE' tunes and certifies it, with --run it runs "
+                          "(in one process, on the sim clock; adnmesh up runs one ADN)")
+    if content_type is HierarchyFile and "ders" in document and "adns" not in document:
+        raise ConfigError(f"{path}: an ADN's config (it names ders), not a hierarchy file: a "
+                          "hierarchy file names its ADNs' configs under adns (e.g. "
+                          "configs/examples/hierarchy/hv.yaml)")
+
+
 def _loaded(path: Path, content_type, loaded_type, what: str):
     """The file's document (with what it extends) validated as ``content_type`` and
     returned as ``loaded_type`` with its path and the sha256 of the bytes read."""
@@ -1593,6 +1608,7 @@ def _loaded(path: Path, content_type, loaded_type, what: str):
     if document is None:
         keys = ", ".join(content_type.model_fields)
         raise ConfigError(f"{path}: empty {what} (expected a mapping with keys: {keys})")
+    _not_the_other_kind(path, document, content_type)
     try:
         content = content_type.model_validate(document)
     except ValidationError as exc:

@@ -150,3 +150,17 @@ def test_an_adn_whose_delays_share_no_millisecond_is_one_line(tmp_path, capsys) 
     errors = [line for line in capsys.readouterr().err.splitlines()
               if line.startswith("adnmesh: error: ")]
     assert len(errors) == 1 and "adns chp: the cascade's delays share no unit" in errors[0]
+
+
+@pytest.mark.parametrize("argv, said", [
+    (["up", str(EXAMPLES / "hierarchy" / "hv.yaml")],
+     "a hierarchy file (it names adns), not an ADN's config: 'adnmesh cascade FILE'"),
+    (["check", str(EXAMPLES / "hierarchy" / "hv.yaml")], "a hierarchy file (it names adns)"),
+    (["cascade", str(EXAMPLES.parent / "simbench.yaml")],
+     "an ADN's config (it names ders), not a hierarchy file"),
+])
+def test_a_hierarchy_file_and_a_config_given_for_each_other_are_said_as_such(argv, said,
+                                                                            capsys) -> None:
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and said in err[0]
