@@ -26,7 +26,7 @@ __all__ = ["COMMANDS", "COMMAND_NAMES", "EXIT_INTERRUPTED", "EXIT_USER_ERROR", "
 
 COMMAND_NAMES = ("init", "check", "margins", "tune", "analyze", "identify", "up", "fault", "certs",
                  "agent", "router", "device", "replay", "plot", "inspect", "export", "schema",
-                 "study", "cascade")
+                 "study", "cascade", "merge")
 """The commands, in the order ``adnmesh --help`` lists them: each is the module
 ``adnmesh.commands.<name>``, imported only when needed (a command that reads a recording does
 not wait for the libraries of the analysis)."""

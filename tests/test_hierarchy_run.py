@@ -141,6 +141,10 @@ def test_the_upper_level_acts_on_the_hv_grids_exchange(ran) -> None:
     t, p = series(topics, "adn/hv/measurement/p_ip", "p_ip_w")
     assert p[0] == pytest.approx(-net.res_ext_grid.p_mw.sum() * 1e6, abs=1.0)
     assert p[0] > 1e9       # the HV grid's export at lW, not the ADNs' few MW
+    # the ADNs' schedules are their lowest: the operating point is the reachable range's lower
+    # end, found by power flows to their tolerance, and it is no reference out of reach
+    kinds = [b["kind"] for b in topics["adn/hv/event/cpfc"]]
+    assert "reference_clipped" not in kinds and "reference_reachable" not in kinds
 
 
 def test_the_two_stage_power_flow_is_the_combined_nets(ran) -> None:
@@ -202,6 +206,31 @@ def test_inspect_reads_the_upper_level_alone_with_its_design(ran, capsys) -> Non
     assert main(["inspect", str(out / "hv.run.hv.mcap")]) == 0
     printed = capsys.readouterr().out
     assert "P_IP after each P_ref step" in printed and "designed" in printed
+
+
+def test_the_levels_recordings_merge_into_the_recording_of_every_level(ran, capsys,
+                                                                      tmp_path) -> None:
+    """``adnmesh merge`` of the three levels' recordings holds what the run's recording of
+    every level holds, in delivery-time order; merged again with one level's, that level's
+    messages are kept once."""
+    out = ran[0]
+    levels = [str(out / f"hv.run.{g}.mcap") for g in ("hv", "wtchp", "mixed")]
+    merged = tmp_path / "merged.mcap"
+    assert main(["merge", str(merged), *levels]) == 0
+    assert "(0 recorded twice, kept once), grids hv" in capsys.readouterr().out
+
+    def held(path):
+        return sorted((m.topic, m.log_time_ns, m.publish_time_ns, m.data)
+                      for m in read_recording(path).messages)
+
+    assert held(merged) == held(out / "hv.run.mcap")
+    times = [m.log_time_ns for m in read_recording(merged).messages]
+    assert times == sorted(times)
+    again = tmp_path / "again.mcap"
+    assert main(["merge", str(again), str(merged), levels[1]]) == 0
+    wtchp = len(read_recording(levels[1]).messages)
+    assert f"({wtchp} recorded twice, kept once)" in capsys.readouterr().out
+    assert held(again) == held(merged)
 
 
 def test_inspect_shows_one_grid_of_the_recording_of_every_level(ran, capsys) -> None:

@@ -128,8 +128,14 @@ from adnmesh.tuning.subset_selection import able_to_move
 from adnmesh.tuning.table import SchedulingTable, TableEntry
 
 __all__ = ["CPFC", "DIRECTION_BAND", "GainSchedule", "HANDOVER_BOUND", "HANDOVER_MAX_S",
-           "HANDOVER_RESPONSE_TIMES", "HANDOVER_TOLERANCE", "TUNING_DELAY_S", "SwitchEvent",
-           "initial_p_ref_w", "output_limits"]
+           "HANDOVER_RESPONSE_TIMES", "HANDOVER_TOLERANCE", "REACH_TOLERANCE", "TUNING_DELAY_S",
+           "SwitchEvent", "initial_p_ref_w", "output_limits"]
+
+
+REACH_TOLERANCE = 1.0
+"""A reference this close beyond its reachable range (W or var) is in it: the range comes from
+power flows solved to their tolerance (an HV grid's lower end, with every ADN at its schedule,
+lay 5 mW above the operating point it was computed from)."""
 
 
 def initial_p_ref_w(config: Config) -> float:
@@ -825,8 +831,9 @@ class CPFC(Agent):
         whether it is clipped is said (the recorded P_ref stays the one asked for)."""
         was = self.target_w != self._p_ref_before_clip
         low, high = self.reachable or (-math.inf, math.inf)
-        self._p_ref_before_clip = self.p_ref_w
-        self.target_w = min(max(self.p_ref_w, low), high)
+        self._p_ref_before_clip = ref = self.p_ref_w
+        inside = low - REACH_TOLERANCE <= ref <= high + REACH_TOLERANCE
+        self.target_w = ref if inside else min(max(ref, low), high)
         unit = "var" if self.loop.name == "Q" else "W"
         name = f"{self.loop.name}_ref"
         if self.target_w != self.p_ref_w:
