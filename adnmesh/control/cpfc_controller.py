@@ -1027,9 +1027,10 @@ class CPFC(Agent):
             out.append(self._event("WARNING", f"{kind}_retune", f"the entry stays: {words}"))
             return
         self.counts["retunes"] = self.counts.get("retunes", 0) + 1
-        out.append(self._event("INFO", f"{kind}_retuned", words))
         if kind == "cascade":                  # the factor now in use for that set
-            self._cascade_factor[ders] = entry.figures.get("cascade_back_off", 1.0)
+            factor = self._cascade_factor[ders] = entry.figures.get("cascade_back_off", 1.0)
+            words = f"the upper gains x{factor:.3g} in use for {', '.join(ders)}"
+        out.append(self._event("INFO", f"{kind}_retuned", words))
         if ders == self.in_use and self._pending is None:
             self._pending = self.available
 
