@@ -4,6 +4,8 @@
 from __future__ import annotations
 
 import math
+import os
+import time
 from pathlib import Path
 
 import numpy as np
@@ -26,9 +28,11 @@ def write_recording(result: HierarchyResult, path: Path, hierarchy) -> Path:
     """Every level's messages in one MCAP file at ``path`` (topics ``adn/<grid>/...``; log
     time the delivery, publish time the sending, ns of sim time), and each level's alone
     beside it (``<stem>.<grid>.mcap``: a recording of one grid, as ``adnmesh up`` writes, for
-    ``inspect`` and ``replay``)."""
+    ``inspect`` and ``replay``); all of them name one ``run_id``, so that ``adnmesh merge``
+    refuses level files of two runs."""
     levels = [hierarchy.name, *(a.id for a in hierarchy.adns)]
-    common = {"clock": "sim", "hierarchy": str(hierarchy.path),
+    run_id = f"{hierarchy.name}-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"
+    common = {"run_id": run_id, "clock": "sim", "hierarchy": str(hierarchy.path),
               "hierarchy_sha256": hierarchy.sha256, "duration_s": f"{result.end_s:g}",
               "levels": " ".join(levels)}
     rows = recorded(result.run)
