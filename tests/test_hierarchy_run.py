@@ -130,7 +130,10 @@ def test_the_upper_level_acts_on_the_hv_grids_exchange(ran) -> None:
 
     out, _, topics, _ = ran
     net = pp.from_json(str(out / "hv.hv.json"))
-    named = lambda kind, name: bool(net[kind].in_service[net[kind].name == name].iloc[0])  # noqa: E731
+
+    def named(kind, name):
+        return bool(net[kind].in_service[net[kind].name == name].iloc[0])
+
     assert not named("load", "HV1 Load 46") and not named("sgen", "HV1 Sgen 49")
     assert named("load", "HV1 Load 47") and named("sgen", "HV1 Sgen 50")
     upper = load_config(out / "hv.upper.yaml")
@@ -149,9 +152,10 @@ def test_the_upper_level_acts_on_the_hv_grids_exchange(ran) -> None:
 
 def test_the_two_stage_power_flow_is_the_combined_nets(ran) -> None:
     """The rural ADN solved alone and its exchange injected at HV1 Bus 17 of the run's HV net
-    (the upper level's model) against ``runpp`` of the HV and MV nets as one (the MV net's 110 kV bus fused with
-    HV1 Bus 17, its external grid gone): at the operating point and with every DER 20 % above
-    its schedule (1.1 MW more)."""
+    (the upper level's model) against ``runpp`` of the HV and MV nets as one (the MV net's 110 kV
+    bus fused with HV1 Bus 17, its external grid gone): at the operating point and with every
+    DER 20 % above its schedule (1.1 MW more).
+    """
     import copy
 
     import pandapower as pp

@@ -1029,7 +1029,8 @@ class CPFC(Agent):
         self.counts["retunes"] = self.counts.get("retunes", 0) + 1
         if kind == "cascade":                  # the factor now in use for that set
             factor = self._cascade_factor[ders] = entry.figures.get("cascade_back_off", 1.0)
-            words = f"the upper gains x{factor:.3g} in use for {', '.join(ders)}"
+            named = ", ".join(d for d in self._ids if d in ders)    # in the config's order
+            words = f"the upper gains x{factor:.3g} in use for {named}"
         out.append(self._event("INFO", f"{kind}_retuned", words))
         if ders == self.in_use and self._pending is None:
             self._pending = self.available

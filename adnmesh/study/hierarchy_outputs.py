@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import os
+import secrets
 import time
 from pathlib import Path
 
@@ -31,7 +32,8 @@ def write_recording(result: HierarchyResult, path: Path, hierarchy) -> Path:
     ``inspect`` and ``replay``); all of them name one ``run_id``, so that ``adnmesh merge``
     refuses level files of two runs."""
     levels = [hierarchy.name, *(a.id for a in hierarchy.adns)]
-    run_id = f"{hierarchy.name}-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"
+    run_id = (f"{hierarchy.name}-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}-"
+              f"{secrets.token_hex(3)}")
     common = {"run_id": run_id, "clock": "sim", "hierarchy": str(hierarchy.path),
               "hierarchy_sha256": hierarchy.sha256, "duration_s": f"{result.end_s:g}",
               "levels": " ".join(levels)}
