@@ -237,9 +237,10 @@ def test_the_levels_recordings_merge_into_the_recording_of_every_level(ran, caps
     assert held(again) == held(merged)
 
 
-def test_inspect_shows_one_grid_of_the_recording_of_every_level(ran, capsys) -> None:
+def test_inspect_shows_one_grid_of_the_recording_of_every_level(ran, capsys, tmp_path) -> None:
     """The recording of every level: the upper level's figures by default (its own grid),
-    another's with --grid, in one pass each; each grid's series as read alone."""
+    another's with --grid, in one pass each (and plot the same); each grid's series as read
+    alone."""
     from adnmesh.results.series import read_run, read_runs
 
     out = ran[0]
@@ -259,6 +260,14 @@ def test_inspect_shows_one_grid_of_the_recording_of_every_level(ran, capsys) -> 
     assert main(["inspect", str(merged), "--grid", "nope"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--grid nope: not a grid of" in err[0] and "wtchp" in err[0]
+    # plot: the same choice of grid
+    for argv in (["--grid", "mixed"], []):
+        figure = tmp_path / f"plot{len(argv)}.png"
+        assert main(["plot", str(merged), "-o", str(figure), *argv]) == 0
+        assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    capsys.readouterr()
+    assert main(["plot", str(merged), "-o", str(tmp_path / "x.png"), "--grid", "nope"]) == 2
+    assert "--grid nope: not a grid of" in capsys.readouterr().err
     _, parts = read_runs(merged)
     alone = read_run(merged, grid="wtchp")[0].run.one("p_ip")
     together = parts["wtchp"][0].one("p_ip")

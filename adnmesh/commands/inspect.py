@@ -14,7 +14,6 @@ from rich.console import Console
 from rich.table import Table
 
 from adnmesh.commands import input_file, output_path
-from adnmesh.errors import UsageError
 from adnmesh.config import Constraints
 from adnmesh.recording import (
     PUBLISHED_METADATA,
@@ -28,7 +27,7 @@ from adnmesh.recording import (
 )
 from adnmesh.results.figures import RunFigures, run_figures, step_table
 from adnmesh.results.rules import natural_key
-from adnmesh.results.series import RunData, grid_of_topic, grids_of, read_run, read_runs
+from adnmesh.results.series import RunData, grid_of_topic, read_grid
 from adnmesh.recording.stream import ScannedRecording
 
 __all__ = ["EXIT_PROBLEMS", "add_parser", "run", "settling_band_pct", "sorted_topics",
@@ -318,28 +317,13 @@ def run(args: argparse.Namespace) -> int:
 def _read(path: Path, grid: str | None):
     """``(recording, each, grids)``: the file, ``[(grid, run data, figures, summary)]`` of the
     grid asked for or, in a recording of several (a hierarchy's), of its own (its run
-    metadata's ``grid``: the upper level's) or else the first, and the recording's grids."""
-    if grid is not None:
-        found, messages = read_run(path, also=_SummaryMessages, grid=grid)
-        recording, parts = found.recording, {grid: (found.run, messages)}
-    else:
-        recording, parts = read_runs(path, also=_SummaryMessages)
-    grids = grids_of(recording.channels)
-    if grid is not None and grid not in grids:
-        raise UsageError(f"--grid {grid}: not a grid of {path} (it has: "
-                         f"{', '.join(grids) or 'none'})")
+    metadata's ``grid``: the upper level's) or else the first
+    (:func:`~adnmesh.results.series.read_grid`), and the recording's grids."""
+    found, messages, grids, shown = read_grid(path, grid, also=_SummaryMessages)
+    recording = found.recording
     band = settling_band_pct(recording)
-    own = recording.run.get("grid")
-    shown = [grid or (own if own in grids else next(iter(grids), None))]
-    each = []
-    for name in shown:
-        if name not in parts:       # a recording without any channel: empty figures
-            found, messages = read_run(path, also=_SummaryMessages)
-            parts[name] = (found.run, messages)
-        run_data, messages = parts[name]
-        each.append((name, run_data, run_figures(run_data, band_pct=band),
-                     _summary(recording, messages, band)))
-    return recording, each, grids
+    return recording, [(shown, found.run, run_figures(found.run, band_pct=band),
+                        _summary(recording, messages, band))], grids
 
 
 _PIPE_WIDTH = 10_000

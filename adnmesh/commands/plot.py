@@ -8,7 +8,7 @@ from pathlib import Path
 from adnmesh.commands import input_file, output_path
 from adnmesh.commands.replay import note_if_truncated
 from adnmesh.errors import UsageError
-from adnmesh.results.series import read_run
+from adnmesh.results.series import read_grid
 
 __all__ = ["add_parser", "run"]
 
@@ -28,6 +28,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("recording", metavar="RUN", help="recording (.mcap), e.g. logs/<run>.mcap")
     parser.add_argument("-o", "--out", metavar="FIG", type=Path,
                         help="figure to write (default: RUN with suffix .png)")
+    parser.add_argument("--grid", metavar="NAME",
+                        help="a recording of several grids (a hierarchy's): this grid's plot "
+                        "(default: the recording's own grid, the upper level's)")
     return parser
 
 
@@ -44,10 +47,12 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"{out}: unknown figure format {out.suffix or '(no suffix)'!r} "
                          f"(known: {', '.join(sorted(formats))})")
     output_path(out, "-o")
-    found, _ = read_run(input_file(args.recording))
+    found, _, grids, grid = read_grid(input_file(args.recording), args.grid)
     recording = found.recording
     note_if_truncated(recording)
     title = recording.run.get("run_id") or Path(args.recording).stem
+    if len(grids) > 1:
+        title = f"{title}, grid {grid} of {len(grids)}"
     clock = recording.run.get("clock")
     save_plot(found.run, out, title=f"{title} ({clock} clock)" if clock else title,
               limits=recorded_grid_limits(recording.run))

@@ -36,6 +36,7 @@ __all__ = [
     "feed_recording",
     "grid_of_topic",
     "grids_of",
+    "read_grid",
     "read_run",
     "read_runs",
     "recorded_grid_limits",
@@ -579,6 +580,45 @@ def read_runs(path: str | Path, *, also: Callable[[], object] | None = None
         grids' first channels; the topics of no grid (not ``adn/<grid>/...``) under None.
     """
     return _read(path, also, SERIES, EVENTS, grid_of_topic)
+
+
+def read_grid(path: str | Path, grid: str | None = None, *,
+              also: Callable[[], object] | None = None
+              ) -> tuple[RunFile, object, list[str], str | None]:
+    """Read one grid of a recording in one pass: ``grid``'s, else, in a recording of several
+    (a hierarchy's), its own (its run metadata's ``grid``: the upper level's) or the first.
+
+    Returns
+    -------
+    (RunFile, object, list, str or None)
+        The file with that grid's run data, the object ``also`` made for it, every grid of
+        the recording (:func:`grids_of`), and the grid read (None: a recording of no grid).
+
+    Raises
+    ------
+    UsageError
+        ``grid`` is not a grid of the recording (one line).
+    RecordingError
+        As :func:`~adnmesh.recording.stream.scan`.
+    """
+    from adnmesh.errors import UsageError
+
+    if grid is not None:
+        found, other = read_run(path, also=also, grid=grid)
+        grids = grids_of(found.recording.channels)
+        if grid not in grids:
+            raise UsageError(f"--grid {grid}: not a grid of {path} (it has: "
+                             f"{', '.join(grids) or 'none'})")
+        return found, other, grids, grid
+    scanned, parts = read_runs(path, also=also)
+    grids = grids_of(scanned.channels)
+    own = scanned.run.get("grid")
+    chosen = own if own in grids else next(iter(grids), None)
+    if chosen not in parts:          # no channel at all: empty series
+        found, other = read_run(path, also=also)
+        return found, other, grids, chosen
+    run, other = parts[chosen]
+    return RunFile(scanned, run), other, grids, chosen
 
 
 def _read(path, also, series_rules, event_rules, part_of):
