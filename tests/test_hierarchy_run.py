@@ -268,6 +268,17 @@ def test_inspect_shows_one_grid_of_the_recording_of_every_level(ran, capsys, tmp
     capsys.readouterr()
     assert main(["plot", str(merged), "-o", str(tmp_path / "x.png"), "--grid", "nope"]) == 2
     assert "--grid nope: not a grid of" in capsys.readouterr().err
+    # export: every grid's series; the Foxglove layout of one grid, with that grid's DERs
+    assert main(["export", str(merged), "--foxglove-layout", str(tmp_path / "l.json")]) == 0
+    assert "Foxglove layout for grid hv and 2 DERs" in capsys.readouterr().out
+    assert main(["export", str(merged), "--foxglove-layout", str(tmp_path / "m.json"),
+                 "--grid", "mixed"]) == 0
+    assert "Foxglove layout for grid mixed and 4 DERs" in capsys.readouterr().out
+    assert "adn/hv/" not in (tmp_path / "m.json").read_text()
+    assert main(["export", str(merged), "--csv", str(tmp_path / "csv")]) == 0   # names apart
+    names = {p.name for p in (tmp_path / "csv").iterdir()}
+    assert {"hv.measurement_p_ip.csv", "wtchp.measurement_p_ip.csv",
+            "mixed.measurement_p_ip.csv"} <= names
     _, parts = read_runs(merged)
     alone = read_run(merged, grid="wtchp")[0].run.one("p_ip")
     together = parts["wtchp"][0].one("p_ip")

@@ -1,5 +1,5 @@
-"""``adnmesh export RUN.mcap [--csv DIR] [--foxglove-layout FILE]``: a recording's time
-series as CSV files, and a Foxglove layout for it."""
+"""``adnmesh export RUN.mcap [--csv DIR] [--foxglove-layout FILE] [--grid NAME]``: a
+recording's time series as CSV files, and a Foxglove layout for it."""
 
 from __future__ import annotations
 
@@ -31,6 +31,10 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         help="write the CSV files into DIR (made if missing)")
     parser.add_argument("--foxglove-layout", metavar="FILE", type=Path,
                         help="write a Foxglove layout (JSON) for the run's topics to FILE")
+    parser.add_argument("--grid", metavar="NAME",
+                        help="a recording of several grids (a hierarchy's): this grid's series "
+                        "and layout (default: every grid's series, the layout of the "
+                        "recording's own grid, the upper level's)")
     return parser
 
 
@@ -38,24 +42,31 @@ def run(args: argparse.Namespace) -> int:
     """Read ``args.recording`` once and write what was asked for."""
     from adnmesh.results.csv_export import write_csv
     from adnmesh.results.foxglove_layout import foxglove_layout, layout_json
-    from adnmesh.results.series import read_run
+    from adnmesh.results.series import read_grid, read_run
 
     if args.csv is None and args.foxglove_layout is None:
         raise UsageError("export: say what to write: --csv DIR and/or --foxglove-layout FILE")
     if args.csv is not None and args.csv.exists() and not args.csv.is_dir():
         raise UsageError(f"--csv {args.csv}: exists and is not a folder")
-    found, _ = read_run(args.recording)
-    note_if_truncated(found.recording)
-    run_data = found.run
     if args.csv is not None:
+        found = (read_run(args.recording) if args.grid is None else
+                 read_grid(args.recording, args.grid))[0]
+        note_if_truncated(found.recording)
+        run_data = found.run
         files = write_csv(run_data, args.csv)
         print(f"{args.csv}: {len(files) - 2} CSV files of {len(run_data.series)} series, "
               f"{files[0].name} (the list), {files[1].name} ({len(run_data.events)} events)")
     if args.foxglove_layout is not None:
-        grid = _grid(found.recording, run_data)
+        found, _, _, grid = read_grid(args.recording, args.grid)
+        if args.csv is None:
+            note_if_truncated(found.recording)
+        run_data = found.run
+        if grid is None:
+            raise UsageError(f"{args.recording}: no adn/<grid>/... topics: not an adnmesh "
+                             "recording")
         layout = foxglove_layout(grid, run_data.der_ids,
                                  grid_model=run_data.one("grid_v_min") is not None,
-                                 events_topic=found.recording.run.get("events_topic") or None,
+                                 events_topic=_events_topic(found.recording, grid),
                                  reactive=run_data.one("q_ref") is not None)
         args.foxglove_layout.parent.mkdir(parents=True, exist_ok=True)
         args.foxglove_layout.write_text(layout_json(layout), encoding="utf-8")
@@ -64,10 +75,13 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _grid(recording, run_data) -> str:
-    """The grid name of the recording: the second level of its keys."""
-    for topic in [*(s.topic for s in run_data.series.values()), *recording.channels]:
-        parts = topic.split("/")
-        if len(parts) > 2 and parts[0] == "adn":
-            return parts[1]
-    raise UsageError(f"{recording.path}: no adn/<grid>/... topics: not an adnmesh recording")
+def _events_topic(recording, grid: str) -> str | None:
+    """The log of the run's events of ``grid``: the recording's own, if it is that grid's,
+    else that grid's log if recorded (a merged recording's other inputs), else None."""
+    from adnmesh.results.series import grid_of_topic
+
+    own = recording.run.get("events_topic")
+    if own and grid_of_topic(own) == grid:
+        return own
+    log = f"adn/{grid}/log"
+    return log if log in recording.channels else None

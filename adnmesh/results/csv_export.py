@@ -1,7 +1,8 @@
 """A run's time series as CSV files a controls engineer loads in pandas or a spreadsheet
 (``adnmesh export RUN.mcap --csv DIR``).
 
-One file per bus key, named after the key below ``adn/<grid>/`` (``measurement_p_ip.csv``,
+One file per bus key, named after the key below ``adn/<grid>/`` (``measurement_p_ip.csv``;
+of a recording of several grids with the grid first, ``hv.measurement_p_ip.csv``;
 ``cpfc_p_y.csv``, ``der_SGen1_state.csv``, ``availability_si.csv``, ``measurement_grid.csv``,
 ``scenario_p_ref.csv``): a column ``time_s`` (the send time, s of sim time from the run's
 start) and one column per series of that key, named with its unit (``P_IP [MW]``,
@@ -39,12 +40,16 @@ EVENTS_FILE = "events.csv"
 """The file of the run's events."""
 
 
-def csv_name(topic: str) -> str:
+def csv_name(topic: str, with_grid: bool = False) -> str:
     """The file of the series of ``topic``: the key below ``adn/<grid>/`` with ``/`` as ``_``
-    (``adn/g/der/SGen1/state`` -> ``der_SGen1_state.csv``)."""
+    (``adn/g/der/SGen1/state`` -> ``der_SGen1_state.csv``); ``with_grid`` (a recording of
+    several grids) puts the grid first (``g.der_SGen1_state.csv``)."""
     parts = topic.split("/")
     below = parts[2:] if len(parts) > 2 and parts[0] == "adn" else parts
-    return re.sub(r"[^A-Za-z0-9_.-]", "_", "_".join(below) or "run") + ".csv"
+    name = re.sub(r"[^A-Za-z0-9_.-]", "_", "_".join(below) or "run") + ".csv"
+    if with_grid and len(parts) > 2 and parts[0] == "adn":
+        name = re.sub(r"[^A-Za-z0-9_-]", "_", parts[1]) + "." + name
+    return name
 
 
 def _cell(value: float) -> str:
@@ -79,10 +84,12 @@ def write_csv(run: RunData, out_dir: str | Path) -> list[Path]:
         by_topic.setdefault(series.topic, []).append(series)
     index = [["file", "column", "series", "unit", "role", "der", "key", "field"]]
     written = []
+    several = len({t.split("/")[1] for t in by_topic if t.startswith("adn/")
+                   and t.count("/") >= 2}) > 1           # a hierarchy's: names would collide
     for topic in sorted(by_topic, key=natural_key):
         found = sorted(by_topic[topic], key=lambda s: (s.der is not None,
                                                        natural_key(s.der or "")))
-        name = csv_name(topic)
+        name = csv_name(topic, with_grid=several)
         header, rows = _table(run, found)
         _write(out_dir / name, [header, *rows])
         written.append(out_dir / name)
