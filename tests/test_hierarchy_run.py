@@ -275,6 +275,22 @@ def test_inspect_shows_one_grid_of_the_recording_of_every_level(ran, capsys, tmp
                  "--grid", "mixed"]) == 0
     assert "Foxglove layout for grid mixed and 4 DERs" in capsys.readouterr().out
     assert "adn/hv/" not in (tmp_path / "m.json").read_text()
+    # replay: every grid's series, the layout a tab per grid with that grid's plots only
+    from adnmesh.results.rerun_export import blueprint
+    from adnmesh.results.series import extract
+
+    tabs = blueprint(extract(read_recording(merged))).root_container
+    assert sorted(str(t.name) for t in tabs.contents) == ["hv", "mixed", "wtchp"]
+    def paths(container) -> list[str]:
+        found = []
+        for item in container.contents:
+            found += (paths(item) if hasattr(item, "kind") else
+                      [str(p) for p in item.contents or []])
+        return found
+
+    for tab in tabs.contents:
+        shown = paths(tab)
+        assert shown and all(p.startswith(f"/adn/{tab.name}/") for p in shown), tab.name
     assert main(["export", str(merged), "--csv", str(tmp_path / "csv")]) == 0   # names apart
     names = {p.name for p in (tmp_path / "csv").iterdir()}
     assert {"hv.measurement_p_ip.csv", "wtchp.measurement_p_ip.csv",

@@ -32,7 +32,8 @@ import numpy as np
 from adnmesh.recording.reader import Recording
 from adnmesh.recording.stream import ScannedRecording
 from adnmesh.results.rules import COLORS, Event, series_color
-from adnmesh.results.series import RunData, Series, extract, recorded_grid_limits
+from adnmesh.results.series import (RunData, Series, extract, grid_of_topic, grids_of,
+                                    recorded_grid_limits)
 
 __all__ = [
     "APPLICATION_ID",
@@ -76,10 +77,6 @@ def _durations(t_ns: np.ndarray, t0_ns: int) -> np.ndarray:
     return (np.asarray(t_ns, dtype=np.int64) - t0_ns).astype("timedelta64[ns]")
 
 
-def _views(run: RunData, roles: tuple[str, ...]) -> list[str]:
-    return [rerun_entity_path(s.entity_path) for role in roles for s in run.by_role(role)]
-
-
 GRID_LIMIT_ROLE = "grid_limit"
 """Role of the constant series of the configured band (:func:`limit_series`)."""
 
@@ -91,8 +88,24 @@ def blueprint(run: RunData):
     number of DERs available and, with a grid model, Q_IP (Mvar); every DER's infeed and
     set-point (MW), tall enough for a legend of every DER (Rerun gives a legend at most about
     three quarters of its plot's height), and with a grid model the bus voltage extremes with
-    the band (p.u.) and the loadings with their limit (%).
+    the band (p.u.) and the loadings with their limit (%). A run of several grids (a
+    hierarchy's) gets that layout once per grid, a tab each.
     """
+    import rerun.blueprint as rrb
+
+    grids = grids_of(s.topic for s in run.series.values())
+    root = (rrb.Tabs(*(_layout(run, grid) for grid in grids)) if len(grids) > 1
+            else _layout(run, None))
+    return rrb.Blueprint(
+        root,
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
+        rrb.TimePanel(timeline=SIM_TIMELINE, state="collapsed", play_state="paused"),
+    )
+
+
+def _layout(run: RunData, grid: str | None):
+    """The plots of :func:`blueprint` of ``grid``'s series (None: all), named after it."""
     import rerun as rr
     import rerun.blueprint as rrb
 
@@ -101,45 +114,45 @@ def blueprint(run: RunData):
     whole = rrb.VisibleTimeRange(SIM_TIMELINE, start=rrb.TimeRangeBoundary.infinite(),
                                  end=rrb.TimeRangeBoundary.infinite())    # the whole run
 
+    def mine(topic: str) -> bool:
+        return grid is None or grid_of_topic(topic) == grid
+
+    def of(*roles: str) -> list[Series]:
+        return [s for role in roles for s in run.by_role(role) if mine(s.topic)]
+
     def plot(name: str, *roles: str, paths: Iterable[str] = ()):
-        contents = _views(run, roles) + [rerun_entity_path(p) for p in paths]
+        contents = [rerun_entity_path(s.entity_path) for s in of(*roles)]
+        contents += [rerun_entity_path(p) for p in paths]
         return rrb.TimeSeriesView(name=name, origin="/", contents=contents or [],
                                   time_ranges=whole, axis_x=rrb.TimeAxis(view_range=everything))
 
-    events = sorted({events_path(e) for e in run.events})
-    limits = {s.entity_path for s in run.by_role(GRID_LIMIT_ROLE)}
+    events = sorted({events_path(e) for e in run.events if mine(e.topic)})
+    limits = {s.entity_path for s in of(GRID_LIMIT_ROLE)}
     loading_limit = [p for p in limits if p.endswith("/loading_max_pct")]
     middle = [plot("P_Y (per unit of each DER's w·P_inst)", "p_y"),
               plot("gains: K_P [1/MW], K_I [1/(MW s)]", "kp", "ki"),
               plot("DERs available", "available_count")]
     bottom = [plot("DER infeed [MW]", "der_infeed"),
               plot("DER set-points [MW]", "der_setpoint")]
-    if run.one("q_y") is not None:
+    if of("q_y"):
         middle.append(plot("Q_Y (per unit of each DER's w·C^Q)", "q_y"))
         bottom.append(plot("DER reactive infeed [Mvar]", "der_q_infeed"))
-    if run.one("q_ip") is not None:
+    if of("q_ip"):
         middle.append(plot("Q_IP and Q_ref [Mvar]", "q_ref", "q_ip"))
-    if run.one("grid_v_min") is not None:
+    if of("grid_v_min"):
         bottom.append(rrb.Vertical(
             plot("grid: bus voltages and the band [p.u.]", "grid_v_min", "grid_v_max",
                  paths=sorted(limits - set(loading_limit))),
             plot("grid: highest loadings and the limit [%]", "grid_line_loading",
                  "grid_trafo_loading", paths=loading_limit),
-            *([plot("tap changer: position", "tap_pos")] if run.one("tap_pos") is not None
-              else [])))
-    return rrb.Blueprint(
-        rrb.Vertical(
-            rrb.Horizontal(plot("P_IP and P_ref [MW]", "p_ref", "p_ip"),
-                           rrb.TextLogView(name="events", origin="/", contents=events or []),
-                           column_shares=[3, 2]),
-            rrb.Horizontal(*middle),
-            rrb.Horizontal(*bottom),
-            row_shares=[3, 2, 4.2],
-        ),
-        rrb.BlueprintPanel(state="collapsed"),
-        rrb.SelectionPanel(state="collapsed"),
-        rrb.TimePanel(timeline=SIM_TIMELINE, state="collapsed", play_state="paused"),
-    )
+            *([plot("tap changer: position", "tap_pos")] if of("tap_pos") else [])))
+    return rrb.Vertical(
+        rrb.Horizontal(plot("P_IP and P_ref [MW]", "p_ref", "p_ip"),
+                       rrb.TextLogView(name="events", origin="/", contents=events or []),
+                       column_shares=[3, 2]),
+        rrb.Horizontal(*middle),
+        rrb.Horizontal(*bottom),
+        row_shares=[3, 2, 4.2], name=grid)
 
 
 def limit_series(run: RunData, limits) -> list[Series]:
