@@ -295,6 +295,12 @@ def test_inspect_shows_one_grid_of_the_recording_of_every_level(ran, capsys, tmp
     names = {p.name for p in (tmp_path / "csv").iterdir()}
     assert {"hv.measurement_p_ip.csv", "wtchp.measurement_p_ip.csv",
             "mixed.measurement_p_ip.csv"} <= names
+    # each grid's availability apart: the upper SI names the ADNs only, and the whole file
+    # has the events of the grids read apart, no more
+    header = (tmp_path / "csv" / "hv.availability_si.csv").read_text().splitlines()[0]
+    assert header == "time_s,DERs available,mixed available,wtchp available"
+    whole = read_run(merged)[0].run
+    assert len(whole.events) == sum(len(part[0].events) for part in read_runs(merged)[1].values())
     _, parts = read_runs(merged)
     alone = read_run(merged, grid="wtchp")[0].run.one("p_ip")
     together = parts["wtchp"][0].one("p_ip")

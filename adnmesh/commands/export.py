@@ -42,46 +42,48 @@ def run(args: argparse.Namespace) -> int:
     """Read ``args.recording`` once and write what was asked for."""
     from adnmesh.results.csv_export import write_csv
     from adnmesh.results.foxglove_layout import foxglove_layout, layout_json
-    from adnmesh.results.series import read_grid, read_run
+    from adnmesh.results.series import grid_of_topic, grids_of, read_grid, read_run
 
     if args.csv is None and args.foxglove_layout is None:
         raise UsageError("export: say what to write: --csv DIR and/or --foxglove-layout FILE")
     if args.csv is not None and args.csv.exists() and not args.csv.is_dir():
         raise UsageError(f"--csv {args.csv}: exists and is not a folder")
+    if args.grid is not None:                # that grid's series only
+        found, _, grids, grid = read_grid(args.recording, args.grid)
+    else:                                    # every grid's; the layout of the recording's own
+        found, _ = read_run(args.recording)
+        grids = grids_of(found.recording.channels)
+        own = found.recording.run.get("grid")
+        grid = own if own in grids else next(iter(grids), None)
+    note_if_truncated(found.recording)
+    run_data = found.run
     if args.csv is not None:
-        found = (read_run(args.recording) if args.grid is None else
-                 read_grid(args.recording, args.grid))[0]
-        note_if_truncated(found.recording)
-        run_data = found.run
         files = write_csv(run_data, args.csv)
         print(f"{args.csv}: {len(files) - 2} CSV files of {len(run_data.series)} series, "
               f"{files[0].name} (the list), {files[1].name} ({len(run_data.events)} events)")
     if args.foxglove_layout is not None:
-        found, _, _, grid = read_grid(args.recording, args.grid)
-        if args.csv is None:
-            note_if_truncated(found.recording)
-        run_data = found.run
         if grid is None:
             raise UsageError(f"{args.recording}: no adn/<grid>/... topics: not an adnmesh "
                              "recording")
-        layout = foxglove_layout(grid, run_data.der_ids,
-                                 grid_model=run_data.one("grid_v_min") is not None,
+        mine = [s for s in run_data.series.values() if grid_of_topic(s.topic) == grid]
+        ders = sorted({s.der for s in mine if s.der is not None})
+        layout = foxglove_layout(grid, ders,
+                                 grid_model=any(s.role == "grid_v_min" for s in mine),
                                  events_topic=_events_topic(found.recording, grid),
-                                 reactive=run_data.one("q_ref") is not None)
+                                 reactive=any(s.role == "q_ref" for s in mine))
         args.foxglove_layout.parent.mkdir(parents=True, exist_ok=True)
         args.foxglove_layout.write_text(layout_json(layout), encoding="utf-8")
-        print(f"{args.foxglove_layout}: Foxglove layout for grid {grid} and "
-              f"{len(run_data.der_ids)} DERs")
+        print(f"{args.foxglove_layout}: Foxglove layout for grid {grid} and {len(ders)} DERs")
     return 0
 
 
 def _events_topic(recording, grid: str) -> str | None:
-    """The log of the run's events of ``grid``: the recording's own, if it is that grid's,
-    else that grid's log if recorded (a merged recording's other inputs), else None."""
+    """The log of the run's events of ``grid``: that grid's log if recorded, else the
+    recording's own if it is of that grid or of none (a file another tool wrote), else None."""
     from adnmesh.results.series import grid_of_topic
 
-    own = recording.run.get("events_topic")
-    if own and grid_of_topic(own) == grid:
-        return own
     log = f"adn/{grid}/log"
-    return log if log in recording.channels else None
+    if log in recording.channels:
+        return log
+    own = recording.run.get("events_topic")
+    return own if own and grid_of_topic(own) in (grid, None) else None

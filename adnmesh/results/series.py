@@ -238,9 +238,11 @@ class _Collector:
         self.columns: dict[str, tuple[Field | None, str, str, _Samples, str | None]] = {}
         self.first: dict[str, tuple] = {}
         self.events: list[tuple[tuple, Event]] = []
-        self.ders: set[str] = set()
+        # per grid (a recording of several has several; None: keys outside adn/<grid>/), the
+        # DERs its keys and its SI name, and per SI key the set it last said available
+        self.ders: dict[str | None, set[str]] = {}
         self.availability: list[tuple[int, int, str, frozenset[str]]] = []
-        self.last_available: frozenset[str] | None = None
+        self.last_available: dict[str, frozenset[str]] = {}
 
     def sink_for(self, info) -> Sink | None:
         if info.schema_name == FOXGLOVE_LOG:   # the recorder's copy of the events
@@ -271,19 +273,19 @@ class _Collector:
     def si(self, t_ns: int, log_ns: int, order: int, topic: str, body: dict) -> None:
         """One SI message: the count of available DERs and, on a change, an event."""
         available, known = available_ders(body)
-        self.ders.update(known)
+        self.ders.setdefault(grid_of_topic(topic), set()).update(known)
         self.availability.append((t_ns, log_ns, topic, frozenset(available)))
         self.add(f"/{topic}/available_count", _COUNT, _COUNT.name, topic, [t_ns], [log_ns],
                  [float(len(available))], (0, t_ns, order, 10_000))
-        found = availability_change(available, self.last_available)
-        self.last_available = frozenset(available)
+        found = availability_change(available, self.last_available.get(topic))
+        self.last_available[topic] = frozenset(available)
         if found is not None:
             self.event((t_ns, order, 0), t_ns, "availability", found, topic)
 
     def result(self, t0_ns: int) -> RunData:
         # one 0/1 step series per DER from SI, now that every DER id is known
         for number, (t_ns, log_ns, topic, available) in enumerate(self.availability):
-            for der in sorted(self.ders):
+            for der in sorted(self.ders[grid_of_topic(topic)]):
                 self.add(f"/{topic}/available/{der}",
                          Field("available", f"{der} available", "availability", unit="1",
                                step=True),
@@ -305,7 +307,7 @@ class _Collector:
                                   log_time_ns=log_ns, values=values, der=der)
         self.events.sort(key=lambda item: item[0])
         return RunData(series=series, events=[e for _, e in self.events],
-                       der_ids=sorted(self.ders), t0_ns=t0_ns)
+                       der_ids=sorted(set().union(*self.ders.values())), t0_ns=t0_ns)
 
 
 class _Samples:
@@ -359,7 +361,8 @@ class _Channel:
     def found_bodies(self) -> None:
         if not self.seen:
             self.seen = True
-            self.collector.ders.update(self.plan.ders)
+            self.collector.ders.setdefault(grid_of_topic(self.topic), set()).update(
+                self.plan.ders)
 
 
 class _FieldChannel(_Channel):
