@@ -173,8 +173,7 @@ def _with_grid_gains(sites, upper, say):
     return [dataclasses.replace(s, grid_gain=float(by_id[s.id])) for s in sites]
 
 
-def _write_upper_config(hierarchy, sites, out: Path, say=lambda text: None,
-                        hv=None) -> Path:
+def _write_upper_config(hierarchy, sites, out: Path, say, hv) -> Path:
     from adnmesh.cascade.upper_table import upper_config_document
 
     hv_net = _write_hv_net(hierarchy, sites, hv, out, say)

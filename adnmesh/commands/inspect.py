@@ -286,15 +286,15 @@ def run(args: argparse.Namespace) -> int:
     path = input_file(args.recording)
     if args.recover_to is not None:
         output_path(args.recover_to, "--recover-to")
-    recording, each, grids = _read(path, args.grid)
-    run_data = each[0][1]
+    recording, shown, grids = _read(path, args.grid)
+    grid, run_data, figures, summary = shown
     recovered_to = None
     if not recording.complete:
         recovered_to = args.recover_to or path.with_name(path.stem + ".recovered.mcap")
         recover(path, recovered_to)
     problems = validate_recording(read_recording(path), limit=20) if args.validate else None
     if args.json:
-        report = _json_report(path, recording, each[0], grids, recovered_to, problems,
+        report = _json_report(path, recording, shown, grids, recovered_to, problems,
                               args.grid)
         sys.stdout.write(json.dumps(report, indent=1) + "\n")
         ok = report["counts"]["check"] != "mismatch" and not problems
@@ -305,9 +305,8 @@ def run(args: argparse.Namespace) -> int:
     console.print(topic_table(recording, run_data.t0_ns, args.grid))
     if len(grids) > 1:
         console.print(f"{len(grids)} grids: {', '.join(grids)}; the figures below are grid "
-                      f"{each[0][0]}'s (another grid's: --grid NAME)")
-    for _, grid_data, figures, summary in each:
-        _print_figures(console, grid_data, figures, summary)
+                      f"{grid}'s (another grid's: --grid NAME)")
+    _print_figures(console, run_data, figures, summary)
     ok = _check_counts(console, recording)
     if problems is not None:
         ok = _print_problems(console, problems, recording.message_count) and ok
@@ -315,15 +314,15 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _read(path: Path, grid: str | None):
-    """``(recording, each, grids)``: the file, ``[(grid, run data, figures, summary)]`` of the
+    """``(recording, shown, grids)``: the file, ``(grid, run data, figures, summary)`` of the
     grid asked for or, in a recording of several (a hierarchy's), of its own (its run
     metadata's ``grid``: the upper level's) or else the first
     (:func:`~adnmesh.results.series.read_grid`), and the recording's grids."""
     found, messages, grids, shown = read_grid(path, grid, also=_SummaryMessages)
     recording = found.recording
     band = settling_band_pct(recording)
-    return recording, [(shown, found.run, run_figures(found.run, band_pct=band),
-                        _summary(recording, messages, band))], grids
+    return recording, (shown, found.run, run_figures(found.run, band_pct=band),
+                       _summary(recording, messages, band)), grids
 
 
 _PIPE_WIDTH = 10_000
