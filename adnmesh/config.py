@@ -41,7 +41,8 @@ __all__ = [
     "CAPABILITY_PRESETS", "QRefStep", "QU", "Reactive", "Runtime", "VoltageStep",
     "Scenario", "Section", "Study", "Maintenance", "MinOutputShare", "json_schema", "load_config",
     "Hierarchy", "HierarchyAdn", "HierarchyConstraints", "HierarchyFile", "HvGrid", "MAX_ADNS",
-    "hierarchy_json_schema", "load_hierarchy",
+    "SiteRestart",
+    "hierarchy_json_schema", "is_hierarchy_file", "load_hierarchy",
 ]
 
 DERType = Literal["WT", "CHP", "PV", "HYDRO", "GEN"]
@@ -1434,6 +1435,20 @@ class HierarchyAdn(Section):
     type, begins with ``mv_``: SimBench's stand-ins for its MV grids)."""
 
 
+class SiteRestart(Section):
+    """A site router killed and started again during ``adnmesh up`` (docs/hierarchy.md#sites):
+    at sim time ``t_s`` (the sim clock holds the run there until the site is back; what the
+    run sends is what it sends without the restart)."""
+
+    adn: _Identifier
+    """The ADN whose site router it is."""
+    t_s: Annotated[float, Field(gt=0, le=_MAX_TIME_S)]
+    """When, sim s."""
+    down_s: Annotated[float, Field(ge=0, le=5)] = 1.0
+    """How long the router stays down, wall s (its agents wait 10 s for it before they
+    stop)."""
+
+
 class HierarchyConstraints(Section):
     """Design constraints of the upper table, checked on the exact cascade."""
 
@@ -1489,6 +1504,8 @@ class HierarchyFile(Section):
     faults: _Events[Fault] = ()
     """Faults of the upper level's run; ``der_offline`` of an ADN cuts its site off from the
     level above."""
+    site_restarts: _Events[SiteRestart] = ()
+    """``adnmesh up``: site routers killed and started again (by ADN id)."""
     hv_grid: HvGrid | None = None
     """The HV grid between the ADNs and the level above (default: none, the upper P_IP is the
     sum of the ADNs' exchanges); every ADN then names its ``hv_bus``."""
@@ -1520,6 +1537,9 @@ class HierarchyFile(Section):
         named += [(("faults", i, "agent"), f.agent.removeprefix("der/"))
                   for i, f in enumerate(self.faults)
                   if f.agent is not None and f.agent.startswith("der/")]
+        named += [(("site_restarts", i, "adn"), r.adn) for i, r in enumerate(self.site_restarts)]
+        for i, restart in enumerate(self.site_restarts):
+            _not_after(restart.t_s, self.scenario.duration_s, ("site_restarts", i, "t_s"))
         named += [(("scenario", "availability", i, "ders", j), d)
                   for i, c in enumerate(self.scenario.availability) for j, d in enumerate(c.ders)]
         for at, adn in named:
@@ -1586,6 +1606,16 @@ def load_config(path: str | Path) -> Config:
     return _loaded(Path(path), ConfigFile, Config, "config")
 
 
+def is_hierarchy_file(path: str | Path) -> bool:
+    """Whether the file at ``path`` reads as a hierarchy file (it names ``adns``, no ``ders``);
+    False for anything else, a file that does not read included (its loader says why)."""
+    try:
+        document, _ = _document(Path(path), (Path(path).resolve(),))
+    except (ConfigError, OSError):
+        return False
+    return isinstance(document, dict) and "adns" in document and "ders" not in document
+
+
 def _not_the_other_kind(path: Path, document, content_type) -> None:
     """A hierarchy file given where a config is expected (it names ``adns``, no ``ders``), or
     the other way round, is said as such in one line (not as its first unknown key)."""
@@ -1593,8 +1623,8 @@ def _not_the_other_kind(path: Path, document, content_type) -> None:
         return
     if content_type is ConfigFile and "adns" in document and "ders" not in document:
         raise ConfigError(f"{path}: a hierarchy file (it names adns), not an ADN's config: "
-                          "'adnmesh cascade FILE' tunes and certifies it, with --run it runs "
-                          "(in one process, on the sim clock; adnmesh up runs one ADN)")
+                          "'adnmesh cascade FILE' tunes and certifies it, 'adnmesh up FILE' "
+                          "runs it")
     if content_type is HierarchyFile and "ders" in document and "adns" not in document:
         raise ConfigError(f"{path}: an ADN's config (it names ders), not a hierarchy file: a "
                           "hierarchy file names its ADNs' configs under adns (e.g. "

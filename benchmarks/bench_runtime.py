@@ -135,7 +135,7 @@ def checked_entry(config, ids, gains) -> TableEntry:
 def simbench_table(config, workdir: Path) -> Path:
     """The tuned table if it has every subset the scenario needs (no tuning during the run),
     else a table with just those two entries."""
-    from adnmesh.commands.up import scenario_subsets
+    from adnmesh.commands.up_tables import scenario_subsets
     from adnmesh.errors import ConfigError
     from adnmesh.tuning.table import load_table
 

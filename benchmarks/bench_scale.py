@@ -116,7 +116,7 @@ class _Sampler(threading.Thread):
 
 def tuning_cpu_per_subset(config_path: Path) -> list[float]:
     """CPU seconds of each scenario subset's on-demand tuning (fresh tuner)."""
-    from adnmesh.commands.up import scenario_subsets
+    from adnmesh.commands.up_tables import scenario_subsets
     from adnmesh.config import load_config
     from adnmesh.tuning.ondemand import OnDemandTuner
 

@@ -153,9 +153,9 @@ def test_an_adn_whose_delays_share_no_millisecond_is_one_line(tmp_path, capsys) 
 
 
 @pytest.mark.parametrize("argv, said", [
-    (["up", str(EXAMPLES / "hierarchy" / "hv.yaml")],
-     "a hierarchy file (it names adns), not an ADN's config: 'adnmesh cascade FILE'"),
-    (["check", str(EXAMPLES / "hierarchy" / "hv.yaml")], "a hierarchy file (it names adns)"),
+    (["check", str(EXAMPLES / "hierarchy" / "hv.yaml")],
+     "a hierarchy file (it names adns), not an ADN's config: 'adnmesh cascade FILE' tunes and "
+     "certifies it, 'adnmesh up FILE' runs it"),
     (["cascade", str(EXAMPLES.parent / "simbench.yaml")],
      "an ADN's config (it names ders), not a hierarchy file"),
 ])

@@ -351,7 +351,7 @@ def test_a_summary_json_that_cannot_be_written_is_one_line(tmp_path: Path, monke
     """The summary is printed first; a JSON the disk refuses is one line, no half file."""
     import argparse
 
-    from adnmesh.commands import up
+    from adnmesh.commands import up_summary
     from adnmesh.runtime.launcher import UpResult
 
     def disk_full(path, content, mode=0o644):
@@ -360,7 +360,7 @@ def test_a_summary_json_that_cannot_be_written_is_one_line(tmp_path: Path, monke
     monkeypatch.setattr("adnmesh.files.write_atomic", disk_full)
     args = argparse.Namespace(summary_json=str(tmp_path / "s.json"), clock="sim", secure=False,
                               certs=None, speed=None)
-    line = up._print_summary(args, load_config(CASE), "run", UpResult(end_ns=12 * 10**9,
+    line = up_summary.print_and_write_summary(args, load_config(CASE), "run", UpResult(end_ns=12 * 10**9,
                                                                       reached_ns=12 * 10**9))
     assert line == (f"--summary-json {tmp_path / 's.json'}: not written (No space left on "
                     "device); the summary above is the whole of it")

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from adnmesh.commands import up
+from adnmesh.commands import up_tables
 from adnmesh.config import load_config
 from adnmesh.errors import ConfigError
 from adnmesh.tuning.design_key import design_sha256
@@ -111,24 +111,24 @@ def test_up_keeps_the_table_it_tuned_and_finds_it_again(tmp_path: Path, monkeypa
     monkeypatch.setenv("ADNMESH_CACHE_DIR", str(tmp_path / "cache"))
     said: list[str] = []
     config = load_config(_variant(tmp_path, "kept"))
-    first = up._table(None, config, tmp_path, "run1", said.append)
+    first = up_tables.table_for(None, config, tmp_path, "run1", said.append)
     assert first.parent == tmp_path / "cache" / "tables" and "tuning the 2 subset" in said[0]
     said.clear()
     # the scenario's steps and a comment change, not its subsets: the same table, not tuned
     moved = load_config(_variant(tmp_path, "kept", lambda d: d["scenario"]["p_ref_steps"][0]
                                  .update(delta_w=5e5), comment="# moved step\n"))
-    assert up._table(None, moved, tmp_path, "run2", said.append) == first
+    assert up_tables.table_for(None, moved, tmp_path, "run2", said.append) == first
     assert said == [f"gain table {first}: tuned by an earlier run for this design and scenario"]
     # another subset in the scenario: tuned again, kept apart
     said.clear()
     more = load_config(_variant(tmp_path, "kept", lambda d: d["scenario"]["availability"]
                                 .__setitem__(0, {"t_s": 20, "available": False,
                                                  "ders": ["SGen1"]})))
-    other = up._table(None, more, tmp_path, "run3", said.append)
+    other = up_tables.table_for(None, more, tmp_path, "run3", said.append)
     assert other != first and other.exists() and "tuning the 2 subset" in said[0]
     # a damaged kept table is said and tuned again, never used
     first.write_text("{")
     said.clear()
-    assert up._table(None, moved, tmp_path, "run4", said.append) == first
+    assert up_tables.table_for(None, moved, tmp_path, "run4", said.append) == first
     assert said[0].startswith("not using the tuned gain table an earlier run kept: ")
     assert load_table(first, moved).lookup(["SGen1", "SGen2"]) is not None

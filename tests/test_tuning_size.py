@@ -142,7 +142,7 @@ def test_the_table_up_tunes_for_itself_has_a_static_pair(configs_dir: Path, tmp_
     # up without a table tunes the scenario's subsets and, now, the static controller the
     # CPFC falls back to for a subset the table lacks; checked on every subset on the exact
     # loop by the independent evaluation
-    from adnmesh.commands import up
+    from adnmesh.commands import up_tables
     from adnmesh.loopmodel.evaluation import evaluate
     from adnmesh.loopmodel.plant import plant_from_ders
     from adnmesh.tuning.table import load_table
@@ -151,7 +151,7 @@ def test_the_table_up_tunes_for_itself_has_a_static_pair(configs_dir: Path, tmp_
     config = load_config(configs_dir / "examples" / "mixed-4.yaml")
     said: list[str] = []
     monkeypatch.setenv("ADNMESH_CACHE_DIR", str(tmp_path))   # no table kept: up tunes its own
-    path = up._table(None, config, tmp_path, "run", said.append)
+    path = up_tables.table_for(None, config, tmp_path, "run", said.append)
     static = load_table(path, config).static
     assert static is not None and static.feasible
     assert any(line.startswith("static controller: K_P") for line in said), said
@@ -164,9 +164,9 @@ def test_the_table_up_tunes_for_itself_has_a_static_pair(configs_dir: Path, tmp_
 
 
 def test_no_static_pair_is_designed_beyond_the_exact_class_limit(adn100) -> None:
-    from adnmesh.commands import up
+    from adnmesh.commands import up_tables
     said: list[str] = []
-    assert up._static(adn100, [frozenset(adn100.der_ids())], said.append) is None
+    assert up_tables.static_controller(adn100, [frozenset(adn100.der_ids())], said.append) is None
     assert said and "70 dynamics classes" in said[0], said
 
 

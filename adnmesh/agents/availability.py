@@ -9,9 +9,8 @@ import argparse
 import sys
 
 from adnmesh.control.registry import build_agent
-from adnmesh.runtime.process import (AgentProcess, add_agent_arguments, load_config_or_exit,
-                                     open_session)
-from adnmesh.sim.node import Node
+from adnmesh.runtime.place import place_or_exit
+from adnmesh.runtime.process import AgentProcess, add_agent_arguments, open_session
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -20,9 +19,10 @@ def main(argv: list[str] | None = None) -> int:
     add_agent_arguments(parser)
     args = parser.parse_args(argv)
 
-    config = load_config_or_exit(args.config)
-    node = Node.for_config(build_agent("availability", config), config,
-                          start_ns=args.resume_at_ns)
+    place = place_or_exit(args)
+    config = place.config
+    node = place.node(place.agent("availability", lambda: build_agent("availability", config)),
+                      args.resume_at_ns)
     with open_session(args, "availability") as session:
         return AgentProcess(session, node, config.grid,
                             publishers=args.certs is None).serve()

@@ -16,9 +16,8 @@ from adnmesh.control.cpfc_controller import GainSchedule
 from adnmesh.control.registry import build_agent
 from adnmesh.errors import ConfigError
 from adnmesh.reactive import reactive_view
-from adnmesh.runtime.process import (AgentProcess, add_agent_arguments, load_config_or_exit,
-                                     open_session)
-from adnmesh.sim.node import Node
+from adnmesh.runtime.place import place_or_exit
+from adnmesh.runtime.process import AgentProcess, add_agent_arguments, open_session
 from adnmesh.tuning.table import default_table_path, load_table
 
 
@@ -33,10 +32,12 @@ def main(argv: list[str] | None = None) -> int:
     add_agent_arguments(parser)
     args = parser.parse_args(argv)
 
-    config = load_config_or_exit(args.config)
+    place = place_or_exit(args)
+    config = place.config
     q_schedule = None
     try:
-        table = load_table(args.table or default_table_path(config), config)
+        schedule = place.schedule(lambda: GainSchedule(config, load_table(
+            args.table or default_table_path(config), config)))
         if config.reactive is not None:
             view = reactive_view(config)
             q_path = Path(args.q_table) if args.q_table else default_table_path(view)
@@ -49,9 +50,8 @@ def main(argv: list[str] | None = None) -> int:
     if config.runtime.model_watch != "off":
         from adnmesh.results.model_watch import ModelWatch   # step figures: numba
         watch = ModelWatch(config, keep_setpoints=config.runtime.model_watch == "retune")
-    node = Node.for_config(build_agent("cpfc", config, GainSchedule(config, table),
-                                       q_schedule=q_schedule, model_watch=watch), config,
-                          start_ns=args.resume_at_ns)
+    node = place.node(place.agent("cpfc", lambda: build_agent(
+        "cpfc", config, schedule, q_schedule=q_schedule, model_watch=watch)), args.resume_at_ns)
     with open_session(args, "cpfc") as session:
         return AgentProcess(session, node, config.grid,
                             publishers=args.certs is None).serve()

@@ -19,9 +19,8 @@ import sys
 from adnmesh.control.der_model import params_from_json
 from adnmesh.control.registry import build_agent
 from adnmesh.runtime.host import serve_hosted
-from adnmesh.runtime.process import (AgentProcess, add_agent_arguments, load_config_or_exit,
-                                     open_session)
-from adnmesh.sim.node import Node
+from adnmesh.runtime.place import place_or_exit
+from adnmesh.runtime.process import AgentProcess, add_agent_arguments, open_session
 from adnmesh.sim.topology import Topology
 from adnmesh.names import der_agent_id
 
@@ -40,7 +39,8 @@ def main(argv: list[str] | None = None) -> int:
     add_agent_arguments(parser)
     args = parser.parse_args(argv)
 
-    config = load_config_or_exit(args.config)
+    place = place_or_exit(args)
+    config = place.config
     ders = args.der
     for name in ("p_avail_w", "model_params"):
         given = getattr(args, name)
@@ -53,7 +53,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("several --der need the open profile: a certificate is one DER's "
                      "identity")
     nodes, gateways = [], []
-    topology = Topology.from_config(config)     # one for every DER of the process
+    topology = place.topology() or Topology.from_config(config)   # one for the process's DERs
     for i, der in enumerate(ders):
         if der not in config.der_ids():
             parser.error(f"unknown DER id {der!r} (known: {', '.join(config.der_ids())})")
@@ -67,10 +67,9 @@ def main(argv: list[str] | None = None) -> int:
             except ValueError as exc:
                 parser.error(f"--model-params of {der}: {exc}")
         p_avail_w = None if args.p_avail_w is None else args.p_avail_w[i]
-        agent = build_agent(der_agent_id(der), config, p_avail_w=p_avail_w,
-                            der_params=params, device=device)
-        nodes.append(Node.for_config(agent, config, start_ns=args.resume_at_ns,
-                                     topology=topology))
+        agent = place.agent(der_agent_id(der), lambda: build_agent(
+            der_agent_id(der), config, p_avail_w=p_avail_w, der_params=params, device=device))
+        nodes.append(place.node(agent, args.resume_at_ns, topology))
     try:
         with open_session(args, der_agent_id(ders[0])) as session:
             if len(nodes) > 1:

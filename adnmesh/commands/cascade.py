@@ -61,13 +61,14 @@ def _progress(label: str):
         yield lambda done, total: bar.update(task, completed=done, total=total)
 
 
-def _lower_entry(config, say):
-    """The ADN's entry for all its DERs: its table's, else tuned now."""
+def _lower_entry(config, say, path: Path | None = None):
+    """The ADN's entry for all its DERs: its table's (``path``, default the config's own),
+    else tuned now."""
     from adnmesh.tuning.ondemand import tune_subset
     from adnmesh.tuning.table import default_table_path, load_table
 
     ids = list(config.der_ids())
-    path = default_table_path(config)
+    path = path or default_table_path(config)
     if path.exists():
         entry = load_table(path, config).lookup(ids)
         if entry is not None:
@@ -76,10 +77,10 @@ def _lower_entry(config, say):
     return tune_subset(config, ids), "tuned now"
 
 
-def hierarchy_sites(hierarchy, say=lambda text: None):
+def hierarchy_sites(hierarchy, say=lambda text: None, tables=None):
     """Each ADN of ``hierarchy`` as a :class:`~adnmesh.cascade.upper_table.Site`: its entry for
-    all its DERs (its table's, else tuned now), its closed loop and equivalent model; ``say``
-    gets a line per ADN."""
+    all its DERs (its table's -- ``tables[adn id]``, default the config's own --, else tuned
+    now), its closed loop and equivalent model; ``say`` gets a line per ADN."""
     from adnmesh.cascade.equivalent import equivalent
     from adnmesh.cascade.upper_table import Site, lower_adn
     from adnmesh.config import load_config
@@ -91,7 +92,7 @@ def hierarchy_sites(hierarchy, say=lambda text: None):
             config = load_config(hierarchy.config_path(adn))
         except ConfigError as exc:
             raise ConfigError(f"{hierarchy.path}: adns {adn.id}: {exc}") from None
-        entry, source = _lower_entry(config, say)
+        entry, source = _lower_entry(config, say, (tables or {}).get(adn.id))
         if not entry.feasible:
             raise ConfigError(f"{hierarchy.path}: adns {adn.id}: no PI pair meets its own "
                               f"constraints for all its DERs ({entry.reason})")
@@ -254,14 +255,14 @@ def _numerics_said(hierarchy):
         raise ConfigError(f"{hierarchy.path}: {exc}") from None
 
 
-def upper_level(hierarchy, out: Path, say=lambda text: None):
+def upper_level(hierarchy, out: Path, say=lambda text: None, tables=None):
     """``(sites, upper config)`` of ``hierarchy``: its HV grid checked (before any tuning),
-    each ADN's entry and loop (:func:`hierarchy_sites`), the upper config (and the HV net)
-    written to ``out``, each site with the HV grid's gain at its bus."""
+    each ADN's entry and loop (:func:`hierarchy_sites`, with ``tables``), the upper config (and
+    the HV net) written to ``out``, each site with the HV grid's gain at its bus."""
     from adnmesh.config import load_config
 
     hv = _hv_base(hierarchy)
-    sites = hierarchy_sites(hierarchy, say)
+    sites = hierarchy_sites(hierarchy, say, tables)
     written = _write_upper_config(hierarchy, sites, out, say, hv)
     try:
         upper = load_config(written)
@@ -270,15 +271,16 @@ def upper_level(hierarchy, out: Path, say=lambda text: None):
     return _with_grid_gains(sites, upper, say), upper
 
 
-def _run(args: argparse.Namespace, hierarchy, out: Path) -> int:
+def certified_upper_table(hierarchy, sites, upper, say=lambda text: None):
+    """``(table, rows, path)``: the upper table tuned on the ADNs' equivalent models, each
+    entry certified (and backed off) on the exact cascade, written to its default path beside
+    the upper config; ``rows``: each entry's figures (:func:`~adnmesh.cascade.upper_table.
+    certify_entries`)."""
     from adnmesh.cascade.upper_table import certify_entries
     from adnmesh.tuning import tune_table
     from adnmesh.tuning.table import default_table_path, save_table
 
-    say = lambda text: print(text, file=sys.stderr)  # noqa: E731
     t0 = time.perf_counter()
-    say(f"{hierarchy.name}: {len(hierarchy.adns)} ADNs")
-    sites, upper = upper_level(hierarchy, out, say)
     table = tune_table(upper, "paper")
     say(f"upper table tuned on the equivalent models: {len(table.entries)} entries in "
         f"{time.perf_counter() - t0:.1f} s; certifying each on the exact cascade")
@@ -287,6 +289,15 @@ def _run(args: argparse.Namespace, hierarchy, out: Path) -> int:
                                upper.constraints, on_entry=step)
     table_path = output_path(default_table_path(upper), "--out (the table)")
     save_table(table, table_path)
+    return table, rows, table_path
+
+
+def _run(args: argparse.Namespace, hierarchy, out: Path) -> int:
+    say = lambda text: print(text, file=sys.stderr)  # noqa: E731
+    t0 = time.perf_counter()
+    say(f"{hierarchy.name}: {len(hierarchy.adns)} ADNs")
+    sites, upper = upper_level(hierarchy, out, say)
+    table, rows, table_path = certified_upper_table(hierarchy, sites, upper, say)
     csv_path = out / f"{hierarchy.name}.cascade.csv"
     _write_rows(rows, csv_path)
     png = _plot(hierarchy, upper, table, {s.id: s for s in sites}, out)

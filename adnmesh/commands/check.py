@@ -9,7 +9,7 @@ from rich.console import Console
 from rich.table import Table
 
 from adnmesh.commands import add_config_argument
-from adnmesh.commands.up import operating_point
+from adnmesh.commands.up_tables import operating_point
 from adnmesh.config import DER_TYPES, Config, load_config
 
 __all__ = ["add_parser", "run", "summary_tables"]
@@ -32,7 +32,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     """Load ``args.config`` and check it as ``up`` does before it starts (the grid model,
-    the DERs' model parameters: :func:`adnmesh.commands.up.operating_point`); print the
+    the DERs' model parameters: :func:`adnmesh.commands.up_tables.operating_point`); print the
     summary to stdout."""
     config = load_config(args.config)
     available = operating_point(config, log=lambda line: None)

@@ -49,6 +49,7 @@ def run(args: argparse.Namespace) -> int:
     from adnmesh.runtime import acl
     from adnmesh.runtime.bus import DEFAULT_HOST, free_port, router_config
     from adnmesh.runtime.identity import router_identity
+    from adnmesh.runtime.process import die_with_parent
     from adnmesh.sim.topology import Topology
     from adnmesh.names import LAUNCHER
 
@@ -68,6 +69,7 @@ def run(args: argparse.Namespace) -> int:
         elif seen.is_set() and args.until_run_ends:
             done.set()
 
+    die_with_parent()     # a site router adnmesh up started ends with it
     try:
         session = zenoh.open(config)
     except zenoh.ZError as exc:

@@ -52,6 +52,8 @@ class FaultInjector:
         self.left_early: set[str] = set()      # lost by a goodbye up did not ask for
         self.gone_at: dict[str, int] = {}      # agent -> when it died or stopped for good, ns
         self.quarantined: set[str] = set()     # agents someone else sent as
+        self.planned_drops: set[str] = set()   # agents whose session a planned site router
+        #                                        restart drops (said by the site, not here)
 
     # -- before the start ----------------------------------------------------------------------
 
@@ -178,7 +180,8 @@ class FaultInjector:
         running = self.launch.children.running()
         for agent, back in changes:
             with self._lock:
-                expected = agent in self.dying or agent in self._spawned
+                expected = agent in self.dying or agent in self._spawned or \
+                    agent in self.planned_drops
             if agent not in running or expected:
                 continue      # a death or a restart: the injector's own business
             what = "is back" if back else \

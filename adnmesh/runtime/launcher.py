@@ -81,7 +81,7 @@ from adnmesh.names import LAUNCHER, der_id_of
 from adnmesh.wire.units import ns
 
 __all__ = ["EXIT_FAILED", "EXIT_NOT_REALTIME", "EXIT_OK", "RECORDING_FAILED", "UpOptions",
-           "UpResult", "embedded_router_config", "recording_failure", "run"]
+           "UpResult", "embedded_router_config", "recording_failure", "run", "run_levels"]
 
 EXIT_OK, EXIT_FAILED, EXIT_NOT_REALTIME, EXIT_SIGINT, EXIT_SIGTERM = 0, 1, 3, 130, 143
 NOT_REALTIME = "not real time"
@@ -155,6 +155,19 @@ class UpOptions:
         Realtime: the scheduling priority of ``up`` and its agents
         (:data:`adnmesh.runtime.os_scheduling.PRIORITIES`: ``off``, ``nice``, ``fifo``); if the
         OS refuses it the run goes on at the ordinary priority and says so.
+    features : frozenset of str
+        Protocol features the config does not say (``hierarchy``: a level of a hierarchy).
+    agent_args : tuple of str
+        Arguments every agent process gets besides its own (a level of a hierarchy:
+        ``--levels FILE --level GRID``, :mod:`adnmesh.runtime.place`).
+    shared_clock : SharedClock, optional
+        The sim clock of several levels (:mod:`adnmesh.runtime.level_clock`): this run joins
+        it instead of running one of its own (:func:`run_levels`).
+    wake : threading.Event, optional
+        The event the run's waits wait on (default: its own; shared by the levels).
+    endpoints : dict
+        Agent id -> the router its process connects to (its site's,
+        :mod:`adnmesh.runtime.site_router`; default: ``up``'s).
     """
 
     config: Config
@@ -180,6 +193,11 @@ class UpOptions:
     rt_priority: str = "off"
     view: object | None = None
     progress: Callable[[int], None] | None = None
+    features: frozenset = frozenset()
+    agent_args: tuple = ()
+    shared_clock: object | None = None
+    wake: threading.Event | None = None
+    endpoints: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -249,12 +267,12 @@ class _Launch:
     def __init__(self, options: UpOptions) -> None:
         self.options = options
         self.config = options.config
-        self.topology = Topology.from_config(self.config)
+        self.topology = Topology.from_config(self.config, options.features)
         self.keys = self.topology.keys
         scheme = "tcp" if options.certs is None else "tls"
         self.endpoint = options.listen or f"{scheme}/{DEFAULT_HOST}:{free_port()}"
         self.result = UpResult(end_ns=ns(self.config.scenario.duration_s))
-        self.roster = Roster(self.topology.agents)
+        self.roster = Roster(self.topology.agents, options.wake)
         self.children = AgentProcesses(options.external)
         self.peers = tuple(router_identity(n) for n in options.routers)
         self.sessions = SessionWatch((*self.topology.agents, *self.peers))
@@ -289,7 +307,11 @@ class _Launch:
     def open(self, session: zenoh.Session) -> None:
         """Declare the recorder's subscriber, the liveliness subscriber and ``up``'s token."""
         self.outbox = LauncherOutbox(session, self.tap)
-        if self.options.clock == "sim":
+        if self.options.shared_clock is not None:
+            self.clock = self.options.shared_clock.join(
+                self.config.grid, self.keys, self.outbox, self.children.host_of,
+                on_violation=self.injector.quarantine, on_rejoin=self.injector.on_rejoin)
+        elif self.options.clock == "sim":
             coordinator = Coordinator(self.topology, self.result.end_ns,
                                       on_rejoin=self.injector.on_rejoin)
             self.clock = SimClockDriver(coordinator, self.keys, self.outbox,
@@ -436,20 +458,31 @@ class _Launch:
             return
         der_id = der_id_of(agent_id)
         p_avail_w = self.options.available_w.get(der_id)
-        argv = agent_argv(agent_id, Path(self.config.path), self.endpoint,
+        argv = agent_argv(agent_id, Path(self.config.path), self.endpoint_of(agent_id),
                           self.options.table_path, p_avail_w, self.options.certs,
                           self._model_params(der_id, p_avail_w), self.options.q_table_path)
+        argv += self.options.agent_args
         if resume_ns:
             argv += ["--resume-at-ns", str(resume_ns)]
         self.children.spawn(agent_id, argv)
 
+    def endpoint_of(self, agent_id: str) -> str:
+        """The router ``agent_id``'s process connects to."""
+        return self.options.endpoints.get(agent_id, self.endpoint)
+
     def process_groups(self, agents: list[str]) -> list[list[str]]:
         """The agents of each process to start: one each, but the DERs in groups of
-        ``runtime.ders_per_process`` in config order (:mod:`adnmesh.runtime.host`)."""
+        ``runtime.ders_per_process`` in config order (:mod:`adnmesh.runtime.host`), those of
+        one router together."""
         size = self.config.runtime.ders_per_process
-        ders = [a for a in agents if der_id_of(a) is not None]
         groups = [[a] for a in agents if der_id_of(a) is None]
-        return groups + [ders[i:i + size] for i in range(0, len(ders), size)]
+        by_router: dict[str, list[str]] = {}
+        for a in agents:
+            if der_id_of(a) is not None:
+                by_router.setdefault(self.endpoint_of(a), []).append(a)
+        for ders in by_router.values():
+            groups += [ders[i:i + size] for i in range(0, len(ders), size)]
+        return groups
 
     def spawn_hosting(self, group: list[str]) -> None:
         """Start one process for the agents of ``group`` (several DERs: a hosting process)."""
@@ -461,8 +494,9 @@ class _Launch:
             der_id = der_id_of(agent_id)
             p_avail_w = self.options.available_w.get(der_id)
             ders.append((der_id, p_avail_w, self._model_params(der_id, p_avail_w)))
-        self.children.spawn_hosting(group, hosted_ders_argv(ders, Path(self.config.path),
-                                                            self.endpoint))
+        self.children.spawn_hosting(group, [*hosted_ders_argv(ders, Path(self.config.path),
+                                                              self.endpoint_of(group[0])),
+                                            *self.options.agent_args])
 
     def _model_params(self, der_id: str | None, p_avail_w: float | None) -> str | None:
         """A DER's model parameters as JSON, calibrated here (the WT and CHP models by a root
@@ -561,9 +595,26 @@ def _metadata(options: UpOptions) -> dict[str, str]:
 # -- phases ------------------------------------------------------------------------------------
 
 
-def startup(launch: _Launch) -> str | None:
-    """Spawn every agent and wait until all are ready; return why that failed, or None. The
-    start-up time counts from the first agent process started: the fork server, if used."""
+def startup(*launches: _Launch) -> str | None:
+    """Spawn every agent (of every level) and wait until all are ready; return why that
+    failed, or None. The start-up time counts from the first agent process started: the fork
+    server, if used."""
+    started = [_spawn_agents(launch) for launch in launches]
+    reason = None
+    for launch, (t0, spawned) in zip(launches, started):
+        deadline = spawned + launch.options.startup_timeout_s
+        while reason is None and launch.roster.not_ready():
+            reason = launch.startup_failure()
+            if reason is None and time.monotonic() > deadline:
+                reason = _not_ready(launch)
+            launch.roster.wait(_POLL_S)
+        launch.result.startup_s = time.monotonic() - min(t0 for t0, _ in started)
+    return reason
+
+
+def _spawn_agents(launch: _Launch) -> tuple[float, float]:
+    """Start the launch's agents; return when their start began (the fork server's, if used)
+    and when they were spawned, monotonic s."""
     options, t0 = launch.options, time.monotonic()
     _raise_priority(launch)
     local = [a for a in launch.topology.agents if a not in options.external]
@@ -575,21 +626,14 @@ def startup(launch: _Launch) -> str | None:
     elif server is not None:
         t0 = spawned = time.monotonic()     # programs after a failed server: the full timeout
     profile = "" if options.certs is None else " (secure: mutual TLS, access control)"
-    options.log(f"router on {launch.endpoint}{profile}; started {len(local)} agents "
+    level = f" of {launch.config.grid}" if options.shared_clock is not None else ""
+    options.log(f"router on {launch.endpoint}{profile}; started {len(local)} agents{level} "
                 f"(pids {launch.children.pids()})")
     if options.external:
         options.log(f"waiting up to {options.startup_timeout_s:g} s for "
                     f"{len(options.external)} external agent(s): "
                     f"{', '.join(sorted(options.external))}")
-    deadline = spawned + options.startup_timeout_s
-    reason = None
-    while reason is None and launch.roster.not_ready():
-        reason = launch.startup_failure()
-        if reason is None and time.monotonic() > deadline:
-            reason = _not_ready(launch)
-        launch.roster.wait(_POLL_S)
-    launch.result.startup_s = time.monotonic() - t0
-    return reason
+    return t0, spawned
 
 
 def _raise_priority(launch: _Launch) -> None:
@@ -619,41 +663,63 @@ def _not_ready(launch: _Launch) -> str:
     return text
 
 
-def run_clock(launch: _Launch) -> str:
-    """Announce the start and run the clock to the end; return why it ended."""
-    options, result = launch.options, launch.result
-    options.log(f"{len(launch.topology.agents)} agents ready in {result.startup_s:.2f} s; "
-                f"running {launch.config.scenario.duration_s:g} s of {options.clock} time")
-    launch.injector.start_faults()
+def run_clock(lead: _Launch, *others: _Launch, poll: Callable[[], None] | None = None) -> str:
+    """Announce the start and run the clock to the end; return why it ended. With ``others``
+    (the other levels of a hierarchy, on the lead's shared clock) for all of them at once;
+    ``poll()`` as often as the launches are supervised (the site routers' restarts)."""
+    launches = (lead, *others)
+    options, result = lead.options, lead.result
+    agents = sum(len(launch.topology.agents) for launch in launches)
+    options.log(f"{agents} agents ready in {result.startup_s:.2f} s; "
+                f"running {lead.config.scenario.duration_s:g} s of {options.clock} time")
+    for launch in launches:
+        launch.injector.start_faults()
     freeze_heap()         # the grid model, config and recorder live to the end (rt_tuning)
     t_start = time.perf_counter()
-    epoch_ns = launch.epoch_ns = time.time_ns() + 200_000_000
-    launch._start_body = {"clock": options.clock, "epoch_ns": epoch_ns,
-                          "speed": float(options.speed), "end_ns": result.end_ns,
-                          "seed": options.seed,
-                          "tolerance_ns": result.tolerance_ns}
-    launch.announce_start()
-    if launch.clock is not None:
-        launch.clock.start()
+    epoch_ns = time.time_ns() + 200_000_000
+    for launch in launches:
+        launch.epoch_ns = epoch_ns
+        launch._start_body = {"clock": options.clock, "epoch_ns": epoch_ns,
+                              "speed": float(options.speed), "end_ns": result.end_ns,
+                              "seed": launch.options.seed,
+                              "tolerance_ns": launch.result.tolerance_ns}
+        launch.announce_start()
+    if lead.clock is not None:
+        lead.clock.start()
     else:
         t_start += (epoch_ns - time.time_ns()) * 1e-9   # the run starts at the epoch
     end_wall_ns = epoch_ns + result.end_ns / options.speed
     reason = None
     while reason is None:
-        done = launch.clock.finished if launch.clock is not None else \
+        done = lead.clock.finished if lead.clock is not None else \
             time.time_ns() >= end_wall_ns
-        reason = "finished" if done else launch.failure()
+        reason = "finished" if done else _first(launch.failure() for launch in launches)
         if reason in (None, "finished"):     # nobody left: not finished, whatever the clock
-            reason = launch.injector.early_end() or reason
+            reason = _first(launch.injector.early_end() for launch in launches) or reason
         if reason is None:
             if options.progress is not None:
-                options.progress(launch.clock.now_ns() if launch.clock is not None else
-                                 min(result.end_ns, launch.injector.realtime_ns()))
-            launch.injector.supervise()
-            for agent in sorted(launch.roster.byes):   # gone before up said stop
-                launch.injector.said_bye_early(agent)
-            launch.roster.wait(_POLL_S)
-    result.wall_time_s = time.perf_counter() - t_start
+                options.progress(lead.clock.now_ns() if lead.clock is not None else
+                                 min(result.end_ns, lead.injector.realtime_ns()))
+            for launch in launches:
+                launch.injector.supervise()
+                for agent in sorted(launch.roster.byes):   # gone before up said stop
+                    launch.injector.said_bye_early(agent)
+            if poll is not None:
+                poll()
+            lead.roster.wait(_POLL_S)
+    for launch in launches:
+        _reached(launch, reason, time.perf_counter() - t_start)
+    return reason
+
+
+def _first(reasons) -> str | None:
+    return next((r for r in reasons if r is not None), None)
+
+
+def _reached(launch: _Launch, reason: str, wall_time_s: float) -> None:
+    """Note in the launch's result how long the clock ran and how far the run got."""
+    result = launch.result
+    result.wall_time_s = wall_time_s
     if reason == "finished":
         result.reached_ns = result.end_ns
     elif launch.injector.early_end() is not None:
@@ -662,7 +728,6 @@ def run_clock(launch: _Launch) -> str:
         result.reached_ns = launch.clock.now_ns()
     else:
         result.reached_ns = min(result.end_ns, launch.injector.realtime_ns())
-    return reason
 
 
 def shutdown(launch: _Launch, reason: str) -> None:
@@ -840,32 +905,66 @@ def _weak_callback(method: Callable[[zenoh.Sample], None]) -> Callable[[zenoh.Sa
 
 def run(options: UpOptions) -> UpResult:
     """Run the scenario of ``options.config`` as processes; see the module docstring."""
-    launch = _Launch(options)
-    result = launch.result
-    previous = _catch_signals(launch.interrupted, launch.roster.changed)
-    simulators = DeviceSimulators(options.config, options.log)
-    _start_forkserver(launch)
+    return run_levels([options])[0]
+
+
+def run_levels(levels: list[UpOptions], sites=()) -> list[UpResult]:
+    """Run several configs as processes around one router on one clock: the levels of a
+    hierarchy (docs/hierarchy.md; every level's options with the same ``shared_clock`` and
+    ``wake``, the first the lead: its router, endpoint, clock and progress), or one config
+    alone. Each level has its own recorder, roster and faults; the run ends for all at once.
+    ``sites``: the site routers (:class:`~adnmesh.runtime.site_router.SiteRouter`) linked to
+    the lead's router before any agent starts, their planned restarts held on the clock."""
+    launches = [_Launch(options) for options in levels]
+    lead = launches[0]
+    for launch in launches[1:]:           # one router, one interruption, one end for all
+        launch.endpoint, launch.interrupted = lead.endpoint, lead.interrupted
+        launch.result.end_ns = lead.result.end_ns
+    previous = _catch_signals(lead.interrupted, lead.roster.changed)
+    simulators = [DeviceSimulators(o.config, o.log) for o in levels]
+    for launch in launches:
+        _start_forkserver(launch)
     try:
-        devices_down = simulators.start(options.available_w, launch._model_params,
-                                        options.startup_timeout_s)
-        with zenoh.open(launch.router_config()) as session:
-            launch.open(session)
+        devices_down = _first(s.start(o.available_w, launch._model_params, o.startup_timeout_s)
+                              for s, o, launch in zip(simulators, levels, launches))
+        with zenoh.open(lead.router_config()) as session:
             try:
-                reason = devices_down or startup(launch) or run_clock(launch)
-                _stopped(result, reason)
-                shutdown(launch, reason)
+                for launch in launches:
+                    launch.open(session)
+                reason = devices_down or _first(s.start(lead.endpoint) for s in sites)
+                for site in sites:
+                    site.hold(lead.options.shared_clock)
+                reason = reason or startup(*launches) or run_clock(
+                    *launches, poll=lambda: [site.supervise(lead.options.shared_clock, launches)
+                                             for site in sites])
+                for launch in launches:
+                    _stopped(launch.result, reason)
+                    shutdown(launch, reason)
             finally:
-                launch.close()
-        verify(launch)
+                for launch in launches:
+                    launch.close()
+        for launch in launches:
+            verify(launch)
     finally:
-        launch.children.kill_all()
-        if launch.children.forkserver is not None:
-            launch.children.forkserver.close()
-        simulators.stop()
-        _close_recording(launch)
+        for launch in launches:
+            launch.children.kill_all()
+            if launch.children.forkserver is not None:
+                launch.children.forkserver.close()
+        for simulator in simulators:
+            simulator.stop()
+        for site in sites:
+            site.stop()
+        for launch in launches:
+            _close_recording(launch)
         for signum, handler in previous.items():
             signal.signal(signum, handler)
         gc.unfreeze()     # run_clock froze the run's objects: collectable again once it ends
+    return [_result(launch) for launch in launches]
+
+
+def _result(launch: _Launch) -> UpResult:
+    """The launch's result, completed from its roster, tap, sessions and clock."""
+    result = launch.result
     result.byes = dict(launch.roster.byes)
     result.rejected = launch.tap.rejected
     result.sessions = launch.sessions.report()

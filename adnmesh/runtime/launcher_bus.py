@@ -21,7 +21,7 @@ from adnmesh.wire.envelope import encode
 from adnmesh.wire.keys import Keys
 from adnmesh.wire.outbox import Outbox
 
-__all__ = ["LauncherOutbox", "SimClockDriver"]
+__all__ = ["LauncherOutbox", "SimClockDriver", "publish_grants"]
 
 
 class LauncherOutbox:
@@ -107,23 +107,25 @@ class SimClockDriver:
         self.last_grant_s = time.monotonic()   # when the clock last moved, monotonic s
         self.recent_ns = 0       # now_ns at the last grants: read without the lock (the tap)
 
-    def on_reports(self, messages) -> None:
+    def on_reports(self, messages, name=None) -> None:
         """Take clock reports (in the order they came); publish the grants that follow from
-        all of them (one search for a batch: ``up`` takes what has queued on the bus at once)."""
+        all of them (one search for a batch: ``up`` takes what has queued on the bus at once).
+        ``name(sender)``: the clock's name of a report's sender (default: its id)."""
         with self.lock:
             changed = False
             for message in messages:
                 if self.error is not None:
                     return
                 killed = None if message.killed_ns is UNSET else message.killed_ns
-                report = Report(message.src, message.next_ns, message.received,
+                agent = message.src if name is None else name(message.src)
+                report = Report(agent, message.next_ns, message.received,
                                 {k: (v[0], v[1]) for k, v in message.sent.items()}, killed,
                                 message.granted_ns)
                 try:
                     changed = self.coordinator.take_report(report) or changed
                 except ClockError as exc:
                     if self._on_violation is not None and der_id_of(message.src) is not None:
-                        self._on_violation(message.src, f"clock report out of protocol: {exc}")
+                        self._on_violation(agent, f"clock report out of protocol: {exc}")
                         continue
                     self.error = str(exc)
                     self._on_change()
@@ -179,17 +181,29 @@ class SimClockDriver:
         if grants:
             self.last_grant_s = time.monotonic()
             t = self.recent_ns = self.coordinator.now_ns()
-        hosted: dict[str, list] = {}
-        for g in grants:
-            key = self._keys.of("clock_grant", g.agent)
-            host = self._host_of(g.agent)
-            if host is None:
-                self._outbox.send(key, t, until_ns=g.until_ns, expect=g.expect)
-            else:
-                hosted.setdefault(host, []).append(
-                    (key, g.agent, t, {"until_ns": g.until_ns, "expect": g.expect}))
-        for host, messages in hosted.items():
-            self._outbox.send_together(self._keys.host_grants(host), messages)
+        self._publish(grants, t)
         if self.coordinator.finished and not self.finished:
             self.finished = True
             self._on_change()
+
+    def _publish(self, grants, t: int) -> None:   # with the lock held
+        """Publish ``grants`` (sent at sim time ``t``, ns)."""
+        publish_grants(self._keys, self._outbox, self._host_of,
+                       [(g.agent, g) for g in grants], t)
+
+
+def publish_grants(keys: Keys, outbox: LauncherOutbox, host_of, grants, t: int) -> None:
+    """Publish ``grants`` (``(agent id, Grant)`` each, ids of the grid of ``keys``) at sim time
+    ``t``, ns: each on its agent's grant key, or those of one hosting process (``host_of``)
+    in one sample."""
+    hosted: dict[str, list] = {}
+    for agent, g in grants:
+        key = keys.of("clock_grant", agent)
+        host = host_of(agent)
+        if host is None:
+            outbox.send(key, t, until_ns=g.until_ns, expect=g.expect)
+        else:
+            hosted.setdefault(host, []).append(
+                (key, agent, t, {"until_ns": g.until_ns, "expect": g.expect}))
+    for host, messages in hosted.items():
+        outbox.send_together(keys.host_grants(host), messages)

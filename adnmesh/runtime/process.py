@@ -102,14 +102,20 @@ def _where(exc: Exception) -> str:
 
 def add_agent_arguments(parser) -> None:
     """The arguments every agent program takes besides its own: the connection flags
-    (:func:`adnmesh.runtime.bus.add_connection_arguments`) and ``--resume-at-ns`` (set by
-    ``adnmesh up`` for a restarted agent)."""
+    (:func:`adnmesh.runtime.bus.add_connection_arguments`), ``--resume-at-ns`` (set by
+    ``adnmesh up`` for a restarted agent) and ``--levels FILE --level GRID`` (set by ``adnmesh
+    up`` for a hierarchy's run: :mod:`adnmesh.runtime.place`)."""
     from adnmesh.runtime.bus import add_connection_arguments
     add_connection_arguments(parser)
     parser.add_argument("--resume-at-ns", type=int, default=0, metavar="NS",
                         help="begin at this sim time, ns (a restarted agent; set by adnmesh up)")
     parser.add_argument("--connect-timeout", type=float, default=0.0, metavar="S",
                         help="keep trying to reach the router for S seconds (default 0: once)")
+    parser.add_argument("--levels", metavar="FILE",
+                        help="a hierarchy's run: the levels file adnmesh up wrote "
+                        "(adnmesh.runtime.place)")
+    parser.add_argument("--level", metavar="GRID",
+                        help="with --levels: the grid of this agent's level")
 
 
 def open_session(args, identity: str) -> zenoh.Session:

@@ -23,12 +23,15 @@ class Roster:
     ----------
     agents : iterable of str
         Every agent id of the run.
+    changed : threading.Event, optional
+        The event to set on a change (default: its own; the levels of a hierarchy's run share
+        one).
     """
 
-    def __init__(self, agents) -> None:
+    def __init__(self, agents, changed: threading.Event | None = None) -> None:
         self.agents = frozenset(agents)
         self.lock = threading.Lock()
-        self.changed = threading.Event()
+        self.changed = threading.Event() if changed is None else changed
         self.alive: set[str] = set()
         self.reported: set[str] = set()
         self.unheard: dict[str, int] = {}      # reports an agent sent before up heard its first

@@ -159,6 +159,7 @@ class Coordinator:
         self._dead = [False] * n
         self._restarts: dict[int, int] = {}       # agent -> planned restart time, ns
         self._rejoining: dict[int, Report] = {}   # first reports of restarted agents, held
+        self._holds: set[int] = set()             # times no grant may pass until released
         self.sent_totals: list[dict[str, int]] = [{} for _ in range(n)]
         self.killed_at: dict[str, int] = {}
         self.rejoined: list[tuple[str, int]] = []   # (agent, restart ns) taken back since
@@ -251,6 +252,25 @@ class Coordinator:
         self._rejoining.pop(i, None)
         return self._after_change()
 
+    def hold(self, at_ns: int) -> None:
+        """No grant reaches beyond sim time ``at_ns`` until :meth:`release` (a barrier: the
+        run's infrastructure changes there, e.g. a site router restarted)."""
+        self._holds.add(int(at_ns))
+
+    def held_at(self) -> int | None:
+        """The hold the run has reached -- every live agent idle, each with everything before
+        it processed: no message of the run is in flight --, or None."""
+        if not self._holds or not self._started or not all(self._idle):
+            return None
+        at = min(self._holds)
+        live = [e for e, dead in zip(self._effective(), self._dead) if not dead]
+        return at if all(e >= at for e in live) else None
+
+    def release(self, at_ns: int) -> list[Grant]:
+        """Lift the hold at ``at_ns``; return the grants that follow."""
+        self._holds.discard(int(at_ns))
+        return self._after_change()
+
     def inject(self, agents) -> None:
         """``up`` sent one message to each of ``agents``: they must receive it (live ones)."""
         for agent in agents:
@@ -306,7 +326,7 @@ class Coordinator:
         restart is due by then."""
         if not self._started or not all(self._idle):
             return False
-        if any(t <= self.end_ns for t in self._restarts.values()):
+        if any(t <= self.end_ns for t in [*self._restarts.values(), *self._holds]):
             return False
         return min(self._effective()) > self.end_ns
 
@@ -324,7 +344,7 @@ class Coordinator:
         self.killed_at[self.agents[i]] = int(at_ns)
 
     def _barrier(self) -> float:
-        return min(self._restarts.values(), default=_INF)
+        return min([*self._restarts.values(), *self._holds], default=_INF)
 
     def _after_change(self) -> list[Grant]:
         if not self._started:

@@ -14,16 +14,17 @@ of its ADN.
 
 from __future__ import annotations
 
-import copy
 from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 from adnmesh.config import Config
 from adnmesh.control.registry import build_agent
-from adnmesh.names import LAUNCHER, der_id_of
+from adnmesh.control.operating_point import initial_p_ip_w
+from adnmesh.names import LAUNCHER
 from adnmesh.sim.clock import Coordinator
 from adnmesh.sim.faults import FaultPlan, fault_events, resend_body
+from adnmesh.sim.hierarchy_levels import hierarchy_agent
 from adnmesh.sim.hierarchy_topology import grid_of, hierarchy_topology, qualified
 from adnmesh.sim.local import NodesOnOneClock
 from adnmesh.sim.node import Node
@@ -99,6 +100,7 @@ class _HierarchyRunner(NodesOnOneClock):
         self.coordinator = self.run.coordinator = Coordinator(self.topology, end_ns,
                                                               on_rejoin=self._rejoined)
         self.outbox = Outbox(LAUNCHER)
+        self.p_ip0_w = {adn: initial_p_ip_w(level.config) for adn, level in self.adns.items()}
         self.plans = {grid: FaultPlan(lv.config, tuple(grid_of(a)[1] for a in self._agents(grid)))
                       for grid, lv in self.levels.items()}
         for name in self.topology.agents:
@@ -108,22 +110,11 @@ class _HierarchyRunner(NodesOnOneClock):
         return [a for a in self.topology.agents if grid_of(a)[0] == grid]
 
     def _agent(self, name: str):
-        from adnmesh.control.adn_site import AdnSite
-        from adnmesh.control.measurement_point import Measurement
-        from adnmesh.control.operating_point import initial_p_ip_w
-
         grid, agent_id = grid_of(name)
         level = self.levels[grid]
-        if level is self.upper and der_id_of(agent_id) in self.adns:
-            adn = der_id_of(agent_id)
-            (der,) = level.config.ders_by_id([adn])
-            return AdnSite(der, level.config, initial_p_ip_w(self.adns[adn].config))
-        if level is not self.upper and agent_id == "measurement":
-            return Measurement(level.config, exchange=True)
-        agent = build_agent(agent_id, level.config, level.schedule)
-        if agent_id == "cpfc" and level.lower_switch_rule is not None:
-            getattr(agent, "p", agent).lower_switch_rule = copy.deepcopy(level.lower_switch_rule)
-        return agent
+        return hierarchy_agent(agent_id, level.config, self.upper.config, self.p_ip0_w,
+                               lambda: build_agent(agent_id, level.config, level.schedule),
+                               self.upper.lower_switch_rule)
 
     def _node(self, name: str, start_ns: int) -> Node:
         seed = self.levels[grid_of(name)[0]].config.runtime.seed

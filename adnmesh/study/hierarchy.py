@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import msgspec
 import numpy as np
@@ -22,42 +23,69 @@ from adnmesh.config import Config, Hierarchy, load_config
 from adnmesh.loopmodel.step_figures import ReferenceStep, reference_step_figures
 from adnmesh.results.design_check import DesignCheck, design_checks
 from adnmesh.results.summary import note_entry
+from adnmesh.sim.hierarchy_levels import AdnLevel, LevelsFile, LoopFields, on_bus
 from adnmesh.sim.hierarchy_run import HierarchyRun, Level, run_hierarchy
 from adnmesh.wire.envelope import decode
 from adnmesh.wire.keys import Keys, route
 
-__all__ = ["HierarchyResult", "hierarchy_levels", "level_series", "simulate"]
+__all__ = ["HierarchyResult", "hierarchy_levels", "level_series", "levels_file", "simulate"]
 
 
-def _adn_level(hierarchy: Hierarchy, adn) -> Level:
+def _adn_level(hierarchy: Hierarchy, adn, path=None) -> Level:
     from adnmesh.control.cpfc_controller import GainSchedule
     from adnmesh.tuning.table import default_table_path, load_table
 
     config = load_config(hierarchy.config_path(adn))
-    path = default_table_path(config)
+    path = Path(path or default_table_path(config))
     table = load_table(path, config) if path.exists() else None
-    scenario = config.scenario if adn.keep_steps else \
-        config.scenario.model_copy(update={"p_ref_steps": ()})
-    on_bus = config.model_copy(update={"grid": adn.id, "scenario": scenario})
-    return Level(on_bus, GainSchedule(on_bus, table))
+    level = on_bus(config, adn.id, adn.keep_steps)
+    return Level(level, GainSchedule(level, table))
 
 
-def hierarchy_levels(hierarchy: Hierarchy, upper: Config, upper_table, sites
+def hierarchy_levels(hierarchy: Hierarchy, upper: Config, upper_table, sites, tables=None
                      ) -> tuple[Level, dict[str, Level], dict[str, float]]:
     """The upper level (``upper`` with ``upper_table``, its CPFC applying the rule for the
-    ADNs' gain switches from their loops as certified), each ADN's level and its offset link
-    delay, s (its inter-site delay less the upper ``t_com_s``; ``sites``: the
+    ADNs' gain switches from their loops as certified -- as an ``adn_actuator`` announcement
+    carries them, :class:`~adnmesh.sim.hierarchy_levels.LoopFields`), each ADN's level (its
+    table ``tables[adn id]``, default its config's own) and its offset link delay, s (its
+    inter-site delay less the upper ``t_com_s``; ``sites``: the
     :class:`~adnmesh.cascade.upper_table.Site` of each ADN)."""
+    from adnmesh.cascade.lower_adn import announced
     from adnmesh.cascade.switches import LowerSwitchRule
     from adnmesh.control.cpfc_controller import GainSchedule
 
-    adns = {adn.id: _adn_level(hierarchy, adn) for adn in hierarchy.adns}
+    adns = {adn.id: _adn_level(hierarchy, adn, (tables or {}).get(adn.id))
+            for adn in hierarchy.adns}
     delays = {s.id: round(s.t_com_s - upper.t_com_s, 6) for s in sites}
     gains = {s.id: s.grid_gain for s in sites}
-    rule = LowerSwitchRule({s.id: s.adn for s in sites},
+    rule = LowerSwitchRule({s.id: announced(s.id, LoopFields.of(s.adn)) for s in sites},
                            {d.id: d.p_inst_w * gains[d.id] for d in upper.ders},
                            {s.id: s.t_com_s for s in sites}, upper.t_meas_s, upper.constraints)
     return Level(upper, GainSchedule(upper, upper_table), rule), adns, delays
+
+
+def levels_file(hierarchy: Hierarchy, levels, upper_table_path: Path, tables=None
+                ) -> LevelsFile:
+    """The levels file of the run of ``levels`` (:func:`hierarchy_levels`) as processes: the
+    upper config and ``upper_table_path``, each ADN's config and table (``tables[adn id]``,
+    default its config's own if it has one), its offset link delay, operating-point exchange
+    and its part of the upper CPFC's rule."""
+    from adnmesh.control.operating_point import initial_p_ip_w
+    from adnmesh.tuning.table import default_table_path
+
+    upper, adns, delays = levels
+    rule = upper.lower_switch_rule
+    found = {}
+    for adn in hierarchy.adns:
+        path = (tables or {}).get(adn.id) or default_table_path(load_config(
+            hierarchy.config_path(adn)))
+        found[adn.id] = str(Path(path).resolve()) if Path(path).exists() else None
+    return LevelsFile(str(Path(upper.config.path).resolve()), str(upper_table_path.resolve()), {
+        adn.id: AdnLevel(str(hierarchy.config_path(adn)), found[adn.id], adn.keep_steps,
+                         delays[adn.id], initial_p_ip_w(adns[adn.id].config),
+                         rule.gain_w[adn.id], rule.t_com_s[adn.id],
+                         LoopFields.of(rule.lowers[adn.id]))
+        for adn in hierarchy.adns})
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,234 @@
+"""``adnmesh up HIERARCHY``: a hierarchy of ADNs as processes around one router, on one sim
+clock (docs/hierarchy.md#adnmesh-up).
+
+What ``adnmesh cascade HIERARCHY --run`` runs in one process, this runs as ``up`` runs one
+grid: every agent of every level its own process, a Zenoh client of the embedded router.
+
+1. Each ADN's table: its own (``tables/`` next to its config), else the one an earlier ``up``
+   tuned for its design and scenario, else its scenario's subsets tuned now and kept (as ``up``
+   does for one grid). The upper level -- its config, its HV net and its table, tuned on the
+   ADNs' equivalent models and certified on the exact cascade -- goes where ``adnmesh cascade``
+   writes it (``<name>-upper/`` next to the hierarchy file); an upper table there for the same
+   design is used again.
+2. The levels file (``<name>.levels.json`` there, :mod:`adnmesh.sim.hierarchy_levels`) tells
+   every agent process the whole hierarchy: its topology, the site agents, the upper CPFC's
+   rule for the ADNs' gain switches.
+3. One launch per level (:func:`adnmesh.runtime.launcher.run_levels`): its own recording
+   (``<out stem>.<level>.mcap`` beside ``--out``), roster, faults (the hierarchy file's for the
+   upper level, each ADN's own), counts verified per level; one clock for all
+   (:mod:`adnmesh.runtime.level_clock`).
+4. The levels' recordings merged into ``--out`` (:mod:`adnmesh.recording.merge`: ``inspect``,
+   ``plot``, ``export`` and ``replay`` take it, ``--grid`` for a level), and a summary per level
+   (``--summary-json``: ``{"run_id", "levels": {grid: summary}}``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import os
+import sys
+import threading
+import time
+from dataclasses import replace
+from pathlib import Path
+
+from adnmesh.commands import output_path
+from adnmesh.errors import ConfigError, UsageError
+
+__all__ = ["run_hierarchy"]
+
+_ONE_GRID_ONLY = (("clock", "realtime", "--clock realtime"), ("external", None, "--external"),
+                  ("routers", None, "--routers"), ("secure", True, "--secure"),
+                  ("certs", None, "--certs"), ("view", None, "--view"),
+                  ("table", None, "--table"), ("q_table", None, "--q-table"),
+                  ("print_zenoh_config", True, "--print-zenoh-config"))
+"""``up`` options a hierarchy's run does not take (yet): (attribute, the value that uses it,
+or None for any value given, flag)."""
+
+
+def _check_options(args: argparse.Namespace) -> None:
+    for name, value, flag in _ONE_GRID_ONLY:
+        given = getattr(args, name, None)
+        if given and (value is None or given == value):
+            raise UsageError(f"{flag} is not for a hierarchy file (adnmesh up runs a hierarchy "
+                             "on the sim clock in the open profile; each level's table is "
+                             "found or tuned as for one grid)")
+    if not 0 <= args.stall_timeout <= 86400:
+        raise UsageError(f"--stall-timeout must be in [0, 86400] s, got {args.stall_timeout:g}")
+    if args.seed is not None and not 0 <= args.seed < 2**63:
+        raise UsageError(f"--seed must be in [0, 2**63), got {args.seed}")
+    if args.startup_timeout is not None and not 0 < args.startup_timeout <= 86400:
+        raise UsageError(f"--startup-timeout must be in (0, 86400] s, got "
+                         f"{args.startup_timeout:g}")
+
+
+def _say():
+    from rich.console import Console
+    err = Console(stderr=True, highlight=False, markup=False, soft_wrap=True)
+    return err, lambda line: err.print(f"adnmesh up: {line}")
+
+
+def _prepare(hierarchy, work: Path, run_id: str, log):
+    """``(levels, levels file, upper table file, ADN id -> its table file, ADN id -> its DERs'
+    available power)``: every level ready to run (see the module docstring, 1 and 2)."""
+    from adnmesh.commands.cascade import certified_upper_table, upper_level
+    from adnmesh.commands.up_tables import operating_point, table_for
+    from adnmesh.config import load_config
+    from adnmesh.study.hierarchy import hierarchy_levels, levels_file
+    from adnmesh.sim.hierarchy_levels import on_bus, save_levels
+    from adnmesh.tuning.table import default_table_path, load_table
+
+    tables, available = {}, {}
+    for adn in hierarchy.adns:
+        try:
+            config = load_config(hierarchy.config_path(adn))
+            available[adn.id] = operating_point(on_bus(config, adn.id, adn.keep_steps), log)
+            tables[adn.id] = table_for(None, config, work, run_id, log)
+        except ConfigError as exc:
+            raise ConfigError(f"{hierarchy.path}: adns {adn.id}: {exc}") from None
+    sites, upper = upper_level(hierarchy, work, log, tables)
+    path = default_table_path(upper)
+    if path.exists():
+        table = load_table(path, upper)
+        log(f"upper table {path}: certified on the cascade by an earlier run")
+    else:
+        table, _, path = certified_upper_table(hierarchy, sites, upper, log)
+        log(f"upper table certified on the exact cascade: {path}")
+    levels = hierarchy_levels(hierarchy, upper, table, sites, tables)
+    file = save_levels(work / f"{hierarchy.name}.levels.json",
+                       levels_file(hierarchy, levels, path, tables))
+    return levels, file, path, tables, available
+
+
+def _level_options(hierarchy, prepared, out: Path, args, run_id: str, log):
+    """The :class:`~adnmesh.runtime.launcher.UpOptions` of every level, the upper first."""
+    from adnmesh.commands.fault import run_file_path
+    from adnmesh.runtime.launcher import UpOptions
+    from adnmesh.runtime.level_clock import SharedClock
+    from adnmesh.sim.hierarchy_levels import load_levels
+    from adnmesh.sim.hierarchy_topology import HIERARCHY
+    from adnmesh.wire.units import ns
+
+    levels, file, upper_table, tables, available = prepared
+    upper, adns, _ = levels
+    wake = threading.Event()
+    topology = load_levels(file).topology
+    clock = SharedClock(topology, ns(upper.config.scenario.duration_s), wake)
+    ders = sum(len(level.config.ders) for level in (upper, *adns.values()))
+    common = dict(clock="sim", listen=args.listen, log=log, run_id=run_id, wake=wake,
+                  shared_clock=clock, features=HIERARCHY, stall_timeout_s=args.stall_timeout,
+                  startup_timeout_s=(60.0 + ders if args.startup_timeout is None
+                                     else args.startup_timeout))
+    sites = _sites(hierarchy, levels)
+    endpoints = {a: s.endpoint for s in sites for a in s.members[upper.config.grid]}
+    options = []
+    for grid, level in ((upper.config.grid, upper), *adns.items()):
+        config = level.config
+        if level is not upper:
+            endpoints = {a: site.endpoint for site in sites if site.name == grid
+                         for a in site.members[grid]}
+        table = upper_table if level is upper else Path(tables[grid])
+        options.append(UpOptions(
+            config=config, table_path=table, out=out.with_name(f"{out.stem}.{grid}.mcap"),
+            seed=config.runtime.seed if args.seed is None else args.seed,
+            available_w={} if level is upper else available[grid],
+            agent_args=("--levels", str(file), "--level", grid),
+            run_file=run_file_path(out) if level is upper else None, endpoints=endpoints,
+            metadata={"run_id": run_id, "grid": grid, "hierarchy": str(hierarchy.path),
+                      "table_sha256": hashlib.sha256(table.read_bytes()).hexdigest()},
+            **common))
+    return options, sites
+
+
+def _sites(hierarchy, levels):
+    """Each ADN's :class:`~adnmesh.runtime.site_router.SiteRouter`: its agents and the upper
+    level's site agent of it behind it, its planned restarts."""
+    from adnmesh.names import der_agent_id
+    from adnmesh.runtime.bus import DEFAULT_HOST, free_port
+    from adnmesh.runtime.site_router import PlannedRestart, SiteRouter
+    from adnmesh.sim.hierarchy_topology import HIERARCHY
+    from adnmesh.sim.topology import Topology
+    from adnmesh.wire.units import ns
+
+    upper, adns, _ = levels
+    sites = []
+    for adn in hierarchy.adns:
+        agents = Topology.from_config(adns[adn.id].config, HIERARCHY).agents
+        restarts = [PlannedRestart(ns(r.t_s), r.down_s) for r in hierarchy.site_restarts
+                    if r.adn == adn.id]
+        sites.append(SiteRouter(adn.id, hierarchy.config_path(adn),
+                                f"tcp/{DEFAULT_HOST}:{free_port()}",
+                                {adn.id: tuple(agents),
+                                 upper.config.grid: (der_agent_id(adn.id),)}, restarts))
+    return sites
+
+
+def run_hierarchy(args: argparse.Namespace) -> int:
+    """``adnmesh up HIERARCHY`` (see the module docstring); return the exit code."""
+    from adnmesh.commands.cascade import _numerics_said
+    from adnmesh.config import load_hierarchy
+
+    hierarchy = load_hierarchy(args.config)
+    _check_options(args)
+    err, log = _say()
+    run_id = f"{hierarchy.name}-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"
+    out = output_path(Path(args.out) if args.out else Path("logs") / f"{run_id}.mcap", "--out")
+    if args.summary_json:
+        output_path(args.summary_json, "--summary-json")
+    work = hierarchy.path.parent / f"{hierarchy.name}-upper"
+    output_path(work, "the upper level's directory", directory=True)
+    log(f"{hierarchy.name}: {len(hierarchy.adns)} ADNs under one upper level")
+    with _numerics_said(hierarchy):
+        prepared = _prepare(hierarchy, work, run_id, log)
+    options, sites = _level_options(hierarchy, prepared, out, args, run_id, log)
+    log(f"sites: {', '.join(f'{s.name} on {s.endpoint}' for s in sites)}, linked to up's "
+        "router")
+    results = _launch(options, sites, err)
+    return _report(args, options, results, out, run_id, log)
+
+
+def _launch(options, sites, err):
+    """Run the levels, with the progress bar on a terminal (or ``--progress``)."""
+    import contextlib
+
+    from adnmesh.runtime.launcher import run_levels
+    from adnmesh.runtime.progress import RunProgress
+    from adnmesh.wire.units import ns
+
+    bar = RunProgress(err, ns(options[0].config.scenario.duration_s)) \
+        if err.is_terminal else None
+    if bar is not None:
+        options[0] = replace(options[0], progress=bar.update)
+    with bar if bar is not None else contextlib.nullcontext():
+        return run_levels(options, sites)
+
+
+def _report(args, options, results, out: Path, run_id: str, log) -> int:
+    """Problems, the merged recording and each level's summary; return the exit code."""
+    from adnmesh.commands.up_summary import print_summary, run_summary, write_summary_json
+    from adnmesh.recording.merge import describe, merge_recordings
+
+    exit_code = next((r.exit_code for r in results if r.exit_code), 0)
+    for o, result in zip(options, results):
+        for problem in result.problems:
+            log(f"{o.config.grid}: {problem}")
+    written = [o.out for o, r in zip(options, results) if not r.recording_failed]
+    if len(written) == len(options):
+        try:
+            log(describe(merge_recordings(written, out), out))
+        except (ConfigError, UsageError, OSError, ValueError) as exc:
+            log(f"the levels' recordings are not merged: {exc}")
+            exit_code = exit_code or 1
+    summaries = {}
+    for o, result in zip(options, results):
+        print(f"\n== {o.config.grid} ==")
+        summary = run_summary(args, o.config, run_id, result)
+        print_summary(args, o.config, summary, o.out)
+        summaries[o.config.grid] = summary.to_json()
+    sys.stdout.flush()
+    unwritten = write_summary_json(args.summary_json, {"run_id": run_id, "levels": summaries})
+    if unwritten:
+        log(unwritten)
+        return exit_code or 1
+    return exit_code

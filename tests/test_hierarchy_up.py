@@ -1,0 +1,211 @@
+"""``adnmesh up`` on a hierarchy file: every level's agents as processes, each ADN a site with a
+router of its own linked to ``up``'s, one sim clock for all -- one shared run of two small ADNs
+with two upper steps, a site cut off from the level above, a lower ADN losing its wind turbine
+and a site router killed and started again -- and the pieces it is made of (the levels file,
+the clock's hold, the options a hierarchy does not take)."""
+import json
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from adnmesh.cli import main
+from adnmesh.config import load_hierarchy
+from adnmesh.errors import ConfigError
+from adnmesh.recording import read_recording
+from adnmesh.sim.clock import Coordinator, Report
+from adnmesh.sim.hierarchy_levels import load_levels
+from adnmesh.sim.hierarchy_run import Level, run_hierarchy
+from adnmesh.sim.topology import Topology
+from up_runs import data_messages
+
+EXAMPLES = Path(__file__).resolve().parent.parent / "configs" / "examples"
+
+HIERARCHY = """name: hv
+t_meas_s: 0.2
+constraints: {{disk_margin_min: 1.5, overshoot_max_pct: 1.0}}
+adns:
+  - {{id: wtchp, config: wt-chp.yaml, t_com_s: 0.3}}
+  - {{id: mixed, config: {mixed}, t_com_s: 0.25}}
+scenario:
+  duration_s: 45
+  p_ref_steps: [{{t_s: 2, delta_w: 1.0e+6}}, {{t_s: 14, delta_w: -0.5e+6}}]
+faults:
+  - {{kind: der_offline, der: wtchp, t_s: 25, duration_s: 6}}
+site_restarts:
+  - {{adn: mixed, t_s: 8, down_s: 0.5}}
+"""
+"""Two ADNs without an HV grid (the upper P_IP is the sum of their exchanges); mixed's site
+router killed at 8 s, wtchp's site cut off from the level above from 25 to 31 s, its own wind
+turbine gone at 40 s (its config's availability change, moved from 80 s)."""
+
+SITE_AGENTS = 8      # mixed's CPFC, measurement, monitor and 4 DERs, and the upper der/mixed
+
+
+@pytest.fixture(scope="module")
+def ran(tmp_path_factory):
+    """One ``adnmesh up`` of the hierarchy: (folder, summary JSON, stderr, merged recording)."""
+    folder = tmp_path_factory.mktemp("hierarchy-up")
+    wt_chp = (EXAMPLES / "wt-chp.yaml").read_text()
+    assert "{t_s: 80, available: false, ders: [SGen1]}" in wt_chp
+    (folder / "wt-chp.yaml").write_text(wt_chp.replace("{t_s: 80, available: false",
+                                                       "{t_s: 40, available: false"))
+    (folder / "h.yaml").write_text(HIERARCHY.format(mixed=EXAMPLES / "mixed-4.yaml"))
+    result = subprocess.run([sys.executable, "-m", "adnmesh", "up", "h.yaml", "--out",
+                             "run.mcap", "--summary-json", "s.json"], cwd=folder,
+                            capture_output=True, text=True, timeout=900, check=False)
+    assert result.returncode == 0, result.stderr[-3000:]
+    summary = json.loads((folder / "s.json").read_text())
+    return folder, summary, result.stderr, read_recording(folder / "run.mcap")
+
+
+def test_every_level_runs_as_processes_behind_its_sites_router(ran) -> None:
+    folder, summary, err, recording = ran
+    assert list(summary["levels"]) == ["hv", "wtchp", "mixed"]
+    agents = {g: s["extra"]["agents"] for g, s in summary["levels"].items()}
+    assert agents == {"hv": 5, "wtchp": 5, "mixed": 7}
+    assert "sites: wtchp on tcp/127.0.0.1:" in err and ", mixed on tcp/127.0.0.1:" in err
+    assert "17 agents ready in " in err
+    # one recording per level, merged into one; all of one run
+    assert recording.complete and {t.split("/")[1] for t in recording.channels} == \
+        {"hv", "wtchp", "mixed"}
+    alone = {g: read_recording(folder / f"run.{g}.mcap") for g in ("hv", "wtchp", "mixed")}
+    assert sum(len(r.messages) for r in alone.values()) == len(recording.messages)
+    assert {r.run["run_id"] for r in alone.values()} == {recording.run["run_id"]}
+    levels = load_levels(folder / "hv-upper" / "hv.levels.json")
+    assert set(levels.adns) == {"wtchp", "mixed"} and levels.upper.grid == "hv"
+
+
+def test_the_processes_exchange_exactly_what_the_in_process_run_computes(ran) -> None:
+    """The same levels run by :func:`adnmesh.sim.hierarchy_run.run_hierarchy` in this process
+    send the very payloads the processes sent (the site router's restart left no trace but
+    its two events)."""
+    folder, _, _, recording = ran
+    levels = load_levels(folder / "hv-upper" / "hv.levels.json")
+    upper = Level(levels.upper, levels.schedule("hv"), levels.lower_switch_rule())
+    adns = {a: Level(config, levels.schedule(a)) for a, config in levels.adns.items()}
+    run = run_hierarchy(upper, adns, levels.offset_delay_s)
+    expected = sorted(((k, p) for k, p in run.messages
+                       if "/clock/" not in k and not k.endswith(("/rejected", "/control/fault"))),
+                      key=lambda m: (json.loads(m[1])["t_deliver_ns"], m[0],
+                                     json.loads(m[1])["seq"]))
+    got = data_messages(recording)
+    site = [json.loads(p) for k, p in got if b'"kind":"site_' in p]
+    assert [(e["kind"], e["subject"], e["t_send_ns"]) for e in site] == [
+        ("site_down", "router/mixed", 8 * 10**9), ("site_back", "router/mixed", 8 * 10**9)]
+    assert [m for m in got if b'"kind":"site_' not in m[1]] == expected
+
+
+def test_the_site_router_killed_and_restarted_is_waited_for(ran) -> None:
+    _, _, err, _ = ran
+    assert "site router mixed killed at 8 s (planned); the run waits for its " \
+        f"{SITE_AGENTS} agents" in err
+    assert f"site router mixed back: {SITE_AGENTS} of {SITE_AGENTS} agents reconnected" in err
+
+
+def test_the_upper_steps_are_within_their_design_and_the_site_cut_off_is_bumpless(ran) -> None:
+    _, summary, _, _ = ran
+    upper = summary["levels"]["hv"]
+    assert [s["t_s"] for s in upper["steps"]] == [2.0, 14.0]
+    for step in upper["steps"]:           # settled into the 5 % band, no overshoot
+        assert step["figures"]["settling_time_s"] is not None, step
+        assert step["figures"]["overshoot_pct"] < 1.0, step
+    # each within what its entry was certified for on the exact cascade
+    checks = upper["design_checks"]
+    assert [c["t_s"] for c in checks] == [2.0, 14.0] and all(c["over"] == [] for c in checks)
+    # the site cut off at 25 s: the level above counts its ADN unavailable, switches without
+    # it bumplessly, and takes it back when it returns
+    switches = [(round(s["t_s"]), s["available"]) for s in upper["switches"]]
+    assert [a for _, a in switches[:2]] == [["mixed"], ["mixed", "wtchp"]]
+    assert 25 < switches[0][0] < 28 and 31 <= switches[1][0] < 34
+    assert all(abs(s["p_y_jump"]) < 1e-9 for s in upper["switches"])
+
+
+def test_the_lower_adn_losing_its_wind_turbine_switches_on_its_own(ran) -> None:
+    _, summary, _, _ = ran
+    lower = summary["levels"]["wtchp"]
+    assert [(round(s["t_s"]), s["available"]) for s in lower["switches"]] == [(40, ["SGen5"])]
+    assert summary["levels"]["mixed"]["steps"] == [] and lower["steps"] == []
+
+
+# -- the pieces ------------------------------------------------------------------------------
+
+
+def test_a_levels_file_that_is_not_one_is_one_line(tmp_path) -> None:
+    bad = tmp_path / "x.levels.json"
+    for text, said in (('{"upper_config": 1}', "not a levels file of adnmesh up"),
+                       ("[", "not a levels file of adnmesh up")):
+        bad.write_text(text)
+        with pytest.raises(ConfigError, match=said) as info:
+            load_levels(bad)
+        assert "\n" not in str(info.value)
+    with pytest.raises(ConfigError, match="cannot read the levels file"):
+        load_levels(tmp_path / "missing.json")
+
+
+def test_an_agent_given_a_level_of_another_config_is_one_line(ran, capsys) -> None:
+    from adnmesh.agents.measurement import main as measurement
+
+    folder = ran[0]
+    with pytest.raises(SystemExit) as info:
+        measurement([str(EXAMPLES / "mixed-4.yaml"), "--connect", "tcp/127.0.0.1:1",
+                     "--levels", str(folder / "hv-upper" / "hv.levels.json"), "--level",
+                     "wtchp"])
+    assert info.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("adnmesh agent: error: ") and "is not the config of level wtchp" in err
+    with pytest.raises(SystemExit) as info:
+        measurement([str(EXAMPLES / "mixed-4.yaml"), "--connect", "tcp/127.0.0.1:1",
+                     "--level", "wtchp"])
+    assert info.value.code == 2
+    assert "--levels and --level go together" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("flag", [["--clock", "realtime"], ["--secure"], ["--view", "x.rrd"],
+                                  ["--external", "cpfc"], ["--table", "t.json"]])
+def test_options_of_one_grid_are_refused_for_a_hierarchy_in_one_line(tmp_path, capsys,
+                                                                     flag) -> None:
+    (tmp_path / "h.yaml").write_text(HIERARCHY.format(mixed=EXAMPLES / "mixed-4.yaml")
+                                     .replace("wt-chp.yaml", str(EXAMPLES / "wt-chp.yaml")))
+    assert main(["up", str(tmp_path / "h.yaml"), *flag]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "is not for a hierarchy file" in err[0]
+
+
+@pytest.mark.parametrize("restart, said", [
+    ("{adn: other, t_s: 10}", "unknown ADN id 'other'"),
+    ("{adn: mixed, t_s: 50}", "must not exceed scenario.duration_s (45)"),
+    ("{adn: mixed, t_s: 10, down_s: 9}", "site_restarts"),
+])
+def test_a_site_restart_that_cannot_be_is_refused(tmp_path, restart, said) -> None:
+    text = HIERARCHY.format(mixed=EXAMPLES / "mixed-4.yaml").replace(
+        "{adn: mixed, t_s: 8, down_s: 0.5}", restart)
+    (tmp_path / "h.yaml").write_text(text.replace("wt-chp.yaml", str(EXAMPLES / "wt-chp.yaml")))
+    with pytest.raises(ConfigError, match=re.escape(said)):
+        load_hierarchy(tmp_path / "h.yaml")
+
+
+def test_the_clock_holds_where_told_until_released() -> None:
+    """A hold at 1 s: grants stop there, :meth:`held_at` says so once every agent is idle
+    with everything before it processed; released, the run goes on to its end."""
+    from adnmesh.config import load_config
+
+    config = load_config(EXAMPLES / "mixed-4.yaml")
+    topology = Topology.from_config(config)
+    clock = Coordinator(topology, 3 * 10**9)
+    clock.hold(10**9)
+    reports = {a: Report(a, 0, 0, {}, None, None) for a in topology.agents}
+    for report in reports.values():
+        clock.take_report(report)
+    grants = clock.start()
+    assert grants and all(g.until_ns <= 10**9 for g in grants)
+    assert clock.held_at() is None                     # granted, not idle yet
+    while grants:
+        for g in grants:                               # nothing happens before the hold
+            clock.take_report(Report(g.agent, 10**9, 0, {}, None, g.until_ns))
+        grants = clock.grants()
+    assert clock.held_at() == 10**9 and not clock.finished
+    after = clock.release(10**9)
+    assert after and all(g.until_ns > 10**9 for g in after) and clock.held_at() is None
