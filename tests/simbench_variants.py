@@ -15,13 +15,21 @@ from adnmesh.grid.from_net import build_grid_data
 from adnmesh.grid.simbench_net import grid_net
 
 
-def simbench_codes(level: str, scenarios: tuple[str, ...]) -> list[str]:
+def simbench_codes(level: str, scenarios: tuple[str, ...], one_switch_variant: bool = False
+                   ) -> list[str]:
     """The package's codes of one voltage level (``"MV"``, ``"HV"``; not the combined grids)
-    whose scenario (``0``, ``1``, ``2``) is in ``scenarios``, both switch variants."""
+    whose scenario (``0``, ``1``, ``2``) is in ``scenarios``, both switch variants -- or, with
+    ``one_switch_variant``, one per scenario: ``sw`` of scenario 1, ``no_sw`` of the others.
+    The two variants of a code are one grid's data, ``no_sw`` made by simbench's
+    ``generate_no_sw_variant``; scenario 0 checks both for every grid (``test_grid_variants``),
+    so the scenarios' files check each once (half the ~3-8 s reads)."""
     import simbench
 
-    return [c for c in simbench.collect_all_simbench_codes()
-            if c.startswith(f"1-{level}-") and c.split("--")[1].split("-")[0] in scenarios]
+    codes = [c for c in simbench.collect_all_simbench_codes()
+             if c.startswith(f"1-{level}-") and c.split("--")[1].split("-")[0] in scenarios]
+    if not one_switch_variant:
+        return codes
+    return [c for c in codes if c.endswith("-no_sw") != c.split("--")[1].startswith("1-")]
 
 
 def upper_grid_buses(net) -> set:
