@@ -1444,9 +1444,9 @@ class SiteRestart(Section):
     """The ADN whose site router it is."""
     t_s: Annotated[float, Field(gt=0, le=_MAX_TIME_S)]
     """When, sim s."""
-    down_s: Annotated[float, Field(ge=0, le=5)] = 1.0
-    """How long the router stays down, wall s (its agents wait 10 s for it before they
-    stop)."""
+    down_s: Annotated[float, Field(ge=0, le=3)] = 1.0
+    """How long the router stays down, wall s (its agents wait 10 s for it before they stop;
+    its start and their reconnection take a few more)."""
 
 
 class HierarchyConstraints(Section):
@@ -1540,6 +1540,8 @@ class HierarchyFile(Section):
         named += [(("site_restarts", i, "adn"), r.adn) for i, r in enumerate(self.site_restarts)]
         for i, restart in enumerate(self.site_restarts):
             _not_after(restart.t_s, self.scenario.duration_s, ("site_restarts", i, "t_s"))
+        _unique([f"{r.adn} at {r.t_s:g} s" for r in self.site_restarts],
+                lambda i: ("site_restarts", i), "site restart")
         named += [(("scenario", "availability", i, "ders", j), d)
                   for i, c in enumerate(self.scenario.availability) for j, d in enumerate(c.ders)]
         for at, adn in named:

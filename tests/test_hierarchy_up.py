@@ -74,7 +74,7 @@ def test_every_level_runs_as_processes_behind_its_sites_router(ran) -> None:
     alone = {g: read_recording(folder / f"run.{g}.mcap") for g in ("hv", "wtchp", "mixed")}
     assert sum(len(r.messages) for r in alone.values()) == len(recording.messages)
     assert {r.run["run_id"] for r in alone.values()} == {recording.run["run_id"]}
-    levels = load_levels(folder / "hv-upper" / "hv.levels.json")
+    levels = load_levels(folder / "run.levels.json")
     assert set(levels.adns) == {"wtchp", "mixed"} and levels.upper.grid == "hv"
 
 
@@ -83,7 +83,7 @@ def test_the_processes_exchange_exactly_what_the_in_process_run_computes(ran) ->
     send the very payloads the processes sent (the site router's restart left no trace but
     its two events)."""
     folder, _, _, recording = ran
-    levels = load_levels(folder / "hv-upper" / "hv.levels.json")
+    levels = load_levels(folder / "run.levels.json")
     upper = Level(levels.upper, levels.schedule("hv"), levels.lower_switch_rule())
     adns = {a: Level(config, levels.schedule(a)) for a, config in levels.adns.items()}
     run = run_hierarchy(upper, adns, levels.offset_delay_s)
@@ -100,9 +100,13 @@ def test_the_processes_exchange_exactly_what_the_in_process_run_computes(ran) ->
 
 def test_the_site_router_killed_and_restarted_is_waited_for(ran) -> None:
     _, _, err, _ = ran
-    assert "site router mixed killed at 8 s (planned); the run waits for its " \
-        f"{SITE_AGENTS} agents" in err
-    assert f"site router mixed back: {SITE_AGENTS} of {SITE_AGENTS} agents reconnected" in err
+    killed = re.search(r"site router mixed \(pid (\d+)\) killed at 8 s \(planned\); the run "
+                       rf"waits for its {SITE_AGENTS} agents", err)
+    back = re.search(rf"site router mixed back \(pid (\d+)\): {SITE_AGENTS} of {SITE_AGENTS} "
+                     r"agents reconnected [0-9.]+ s after the kill; the run goes on", err)
+    assert killed and back, err[-3000:]
+    assert killed.group(1) != back.group(1)          # a new process
+    assert "Zenoh session" not in err                # the drops are the site's, said there
 
 
 def test_the_upper_steps_are_within_their_design_and_the_site_cut_off_is_bumpless(ran) -> None:
@@ -151,7 +155,7 @@ def test_an_agent_given_a_level_of_another_config_is_one_line(ran, capsys) -> No
     folder = ran[0]
     with pytest.raises(SystemExit) as info:
         measurement([str(EXAMPLES / "mixed-4.yaml"), "--connect", "tcp/127.0.0.1:1",
-                     "--levels", str(folder / "hv-upper" / "hv.levels.json"), "--level",
+                     "--levels", str(folder / "run.levels.json"), "--level",
                      "wtchp"])
     assert info.value.code == 2
     err = capsys.readouterr().err.strip()
@@ -177,7 +181,9 @@ def test_options_of_one_grid_are_refused_for_a_hierarchy_in_one_line(tmp_path, c
 @pytest.mark.parametrize("restart, said", [
     ("{adn: other, t_s: 10}", "unknown ADN id 'other'"),
     ("{adn: mixed, t_s: 50}", "must not exceed scenario.duration_s (45)"),
-    ("{adn: mixed, t_s: 10, down_s: 9}", "site_restarts"),
+    ("{adn: mixed, t_s: 10, down_s: 9}", "site_restarts[0].down_s"),
+    ("{adn: mixed, t_s: 10}\n  - {adn: mixed, t_s: 10}",
+     "duplicate site restart 'mixed at 10 s' (also site_restarts[0])"),
 ])
 def test_a_site_restart_that_cannot_be_is_refused(tmp_path, restart, said) -> None:
     text = HIERARCHY.format(mixed=EXAMPLES / "mixed-4.yaml").replace(
@@ -209,3 +215,126 @@ def test_the_clock_holds_where_told_until_released() -> None:
     assert clock.held_at() == 10**9 and not clock.finished
     after = clock.release(10**9)
     assert after and all(g.until_ns > 10**9 for g in after) and clock.held_at() is None
+
+
+def _held_clock(holds: int = 1):
+    """mixed-4's agents on a clock held at 1 s (``holds`` times), started; its topology."""
+    from adnmesh.config import load_config
+
+    topology = Topology.from_config(load_config(EXAMPLES / "mixed-4.yaml"))
+    clock = Coordinator(topology, 3 * 10**9)
+    for _ in range(holds):
+        clock.hold(10**9)
+    for agent in topology.agents:
+        clock.take_report(Report(agent, 0, 0, {}, None, None))
+    return clock, topology
+
+
+def _windows(clock, grants, sent=None):
+    """Every agent of ``grants`` processes its window (it had the messages it waited for)
+    and reports its next event at 1 s, ``sent[agent]`` sent; the grants that follow and
+    which of them do not advance."""
+    for g in grants:
+        clock.take_report(Report(g.agent, 10**9, g.expect, (sent or {}).pop(g.agent, {}), None,
+                                 g.until_ns))
+    granted = {a: clock.granted_ns(a) for a in clock.agents}
+    grants = clock.grants()
+    return grants, [g for g in grants if g.until_ns == granted[g.agent]]
+
+
+def test_a_hold_is_reached_only_when_nothing_is_in_flight() -> None:
+    """The CPFC sends P_Y just before the hold, delivered just after it: the DERs, idle at the
+    hold, have not counted it. They get a grant that does not advance, wait for it and report;
+    only then is the hold reached (a router killed earlier could have lost it)."""
+    clock, topology = _held_clock()
+    key = next(k for k in topology.publishes("cpfc") if topology.receivers.get(k))
+    receivers = set(topology.receivers[key])
+    grants, sent = clock.start(), {"cpfc": {key: (1, 10**9 + 5)}}
+    synced = []
+    while grants and not synced:
+        grants, synced = _windows(clock, grants, sent)
+    assert {g.agent for g in synced} == receivers and all(g.expect == 1 for g in synced)
+    assert clock.held_at() is None                 # they have not reported yet
+    grants, synced = _windows(clock, synced)
+    assert grants == [] and clock.held_at() == 10**9
+
+
+def test_two_holds_at_one_time_need_two_releases() -> None:
+    clock, _ = _held_clock(holds=2)
+    grants = clock.start()
+    while grants:
+        grants, _ = _windows(clock, grants)
+    assert clock.held_at() == 10**9
+    assert clock.release(10**9) == [] and clock.held_at() == 10**9     # one still holds
+    assert all(g.until_ns > 10**9 for g in clock.release(10**9))
+    assert clock.held_at() is None
+
+
+class _Fakes:
+    """A held clock and two levels' launches for :meth:`SiteRouter.supervise`, and a wall
+    clock the test moves."""
+
+    def __init__(self, monkeypatch) -> None:
+        from types import SimpleNamespace
+
+        from adnmesh.runtime import site_router
+        from adnmesh.wire.keys import Keys
+
+        self.now, self.held, self.released, self.said, self.alive = 100.0, None, [], [], set()
+        monkeypatch.setattr(site_router.time, "monotonic", lambda: self.now)
+        self.launches = [SimpleNamespace(
+            config=SimpleNamespace(grid=grid), keys=Keys(grid),
+            roster=SimpleNamespace(alive_now=lambda: set(self.alive)),
+            recorder=SimpleNamespace(counts=lambda: {}),
+            injector=SimpleNamespace(planned_drops=set()),
+            options=SimpleNamespace(log=self.said.append),
+            outbox=SimpleNamespace(send=lambda key, t, **body: self.said.append(body["kind"])))
+            for grid in ("hv", "mixed")]
+
+    def held_at(self):
+        return self.held
+
+    def sent_per_key(self):
+        return {}
+
+    def hold(self, at_ns):
+        pass
+
+    def release(self, at_ns):
+        self.released.append(at_ns)
+        self.held = None
+
+
+def test_a_site_restart_goes_in_time_order_and_releases_without_a_session_gone_for_good(
+        monkeypatch) -> None:
+    from adnmesh.runtime.site_router import BACK_WITHIN_S, PlannedRestart, SiteRouter
+
+    fakes = _Fakes(monkeypatch)
+    site = SiteRouter("mixed", Path("mixed.yaml"), "tcp/127.0.0.1:1",
+                      {"mixed": ("cpfc", "der/SGen1"), "hv": ("der/mixed",)},
+                      [PlannedRestart(2 * 10**9, 0.5), PlannedRestart(10**9, 0.5)])
+    started, killed = [], []
+    monkeypatch.setattr(site, "start", lambda upstream: started.append(upstream))
+    monkeypatch.setattr(site, "kill", lambda: killed.append(fakes.now))
+    site.hold(fakes)                                # (file order 2 s, 1 s: taken 1 s first)
+    fakes.alive = {"cpfc", "der/SGen1", "der/mixed"}
+    fakes.held = 2 * 10**9                          # not this one's time
+    site.supervise(fakes, fakes.launches)
+    assert killed == []
+    fakes.held = 10**9
+    site.supervise(fakes, fakes.launches)
+    assert killed == [100.0] and [r.state for r in site.restarts] == ["down", "planned"]
+    assert fakes.launches[1].injector.planned_drops == {"cpfc", "der/SGen1"}
+    fakes.now, fakes.alive = 100.6, set()           # every session gone, down_s over
+    site.supervise(fakes, fakes.launches)
+    assert len(started) == 1 and site.restarts[0].state == "back"
+    fakes.now, fakes.alive = 101.0, {"cpfc", "der/mixed"}     # der/SGen1 does not come back
+    site.supervise(fakes, fakes.launches)
+    assert fakes.released == []
+    fakes.now = 100.0 + BACK_WITHIN_S + 0.1
+    site.supervise(fakes, fakes.launches)
+    assert fakes.released == [10**9] and site.restarts[0].state == "done"
+    assert any("2 of 3 agents reconnected" in line for line in fakes.said)
+    # the one gone for good is the injector's again; the ones back are, once it sees them
+    assert fakes.launches[1].injector.planned_drops == {"cpfc"}
+    assert site.restarts[1].state == "planned"

@@ -241,12 +241,12 @@ def run(args: argparse.Namespace) -> int:
     hierarchy = load_hierarchy(args.hierarchy)
     out = args.out or hierarchy.path.parent / f"{hierarchy.name}-upper"
     output_path(out, "--out", directory=True)
-    with _numerics_said(hierarchy):
+    with numerics_said(hierarchy):
         return _run(args, hierarchy, out)
 
 
 @contextlib.contextmanager
-def _numerics_said(hierarchy):
+def numerics_said(hierarchy):
     """A cascade the numerics cannot take (delays without a common unit, a loop that does not
     rise) as one line naming the hierarchy file."""
     try:

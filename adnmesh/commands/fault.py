@@ -124,11 +124,18 @@ def _locate(ref: str) -> tuple[str, str | None, str | None]:
 
 
 def _grid_of(session: zenoh.Session, timeout_s: float) -> str:
-    """The grid of the run behind ``session``'s router, from ``up``'s liveliness token."""
-    for reply in session.liveliness().get("adn/*/alive/up", timeout=timeout_s):
-        if reply.ok is not None:
-            return str(reply.ok.key_expr).split("/")[1]
-    raise UsageError("no adnmesh up answers at that endpoint")
+    """The grid of the run behind ``session``'s router, from ``up``'s liveliness token (one
+    per level of a hierarchy's run: then the run is to be named by its id, whose run file
+    names its upper level)."""
+    grids = sorted({str(reply.ok.key_expr).split("/")[1]
+                    for reply in session.liveliness().get("adn/*/alive/up", timeout=timeout_s)
+                    if reply.ok is not None})
+    if not grids:
+        raise UsageError("no adnmesh up answers at that endpoint")
+    if len(grids) > 1:
+        raise UsageError(f"the run at that endpoint has {len(grids)} grids ({', '.join(grids)}:"
+                         " a hierarchy); name it by its run id, for its upper level")
+    return grids[0]
 
 
 def run(args: argparse.Namespace) -> int:

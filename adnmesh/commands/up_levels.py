@@ -8,11 +8,11 @@ grid: every agent of every level its own process, a Zenoh client of the embedded
    tuned for its design and scenario, else its scenario's subsets tuned now and kept (as ``up``
    does for one grid). The upper level -- its config, its HV net and its table, tuned on the
    ADNs' equivalent models and certified on the exact cascade -- goes where ``adnmesh cascade``
-   writes it (``<name>-upper/`` next to the hierarchy file); an upper table there for the same
-   design is used again.
-2. The levels file (``<name>.levels.json`` there, :mod:`adnmesh.sim.hierarchy_levels`) tells
-   every agent process the whole hierarchy: its topology, the site agents, the upper CPFC's
-   rule for the ADNs' gain switches.
+   writes it (``<name>-upper/`` next to the hierarchy file); an upper table an earlier ``up``
+   certified there on the very same ADN loops is used again.
+2. The levels file (``<out stem>.levels.json`` beside ``--out``,
+   :mod:`adnmesh.sim.hierarchy_levels`) tells every agent process the whole hierarchy: its
+   topology, the site agents, the upper CPFC's rule for the ADNs' gain switches.
 3. One launch per level (:func:`adnmesh.runtime.launcher.run_levels`): its own recording
    (``<out stem>.<level>.mcap`` beside ``--out``), roster, faults (the hierarchy file's for the
    upper level, each ADN's own), counts verified per level; one clock for all
@@ -26,22 +26,27 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import json
 import os
 import sys
 import threading
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
+
+import msgspec
 
 from adnmesh.commands import output_path
 from adnmesh.errors import ConfigError, UsageError
 
 __all__ = ["run_hierarchy"]
 
-_ONE_GRID_ONLY = (("clock", "realtime", "--clock realtime"), ("external", None, "--external"),
-                  ("routers", None, "--routers"), ("secure", True, "--secure"),
-                  ("certs", None, "--certs"), ("view", None, "--view"),
-                  ("table", None, "--table"), ("q_table", None, "--q-table"),
+_ONE_GRID_ONLY = (("clock", "realtime", "--clock realtime"), ("speed", None, "--speed"),
+                  ("strict", True, "--strict"), ("rt_priority", None, "--rt-priority"),
+                  ("external", None, "--external"), ("routers", None, "--routers"),
+                  ("secure", True, "--secure"), ("certs", None, "--certs"),
+                  ("view", None, "--view"), ("table", None, "--table"),
+                  ("q_table", None, "--q-table"),
                   ("print_zenoh_config", True, "--print-zenoh-config"))
 """``up`` options a hierarchy's run does not take (yet): (attribute, the value that uses it,
 or None for any value given, flag)."""
@@ -61,6 +66,25 @@ def _check_options(args: argparse.Namespace) -> None:
     if args.startup_timeout is not None and not 0 < args.startup_timeout <= 86400:
         raise UsageError(f"--startup-timeout must be in (0, 86400] s, got "
                          f"{args.startup_timeout:g}")
+    if args.listen is not None:
+        from adnmesh.runtime.bus import check_listen
+        check_listen(args.listen)
+
+
+@dataclass(frozen=True)
+class Prepared:
+    """Every level ready to run (see the module docstring, 1 and 2)."""
+
+    levels: tuple
+    """``(upper level, ADN id -> its level, ADN id -> offset link delay s)``
+    (:func:`adnmesh.study.hierarchy.hierarchy_levels`)."""
+    file: Path
+    """The levels file."""
+    upper_table: Path
+    tables: dict
+    """ADN id -> its table file."""
+    available: dict
+    """ADN id -> its DERs' available power, W."""
 
 
 def _say():
@@ -69,36 +93,55 @@ def _say():
     return err, lambda line: err.print(f"adnmesh up: {line}")
 
 
-def _prepare(hierarchy, work: Path, run_id: str, log):
-    """``(levels, levels file, upper table file, ADN id -> its table file, ADN id -> its DERs'
-    available power)``: every level ready to run (see the module docstring, 1 and 2)."""
-    from adnmesh.commands.cascade import certified_upper_table, upper_level
+def _prepare(hierarchy, work: Path, out: Path, run_id: str, log) -> Prepared:
+    """Every level ready to run (see the module docstring, 1 and 2)."""
+    from adnmesh.commands.cascade import upper_level
     from adnmesh.commands.up_tables import operating_point, table_for
     from adnmesh.config import load_config
     from adnmesh.study.hierarchy import hierarchy_levels, levels_file
     from adnmesh.sim.hierarchy_levels import on_bus, save_levels
-    from adnmesh.tuning.table import default_table_path, load_table
 
     tables, available = {}, {}
     for adn in hierarchy.adns:
         try:
             config = load_config(hierarchy.config_path(adn))
             available[adn.id] = operating_point(on_bus(config, adn.id, adn.keep_steps), log)
-            tables[adn.id] = table_for(None, config, work, run_id, log)
+            tables[adn.id] = table_for(None, config, work, f"{run_id}.{adn.id}", log)
         except ConfigError as exc:
             raise ConfigError(f"{hierarchy.path}: adns {adn.id}: {exc}") from None
     sites, upper = upper_level(hierarchy, work, log, tables)
-    path = default_table_path(upper)
-    if path.exists():
-        table = load_table(path, upper)
-        log(f"upper table {path}: certified on the cascade by an earlier run")
-    else:
-        table, _, path = certified_upper_table(hierarchy, sites, upper, log)
-        log(f"upper table certified on the exact cascade: {path}")
+    table, path = _upper_table(hierarchy, sites, upper, log)
     levels = hierarchy_levels(hierarchy, upper, table, sites, tables)
-    file = save_levels(work / f"{hierarchy.name}.levels.json",
+    file = save_levels(out.with_name(f"{out.stem}.levels.json"),
                        levels_file(hierarchy, levels, path, tables))
-    return levels, file, path, tables, available
+    return Prepared(levels, file, path, tables, available)
+
+
+def _upper_table(hierarchy, sites, upper, log):
+    """``(table, its file)``: the upper table an earlier run certified on these very ADN
+    loops (the SHA-256 of what the certificate depends on, beside the table), else tuned and
+    certified now."""
+    from adnmesh.commands.cascade import certified_upper_table
+    from adnmesh.sim.hierarchy_levels import LoopFields
+    from adnmesh.tuning.table import default_table_path, load_table
+
+    on = [[msgspec.to_builtins(LoopFields.of(s.adn)), s.t_com_s, s.grid_gain] for s in sites]
+    key = hashlib.sha256(json.dumps([on, hierarchy.t_meas_s,
+                                     hierarchy.constraints.model_dump()]).encode()).hexdigest()
+    path = default_table_path(upper)
+    stamp = path.with_suffix(".cascade.sha256")
+    if path.exists() and stamp.exists() and stamp.read_text().strip() == key:
+        try:
+            table = load_table(path, upper)
+        except ConfigError as exc:
+            log(f"not using the upper table of an earlier run: {exc}; certifying again")
+        else:
+            log(f"upper table {path}: certified on these ADNs' loops by an earlier run")
+            return table, path
+    table, _, path = certified_upper_table(hierarchy, sites, upper, log)
+    stamp.write_text(key + "\n")
+    log(f"upper table certified on the exact cascade: {path}")
+    return table, path
 
 
 def _level_options(hierarchy, prepared, out: Path, args, run_id: str, log):
@@ -110,8 +153,8 @@ def _level_options(hierarchy, prepared, out: Path, args, run_id: str, log):
     from adnmesh.sim.hierarchy_topology import HIERARCHY
     from adnmesh.wire.units import ns
 
-    levels, file, upper_table, tables, available = prepared
-    upper, adns, _ = levels
+    file, tables = prepared.file, prepared.tables
+    upper, adns, _ = prepared.levels
     wake = threading.Event()
     topology = load_levels(file).topology
     clock = SharedClock(topology, ns(upper.config.scenario.duration_s), wake)
@@ -120,7 +163,7 @@ def _level_options(hierarchy, prepared, out: Path, args, run_id: str, log):
                   shared_clock=clock, features=HIERARCHY, stall_timeout_s=args.stall_timeout,
                   startup_timeout_s=(60.0 + ders if args.startup_timeout is None
                                      else args.startup_timeout))
-    sites = _sites(hierarchy, levels)
+    sites = _sites(hierarchy, prepared.levels)
     endpoints = {a: s.endpoint for s in sites for a in s.members[upper.config.grid]}
     options = []
     for grid, level in ((upper.config.grid, upper), *adns.items()):
@@ -128,11 +171,11 @@ def _level_options(hierarchy, prepared, out: Path, args, run_id: str, log):
         if level is not upper:
             endpoints = {a: site.endpoint for site in sites if site.name == grid
                          for a in site.members[grid]}
-        table = upper_table if level is upper else Path(tables[grid])
+        table = prepared.upper_table if level is upper else Path(tables[grid])
         options.append(UpOptions(
             config=config, table_path=table, out=out.with_name(f"{out.stem}.{grid}.mcap"),
             seed=config.runtime.seed if args.seed is None else args.seed,
-            available_w={} if level is upper else available[grid],
+            available_w={} if level is upper else prepared.available[grid],
             agent_args=("--levels", str(file), "--level", grid),
             run_file=run_file_path(out) if level is upper else None, endpoints=endpoints,
             metadata={"run_id": run_id, "grid": grid, "hierarchy": str(hierarchy.path),
@@ -166,7 +209,7 @@ def _sites(hierarchy, levels):
 
 def run_hierarchy(args: argparse.Namespace) -> int:
     """``adnmesh up HIERARCHY`` (see the module docstring); return the exit code."""
-    from adnmesh.commands.cascade import _numerics_said
+    from adnmesh.commands.cascade import numerics_said
     from adnmesh.config import load_hierarchy
 
     hierarchy = load_hierarchy(args.config)
@@ -179,16 +222,16 @@ def run_hierarchy(args: argparse.Namespace) -> int:
     work = hierarchy.path.parent / f"{hierarchy.name}-upper"
     output_path(work, "the upper level's directory", directory=True)
     log(f"{hierarchy.name}: {len(hierarchy.adns)} ADNs under one upper level")
-    with _numerics_said(hierarchy):
-        prepared = _prepare(hierarchy, work, run_id, log)
+    with numerics_said(hierarchy):
+        prepared = _prepare(hierarchy, work, out, run_id, log)
     options, sites = _level_options(hierarchy, prepared, out, args, run_id, log)
     log(f"sites: {', '.join(f'{s.name} on {s.endpoint}' for s in sites)}, linked to up's "
         "router")
-    results = _launch(options, sites, err)
+    results = _launch(options, sites, err, args.progress)
     return _report(args, options, results, out, run_id, log)
 
 
-def _launch(options, sites, err):
+def _launch(options, sites, err, progress: bool):
     """Run the levels, with the progress bar on a terminal (or ``--progress``)."""
     import contextlib
 
@@ -197,7 +240,7 @@ def _launch(options, sites, err):
     from adnmesh.wire.units import ns
 
     bar = RunProgress(err, ns(options[0].config.scenario.duration_s)) \
-        if err.is_terminal else None
+        if progress or err.is_terminal else None
     if bar is not None:
         options[0] = replace(options[0], progress=bar.update)
     with bar if bar is not None else contextlib.nullcontext():
@@ -224,7 +267,7 @@ def _report(args, options, results, out: Path, run_id: str, log) -> int:
     for o, result in zip(options, results):
         print(f"\n== {o.config.grid} ==")
         summary = run_summary(args, o.config, run_id, result)
-        print_summary(args, o.config, summary, o.out)
+        print_summary(args, o.config, summary)      # (a robust table: per ADN config)
         summaries[o.config.grid] = summary.to_json()
     sys.stdout.flush()
     unwritten = write_summary_json(args.summary_json, {"run_id": run_id, "levels": summaries})

@@ -179,9 +179,12 @@ class FaultInjector:
         lost and counted)."""
         running = self.launch.children.running()
         for agent, back in changes:
+            if agent in self.planned_drops:     # a site router's planned restart: said there
+                if back:
+                    self.planned_drops.discard(agent)
+                continue
             with self._lock:
-                expected = agent in self.dying or agent in self._spawned or \
-                    agent in self.planned_drops
+                expected = agent in self.dying or agent in self._spawned
             if agent not in running or expected:
                 continue      # a death or a restart: the injector's own business
             what = "is back" if back else \

@@ -601,14 +601,16 @@ def startup(*launches: _Launch) -> str | None:
     server, if used."""
     started = [_spawn_agents(launch) for launch in launches]
     reason = None
-    for launch, (t0, spawned) in zip(launches, started):
+    for launch, (_, spawned) in zip(launches, started):
         deadline = spawned + launch.options.startup_timeout_s
         while reason is None and launch.roster.not_ready():
             reason = launch.startup_failure()
             if reason is None and time.monotonic() > deadline:
                 reason = _not_ready(launch)
             launch.roster.wait(_POLL_S)
-        launch.result.startup_s = time.monotonic() - min(t0 for t0, _ in started)
+    startup_s = time.monotonic() - min(t0 for t0, _ in started)   # every level ready
+    for launch in launches:
+        launch.result.startup_s = startup_s
     return reason
 
 
@@ -695,7 +697,7 @@ def run_clock(lead: _Launch, *others: _Launch, poll: Callable[[], None] | None =
             time.time_ns() >= end_wall_ns
         reason = "finished" if done else _first(launch.failure() for launch in launches)
         if reason in (None, "finished"):     # nobody left: not finished, whatever the clock
-            reason = _first(launch.injector.early_end() for launch in launches) or reason
+            reason = _early_end(launches) or reason
         if reason is None:
             if options.progress is not None:
                 options.progress(lead.clock.now_ns() if lead.clock is not None else
@@ -713,7 +715,18 @@ def run_clock(lead: _Launch, *others: _Launch, poll: Callable[[], None] | None =
 
 
 def _first(reasons) -> str | None:
+    """The first reason that is not None (evaluated one by one), or None."""
     return next((r for r in reasons if r is not None), None)
+
+
+def _early_end(launches) -> str | None:
+    """Why the run ends before its time: nobody left of the lead level, or of any level (a
+    level of a hierarchy whose agents are all gone is an actuator lost to the level above,
+    and the run goes on without it)."""
+    ends = [launch.injector.early_end() for launch in launches]
+    if ends[0] is not None or all(end is not None for end in ends):
+        return next(end for end in ends if end is not None)
+    return None
 
 
 def _reached(launch: _Launch, reason: str, wall_time_s: float) -> None:
@@ -908,7 +921,7 @@ def run(options: UpOptions) -> UpResult:
     return run_levels([options])[0]
 
 
-def run_levels(levels: list[UpOptions], sites=()) -> list[UpResult]:
+def run_levels(levels: list[UpOptions], sites: tuple | list = ()) -> list[UpResult]:
     """Run several configs as processes around one router on one clock: the levels of a
     hierarchy (docs/hierarchy.md; every level's options with the same ``shared_clock`` and
     ``wake``, the first the lead: its router, endpoint, clock and progress), or one config
@@ -922,9 +935,9 @@ def run_levels(levels: list[UpOptions], sites=()) -> list[UpResult]:
         launch.result.end_ns = lead.result.end_ns
     previous = _catch_signals(lead.interrupted, lead.roster.changed)
     simulators = [DeviceSimulators(o.config, o.log) for o in levels]
-    for launch in launches:
-        _start_forkserver(launch)
     try:
+        for launch in launches:
+            _start_forkserver(launch)
         devices_down = _first(s.start(o.available_w, launch._model_params, o.startup_timeout_s)
                               for s, o, launch in zip(simulators, levels, launches))
         with zenoh.open(lead.router_config()) as session:

@@ -13,24 +13,29 @@ out on each level's own keys, recorded by that level's recorder.
 from __future__ import annotations
 
 import threading
+import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
-from adnmesh.runtime.launcher_bus import SimClockDriver, publish_grants
+from adnmesh.runtime.launcher_bus import LauncherOutbox, SimClockDriver, publish_grants
 from adnmesh.sim.clock import Coordinator
 from adnmesh.sim.hierarchy_topology import grid_of, qualified
+from adnmesh.wire.keys import Keys
 
 __all__ = ["LevelClock", "SharedClock"]
 
 
 @dataclass
 class _Level:
-    """What the clock needs of one level's launch."""
+    """What the clock needs of one level's launch: its keys, the outbox its grants go through,
+    ``host_of(agent)`` (its hosting process or None), and where a DER's report out of protocol
+    and a restarted agent's rejoin go (``(agent id, why)``, ``(agent id, ns)``)."""
 
-    keys: object
-    outbox: object
-    host_of: object
-    on_violation: object
-    on_rejoin: object
+    keys: Keys
+    outbox: LauncherOutbox
+    host_of: Callable[[str], str | None]
+    on_violation: Callable[[str, str], None] | None
+    on_rejoin: Callable[[str, int], None] | None
 
 
 class SharedClock(SimClockDriver):
@@ -71,9 +76,18 @@ class SharedClock(SimClockDriver):
             return self.coordinator.held_at()
 
     def release(self, at_ns: int) -> None:
-        """Lift the hold at ``at_ns``; the grants that follow go out."""
+        """Lift one hold at ``at_ns``; the grants that follow go out."""
         with self.lock:
+            self.last_grant_s = time.monotonic()     # the hold was no stall
             self._send(self.coordinator.release(at_ns))
+
+    def stalled_s(self) -> float:
+        """Wall seconds since the last grant, 0 while the run is at a hold (a site router's
+        restart takes its time there: no stall)."""
+        with self.lock:
+            if self.coordinator.held_at() is not None:
+                self.last_grant_s = time.monotonic()
+            return super().stalled_s()
 
     def sent_per_key(self) -> dict[str, int]:
         """Messages the agents reported sent so far, per key."""
@@ -114,15 +128,19 @@ class _LevelCoordinator:
         self._c, self._grid = coordinator, grid
 
     def granted_ns(self, agent: str):
+        """How far ``agent`` has been granted, ns."""
         return self._c.granted_ns(qualified(self._grid, agent))
 
     def plan_restart(self, agent: str, at_ns: int) -> None:
+        """A new process of ``agent`` starts at ``at_ns`` (a barrier until then)."""
         self._c.plan_restart(qualified(self._grid, agent), at_ns)
 
     def describe_busy(self):
+        """Every level's agents the clock waits for (qualified names)."""
         return self._c.describe_busy()
 
     def now_ns(self) -> int:
+        """The run's frontier, ns."""
         return self._c.now_ns()
 
 
@@ -138,15 +156,19 @@ class LevelClock:
         return qualified(self.grid, agent)
 
     def on_reports(self, messages) -> None:
+        """Clock reports of this level's agents (see :meth:`SimClockDriver.on_reports`)."""
         self.shared.on_reports(messages, self._name)
 
     def kill(self, agent: str, at_ns: int | None = None) -> None:
+        """``agent`` of this level is dead (see :meth:`SimClockDriver.kill`)."""
         self.shared.kill(self._name(agent), at_ns)
 
     def inject(self, agents) -> None:
+        """``up`` sent one message to each of this level's ``agents``."""
         self.shared.inject([self._name(a) for a in agents])
 
     def cancel_restart(self, agent: str) -> None:
+        """The planned restart of ``agent`` of this level will not happen."""
         self.shared.cancel_restart(self._name(agent))
 
     def start(self) -> None:
@@ -156,26 +178,33 @@ class LevelClock:
                 self.shared.start()
 
     def now_ns(self) -> int:
+        """The run's frontier, ns (every level's)."""
         return self.shared.now_ns()
 
     def earliest_unprocessed_ns(self) -> int:
+        """The earliest time no live agent of any level may have processed yet, ns."""
         return self.shared.earliest_unprocessed_ns()
 
     def stalled_s(self) -> float:
+        """Wall seconds since the run's last grant (0 at a hold)."""
         return self.shared.stalled_s()
 
     @property
     def finished(self) -> bool:
+        """The run (every level) is at its end."""
         return self.shared.finished
 
     @property
     def error(self):
+        """Why the shared clock failed, or None."""
         return self.shared.error
 
     @property
     def grants_issued(self) -> int:
+        """Grants of the whole run."""
         return self.shared.grants_issued
 
     @property
     def recent_ns(self) -> int:
+        """The frontier at the last grants, ns (read without the lock)."""
         return self.shared.recent_ns

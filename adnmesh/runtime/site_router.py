@@ -7,15 +7,17 @@ other stays at the site router; what goes to the level above (and to ``up``'s re
 the link.
 
 **A site router killed and restarted** (``site_restarts`` of the hierarchy file) at sim time
-``T``: the sim clock holds every agent at ``T`` (:meth:`~adnmesh.sim.clock.Coordinator.hold`);
-once the run is there -- every agent idle with everything before ``T`` processed, and every
-message the agents say they sent recorded by ``up`` (so none is in a router's queue) -- ``up``
-SIGKILLs the router, waits until it has seen every session of the site go, starts the router
-again on the same endpoint after ``down_s`` wall seconds and releases the clock once every
-session is back (Zenoh reconnects them). What the run sends is what it sends without the
-restart. A site whose sessions do not come back within :data:`BACK_WITHIN_S` is said and
-released anyway: its agents, gone, are the injector's (lost; the level above sees the ADN
-unavailable).
+``T``: the sim clock holds every agent at ``T`` (:meth:`~adnmesh.sim.clock.Coordinator.hold`).
+Once the run is there -- every agent idle with everything before ``T`` processed, and every
+message the agents say they sent recorded by ``up``, so none is in a router's queue (waited
+for at most :data:`RECORDED_WITHIN_S`) -- ``up`` SIGKILLs the router, waits until it has seen
+every session of the site go, starts the router again on the same endpoint after ``down_s``
+wall seconds and releases the clock once every session is back (Zenoh reconnects them). What
+the run's agents send is what they send without the restart (``up`` adds its ``site_down`` and
+``site_back`` events). A site whose sessions do not come back within :data:`BACK_WITHIN_S` of
+the kill is said and released anyway: its agents, gone, are the injector's (lost; the level
+above sees the ADN unavailable). The routers run in sessions of their own (a Ctrl-C in the
+terminal is ``up``'s to handle, not theirs).
 """
 
 from __future__ import annotations
@@ -38,20 +40,29 @@ __all__ = ["BACK_WITHIN_S", "PlannedRestart", "SiteRouter"]
 READY_WITHIN_S = 15.0
 """How long a site router may take to listen, wall s."""
 BACK_WITHIN_S = SESSION_GRACE_S
-"""How long a restarted site's sessions may take to come back, wall s (its agents wait as long
-for ``up`` before they stop)."""
+"""How long after the kill a site's sessions may take to come back, wall s (its agents wait as
+long for ``up`` before they stop)."""
+GONE_WITHIN_S = 2.0
+"""How long after ``down_s`` the router is started again even if ``up`` has not seen every
+session of the site go, wall s."""
+RECORDED_WITHIN_S = 5.0
+"""How long the held run may wait for the recorders to have every message the agents reported
+sent, wall s (a payload the recorder rejects never counts: then the router goes anyway)."""
 _STOP_WAIT_S = 5.0
 
 
 @dataclass
 class PlannedRestart:
     """A restart of the site router at sim time ``at_ns``, down for ``down_s`` wall s; its
-    progress (``state``: ``planned``, ``down``, ``back``, ``done``)."""
+    progress: ``state`` (``planned``, ``down``, ``back``, ``done``), since when (held, then
+    killed; monotonic s) and the agents whose sessions it waits for (``(launch, agent id)``,
+    those alive at the kill)."""
 
     at_ns: int
     down_s: float
     state: str = "planned"
     since: float = 0.0
+    expected: list = field(default_factory=list)
 
 
 @dataclass
@@ -87,7 +98,7 @@ class SiteRouter:
         argv = [sys.executable, "-m", "adnmesh", "router", str(self.config), "--name",
                 self.name, "--connect", upstream, "--listen", self.endpoint]
         self.proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                     stderr=subprocess.PIPE, text=True,
+                                     stderr=subprocess.PIPE, text=True, start_new_session=True,
                                      env=dict(os.environ, **{PARENT_ENV: str(os.getpid())}))
         lines: queue.Queue = queue.Queue()
         threading.Thread(target=self._read, args=(self.proc, lines), daemon=True,
@@ -134,7 +145,8 @@ class SiteRouter:
 
     def hold(self, clock) -> None:
         """Hold ``clock`` (:class:`~adnmesh.runtime.level_clock.SharedClock`) at every planned
-        restart (before it starts)."""
+        restart (before it starts); they are taken in time order."""
+        self.restarts.sort(key=lambda r: r.at_ns)
         for restart in self.restarts:
             clock.hold(restart.at_ns)
 
@@ -144,37 +156,49 @@ class SiteRouter:
         restart = next((r for r in self.restarts if r.state != "done"), None)
         if restart is None:
             return
-        by_grid = {launch.config.grid: launch for launch in launches}
-        members = [(by_grid[g], a) for g, agents in self.members.items() for a in agents]
-        alive = {id(launch): launch.roster.alive_now() for launch in launches}
-        present = [a in alive[id(launch)] for launch, a in members]
         now = time.monotonic()
         if restart.state == "planned":
-            if clock.held_at() != restart.at_ns or not _all_recorded(clock, launches):
-                return
-            for launch, agent in members:
-                launch.injector.planned_drops.add(agent)
-            self.kill()
-            restart.state, restart.since = "down", now
-            self._say(launches[0], restart, "WARNING", "site_down",
-                      f"site router {self.name} killed at {restart.at_ns / 1e9:g} s (planned); "
-                      f"the run waits for its {len(members)} agents")
-        elif restart.state == "down":
-            if (not any(present) and now - restart.since >= restart.down_s) or \
-                    now - restart.since > BACK_WITHIN_S:
-                failed = self.start(self.upstream)
-                if failed is not None:
-                    launches[0].options.log(failed)
-                restart.state, restart.since = "back", now
+            self._when_held(restart, clock, launches, now)
+            return
+        present = [a in launch.roster.alive_now() for launch, a in restart.expected]
+        down_s = now - restart.since
+        gone = not any(present) and down_s >= restart.down_s
+        if restart.state == "down" and (gone or down_s > restart.down_s + GONE_WITHIN_S):
+            failed = self.start(self.upstream)
+            if failed is not None:
+                launches[0].options.log(failed)
+            restart.state = "back"
         elif restart.state == "back" and (all(present) or now - restart.since > BACK_WITHIN_S):
-            for launch, agent in members:
-                launch.injector.planned_drops.discard(agent)
-            back = sum(present)
+            for (launch, agent), here in zip(restart.expected, present):
+                if not here:               # gone for good: the injector's (a back is its own)
+                    launch.injector.planned_drops.discard(agent)
+            pid = self.proc.pid if self.proc is not None else None
             self._say(launches[0], restart, "INFO" if all(present) else "WARNING", "site_back",
-                      f"site router {self.name} back: {back} of {len(members)} agents "
-                      f"reconnected after {now - restart.since:.1f} s; the run goes on")
+                      f"site router {self.name} back (pid {pid}): {sum(present)} of "
+                      f"{len(present)} agents reconnected {now - restart.since:.1f} s after "
+                      "the kill; the run goes on")
             restart.state = "done"
             clock.release(restart.at_ns)
+
+    def _when_held(self, restart: PlannedRestart, clock, launches, now: float) -> None:
+        """Kill the router once the run is held at the restart and every message the agents
+        reported sent is recorded (or :data:`RECORDED_WITHIN_S` after the hold)."""
+        if clock.held_at() != restart.at_ns:
+            return
+        restart.since = restart.since or now      # held since
+        if not _all_recorded(clock, launches) and now - restart.since < RECORDED_WITHIN_S:
+            return
+        by_grid = {launch.config.grid: launch for launch in launches}
+        restart.expected = [(by_grid[g], a) for g, agents in self.members.items()
+                            for a in agents if a in by_grid[g].roster.alive_now()]
+        for launch, agent in restart.expected:
+            launch.injector.planned_drops.add(agent)
+        pid = self.proc.pid if self.proc is not None else None
+        self.kill()
+        restart.state, restart.since = "down", now
+        self._say(launches[0], restart, "WARNING", "site_down",
+                  f"site router {self.name} (pid {pid}) killed at {restart.at_ns / 1e9:g} s "
+                  f"(planned); the run waits for its {len(restart.expected)} agents")
 
     def _say(self, lead, restart: PlannedRestart, level: str, kind: str, text: str) -> None:
         lead.options.log(text)

@@ -159,7 +159,7 @@ class Coordinator:
         self._dead = [False] * n
         self._restarts: dict[int, int] = {}       # agent -> planned restart time, ns
         self._rejoining: dict[int, Report] = {}   # first reports of restarted agents, held
-        self._holds: set[int] = set()             # times no grant may pass until released
+        self._holds: dict[int, int] = {}          # time no grant may pass -> holds on it
         self.sent_totals: list[dict[str, int]] = [{} for _ in range(n)]
         self.killed_at: dict[str, int] = {}
         self.rejoined: list[tuple[str, int]] = []   # (agent, restart ns) taken back since
@@ -254,22 +254,54 @@ class Coordinator:
 
     def hold(self, at_ns: int) -> None:
         """No grant reaches beyond sim time ``at_ns`` until :meth:`release` (a barrier: the
-        run's infrastructure changes there, e.g. a site router restarted)."""
-        self._holds.add(int(at_ns))
+        run's infrastructure changes there, e.g. a site router restarted). Holds at one time
+        add up: each needs its own release."""
+        self._holds[int(at_ns)] = self._holds.get(int(at_ns), 0) + 1
 
     def held_at(self) -> int | None:
-        """The hold the run has reached -- every live agent idle, each with everything before
-        it processed: no message of the run is in flight --, or None."""
+        """The hold the run has reached, or None: every live agent idle with everything before
+        it processed, and every message sent to it counted in its last report -- nothing of
+        the run is in flight. (An agent that has not counted a message sent to it before the
+        hold gets a grant that does not advance: it waits for the message and reports,
+        :meth:`_grants`.)"""
+        at = self._reached_hold()
+        if at is None or any(r < x for r, x, dead in zip(self._received, self._expected,
+                                                          self._dead) if not dead):
+            return None
+        return at
+
+    def release(self, at_ns: int) -> list[Grant]:
+        """Lift one hold at ``at_ns``; return the grants that follow."""
+        at = int(at_ns)
+        if self._holds.get(at, 0) > 1:
+            self._holds[at] -= 1
+        else:
+            self._holds.pop(at, None)
+        return self._after_change()
+
+    def _reached_hold(self) -> int | None:
+        """The earliest hold, if every live agent is idle and has processed everything before
+        it; else None."""
         if not self._holds or not self._started or not all(self._idle):
             return None
         at = min(self._holds)
         live = [e for e, dead in zip(self._effective(), self._dead) if not dead]
         return at if all(e >= at for e in live) else None
 
-    def release(self, at_ns: int) -> list[Grant]:
-        """Lift the hold at ``at_ns``; return the grants that follow."""
-        self._holds.discard(int(at_ns))
-        return self._after_change()
+    def _synced_at_hold(self) -> list[Grant]:
+        """At a reached hold, a grant to its last granted time (it does not advance) for each
+        live agent that has not counted every message sent to it: the agent waits for them,
+        then reports (see :meth:`held_at`)."""
+        if self._reached_hold() is None:
+            return []
+        out = []
+        for b, agent in enumerate(self.agents):
+            if not self._dead[b] and self._received[b] < self._expected[b]:
+                self._grant_expect[b] = self._expected[b]
+                self._idle[b] = self._hello[b] = False
+                out.append(Grant(agent, self._granted[b], self._expected[b]))
+        self.grants_issued += len(out)
+        return out
 
     def inject(self, agents) -> None:
         """``up`` sent one message to each of ``agents``: they must receive it (live ones)."""
@@ -435,6 +467,8 @@ class Coordinator:
             self._pending_new[b] = _INF
             out.append(Grant(self.agents[b], until, self._expected[b]))
         self.grants_issued += len(out)
+        if not out and self._holds and all(self._idle):
+            return self._synced_at_hold()
         if not out and all(self._idle) and not self.finished and barrier > self.end_ns:
             raise ClockError(
                 "deadlock: every agent is idle, none may advance "

@@ -133,8 +133,9 @@ class LevelsFile(msgspec.Struct, forbid_unknown_fields=True):
 
 
 def save_levels(path: Path, levels: LevelsFile) -> Path:
-    """Write ``levels`` to ``path`` (JSON); return the path."""
-    path.write_bytes(msgspec.json.format(msgspec.json.encode(levels)))
+    """Write ``levels`` to ``path`` (JSON, atomically); return the path."""
+    from adnmesh.files import write_atomic
+    write_atomic(path, msgspec.json.format(msgspec.json.encode(levels)))
     return path
 
 
@@ -235,7 +236,8 @@ def load_levels(path: str | Path, load: Callable[[str], Config] = load_config) -
     """
     path = Path(path)
     try:
-        data = path.read_bytes()[:MAX_LEVELS_BYTES + 1]
+        with open(path, "rb") as f:
+            data = f.read(MAX_LEVELS_BYTES + 1)
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read the levels file: {exc.strerror or exc}") \
             from None
