@@ -98,7 +98,7 @@ def main() -> None:
         folder = Path(tmp)
         path = copied(Path(args.hierarchy), folder)
         hierarchy = load_hierarchy(path)
-        levels_file = path.parent / f"{hierarchy.name}-upper" / f"{hierarchy.name}.levels.json"
+        levels_file = folder / "run.levels.json"          # beside up's --out
         print(f"{hierarchy.name}: {len(hierarchy.adns)} ADNs, {hierarchy.scenario.duration_s:g}"
               f" s; load {os.getloadavg()[0]:.1f} at the start; the tables first", flush=True)
         up_round(path, folder)
