@@ -167,7 +167,7 @@ def test_an_agent_given_a_level_of_another_config_is_one_line(ran, capsys) -> No
     assert "--levels and --level go together" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("flag", [["--clock", "realtime"], ["--secure"], ["--view", "x.rrd"],
+@pytest.mark.parametrize("flag", [["--clock", "realtime"], ["--speed", "2"], ["--view", "x.rrd"],
                                   ["--external", "cpfc"], ["--table", "t.json"]])
 def test_options_of_one_grid_are_refused_for_a_hierarchy_in_one_line(tmp_path, capsys,
                                                                      flag) -> None:
@@ -176,6 +176,21 @@ def test_options_of_one_grid_are_refused_for_a_hierarchy_in_one_line(tmp_path, c
     assert main(["up", str(tmp_path / "h.yaml"), *flag]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "is not for a hierarchy file" in err[0]
+
+
+def test_certificates_of_one_grid_are_not_a_hierarchys(tmp_path, capsys) -> None:
+    """A certificate directory made for one ADN's config lacks the levels' identities: one
+    line before anything is tuned or started, naming the command that makes them."""
+    (tmp_path / "h.yaml").write_text(HIERARCHY.format(mixed=EXAMPLES / "mixed-4.yaml")
+                                     .replace("wt-chp.yaml", str(EXAMPLES / "wt-chp.yaml")))
+    assert main(["certs", str(tmp_path / "certs"), "--config",
+                 str(EXAMPLES / "mixed-4.yaml")]) == 0
+    capsys.readouterr()
+    assert main(["up", str(tmp_path / "h.yaml"), "--certs", str(tmp_path / "certs")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no certificate of hv:cpfc; create them with 'adnmesh certs " \
+        f"{tmp_path / 'certs'} --config {tmp_path / 'h.yaml'}'" in err[0]
+    assert not (tmp_path / "hv-upper").exists()
 
 
 @pytest.mark.parametrize("restart, said", [
@@ -338,3 +353,77 @@ def test_a_site_restart_goes_in_time_order_and_releases_without_a_session_gone_f
     # the one gone for good is the injector's again; the ones back are, once it sees them
     assert fakes.launches[1].injector.planned_drops == {"cpfc"}
     assert site.restarts[1].state == "planned"
+
+
+def test_the_access_control_of_a_hierarchy_gives_each_level_its_own_keys(ran) -> None:
+    """The secure profile's rights over the hierarchy's topology: an agent is ``<grid>:<id>``
+    (a certificate of one level's CPFC is no other level's), its liveliness its grid's, and
+    the three routes that cross levels are the only rights across them."""
+    from adnmesh.runtime.acl import access_control, rights
+    from adnmesh.runtime.identity import check_identity
+
+    levels = load_levels(ran[0] / "run.levels.json")
+    found = rights(levels.topology)
+    cpfc, site = found["wtchp:cpfc"], found["hv:der/wtchp"]
+    assert cpfc.token == "adn/wtchp/alive/cpfc" and cpfc.watches == ("adn/wtchp/alive/up",)
+    assert "adn/wtchp/cpfc/actuator" in cpfc.publishes
+    assert all(k.startswith("adn/wtchp/") for k in cpfc.publishes)
+    assert "adn/hv/der/wtchp/offset" in cpfc.receives           # its offset from above
+    assert "adn/hv/der/wtchp/offset" in site.publishes and site.token == "adn/hv/alive/der/wtchp"
+    assert "adn/wtchp/measurement/exchange" in site.receives
+    assert "adn/wtchp/cpfc/actuator" in found["hv:cpfc"].receives
+    assert not any(k.startswith("adn/hv/") for k in found["mixed:cpfc"].publishes)
+    section = access_control(levels.topology, ["router/wtchp", "router/mixed"])
+    peer = next(r for r in section["rules"] if r["id"] == "router/mixed is sent")
+    assert peer["key_exprs"] == ["adn/hv/**", "adn/mixed/**", "adn/wtchp/**"]
+    assert check_identity("wtchp:der/SGen1") == "wtchp:der/SGen1"
+    with pytest.raises(Exception, match="not an identity"):
+        check_identity("wtchp:bogus")
+
+
+def test_a_secure_run_takes_nothing_from_one_levels_certificate_on_anothers_keys(tmp_path):
+    """The secure profile across sites (a certificate per agent as ``<grid>:<agent>`` and per
+    site router): mid-run, a session holding wtchp's CPFC certificate puts a valid P_Y and
+    P_ref of the upper level, and an offset for mixed, at ``up``'s router. The access control
+    drops them: the run sends exactly the in-process run's messages, and nothing reaches the
+    recorders."""
+    import zenoh
+
+    from adnmesh.runtime.bus import client_config
+    from payloads import BODIES, payload
+    from up_runs import end_all, wait_for_line
+
+    (tmp_path / "wt-chp.yaml").write_text((EXAMPLES / "wt-chp.yaml").read_text())
+    text = HIERARCHY.format(mixed=EXAMPLES / "mixed-4.yaml").replace("duration_s: 45",
+                                                                     "duration_s: 12")
+    text = text[:text.index("faults:")].replace(", {t_s: 14, delta_w: -0.5e+6}", "")
+    (tmp_path / "h.yaml").write_text(text)
+    assert main(["certs", str(tmp_path / "certs"), "--config", str(tmp_path / "h.yaml")]) == 0
+    up = subprocess.Popen([sys.executable, "-m", "adnmesh", "up", "h.yaml", "--certs", "certs",
+                           "--out", "run.mcap", "--summary-json", "s.json"], cwd=tmp_path,
+                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    lines = wait_for_line(up, "agents ready", 300)
+    endpoint = next(re.search(r"router on (tls/\S+)", x).group(1) for x in lines
+                    if "router on" in x)
+    forged = {"adn/hv/cpfc/p_y": BODIES["p_y"], "adn/hv/scenario/p_ref": BODIES["p_ref"],
+              "adn/hv/der/mixed/offset": BODIES["adn_offset"]}
+    with zenoh.open(client_config([endpoint], tmp_path / "certs", "wtchp:cpfc")) as rogue:
+        for key, body in forged.items():
+            rogue.put(key, payload(key, body, seq=10**6, t_send_ns=10**10))
+    (_, err), = end_all([up])
+    assert up.returncode == 0, "".join(lines) + err[-3000:]
+    summary = json.loads((tmp_path / "s.json").read_text())
+    assert {s["extra"]["profile"] for s in summary["levels"].values()} == {"secure"}
+    assert summary["levels"]["hv"]["extra"]["unexpected_sessions"] == 0
+    assert all(s["extra"]["rejected_by_recorder"] == 0 for s in summary["levels"].values())
+    recording = read_recording(tmp_path / "run.mcap")
+    assert not any(json.loads(m.data)["seq"] == 10**6 for m in recording.messages
+                   if m.topic in forged)
+    levels = load_levels(tmp_path / "run.levels.json")
+    upper = Level(levels.upper, levels.schedule("hv"), levels.lower_switch_rule())
+    run = run_hierarchy(upper, {a: Level(c, levels.schedule(a)) for a, c in
+                                levels.adns.items()}, levels.offset_delay_s)
+    expected = sorted(((k, p) for k, p in run.messages if "/clock/" not in k),
+                      key=lambda m: (json.loads(m[1])["t_deliver_ns"], m[0],
+                                     json.loads(m[1])["seq"]))
+    assert data_messages(recording) == expected

@@ -11,11 +11,9 @@ import contextlib
 import io
 import json
 import os
-import selectors
 import signal
 import subprocess
 import sys
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -37,10 +35,12 @@ from rogue import attack, forged_attacks, junk_on_own_keys, rogue_config
 from up_runs import (
     REPO,
     data_messages,
+    end_all,
     finish,
     processes_mentioning,
     start_long_run,
     up_argv,
+    wait_for_line,
     write_case,
 )
 
@@ -219,35 +219,6 @@ def start_split(tmp: Path, config: Path, table: Path, out: Path, *router_flags: 
                            ["agent", "measurement", str(config), "--connect", site, "--certs",
                             certs])]
     return up, others
-
-
-def end_all(processes) -> list[tuple[str, str]]:
-    """Wait (bounded) for every process; SIGKILL by PID what is left; their outputs."""
-    outputs = []
-    try:
-        for p in processes:
-            outputs.append(p.communicate(timeout=180))
-    finally:
-        for p in processes:
-            if p.poll() is None:
-                os.kill(p.pid, signal.SIGKILL)
-                p.wait()
-    return outputs
-
-
-def wait_for_line(proc: subprocess.Popen, text: str, timeout_s: float = 150) -> list[str]:
-    """Read ``proc``'s stderr until a line contains ``text`` (bounded); the lines read."""
-    lines = []
-    with selectors.DefaultSelector() as selector:
-        selector.register(proc.stderr, selectors.EVENT_READ)
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            if not selector.select(timeout=max(0.0, deadline - time.monotonic())):
-                break
-            lines.append(proc.stderr.readline())
-            if text in lines[-1] or not lines[-1]:
-                break
-    return lines
 
 
 @pytest.mark.slow

@@ -183,3 +183,32 @@ def finish(proc: subprocess.Popen, agents: set[int], config: Path) -> tuple[int,
     assert [pid for pid in agents if alive(pid)] == []
     assert processes_mentioning(str(config)) == []
     return proc.returncode, err
+
+
+def end_all(processes) -> list[tuple[str, str]]:
+    """Wait (bounded) for every process; SIGKILL by PID what is left; their outputs."""
+    outputs = []
+    try:
+        for p in processes:
+            outputs.append(p.communicate(timeout=180))
+    finally:
+        for p in processes:
+            if p.poll() is None:
+                os.kill(p.pid, signal.SIGKILL)
+                p.wait()
+    return outputs
+
+
+def wait_for_line(proc: subprocess.Popen, text: str, timeout_s: float = 150) -> list[str]:
+    """Read ``proc``'s stderr until a line contains ``text`` (bounded); the lines read."""
+    lines = []
+    with selectors.DefaultSelector() as selector:
+        selector.register(proc.stderr, selectors.EVENT_READ)
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if not selector.select(timeout=max(0.0, deadline - time.monotonic())):
+                break
+            lines.append(proc.stderr.readline())
+            if text in lines[-1] or not lines[-1]:
+                break
+    return lines

@@ -52,7 +52,7 @@ def main(argv: list[str] | None = None) -> int:
         watch = ModelWatch(config, keep_setpoints=config.runtime.model_watch == "retune")
     node = place.node(place.agent("cpfc", lambda: build_agent(
         "cpfc", config, schedule, q_schedule=q_schedule, model_watch=watch)), args.resume_at_ns)
-    with open_session(args, "cpfc") as session:
+    with open_session(args, place.identity("cpfc")) as session:
         return AgentProcess(session, node, config.grid,
                             publishers=args.certs is None).serve()
 

@@ -71,7 +71,7 @@ def main(argv: list[str] | None = None) -> int:
             der_agent_id(der), config, p_avail_w=p_avail_w, der_params=params, device=device))
         nodes.append(place.node(agent, args.resume_at_ns, topology))
     try:
-        with open_session(args, der_agent_id(ders[0])) as session:
+        with open_session(args, place.identity(der_agent_id(ders[0]))) as session:
             if len(nodes) > 1:
                 return serve_hosted(session, nodes, config.grid)
             return AgentProcess(session, nodes[0], config.grid,

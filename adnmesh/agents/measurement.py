@@ -23,7 +23,7 @@ def main(argv: list[str] | None = None) -> int:
     config = place.config
     node = place.node(place.agent("measurement", lambda: build_agent("measurement", config)),
                       args.resume_at_ns)
-    with open_session(args, "measurement") as session:
+    with open_session(args, place.identity("measurement")) as session:
         return AgentProcess(session, node, config.grid,
                             publishers=args.certs is None).serve()
 

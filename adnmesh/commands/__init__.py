@@ -20,8 +20,8 @@ from pathlib import Path
 from adnmesh.errors import UsageError
 from adnmesh.files import check_writable
 
-__all__ = ["add_config_argument", "add_quantity_argument", "input_file", "load_loop_config",
-           "output_path"]
+__all__ = ["add_config_argument", "add_quantity_argument", "certificate_directory", "input_file",
+           "load_loop_config", "output_path"]
 
 
 def add_config_argument(parser: argparse.ArgumentParser) -> None:
@@ -98,3 +98,22 @@ def der_id_list(config, text: str, option: str) -> list[str]:
     if unknown:
         raise UsageError(f"{option}: unknown DER id '{unknown[0]}' (known: {', '.join(known)})")
     return ids
+
+
+def certificate_directory(args: argparse.Namespace) -> Path | None:
+    """``up``'s certificate directory of the secure profile (``--secure``/``--certs``;
+    checked: it holds ``up``'s certificate), or None (open profile); the ``--listen``
+    endpoint must fit the profile."""
+    from adnmesh.runtime.identity import cert_files
+    from adnmesh.runtime.security import check_endpoints
+
+    secure = bool(args.secure or args.certs)
+    check_endpoints([args.listen] if args.listen else [], secure, flag="--listen")
+    if not secure:
+        return None
+    certs = Path(args.certs or "certs")
+    if not certs.is_dir():
+        raise UsageError(f"{certs}: no certificate directory; create it with 'adnmesh certs "
+                         f"{certs} --config {args.config}'")
+    cert_files(certs, "up").check()
+    return certs.resolve()

@@ -3,7 +3,8 @@
 Creates in DIR one CA and one key and certificate per identity (:mod:`adnmesh.runtime.certificates`):
 every agent of CONFIG (``cpfc``, ``measurement``, ``availability``, ``der/<id>`` per DER),
 ``up`` (router, recorder, clock) and ``operator`` (``adnmesh fault``); without CONFIG the
-identities that do not depend on it. ``--router NAME`` adds a site router (``router/NAME``),
+identities that do not depend on it. For a hierarchy file: every level's agents as
+``<grid>:<agent>`` and each ADN's site router ``router/<adn>`` (docs/hierarchy.md). ``--router NAME`` adds a site router (``router/NAME``),
 ``--host`` the host names and addresses routers are reached at. Keys are readable by their
 owner only; existing keys are kept unless ``--renew`` (those identities, signed by the same
 CA: the rotation of a certificate) or ``--force`` (everything, a new CA) says otherwise.
@@ -31,7 +32,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("directory", metavar="DIR", help="certificate directory (created)")
     parser.add_argument("--config", metavar="CONFIG",
                         help="config whose agents get certificates (without it: cpfc, "
-                        "measurement, availability, up, operator)")
+                        "measurement, availability, up, operator); a hierarchy file: every "
+                        "level's agents as <grid>:<agent> and each site's router")
     parser.add_argument("--router", metavar="NAME", action="append", default=[],
                         help="also a site router router/NAME (repeatable)")
     parser.add_argument("--host", metavar="HOST", action="append",
@@ -52,8 +54,10 @@ def run(args: argparse.Namespace) -> int:
     from adnmesh.names import LAUNCHER, OPERATOR, SINGLE_AGENT_KINDS
 
     if args.config:
-        from adnmesh.config import load_config
-        names = list(identities(load_config(args.config)))
+        from adnmesh.config import is_hierarchy_file, load_config, load_hierarchy
+        from adnmesh.runtime.identity import hierarchy_identities
+        names = list(hierarchy_identities(load_hierarchy(args.config))
+                     if is_hierarchy_file(args.config) else identities(load_config(args.config)))
     else:
         names = [*SINGLE_AGENT_KINDS, LAUNCHER, OPERATOR]
     names += [router_identity(n) for n in args.router]

@@ -38,22 +38,35 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--certs", metavar="DIR", help="secure profile: certificate directory")
     parser.add_argument("--until-run-ends", action="store_true",
                         help="exit when the run ends (up's liveliness is withdrawn)")
+    parser.add_argument("--levels", metavar="FILE",
+                        help="a site of a hierarchy's run: the levels file adnmesh up wrote "
+                        "(the access control covers every level; set by adnmesh up)")
     return parser
+
+
+def _topology(args: argparse.Namespace):
+    """The run's topology: the config's, or with ``--levels`` the hierarchy's (its upper
+    level's keys, each agent ``<grid>:<agent id>``)."""
+    from adnmesh.config import load_config
+    from adnmesh.sim.topology import Topology
+
+    if args.levels is None:
+        return Topology.from_config(load_config(args.config))
+    from adnmesh.sim.hierarchy_levels import load_levels
+    return load_levels(args.levels).topology
 
 
 def run(args: argparse.Namespace) -> int:
     """Run the router until told to stop."""
     import zenoh
 
-    from adnmesh.config import load_config
     from adnmesh.runtime import acl
     from adnmesh.runtime.bus import DEFAULT_HOST, free_port, router_config
     from adnmesh.runtime.identity import router_identity
     from adnmesh.runtime.process import die_with_parent
-    from adnmesh.sim.topology import Topology
     from adnmesh.names import LAUNCHER
 
-    topology = Topology.from_config(load_config(args.config))
+    topology = _topology(args)
     identity = router_identity(args.name)
     scheme = "tcp" if args.certs is None else "tls"
     listen = args.listen or [f"{scheme}/{DEFAULT_HOST}:{free_port()}"]

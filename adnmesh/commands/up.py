@@ -18,7 +18,8 @@ from pathlib import Path
 
 from rich.console import Console
 
-from adnmesh.commands import add_config_argument, comma_list, output_path
+from adnmesh.commands import (add_config_argument, certificate_directory, comma_list,
+                              output_path)
 from adnmesh.config import Config, load_config
 from adnmesh.errors import UsageError
 from adnmesh.reactive import reactive_view
@@ -168,24 +169,6 @@ def _check_devices(args: argparse.Namespace, config: Config) -> None:
                          "(at --speed 1)")
 
 
-def _certs(args: argparse.Namespace) -> Path | None:
-    """The certificate directory of the secure profile (checked), or None (open profile);
-    the ``--listen`` endpoint must fit the profile."""
-    from adnmesh.runtime.identity import cert_files
-    from adnmesh.runtime.security import check_endpoints
-
-    secure = bool(args.secure or args.certs)
-    check_endpoints([args.listen] if args.listen else [], secure, flag="--listen")
-    if not secure:
-        return None
-    certs = Path(args.certs or "certs")
-    if not certs.is_dir():
-        raise UsageError(f"{certs}: no certificate directory; create it with 'adnmesh certs "
-                         f"{certs} --config {args.config}'")
-    cert_files(certs, "up").check()
-    return certs.resolve()
-
-
 def run(args: argparse.Namespace) -> int:
     """Run the scenario; print the summary (also of a run that stopped early); return the
     exit code. A hierarchy file runs its levels (:mod:`adnmesh.commands.up_levels`)."""
@@ -211,7 +194,7 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"runtime.ders_per_process {config.runtime.ders_per_process} is for "
                          "the open profile: in the secure profile every DER process has its "
                          "own certificate (set it to 1, or run without --secure/--certs)")
-    certs = _certs(args)
+    certs = certificate_directory(args)
     external = external_agents(args.external, config)
     routers = tuple(comma_list(args.routers))
     if args.print_zenoh_config:

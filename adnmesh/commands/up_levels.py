@@ -44,7 +44,6 @@ __all__ = ["run_hierarchy"]
 _ONE_GRID_ONLY = (("clock", "realtime", "--clock realtime"), ("speed", None, "--speed"),
                   ("strict", True, "--strict"), ("rt_priority", None, "--rt-priority"),
                   ("external", None, "--external"), ("routers", None, "--routers"),
-                  ("secure", True, "--secure"), ("certs", None, "--certs"),
                   ("view", None, "--view"), ("table", None, "--table"),
                   ("q_table", None, "--q-table"),
                   ("print_zenoh_config", True, "--print-zenoh-config"))
@@ -57,8 +56,8 @@ def _check_options(args: argparse.Namespace) -> None:
         given = getattr(args, name, None)
         if given and (value is None or given == value):
             raise UsageError(f"{flag} is not for a hierarchy file (adnmesh up runs a hierarchy "
-                             "on the sim clock in the open profile; each level's table is "
-                             "found or tuned as for one grid)")
+                             "on the sim clock, every site a router of its own; each level's "
+                             "table is found or tuned as for one grid)")
     if not 0 <= args.stall_timeout <= 86400:
         raise UsageError(f"--stall-timeout must be in [0, 86400] s, got {args.stall_timeout:g}")
     if args.seed is not None and not 0 <= args.seed < 2**63:
@@ -69,6 +68,31 @@ def _check_options(args: argparse.Namespace) -> None:
     if args.listen is not None:
         from adnmesh.runtime.bus import check_listen
         check_listen(args.listen)
+
+
+def _secure(args: argparse.Namespace, hierarchy) -> Path | None:
+    """The certificate directory of the secure profile, every identity of the hierarchy's
+    run in it (:func:`~adnmesh.runtime.identity.hierarchy_identities`), or None (open)."""
+    from adnmesh.commands import certificate_directory
+    from adnmesh.config import load_config
+    from adnmesh.runtime.identity import cert_files, hierarchy_identities
+
+    certs = certificate_directory(args)
+    if certs is None:
+        return None
+    for adn in hierarchy.adns:
+        config = load_config(hierarchy.config_path(adn))
+        if config.runtime.ders_per_process > 1:
+            raise UsageError(f"{config.path}: runtime.ders_per_process "
+                             f"{config.runtime.ders_per_process} is for the open profile: "
+                             "in the secure profile every DER process has its own certificate")
+    for identity in hierarchy_identities(hierarchy):
+        try:
+            cert_files(certs, identity).check()
+        except UsageError:
+            raise UsageError(f"{certs}: no certificate of {identity}; create them with "
+                             f"'adnmesh certs {certs} --config {hierarchy.path}'") from None
+    return certs
 
 
 @dataclass(frozen=True)
@@ -144,9 +168,13 @@ def _upper_table(hierarchy, sites, upper, log):
     return table, path
 
 
-def _level_options(hierarchy, prepared, out: Path, args, run_id: str, log):
-    """The :class:`~adnmesh.runtime.launcher.UpOptions` of every level, the upper first."""
+def _level_options(hierarchy, prepared, out: Path, args, run_id: str, log,
+                   certs: Path | None):
+    """The :class:`~adnmesh.runtime.launcher.UpOptions` of every level, the upper first, and
+    the site routers (secure profile with ``certs``: mutual TLS on every link, the access
+    control of every level on every router, each router's certificate its own)."""
     from adnmesh.commands.fault import run_file_path
+    from adnmesh.runtime import acl
     from adnmesh.runtime.launcher import UpOptions
     from adnmesh.runtime.level_clock import SharedClock
     from adnmesh.sim.hierarchy_levels import load_levels
@@ -159,11 +187,14 @@ def _level_options(hierarchy, prepared, out: Path, args, run_id: str, log):
     topology = load_levels(file).topology
     clock = SharedClock(topology, ns(upper.config.scenario.duration_s), wake)
     ders = sum(len(level.config.ders) for level in (upper, *adns.values()))
+    sites = _sites(hierarchy, prepared.levels, certs, file)
+    routers = [f"router/{site.name}" for site in sites]
     common = dict(clock="sim", listen=args.listen, log=log, run_id=run_id, wake=wake,
                   shared_clock=clock, features=HIERARCHY, stall_timeout_s=args.stall_timeout,
                   startup_timeout_s=(60.0 + ders if args.startup_timeout is None
-                                     else args.startup_timeout))
-    sites = _sites(hierarchy, prepared.levels)
+                                     else args.startup_timeout), certs=certs,
+                  access_control=None if certs is None else acl.access_control(topology,
+                                                                               routers))
     endpoints = {a: s.endpoint for s in sites for a in s.members[upper.config.grid]}
     options = []
     for grid, level in ((upper.config.grid, upper), *adns.items()):
@@ -178,15 +209,17 @@ def _level_options(hierarchy, prepared, out: Path, args, run_id: str, log):
             available_w={} if level is upper else prepared.available[grid],
             agent_args=("--levels", str(file), "--level", grid),
             run_file=run_file_path(out) if level is upper else None, endpoints=endpoints,
+            watch_sessions=level is upper, identities=(*topology.agents, *routers),
             metadata={"run_id": run_id, "grid": grid, "hierarchy": str(hierarchy.path),
                       "table_sha256": hashlib.sha256(table.read_bytes()).hexdigest()},
             **common))
     return options, sites
 
 
-def _sites(hierarchy, levels):
+def _sites(hierarchy, levels, certs: Path | None, file: Path):
     """Each ADN's :class:`~adnmesh.runtime.site_router.SiteRouter`: its agents and the upper
-    level's site agent of it behind it, its planned restarts."""
+    level's site agent of it behind it, its planned restarts (secure profile: ``certs``, the
+    levels ``file`` for its access control)."""
     from adnmesh.names import der_agent_id
     from adnmesh.runtime.bus import DEFAULT_HOST, free_port
     from adnmesh.runtime.site_router import PlannedRestart, SiteRouter
@@ -200,10 +233,12 @@ def _sites(hierarchy, levels):
         agents = Topology.from_config(adns[adn.id].config, HIERARCHY).agents
         restarts = [PlannedRestart(ns(r.t_s), r.down_s) for r in hierarchy.site_restarts
                     if r.adn == adn.id]
+        scheme = "tcp" if certs is None else "tls"
         sites.append(SiteRouter(adn.id, hierarchy.config_path(adn),
-                                f"tcp/{DEFAULT_HOST}:{free_port()}",
+                                f"{scheme}/{DEFAULT_HOST}:{free_port()}",
                                 {adn.id: tuple(agents),
-                                 upper.config.grid: (der_agent_id(adn.id),)}, restarts))
+                                 upper.config.grid: (der_agent_id(adn.id),)}, restarts,
+                                certs, None if certs is None else file))
     return sites
 
 
@@ -214,6 +249,7 @@ def run_hierarchy(args: argparse.Namespace) -> int:
 
     hierarchy = load_hierarchy(args.config)
     _check_options(args)
+    certs = _secure(args, hierarchy)
     err, log = _say()
     run_id = f"{hierarchy.name}-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"
     out = output_path(Path(args.out) if args.out else Path("logs") / f"{run_id}.mcap", "--out")
@@ -221,10 +257,12 @@ def run_hierarchy(args: argparse.Namespace) -> int:
         output_path(args.summary_json, "--summary-json")
     work = hierarchy.path.parent / f"{hierarchy.name}-upper"
     output_path(work, "the upper level's directory", directory=True)
-    log(f"{hierarchy.name}: {len(hierarchy.adns)} ADNs under one upper level")
+    log(f"{hierarchy.name}: {len(hierarchy.adns)} ADNs under one upper level"
+        + ("" if certs is None else " (secure: mutual TLS, access control, a certificate per "
+           "agent and site router)"))
     with numerics_said(hierarchy):
         prepared = _prepare(hierarchy, work, out, run_id, log)
-    options, sites = _level_options(hierarchy, prepared, out, args, run_id, log)
+    options, sites = _level_options(hierarchy, prepared, out, args, run_id, log, certs)
     log(f"sites: {', '.join(f'{s.name} on {s.endpoint}' for s in sites)}, linked to up's "
         "router")
     results = _launch(options, sites, err, args.progress)

@@ -38,6 +38,7 @@ from dataclasses import dataclass
 
 from adnmesh.names import LAUNCHER, OPERATOR
 from adnmesh.sim.topology import Topology
+from adnmesh.wire.keys import Keys
 
 __all__ = ["Rights", "access_control", "launcher_keys", "rights"]
 
@@ -78,13 +79,31 @@ def launcher_keys(topology: Topology) -> tuple[str, ...]:
 def rights(topology: Topology) -> dict[str, Rights]:
     """The rights of every client identity of a run (agents and ``operator``), by identity:
     what the protocol table has it send and receive (:mod:`adnmesh.wire.protocol`); the
-    operator also hears ``up``'s events, where ``up`` answers its requests."""
+    operator also hears ``up``'s events, where ``up`` answers its requests. In a hierarchy's
+    topology an agent is ``<grid>:<agent id>``, its liveliness that of its grid."""
     keys = topology.keys
-    found = {agent: Rights(agent, topology.sends(agent), topology.gets(agent),
-                           keys.liveliness(agent), (keys.liveliness(LAUNCHER),))
-             for agent in topology.agents}
+    found = {}
+    for agent in topology.agents:
+        own = _grid_keys(topology, agent)
+        found[agent] = Rights(agent, topology.sends(agent), topology.gets(agent),
+                              own.liveliness(_local(agent)), (own.liveliness(LAUNCHER),))
     found[OPERATOR] = Rights(OPERATOR, topology.sends(OPERATOR), (keys.of("event", LAUNCHER),))
     return found
+
+
+def _local(agent: str) -> str:
+    """The agent id of a (possibly ``<grid>:``-qualified) agent name."""
+    return agent.split(":", 1)[1] if ":" in agent else agent
+
+
+def _grid_keys(topology: Topology, agent: str) -> Keys:
+    """The keys of the grid of ``agent`` (a hierarchy's name ``<grid>:<agent id>``)."""
+    return Keys(agent.split(":", 1)[0]) if ":" in agent else topology.keys
+
+
+def _all_keys(topology: Topology) -> list[str]:
+    """``adn/<grid>/**`` of every grid of the run (one, or a hierarchy's levels)."""
+    return sorted({_grid_keys(topology, a).all for a in topology.agents} | {topology.keys.all})
 
 
 def access_control(topology: Topology, peers=()) -> dict:
@@ -122,17 +141,17 @@ def access_control(topology: Topology, peers=()) -> dict:
                   r.watches),
             allow(r.identity, "is told", _EGRESS, ["liveliness_token"], r.watches),
         ])
-    everything = topology.keys.all
+    everything = _all_keys(topology)
     every_key = _every_key(topology)
     for peer in dict.fromkeys(peers):
         own = set(launcher_keys(topology))
         carried = every_key if peer == LAUNCHER else [k for k in every_key if k not in own]
-        tokens = [everything] if peer == LAUNCHER else [
-            topology.keys.liveliness(a) for a in topology.agents]
+        tokens = everything if peer == LAUNCHER else [
+            _grid_keys(topology, a).liveliness(_local(a)) for a in topology.agents]
         subject(peer, [
             allow(peer, "forwards", _INGRESS, ["put"], carried),
-            allow(peer, "is sent", _EGRESS, ["put", "liveliness_token"], [everything]),
-            allow(peer, "declares", ["ingress", "egress"], _PEER_DECLARATIONS, [everything]),
+            allow(peer, "is sent", _EGRESS, ["put", "liveliness_token"], everything),
+            allow(peer, "declares", ["ingress", "egress"], _PEER_DECLARATIONS, everything),
             allow(peer, "forwards tokens", _INGRESS, ["liveliness_token"], tokens),
         ])
     return {"enabled": True, "default_permission": "deny", "rules": rules,

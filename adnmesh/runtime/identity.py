@@ -1,7 +1,8 @@
 """Identities of the secure profile, and where their certificates are.
 
 An **identity** is who a process is on the bus: an agent id (``cpfc``, ``measurement``,
-``availability``, ``der/<id>``), ``up`` (``adnmesh up``: router, recorder, clock), ``operator``
+``availability``, ``der/<id>``; in a hierarchy's run ``<grid>:<agent id>``, for agent ids repeat
+across its levels), ``up`` (``adnmesh up``: router, recorder, clock), ``operator``
 (``adnmesh fault``) or ``router/<name>`` (a site router, ``adnmesh router``). It is the
 certificate's common name (CN), which Zenoh's access control matches
 (:mod:`adnmesh.runtime.acl`), and the file name below the certificate directory::
@@ -22,12 +23,14 @@ from pathlib import Path
 from adnmesh.errors import UsageError
 from adnmesh.names import AGENT_PATTERN, AGENTS_IN_WORDS, ID_PATTERN, LAUNCHER, OPERATOR, agent_ids
 
-__all__ = ["CA", "CertFiles", "cert_files", "check_identity", "identities", "router_identity"]
+__all__ = ["CA", "CertFiles", "cert_files", "check_identity", "hierarchy_identities",
+           "identities", "router_identity"]
 
 CA = "ca"
 """File stem of the CA's certificate and key."""
 
-_IDENTITY = re.compile(rf"^(?:{AGENT_PATTERN}|{LAUNCHER}|{OPERATOR}|router/{ID_PATTERN})$")
+_IDENTITY = re.compile(rf"^(?:(?:{ID_PATTERN}:)?{AGENT_PATTERN}|{LAUNCHER}|{OPERATOR}|"
+                       rf"router/{ID_PATTERN})$")
 
 
 def router_identity(name: str) -> str:
@@ -38,14 +41,28 @@ def router_identity(name: str) -> str:
 def check_identity(identity: str) -> str:
     """``identity`` if it is one (see the module docstring); else a :class:`UsageError`."""
     if len(identity) > 80 or not _IDENTITY.match(identity):
-        raise UsageError(f"not an identity: {identity!r} ({AGENTS_IN_WORDS}, {LAUNCHER}, "
-                         f"{OPERATOR}, router/<name>)")
+        raise UsageError(f"not an identity: {identity!r} ({AGENTS_IN_WORDS}, each also as "
+                         f"<grid>:<agent> in a hierarchy, {LAUNCHER}, {OPERATOR}, "
+                         "router/<name>)")
     return identity
 
 
 def identities(config) -> tuple[str, ...]:
     """Every identity a run of ``config`` needs: its agents, ``up`` and ``operator``."""
     return (*agent_ids(config.der_ids()), LAUNCHER, OPERATOR)
+
+
+def hierarchy_identities(hierarchy) -> tuple[str, ...]:
+    """Every identity ``adnmesh up`` of ``hierarchy`` needs: each level's agents as
+    ``<grid>:<agent>`` (the upper grid's DERs are its ADNs' site agents), each ADN's site
+    router ``router/<adn>``, ``up`` and ``operator``."""
+    from adnmesh.config import load_config
+
+    upper = [f"{hierarchy.name}:{a}" for a in agent_ids(a.id for a in hierarchy.adns)]
+    lower = [f"{adn.id}:{a}" for adn in hierarchy.adns
+             for a in agent_ids(load_config(hierarchy.config_path(adn)).der_ids())]
+    routers = [router_identity(adn.id) for adn in hierarchy.adns]
+    return (*upper, *lower, *routers, LAUNCHER, OPERATOR)
 
 
 @dataclass(frozen=True)

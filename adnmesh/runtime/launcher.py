@@ -168,6 +168,15 @@ class UpOptions:
     endpoints : dict
         Agent id -> the router its process connects to (its site's,
         :mod:`adnmesh.runtime.site_router`; default: ``up``'s).
+    access_control : dict, optional
+        Secure profile: the router's access control (a hierarchy's, over every level; default
+        derived from the config's topology and ``routers``).
+    identities : tuple of str, optional
+        Secure profile: who may link to the router, for :class:`SessionWatch` (default: the
+        config's agents and ``routers``); with several levels only the lead watches (None
+        elsewhere: ``watch_sessions``).
+    watch_sessions : bool
+        Count the router's links (the lead level of a hierarchy only: one router).
     """
 
     config: Config
@@ -198,6 +207,9 @@ class UpOptions:
     shared_clock: object | None = None
     wake: threading.Event | None = None
     endpoints: dict = field(default_factory=dict)
+    access_control: dict | None = None
+    identities: tuple | None = None
+    watch_sessions: bool = True
 
 
 @dataclass
@@ -275,7 +287,8 @@ class _Launch:
         self.roster = Roster(self.topology.agents, options.wake)
         self.children = AgentProcesses(options.external)
         self.peers = tuple(router_identity(n) for n in options.routers)
-        self.sessions = SessionWatch((*self.topology.agents, *self.peers))
+        self.sessions = SessionWatch(options.identities if options.identities is not None
+                                     else (*self.topology.agents, *self.peers))
         self.interrupted: list[int] = []
         self.recorder = Recorder(options.out, metadata=_metadata(options),
                                  schemas=recording_schemas(), events_topic=f"{self.keys.root}/log",
@@ -329,7 +342,8 @@ class _Launch:
                                                     _weak_callback(self.on_alive),
                                                     history=True),
         ]
-        self.sessions.declare(session)
+        if self.options.watch_sessions:
+            self.sessions.declare(session)
         self._token = session.liveliness().declare_token(self.keys.liveliness("up"))
         if self.options.run_file is not None:
             certs = self.options.certs
@@ -575,7 +589,10 @@ def embedded_router_config(options: UpOptions, endpoint: str) -> zenoh.Config:
 
 
 def _access_control(options: UpOptions) -> dict:
-    """The router's access control: the topology's rules, the site routers as peers."""
+    """The router's access control: the topology's rules, the site routers as peers (or the
+    one given, a hierarchy's)."""
+    if options.access_control is not None:
+        return options.access_control
     return acl.access_control(Topology.from_config(options.config),
                               [router_identity(n) for n in options.routers])
 

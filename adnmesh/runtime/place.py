@@ -49,6 +49,14 @@ class Place:
             return make()
         return self.levels.schedule(self.config.grid)
 
+    def identity(self, agent_id: str) -> str:
+        """Who the agent is on the bus (its certificate in the secure profile): its id, or in
+        a hierarchy ``<grid>:<agent id>`` (agent ids repeat across the levels)."""
+        if self.levels is None:
+            return agent_id
+        from adnmesh.sim.hierarchy_topology import qualified
+        return qualified(self.config.grid, agent_id)
+
     def topology(self):
         """The topology of one process's agents (None: each node takes its config's)."""
         return None if self.levels is None else self.levels.topology

@@ -76,10 +76,16 @@ class SiteRouter:
     config : Path
         The ADN's config file (the router's access control derives from it).
     endpoint : str
-        Where it listens (its agents connect there), ``tcp/127.0.0.1:<port>``.
+        Where it listens (its agents connect there), ``tcp/127.0.0.1:<port>`` (``tls/`` in the
+        secure profile).
     members : dict
         Grid -> the agent ids of that level behind this router.
     restarts : list of PlannedRestart
+    certs : Path, optional
+        The secure profile's certificate directory (its own ``router/<name>``; the access
+        control of the hierarchy's levels file on its clients).
+    levels : Path, optional
+        The levels file (the hierarchy's topology, for the access control).
     """
 
     name: str
@@ -87,6 +93,8 @@ class SiteRouter:
     endpoint: str
     members: dict[str, tuple[str, ...]]
     restarts: list[PlannedRestart] = field(default_factory=list)
+    certs: Path | None = None
+    levels: Path | None = None
     proc: subprocess.Popen | None = None
     upstream: str = ""
     said: list[str] = field(default_factory=list)     # its last lines on stderr
@@ -97,6 +105,9 @@ class SiteRouter:
         self.upstream = upstream
         argv = [sys.executable, "-m", "adnmesh", "router", str(self.config), "--name",
                 self.name, "--connect", upstream, "--listen", self.endpoint]
+        for flag, path in (("--certs", self.certs), ("--levels", self.levels)):
+            if path is not None:
+                argv += [flag, str(path)]
         self.proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                                      stderr=subprocess.PIPE, text=True, start_new_session=True,
                                      env=dict(os.environ, **{PARENT_ENV: str(os.getpid())}))
