@@ -41,6 +41,10 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--levels", metavar="FILE",
                         help="a site of a hierarchy's run: the levels file adnmesh up wrote "
                         "(the access control covers every level; set by adnmesh up)")
+    parser.add_argument("--record", metavar="FILE",
+                        help="with --levels and --run-id: also record what the site's agents "
+                        "(ADN NAME's and the upper level's der/NAME) publish, to FILE (MCAP)")
+    parser.add_argument("--run-id", metavar="ID", help="with --record: the run's id")
     return parser
 
 
@@ -54,6 +58,27 @@ def _topology(args: argparse.Namespace):
         return Topology.from_config(load_config(args.config))
     from adnmesh.sim.hierarchy_levels import load_levels
     return load_levels(args.levels).topology
+
+
+def _site_recorder(args: argparse.Namespace):
+    """The site's recorder of ``--record`` (:mod:`adnmesh.runtime.site_recorder`), or None."""
+    from adnmesh.errors import UsageError
+
+    if args.record is None:
+        if args.run_id is not None:
+            raise UsageError("--run-id is for --record")
+        return None
+    if args.levels is None or args.run_id is None:
+        raise UsageError("--record needs --levels and --run-id (a site of a hierarchy's run)")
+    from adnmesh.commands import output_path
+    from adnmesh.runtime.site_recorder import SiteRecorder
+    from adnmesh.sim.hierarchy_levels import load_levels
+
+    levels = load_levels(args.levels)
+    if args.name not in levels.adns:
+        raise UsageError(f"--record: {args.name} is no ADN of {args.levels} (known: "
+                         f"{', '.join(levels.adns)})")
+    return SiteRecorder(output_path(args.record, "--record"), levels, args.name, args.run_id)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -83,15 +108,20 @@ def run(args: argparse.Namespace) -> int:
             done.set()
 
     die_with_parent()     # a site router adnmesh up started ends with it
+    recorder = _site_recorder(args)
     try:
         session = zenoh.open(config)
     except zenoh.ZError as exc:
         print(f"adnmesh router {identity}: cannot start: {str(exc).split(' at ')[0]}",
               file=sys.stderr)
+        if recorder is not None:
+            recorder.close()
         return 1
     previous = {s: signal.signal(s, lambda *_: done.set()) for s in (signal.SIGINT,
                                                                     signal.SIGTERM)}
     try:
+        if recorder is not None:
+            recorder.declare(session)
         watcher = session.liveliness().declare_subscriber(
             topology.keys.liveliness(LAUNCHER), on_up, history=True)
         print(f"adnmesh router {identity}: listening on {', '.join(listen)}, linked to "
@@ -100,6 +130,8 @@ def run(args: argparse.Namespace) -> int:
             pass
         watcher.undeclare()
     finally:
+        if recorder is not None:
+            recorder.close()
         session.close()
         for signum, handler in previous.items():
             signal.signal(signum, handler)

@@ -17,8 +17,10 @@ grid: every agent of every level its own process, a Zenoh client of the embedded
    (``<out stem>.<level>.mcap`` beside ``--out``), roster, faults (the hierarchy file's for the
    upper level, each ADN's own), counts verified per level; one clock for all
    (:mod:`adnmesh.runtime.level_clock`).
-4. The levels' recordings merged into ``--out`` (:mod:`adnmesh.recording.merge`: ``inspect``,
-   ``plot``, ``export`` and ``replay`` take it, ``--grid`` for a level), and a summary per level
+4. The levels' recordings and each site's (``<out stem>.site-<adn>.mcap``, what its agents
+   published, recorded by its router: :mod:`adnmesh.runtime.site_recorder`) merged into
+   ``--out``, each message once (:mod:`adnmesh.recording.merge`: ``inspect``, ``plot``,
+   ``export`` and ``replay`` take it, ``--grid`` for a level), and a summary per level
    (``--summary-json``: ``{"run_id", "levels": {grid: summary}}``).
 """
 
@@ -188,6 +190,8 @@ def _level_options(hierarchy, prepared, out: Path, args, run_id: str, log,
     clock = SharedClock(topology, ns(upper.config.scenario.duration_s), wake)
     ders = sum(len(level.config.ders) for level in (upper, *adns.values()))
     sites = _sites(hierarchy, prepared.levels, certs, file)
+    for site in sites:
+        site.record_to, site.run_id = out, run_id
     routers = [f"router/{site.name}" for site in sites]
     common = dict(clock="sim", listen=args.listen, log=log, run_id=run_id, wake=wake,
                   shared_clock=clock, features=HIERARCHY, stall_timeout_s=args.stall_timeout,
@@ -238,7 +242,7 @@ def _sites(hierarchy, levels, certs: Path | None, file: Path):
                                 f"{scheme}/{DEFAULT_HOST}:{free_port()}",
                                 {adn.id: tuple(agents),
                                  upper.config.grid: (der_agent_id(adn.id),)}, restarts,
-                                certs, None if certs is None else file))
+                                certs, file))
     return sites
 
 
@@ -266,7 +270,7 @@ def run_hierarchy(args: argparse.Namespace) -> int:
     log(f"sites: {', '.join(f'{s.name} on {s.endpoint}' for s in sites)}, linked to up's "
         "router")
     results = _launch(options, sites, err, args.progress)
-    return _report(args, options, results, out, run_id, log)
+    return _report(args, options, results, sites, out, run_id, log)
 
 
 def _launch(options, sites, err, progress: bool):
@@ -285,8 +289,9 @@ def _launch(options, sites, err, progress: bool):
         return run_levels(options, sites)
 
 
-def _report(args, options, results, out: Path, run_id: str, log) -> int:
-    """Problems, the merged recording and each level's summary; return the exit code."""
+def _report(args, options, results, sites, out: Path, run_id: str, log) -> int:
+    """Problems, the merged recording (every level's, and what each site recorded) and each
+    level's summary; return the exit code."""
     from adnmesh.commands.up_summary import print_summary, run_summary, write_summary_json
     from adnmesh.recording.merge import describe, merge_recordings
 
@@ -296,6 +301,7 @@ def _report(args, options, results, out: Path, run_id: str, log) -> int:
             log(f"{o.config.grid}: {problem}")
     written = [o.out for o, r in zip(options, results) if not r.recording_failed]
     if len(written) == len(options):
+        written += [path for site in sites for path in site.recordings if path.exists()]
         try:
             log(describe(merge_recordings(written, out), out))
         except (ConfigError, UsageError, OSError, ValueError) as exc:

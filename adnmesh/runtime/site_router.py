@@ -85,7 +85,13 @@ class SiteRouter:
         The secure profile's certificate directory (its own ``router/<name>``; the access
         control of the hierarchy's levels file on its clients).
     levels : Path, optional
-        The levels file (the hierarchy's topology, for the access control).
+        The levels file (the hierarchy's topology: the access control, the site's recording).
+    record_to : Path, optional
+        Record what the site's agents publish (:mod:`adnmesh.runtime.site_recorder`) beside
+        this recording: ``<stem>.site-<name>.mcap``, ``<stem>.site-<name>.1.mcap`` after a
+        restart...; ``recordings`` lists them.
+    run_id : str
+        The run's id (in the site's recordings).
     """
 
     name: str
@@ -95,6 +101,9 @@ class SiteRouter:
     restarts: list[PlannedRestart] = field(default_factory=list)
     certs: Path | None = None
     levels: Path | None = None
+    record_to: Path | None = None
+    run_id: str = ""
+    recordings: list[Path] = field(default_factory=list)
     proc: subprocess.Popen | None = None
     upstream: str = ""
     said: list[str] = field(default_factory=list)     # its last lines on stderr
@@ -108,6 +117,11 @@ class SiteRouter:
         for flag, path in (("--certs", self.certs), ("--levels", self.levels)):
             if path is not None:
                 argv += [flag, str(path)]
+        if self.record_to is not None:
+            n = len(self.recordings)
+            self.recordings.append(self.record_to.with_name(
+                f"{self.record_to.stem}.site-{self.name}{f'.{n}' if n else ''}.mcap"))
+            argv += ["--record", str(self.recordings[-1]), "--run-id", self.run_id]
         self.proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                                      stderr=subprocess.PIPE, text=True, start_new_session=True,
                                      env=dict(os.environ, **{PARENT_ENV: str(os.getpid())}))

@@ -83,17 +83,23 @@ class RecorderTap:
         The run's current time, ns, for rejected payloads that carry no usable times.
     view : adnmesh.results.live.LiveView, optional
         Also gets every message recorded (``up --view``: queued, sent to Rerun elsewhere).
+    weigh_reports : bool
+        Reject a clock report that claims messages this tap never saw (``implausible``: the
+        clock's protection, default). A site's recorder (:mod:`adnmesh.runtime.site_recorder`)
+        only witnesses, and may have missed a first message of a session the clock's tap saw.
     """
 
     def __init__(self, recorder, topology: Topology, series: RunSeries,
                  now_ns: Callable[[], int], view=None,
                  clock_reach_ns: Callable[[str], int | None] | None = None,
-                 on_suspect: Callable[[str, str, str], None] | None = None) -> None:
+                 on_suspect: Callable[[str, str, str], None] | None = None,
+                 weigh_reports: bool = True) -> None:
         self.recorder = recorder
         self.view = view
         self.series = series
         self._now_ns = now_ns
         self._on_suspect = on_suspect
+        self._weigh_reports = weigh_reports
         self.rejected_key = f"{topology.keys.root}/rejected"
         self._agents = frozenset(topology.agents)
         self._report_key = lambda agent: topology.keys.of("clock_report", agent)
@@ -187,13 +193,13 @@ class RecorderTap:
                 continue
             tally = self._unreported.setdefault(sender, {})
             over = [k for k, (count, _) in message.sent.items() if count > tally.get(k, 0)]
-            if over:
+            if over and self._weigh_reports:
                 count_reject(self._gate.rejected, key, "implausible")
                 rejects.append(SampleReject("implausible", f"reports messages on {over[0]} "
                                             "that the recorder never saw", payload, 1))
                 continue
             for k, (count, _) in message.sent.items():
-                tally[k] -= count
+                tally[k] = tally.get(k, 0) - count
             kept.append((payload, message))
         return kept, rejects
 

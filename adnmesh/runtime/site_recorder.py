@@ -1,0 +1,103 @@
+"""A site's own recording: what the agents behind a site router publish, recorded at the site
+(``adnmesh router --record FILE``, started so by ``adnmesh up`` of a hierarchy;
+docs/hierarchy.md#sites).
+
+``up`` records every level of a run at the top. A site router with ``--record`` also records
+what its own clients publish -- its ADN's agents and the upper level's site agent of it --
+validated and written as ``up``'s recorder does (:class:`~adnmesh.runtime.tap.RecorderTap`, one
+per level, on that level's topology), into a recording of the same run (its ``run_id``), so
+that every message is recorded somewhere even if the site were cut off from the top;
+``adnmesh merge`` (as ``up`` does at the end) takes each message once. ``up``'s own messages
+(grants, the start) are ``up``'s to record. A router killed (a planned restart) leaves its file
+unfinished, which :func:`~adnmesh.recording.read_recording` recovers; the router started
+again records to a file of its own.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+from pathlib import Path
+
+import zenoh
+
+from adnmesh import __version__
+from adnmesh.names import der_agent_id
+from adnmesh.recording import Recorder
+from adnmesh.sim.hierarchy_topology import HIERARCHY
+from adnmesh.sim.topology import Topology
+
+__all__ = ["SiteRecorder"]
+
+_QUEUE = 65536      # samples queued for the recording thread (then the router's thread waits)
+FLUSH_S = 0.25
+"""How often the site's recording is put on disk, wall s: what a site router killed loses."""
+
+
+class SiteRecorder:
+    """The recording of site ``adn`` of a hierarchy's run (see the module docstring).
+
+    Parameters
+    ----------
+    path : Path
+        The MCAP file to write.
+    levels : adnmesh.sim.hierarchy_levels.Levels
+        The hierarchy.
+    adn : str
+        The site's ADN id.
+    run_id : str
+        The run's id (``adnmesh merge`` joins only one run's recordings).
+    """
+
+    def __init__(self, path: Path, levels, adn: str, run_id: str) -> None:
+        from adnmesh.results.summary import RunSeries
+        from adnmesh.runtime.tap import RecorderTap, recording_schemas
+
+        upper = levels.upper.grid
+        run = {"run_id": run_id, "grid": adn, "site": f"router/{adn}", "clock": "sim",
+               "adnmesh_version": __version__}
+        self.recorder = Recorder(path, schemas=recording_schemas(), metadata=run,
+                                 flush_interval_s=FLUSH_S)
+        own = {adn: Topology.from_config(levels.adns[adn], HIERARCHY),
+               upper: Topology.from_config(levels.upper, HIERARCHY)}
+        members = {adn: own[adn].agents, upper: (der_agent_id(adn),)}
+        self.keys = sorted({k for grid, agents in members.items() for a in agents
+                            for k in own[grid].sends(a)})
+        self.taps = {grid: RecorderTap(self.recorder, t, RunSeries(), lambda: 0,
+                                       weigh_reports=False)   # a witness, not the clock's
+                     for grid, t in own.items()}
+        self._handles: list = []
+        self._queue: queue.Queue = queue.Queue(_QUEUE)
+        self._thread: threading.Thread | None = None
+
+    def declare(self, session: zenoh.Session) -> None:
+        """Subscribe to the keys the site's agents publish; record on a thread of its own, in
+        the order the samples came (one queue for every key)."""
+        def on_sample(sample: zenoh.Sample) -> None:
+            attachment = sample.attachment
+            self._queue.put((str(sample.key_expr), sample.payload.to_bytes(),
+                             None if attachment is None else attachment.to_bytes()))
+
+        for key in self.keys:
+            self._handles.append(session.declare_subscriber(key, on_sample))
+        self._thread = threading.Thread(target=self._record, daemon=True,
+                                        name="adnmesh-site-recorder")
+        self._thread.start()
+
+    def _record(self) -> None:
+        while (item := self._queue.get()) is not None:
+            key, payload, attachment = item
+            tap = self.taps[key.split("/")[1]]
+            tap.take(key, payload)
+            if attachment is not None:
+                tap.take_attached(key, attachment)
+
+    def close(self) -> None:
+        """Stop recording and finish the file."""
+        for handle in self._handles:
+            handle.undeclare()
+        self._handles = []
+        if self._thread is not None:
+            self._queue.put(None)
+            self._thread.join(10.0)
+        self.recorder.close()
