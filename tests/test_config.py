@@ -21,7 +21,10 @@ from adnmesh.cli import main
 from adnmesh.config import PT1_RISE_TIME_FACTOR, Config, ConfigFile, load_config, load_hierarchy
 from adnmesh.errors import ConfigError
 
-_ALL = sorted((Path(__file__).resolve().parent.parent / "configs").rglob("*.yaml"))
+_CONFIGS_DIR = Path(__file__).resolve().parent.parent / "configs"
+_ALL = sorted(p for p in _CONFIGS_DIR.rglob("*.yaml")       # not what a run wrote there: the
+              if not any(part.endswith("-upper")           # upper level of adnmesh cascade
+                         for part in p.relative_to(_CONFIGS_DIR).parts))   # or up (git-ignored)
 #: hierarchy files (adnmesh cascade) live in configs/examples/hierarchy/
 HIERARCHIES = [p for p in _ALL if p.parent.name == "hierarchy"]
 CONFIGS = [p for p in _ALL if p not in HIERARCHIES]
