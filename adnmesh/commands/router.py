@@ -1,4 +1,5 @@
-"""``adnmesh router CONFIG --name NAME --connect ENDPOINT [--listen ENDPOINT] [--certs DIR]``.
+"""``adnmesh router CONFIG --name NAME --connect ENDPOINT [--listen ENDPOINT] [--certs DIR]
+[--levels FILE [--record FILE --run-id ID]]``.
 
 A site router: a Zenoh router session (no daemon) on another host, linked to ``adnmesh up``'s
 router; the agents of that site (``adnmesh agent ... --connect`` this router's endpoint) reach
@@ -7,6 +8,10 @@ only clients with certificates of the run's CA and enforces the same access cont
 ``up``'s router on them (:mod:`adnmesh.runtime.acl`; ``up`` is its peer); ``up`` must be told
 of it (``adnmesh up --routers NAME``). Runs until SIGINT/SIGTERM, or with ``--until-run-ends``
 until ``up``'s liveliness, once seen, is withdrawn.
+
+As the site of ADN NAME in a hierarchy's run (``--levels``, set by ``adnmesh up``): only that
+site's agents may be its clients, and ``--record`` also records what they publish
+(:mod:`adnmesh.runtime.site_recorder`).
 """
 
 from __future__ import annotations
@@ -48,16 +53,26 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     return parser
 
 
-def _topology(args: argparse.Namespace):
-    """The run's topology: the config's, or with ``--levels`` the hierarchy's (its upper
-    level's keys, each agent ``<grid>:<agent id>``)."""
+def _access_control(args: argparse.Namespace):
+    """``(topology, access control)`` of the router: the config's run, or with ``--levels`` a
+    site of the hierarchy's (its agents ``<grid>:<agent id>``; only the site's own may be its
+    clients)."""
     from adnmesh.config import load_config
+    from adnmesh.errors import UsageError
+    from adnmesh.names import LAUNCHER
+    from adnmesh.runtime import acl
     from adnmesh.sim.topology import Topology
 
     if args.levels is None:
-        return Topology.from_config(load_config(args.config))
+        topology = Topology.from_config(load_config(args.config))
+        return topology, acl.access_control(topology, [LAUNCHER])
     from adnmesh.sim.hierarchy_levels import load_levels
-    return load_levels(args.levels).topology
+    levels = load_levels(args.levels)
+    if args.name not in levels.adns:
+        raise UsageError(f"--levels: {args.name} is no ADN of {args.levels} (known: "
+                         f"{', '.join(levels.adns)})")
+    return levels.topology, acl.access_control(levels.topology, [LAUNCHER],
+                                               clients=levels.site_members(args.name))
 
 
 def _site_recorder(args: argparse.Namespace):
@@ -74,29 +89,32 @@ def _site_recorder(args: argparse.Namespace):
     from adnmesh.runtime.site_recorder import SiteRecorder
     from adnmesh.sim.hierarchy_levels import load_levels
 
-    levels = load_levels(args.levels)
-    if args.name not in levels.adns:
-        raise UsageError(f"--record: {args.name} is no ADN of {args.levels} (known: "
-                         f"{', '.join(levels.adns)})")
-    return SiteRecorder(output_path(args.record, "--record"), levels, args.name, args.run_id)
+    if not args.run_id.strip():
+        raise UsageError("--run-id must name the run")
+    path = output_path(args.record, "--record")
+    try:
+        return SiteRecorder(path, load_levels(args.levels), args.name, args.run_id)
+    except OSError as exc:        # a full disk: the site runs on, unrecorded here (up records)
+        print(f"adnmesh router router/{args.name}: not recording to {path}: "
+              f"{exc.strerror or exc}", file=sys.stderr, flush=True)
+        return None
 
 
 def run(args: argparse.Namespace) -> int:
     """Run the router until told to stop."""
     import zenoh
 
-    from adnmesh.runtime import acl
     from adnmesh.runtime.bus import DEFAULT_HOST, free_port, router_config
     from adnmesh.runtime.identity import router_identity
     from adnmesh.runtime.process import die_with_parent
     from adnmesh.names import LAUNCHER
 
-    topology = _topology(args)
+    topology, access = _access_control(args)
     identity = router_identity(args.name)
     scheme = "tcp" if args.certs is None else "tls"
     listen = args.listen or [f"{scheme}/{DEFAULT_HOST}:{free_port()}"]
     config = router_config(listen, args.connect, certs=args.certs, identity=identity,
-                           access_control=acl.access_control(topology, [LAUNCHER]))
+                           access_control=access)
     done, seen = threading.Event(), threading.Event()
 
     def on_up(sample: zenoh.Sample) -> None:
@@ -130,9 +148,11 @@ def run(args: argparse.Namespace) -> int:
             pass
         watcher.undeclare()
     finally:
-        if recorder is not None:
-            recorder.close()
+        failed = recorder.close() if recorder is not None else None
         session.close()
         for signum, handler in previous.items():
             signal.signal(signum, handler)
+    if failed:
+        print(f"adnmesh router {identity}: {failed}", file=sys.stderr, flush=True)
+        return 1
     return 0

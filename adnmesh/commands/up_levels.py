@@ -17,10 +17,10 @@ grid: every agent of every level its own process, a Zenoh client of the embedded
    (``<out stem>.<level>.mcap`` beside ``--out``), roster, faults (the hierarchy file's for the
    upper level, each ADN's own), counts verified per level; one clock for all
    (:mod:`adnmesh.runtime.level_clock`).
-4. The levels' recordings and each site's (``<out stem>.site-<adn>.mcap``, what its agents
-   published, recorded by its router: :mod:`adnmesh.runtime.site_recorder`) merged into
-   ``--out``, each message once (:mod:`adnmesh.recording.merge`: ``inspect``, ``plot``,
-   ``export`` and ``replay`` take it, ``--grid`` for a level), and a summary per level
+4. The levels' recordings merged into ``--out`` (:mod:`adnmesh.recording.merge`: ``inspect``,
+   ``plot``, ``export`` and ``replay`` take it, ``--grid`` for a level), each site's own
+   (``<out stem>.<adn>.site.mcap``, what its agents published, recorded by its router:
+   :mod:`adnmesh.runtime.site_recorder`) beside it, and a summary per level
    (``--summary-json``: ``{"run_id", "levels": {grid: summary}}``).
 """
 
@@ -88,7 +88,7 @@ def _secure(args: argparse.Namespace, hierarchy) -> Path | None:
             raise UsageError(f"{config.path}: runtime.ders_per_process "
                              f"{config.runtime.ders_per_process} is for the open profile: "
                              "in the secure profile every DER process has its own certificate")
-    for identity in hierarchy_identities(hierarchy):
+    for identity in hierarchy_identities(hierarchy):     # each checked: one line if not one
         try:
             cert_files(certs, identity).check()
         except UsageError:
@@ -186,19 +186,22 @@ def _level_options(hierarchy, prepared, out: Path, args, run_id: str, log,
     file, tables = prepared.file, prepared.tables
     upper, adns, _ = prepared.levels
     wake = threading.Event()
-    topology = load_levels(file).topology
+    levels = load_levels(file)
+    topology = levels.topology
     clock = SharedClock(topology, ns(upper.config.scenario.duration_s), wake)
     ders = sum(len(level.config.ders) for level in (upper, *adns.values()))
     sites = _sites(hierarchy, prepared.levels, certs, file)
     for site in sites:
         site.record_to, site.run_id = out, run_id
     routers = [f"router/{site.name}" for site in sites]
+    behind = {f"router/{s.name}": levels.site_members(s.name) for s in sites}
+    at_up = [a for a in topology.agents if not any(a in b for b in behind.values())]
+    access = acl.access_control(topology, routers, clients=at_up, carries=behind)
     common = dict(clock="sim", listen=args.listen, log=log, run_id=run_id, wake=wake,
                   shared_clock=clock, features=HIERARCHY, stall_timeout_s=args.stall_timeout,
                   startup_timeout_s=(60.0 + ders if args.startup_timeout is None
                                      else args.startup_timeout), certs=certs,
-                  access_control=None if certs is None else acl.access_control(topology,
-                                                                               routers))
+                  access_control=None if certs is None else access)
     endpoints = {a: s.endpoint for s in sites for a in s.members[upper.config.grid]}
     options = []
     for grid, level in ((upper.config.grid, upper), *adns.items()):
@@ -213,7 +216,7 @@ def _level_options(hierarchy, prepared, out: Path, args, run_id: str, log,
             available_w={} if level is upper else prepared.available[grid],
             agent_args=("--levels", str(file), "--level", grid),
             run_file=run_file_path(out) if level is upper else None, endpoints=endpoints,
-            watch_sessions=level is upper, identities=(*topology.agents, *routers),
+            watch_sessions=level is upper, identities=(*at_up, *routers),
             metadata={"run_id": run_id, "grid": grid, "hierarchy": str(hierarchy.path),
                       "table_sha256": hashlib.sha256(table.read_bytes()).hexdigest()},
             **common))
@@ -300,8 +303,11 @@ def _report(args, options, results, sites, out: Path, run_id: str, log) -> int:
         for problem in result.problems:
             log(f"{o.config.grid}: {problem}")
     written = [o.out for o, r in zip(options, results) if not r.recording_failed]
+    recorded = [path for site in sites for path in site.recordings if path.exists()]
+    if recorded:
+        log(f"the sites' own recordings: {', '.join(p.name for p in recorded)} (what each "
+            "site's agents published; 'adnmesh merge' takes them with the levels')")
     if len(written) == len(options):
-        written += [path for site in sites for path in site.recordings if path.exists()]
         try:
             log(describe(merge_recordings(written, out), out))
         except (ConfigError, UsageError, OSError, ValueError) as exc:

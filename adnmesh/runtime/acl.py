@@ -106,7 +106,7 @@ def _all_keys(topology: Topology) -> list[str]:
     return sorted({_grid_keys(topology, a).all for a in topology.agents} | {topology.keys.all})
 
 
-def access_control(topology: Topology, peers=()) -> dict:
+def access_control(topology: Topology, peers=(), clients=None, carries=None) -> dict:
     """The ``access_control`` section of a router's Zenoh config (deny by default).
 
     Parameters
@@ -114,6 +114,14 @@ def access_control(topology: Topology, peers=()) -> dict:
     topology : Topology
     peers : iterable of str
         Identities of the routers this one links to (``up``, ``router/<name>``).
+    clients : collection of str, optional
+        The identities that may be this router's clients (a hierarchy's: ``up``'s router
+        takes the upper level's agents not behind a site, a site router its site's agents;
+        ``operator`` always); default every agent of the topology.
+    carries : dict, optional
+        Peer -> the agents behind it (a hierarchy's site router): it may forward only what
+        they send and their liveliness, declare and be sent only what they receive; default
+        every agent's (see the module docstring).
     """
     rules, subjects, policies = [], [], []
 
@@ -131,6 +139,8 @@ def access_control(topology: Topology, peers=()) -> dict:
                          "subjects": [identity]})
 
     for r in rights(topology).values():
+        if clients is not None and r.identity not in clients and r.identity != OPERATOR:
+            continue
         subject(r.identity, [
             allow(r.identity, "publishes", _INGRESS, ["put"], r.publishes),
             allow(r.identity, "subscribes", _INGRESS, ["declare_subscriber"], r.receives),
@@ -141,21 +151,37 @@ def access_control(topology: Topology, peers=()) -> dict:
                   r.watches),
             allow(r.identity, "is told", _EGRESS, ["liveliness_token"], r.watches),
         ])
-    everything = _all_keys(topology)
-    every_key = _every_key(topology)
     for peer in dict.fromkeys(peers):
-        own = set(launcher_keys(topology))
-        carried = every_key if peer == LAUNCHER else [k for k in every_key if k not in own]
-        tokens = everything if peer == LAUNCHER else [
-            _grid_keys(topology, a).liveliness(_local(a)) for a in topology.agents]
-        subject(peer, [
-            allow(peer, "forwards", _INGRESS, ["put"], carried),
-            allow(peer, "is sent", _EGRESS, ["put", "liveliness_token"], everything),
-            allow(peer, "declares", ["ingress", "egress"], _PEER_DECLARATIONS, everything),
-            allow(peer, "forwards tokens", _INGRESS, ["liveliness_token"], tokens),
-        ])
+        subject(peer, _peer_rules(topology, peer, (carries or {}).get(peer), allow))
     return {"enabled": True, "default_permission": "deny", "rules": rules,
             "subjects": subjects, "policies": policies}
+
+
+def _peer_rules(topology: Topology, peer: str, behind, allow) -> list:
+    """The rule ids of peer router ``peer``: everything (``up``), every agent's but ``up``'s
+    own keys (a site router of one grid), or what the agents ``behind`` it send, receive and
+    watch (a hierarchy's site router; what is declared to it stays everything: ``up``'s
+    recorders subscribe to every grid)."""
+    everything = _all_keys(topology)
+    if behind is not None:
+        found = rights(topology)
+        sends = [k for a in behind for k in found[a].publishes]
+        gets = [k for a in behind for k in (*found[a].receives, *found[a].watches)]
+        tokens = [found[a].token for a in behind if found[a].token]
+        return [allow(peer, "forwards", _INGRESS, ["put"], sends),
+                allow(peer, "is sent", _EGRESS, ["put", "liveliness_token"], gets),
+                allow(peer, "declares", _INGRESS, _PEER_DECLARATIONS, gets),
+                allow(peer, "is declared", _EGRESS, _PEER_DECLARATIONS, everything),
+                allow(peer, "forwards tokens", _INGRESS, ["liveliness_token"], tokens)]
+    own = set(launcher_keys(topology))
+    every_key = _every_key(topology)
+    carried = every_key if peer == LAUNCHER else [k for k in every_key if k not in own]
+    tokens = everything if peer == LAUNCHER else [
+        _grid_keys(topology, a).liveliness(_local(a)) for a in topology.agents]
+    return [allow(peer, "forwards", _INGRESS, ["put"], carried),
+            allow(peer, "is sent", _EGRESS, ["put", "liveliness_token"], everything),
+            allow(peer, "declares", ["ingress", "egress"], _PEER_DECLARATIONS, everything),
+            allow(peer, "forwards tokens", _INGRESS, ["liveliness_token"], tokens)]
 
 
 def _every_key(topology: Topology) -> list[str]:

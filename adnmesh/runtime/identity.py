@@ -33,6 +33,10 @@ _IDENTITY = re.compile(rf"^(?:(?:{ID_PATTERN}:)?{AGENT_PATTERN}|{LAUNCHER}|{OPER
                        rf"router/{ID_PATTERN})$")
 
 
+MAX_IDENTITY_CHARS = 64
+"""The longest identity: a certificate's common name (X.509's upper bound)."""
+
+
 def router_identity(name: str) -> str:
     """Identity of the site router ``name``: ``router/<name>``."""
     return check_identity(f"router/{name}")
@@ -40,10 +44,11 @@ def router_identity(name: str) -> str:
 
 def check_identity(identity: str) -> str:
     """``identity`` if it is one (see the module docstring); else a :class:`UsageError`."""
-    if len(identity) > 80 or not _IDENTITY.match(identity):
+    if len(identity) > MAX_IDENTITY_CHARS or not _IDENTITY.fullmatch(identity):
         raise UsageError(f"not an identity: {identity!r} ({AGENTS_IN_WORDS}, each also as "
                          f"<grid>:<agent> in a hierarchy, {LAUNCHER}, {OPERATOR}, "
-                         "router/<name>)")
+                         f"router/<name>; at most {MAX_IDENTITY_CHARS} characters, an X.509 "
+                         "common name's)")
     return identity
 
 
@@ -62,7 +67,7 @@ def hierarchy_identities(hierarchy) -> tuple[str, ...]:
     lower = [f"{adn.id}:{a}" for adn in hierarchy.adns
              for a in agent_ids(load_config(hierarchy.config_path(adn)).der_ids())]
     routers = [router_identity(adn.id) for adn in hierarchy.adns]
-    return (*upper, *lower, *routers, LAUNCHER, OPERATOR)
+    return tuple(check_identity(i) for i in (*upper, *lower, *routers, LAUNCHER, OPERATOR))
 
 
 @dataclass(frozen=True)

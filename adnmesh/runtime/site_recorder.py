@@ -1,16 +1,20 @@
 """A site's own recording: what the agents behind a site router publish, recorded at the site
 (``adnmesh router --record FILE``, started so by ``adnmesh up`` of a hierarchy;
-docs/hierarchy.md#sites).
+docs/hierarchy.md#adnmesh-up-sites-on-the-bus).
 
 ``up`` records every level of a run at the top. A site router with ``--record`` also records
 what its own clients publish -- its ADN's agents and the upper level's site agent of it --
-validated and written as ``up``'s recorder does (:class:`~adnmesh.runtime.tap.RecorderTap`, one
-per level, on that level's topology), into a recording of the same run (its ``run_id``), so
-that every message is recorded somewhere even if the site were cut off from the top;
-``adnmesh merge`` (as ``up`` does at the end) takes each message once. ``up``'s own messages
-(grants, the start) are ``up``'s to record. A router killed (a planned restart) leaves its file
-unfinished, which :func:`~adnmesh.recording.read_recording` recovers; the router started
-again records to a file of its own.
+checked and written by a :class:`~adnmesh.runtime.tap.RecorderTap` per level (on that level's
+topology; a witness: it does not weigh clock reports, and knows nothing of the clock's grants
+or of quarantines, which ``up``'s taps do), into a recording of the same run (its ``run_id``):
+every message is recorded at its site too, and ``adnmesh merge`` takes each message once.
+``up``'s own messages (grants, the start) are ``up``'s to record. A router killed (a planned
+restart) leaves its file unfinished, which :func:`~adnmesh.recording.read_recording` recovers;
+the router started again records to a file of its own.
+
+The router's forwarding never waits for the recording: a sample the recording thread has no
+room for (:data:`_QUEUE` behind) is dropped from the site's file and counted, as is one it
+fails on; :meth:`SiteRecorder.close` says how many.
 """
 
 from __future__ import annotations
@@ -29,7 +33,16 @@ from adnmesh.sim.topology import Topology
 
 __all__ = ["SiteRecorder"]
 
-_QUEUE = 65536      # samples queued for the recording thread (then the router's thread waits)
+
+class _NoSeries:
+    """The site keeps no summary series (``up``'s taps feed the summary)."""
+
+    def take(self, message) -> None:
+        """Nothing."""
+
+
+_QUEUE = 65536      # samples queued for the recording thread (beyond: dropped, counted)
+_JOIN_S = 4.0       # longest wait for the recording thread at the close (up stops in 5 s)
 FLUSH_S = 0.25
 """How often the site's recording is put on disk, wall s: what a site router killed loses."""
 
@@ -50,7 +63,6 @@ class SiteRecorder:
     """
 
     def __init__(self, path: Path, levels, adn: str, run_id: str) -> None:
-        from adnmesh.results.summary import RunSeries
         from adnmesh.runtime.tap import RecorderTap, recording_schemas
 
         upper = levels.upper.grid
@@ -63,9 +75,10 @@ class SiteRecorder:
         members = {adn: own[adn].agents, upper: (der_agent_id(adn),)}
         self.keys = sorted({k for grid, agents in members.items() for a in agents
                             for k in own[grid].sends(a)})
-        self.taps = {grid: RecorderTap(self.recorder, t, RunSeries(), lambda: 0,
+        self.taps = {grid: RecorderTap(self.recorder, t, _NoSeries(), lambda: 0,
                                        weigh_reports=False)   # a witness, not the clock's
                      for grid, t in own.items()}
+        self.dropped = 0                 # samples not recorded: no room, or failed on
         self._handles: list = []
         self._queue: queue.Queue = queue.Queue(_QUEUE)
         self._thread: threading.Thread | None = None
@@ -75,8 +88,11 @@ class SiteRecorder:
         the order the samples came (one queue for every key)."""
         def on_sample(sample: zenoh.Sample) -> None:
             attachment = sample.attachment
-            self._queue.put((str(sample.key_expr), sample.payload.to_bytes(),
-                             None if attachment is None else attachment.to_bytes()))
+            try:
+                self._queue.put_nowait((str(sample.key_expr), sample.payload.to_bytes(),
+                                        None if attachment is None else attachment.to_bytes()))
+            except queue.Full:
+                self.dropped += 1
 
         for key in self.keys:
             self._handles.append(session.declare_subscriber(key, on_sample))
@@ -87,17 +103,28 @@ class SiteRecorder:
     def _record(self) -> None:
         while (item := self._queue.get()) is not None:
             key, payload, attachment = item
-            tap = self.taps[key.split("/")[1]]
-            tap.take(key, payload)
-            if attachment is not None:
-                tap.take_attached(key, attachment)
+            try:
+                tap = self.taps[key.split("/")[1]]
+                tap.take(key, payload)
+                if attachment is not None:
+                    tap.take_attached(key, attachment)
+            except Exception:            # a failed write (a full disk): the file keeps the rest
+                self.dropped += 1
 
-    def close(self) -> None:
-        """Stop recording and finish the file."""
+    def close(self) -> str | None:
+        """Stop recording and finish the file; return what went wrong, in one line, or
+        None."""
         for handle in self._handles:
             handle.undeclare()
         self._handles = []
         if self._thread is not None:
-            self._queue.put(None)
-            self._thread.join(10.0)
-        self.recorder.close()
+            self._queue.put(None)            # after the undeclares: nothing else comes
+            self._thread.join(_JOIN_S)
+        problems = [p for tap in self.taps.values() for p in tap.problems]
+        try:
+            self.recorder.close()
+        except RuntimeError as exc:
+            problems.append(f"recording failed while finishing the file: {exc}")
+        if self.dropped:
+            problems.append(f"{self.dropped} sample(s) not recorded at the site")
+        return "; ".join(problems) or None

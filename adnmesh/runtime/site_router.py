@@ -74,7 +74,8 @@ class SiteRouter:
     name : str
         The site's name (its ADN's id; identity ``router/<name>``).
     config : Path
-        The ADN's config file (the router's access control derives from it).
+        The ADN's config file (with ``levels``, the access control derives from the levels
+        file).
     endpoint : str
         Where it listens (its agents connect there), ``tcp/127.0.0.1:<port>`` (``tls/`` in the
         secure profile).
@@ -88,7 +89,7 @@ class SiteRouter:
         The levels file (the hierarchy's topology: the access control, the site's recording).
     record_to : Path, optional
         Record what the site's agents publish (:mod:`adnmesh.runtime.site_recorder`) beside
-        this recording: ``<stem>.site-<name>.mcap``, ``<stem>.site-<name>.1.mcap`` after a
+        this recording: ``<stem>.<name>.site.mcap``, ``<stem>.<name>.site.1.mcap`` after a
         restart...; ``recordings`` lists them.
     run_id : str
         The run's id (in the site's recordings).
@@ -117,11 +118,13 @@ class SiteRouter:
         for flag, path in (("--certs", self.certs), ("--levels", self.levels)):
             if path is not None:
                 argv += [flag, str(path)]
-        if self.record_to is not None:
+        if self.record_to is not None:     # <stem>.<adn>.site[.n].mcap: no grid's name has a .
             n = len(self.recordings)
-            self.recordings.append(self.record_to.with_name(
-                f"{self.record_to.stem}.site-{self.name}{f'.{n}' if n else ''}.mcap"))
-            argv += ["--record", str(self.recordings[-1]), "--run-id", self.run_id]
+            path = self.record_to.with_name(
+                f"{self.record_to.stem}.{self.name}.site{f'.{n}' if n else ''}.mcap")
+            path.unlink(missing_ok=True)    # an earlier run's, never this one's
+            self.recordings.append(path)
+            argv += ["--record", str(path), "--run-id", self.run_id]
         self.proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                                      stderr=subprocess.PIPE, text=True, start_new_session=True,
                                      env=dict(os.environ, **{PARENT_ENV: str(os.getpid())}))

@@ -35,7 +35,7 @@ import msgspec
 
 from adnmesh.config import Config, load_config
 from adnmesh.errors import ConfigError
-from adnmesh.names import der_id_of
+from adnmesh.names import der_agent_id, der_id_of
 
 __all__ = ["AdnLevel", "Levels", "LevelsFile", "LoopFields", "hierarchy_agent", "load_levels",
            "on_bus", "save_levels"]
@@ -188,6 +188,13 @@ class Levels:
     @property
     def p_ip0_w(self) -> dict[str, float]:
         return {a: level.p_ip0_w for a, level in self.file.adns.items()}
+
+    def site_members(self, adn: str) -> tuple[str, ...]:
+        """The agents behind ADN ``adn``'s site router, as the topology names them: its own
+        and the upper level's site agent of it (``<grid>:<agent id>``)."""
+        from adnmesh.sim.hierarchy_topology import qualified
+        return tuple(a for a in self.topology.agents if a.startswith(f"{adn}:")) + (
+            qualified(self.upper.grid, der_agent_id(adn)),)
 
     def schedule(self, grid: str):
         """The gain schedule of the level's CPFC: its table (tuned for the config of its file;
