@@ -44,8 +44,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--until-run-ends", action="store_true",
                         help="exit when the run ends (up's liveliness is withdrawn)")
     parser.add_argument("--levels", metavar="FILE",
-                        help="a site of a hierarchy's run: the levels file adnmesh up wrote "
-                        "(the access control covers every level; set by adnmesh up)")
+                        help="as the site of ADN NAME in a hierarchy's run: the levels file "
+                        "adnmesh up wrote (only the site's agents may be clients; set by "
+                        "adnmesh up)")
     parser.add_argument("--record", metavar="FILE",
                         help="with --levels and --run-id: also record what the site's agents "
                         "(ADN NAME's and the upper level's der/NAME) publish, to FILE (MCAP)")
