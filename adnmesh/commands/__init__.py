@@ -20,8 +20,8 @@ from pathlib import Path
 from adnmesh.errors import UsageError
 from adnmesh.files import check_writable
 
-__all__ = ["add_config_argument", "add_quantity_argument", "certificate_directory", "input_file",
-           "load_loop_config", "output_path"]
+__all__ = ["add_config_argument", "add_quantity_argument", "certificate_directory",
+           "check_run_limits", "input_file", "load_loop_config", "output_path"]
 
 
 def add_config_argument(parser: argparse.ArgumentParser) -> None:
@@ -117,3 +117,15 @@ def certificate_directory(args: argparse.Namespace) -> Path | None:
                          f"{certs} --config {args.config}'")
     cert_files(certs, "up").check()
     return certs.resolve()
+
+
+def check_run_limits(args: argparse.Namespace) -> None:
+    """``up``'s ``--seed``, ``--startup-timeout`` and ``--stall-timeout`` (s) in their ranges
+    (one grid's run or a hierarchy's); else a one-line :class:`UsageError`."""
+    if args.seed is not None and not 0 <= args.seed < 2**63:
+        raise UsageError(f"--seed must be in [0, 2**63), got {args.seed}")
+    if args.startup_timeout is not None and not 0 < args.startup_timeout <= 86400:
+        raise UsageError(f"--startup-timeout must be in (0, 86400] s, got "
+                         f"{args.startup_timeout:g}")
+    if not 0 <= args.stall_timeout <= 86400:
+        raise UsageError(f"--stall-timeout must be in [0, 86400] s, got {args.stall_timeout:g}")

@@ -18,8 +18,8 @@ from pathlib import Path
 
 from rich.console import Console
 
-from adnmesh.commands import (add_config_argument, certificate_directory, comma_list,
-                              output_path)
+from adnmesh.commands import (add_config_argument, certificate_directory, check_run_limits,
+                              comma_list, output_path)
 from adnmesh.config import Config, load_config
 from adnmesh.errors import UsageError
 from adnmesh.reactive import reactive_view
@@ -139,13 +139,7 @@ def _check_arguments(args: argparse.Namespace) -> None:
     if args.speed is not None and not MIN_SPEED <= args.speed <= MAX_SPEED:
         raise UsageError(f"--speed must be in [{MIN_SPEED:g}, {MAX_SPEED:g}], got "
                          f"{args.speed:g}")
-    if args.seed is not None and not 0 <= args.seed < 2**63:
-        raise UsageError(f"--seed must be in [0, 2**63), got {args.seed}")
-    if args.startup_timeout is not None and not 0 < args.startup_timeout <= 86400:
-        raise UsageError(f"--startup-timeout must be in (0, 86400] s, got "
-                         f"{args.startup_timeout:g}")
-    if not 0 <= args.stall_timeout <= 86400:
-        raise UsageError(f"--stall-timeout must be in [0, 86400] s, got {args.stall_timeout:g}")
+    check_run_limits(args)
     if args.view is not None:
         from adnmesh.runtime.liveview import parse_view
 

@@ -60,13 +60,8 @@ def _check_options(args: argparse.Namespace) -> None:
             raise UsageError(f"{flag} is not for a hierarchy file (adnmesh up runs a hierarchy "
                              "on the sim clock, every site a router of its own; each level's "
                              "table is found or tuned as for one grid)")
-    if not 0 <= args.stall_timeout <= 86400:
-        raise UsageError(f"--stall-timeout must be in [0, 86400] s, got {args.stall_timeout:g}")
-    if args.seed is not None and not 0 <= args.seed < 2**63:
-        raise UsageError(f"--seed must be in [0, 2**63), got {args.seed}")
-    if args.startup_timeout is not None and not 0 < args.startup_timeout <= 86400:
-        raise UsageError(f"--startup-timeout must be in (0, 86400] s, got "
-                         f"{args.startup_timeout:g}")
+    from adnmesh.commands import check_run_limits
+    check_run_limits(args)
     if args.listen is not None:
         from adnmesh.runtime.bus import check_listen
         check_listen(args.listen)
