@@ -500,6 +500,7 @@ class CPFC(Agent):
         self._si_seen = False
         # DER -> (t, mode, p_y applied, available) of its last heartbeat
         self.acks: dict[str, tuple[int, str, float, bool]] = {}
+        self._watchdog: set[str] = set()     # the DERs whose last acknowledgement says fallback
         self.si_available = frozenset(self._ids)            # as SI last said
         self._t_meas_ns = ns(config.t_meas_s)
         self._history: deque = deque(maxlen=max(2, int(5 * ns(1.0) // self.period_ns)))
@@ -684,6 +685,10 @@ class CPFC(Agent):
         acked = getattr(message, self.loop.output_field)
         self.acks[der] = (t_ns, message.mode, 0.0 if acked is UNSET else acked,
                           message.available)
+        if message.mode == "watchdog":
+            self._watchdog.add(der)
+        else:
+            self._watchdog.discard(der)
         fell_back = message.mode == "watchdog" and (before is None or before[1] != "watchdog")
         if fell_back and der in self.weights and self.hold is None:
             self._undo_after(message.t_send_ns + self._t_meas_ns)
@@ -693,9 +698,9 @@ class CPFC(Agent):
         """The available set: SI (while stale: the heartbeats, see the module docstring) less
         the DERs whose own acknowledgement says fallback."""
         base = self._heard(t_ns) if self.si_stale else self.si_available
-        available = frozenset(d for d in base
-                              if self.acks.get(d, (0, "control"))[1] != "watchdog")
-        self._pending = None if available == self.available else available
+        available = base - self._watchdog if self._watchdog else base   # every acknowledgement
+        self._pending = None if available is self.available or available == self.available \
+            else available                                             # comes here: no loop
 
     def _heard(self, t_ns: int) -> frozenset[str]:
         """The DERs the heartbeats say are available at ``t_ns``: the monitor's rule."""

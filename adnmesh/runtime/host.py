@@ -11,6 +11,9 @@ agents share is the process, the session and the subscribers:
   that key (all the hosted DERs take the CPFC's ``P_Y``, the faults and the clock's start and
   stop: one subscriber, and one Zenoh delivery thread, instead of one per agent), and one
   liveliness subscriber for ``up``;
+- the agents' gates share one decode (:class:`~adnmesh.wire.shared_decode.SharedDecode`): a
+  sample every DER takes is parsed and validated once, and each gate applies its own accept
+  rules to that message;
 - each agent runs in a thread of its own until the end of the run, then says its goodbye;
 - SIGTERM or SIGINT stops every agent of the process.
 
@@ -31,6 +34,7 @@ from adnmesh.runtime.process import AgentProcess, die_with_parent
 from adnmesh.sim.node import Node
 from adnmesh.wire.envelope import split_frame
 from adnmesh.wire.keys import Keys
+from adnmesh.wire.shared_decode import SharedDecode
 
 __all__ = ["serve_hosted"]
 
@@ -73,6 +77,9 @@ def serve_hosted(session: zenoh.Session, nodes: list[Node], grid: str) -> int:
     docstring); return the exit code (0)."""
     die_with_parent()
     agents = [AgentProcess(session, node, grid, hosted=True) for node in nodes]
+    shared = SharedDecode()
+    for node in nodes:
+        node.gate.decoder = shared
 
     def on_signal(signum, frame) -> None:   # no lock in a handler: each wakes within 1 s
         for agent in agents:

