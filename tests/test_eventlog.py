@@ -150,3 +150,42 @@ def test_fault_spans_of_faults_at_one_instant_one_without_an_end() -> None:
                     {"fault_id": 1, "kind": "kill", "start_ns": 0, "end_ns": None})]
     spans = RunData(series={}, events=events, der_ids=[], t0_ns=0).fault_spans()
     assert spans == [(0, 0, "kill"), (0, None, "outage")]
+
+
+def test_quiet_topics_hold_no_event_and_leaving_them_out_changes_no_record(tmp_path) -> None:
+    """``EventLog.quiet`` (the recorder's ``events_quiet``) says a topic and type hold no event:
+    over an in-process run with a step and two DERs going out and coming back (gain switches),
+    every message of a quiet topic observes to nothing, states, reports and grants are quiet,
+    and the log written with and without it is the same."""
+    from adnmesh.config import load_config
+    from adnmesh.control.cpfc_controller import GainSchedule
+    from adnmesh.sim.local import run_local
+    from adnmesh.runtime.tap import recording_schemas
+    from adnmesh.wire.keys import Keys, route
+
+    config = load_config(Path(__file__).parent.parent / "configs/examples/reentry.yaml")
+    messages = run_local(config, GainSchedule(config, None)).messages
+    judge, quiet_types = EventLog(), set()
+    for key, payload in messages:
+        kind = route(key).type
+        if judge.quiet(key, kind):
+            quiet_types.add(kind)
+            assert judge.observe(key, kind, payload, 0) == [], (key, payload)
+    assert "der_state" in quiet_types
+    keys = Keys(config.grid)
+    assert judge.quiet(keys.of("clock_report", "der/SGen1"), "clock_report")
+    assert judge.quiet(keys.of("clock_grant", "cpfc"), "clock_grant")
+    assert not judge.quiet(keys.of("clock_stop"), "clock_stop")
+    assert not quiet_types & {"p_y", "heartbeat", "si", "fault", "event", "p_ip"}
+    logs = []
+    for name, quiet in (("all", None), ("quiet", True)):
+        events = EventLog()
+        path = tmp_path / f"{name}.mcap"
+        with Recorder(path, metadata={}, schemas=recording_schemas(), events_topic=EVENTS,
+                      events=events.observe, events_quiet=quiet and events.quiet) as recorder:
+            for key, payload in messages:
+                body = json.loads(payload)
+                recorder.write(key, body["type"], payload, log_time_ns=body["t_deliver_ns"],
+                               publish_time_ns=body["t_send_ns"])
+        logs.append([m.payload() for m in read_recording(path).messages if m.topic == EVENTS])
+    assert logs[0] == logs[1] and len(logs[0]) > 5

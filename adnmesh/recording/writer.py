@@ -434,6 +434,11 @@ class Recorder:
         held. The recorder knows the format, not what an event is: ``adnmesh up`` passes
         :meth:`adnmesh.results.eventlog.EventLog.observe` (gain switches, availability
         changes, faults, the agents' events, rejected payloads).
+    events_quiet : callable, optional
+        ``(topic, schema_name) -> bool``: True for a topic whose messages of that type never
+        hold an event; they are not given to ``events`` (asked once per topic and type: most
+        of a large run's messages are states, reports and grants, and ``adnmesh up`` passes
+        :meth:`adnmesh.results.eventlog.EventLog.quiet`).
 
     Examples
     --------
@@ -452,6 +457,7 @@ class Recorder:
         flush_interval_s: float = 1.0,
         events_topic: str | None = None,
         events: Callable[[str, str, bytes, int], list[bytes]] | None = None,
+        events_quiet: Callable[[str, str], bool] | None = None,
     ) -> None:
         if not flush_interval_s > 0:
             raise ValueError(f"flush_interval_s must be > 0, got {flush_interval_s!r}")
@@ -474,6 +480,8 @@ class Recorder:
         run.setdefault("start_unix_ns", str(start))
         self._events_topic = events_topic
         self._events = events
+        self._events_quiet = events_quiet
+        self._quiet: dict[tuple[str, str], bool] = {}   # (topic, type) -> events_quiet's answer
         if events_topic is not None:
             self._schemas[FOXGLOVE_LOG] = json.dumps(FOXGLOVE_LOG_SCHEMA,
                                                      sort_keys=True).encode()
@@ -564,8 +572,17 @@ class Recorder:
                 for payload, log_time, publish_time in messages))
             self._counts[topic] = first - 1 + written
             self._dirty = True
-            if self._events is not None:
+            if self._events is not None and not self._is_quiet(topic, schema_name):
                 self._log_events(topic, schema_name, messages)
+
+    def _is_quiet(self, topic: str, schema_name: str) -> bool:
+        """``events_quiet``'s answer for the topic and type, asked once."""
+        if self._events_quiet is None:
+            return False
+        found = self._quiet.get((topic, schema_name))
+        if found is None:
+            found = self._quiet[topic, schema_name] = bool(self._events_quiet(topic, schema_name))
+        return found
 
     def _log_events(self, topic: str, schema_name: str, messages) -> None:
         """Write the events in ``messages`` on the events topic (``foxglove.Log``; not in

@@ -14,7 +14,7 @@ from adnmesh.loopmodel.step_figures import reference_step_figures
 from adnmesh.results.design_check import DesignCheck, design_checks, design_lines, entry_at
 from adnmesh.results.summary import RunSeries
 
-__all__ = ["GRACE_NS", "OverDesign", "OverDesignWatch"]
+__all__ = ["GRACE_NS", "OverDesign", "OverDesignWatch", "WATCHED_TYPES"]
 
 #: sim time a step's window is left open after its end, so that every message before the end
 #: has been recorded (messages of one clock window arrive in any order), ns
@@ -22,8 +22,9 @@ GRACE_NS = 1_000_000_000
 
 _TRIM = 20_000      # P_IP samples (200 s at 10 ms) between two trims of the checked ones
 
-_WATCHED = frozenset({"p_ip", "p_ref", "p_y", "heartbeat", "si", "fault", "event", "clock_start",
-                      "clock_stop"})
+WATCHED_TYPES = frozenset({"p_ip", "p_ref", "p_y", "heartbeat", "si", "fault", "event",
+                           "clock_start", "clock_stop"})
+"""The message types the watch reads; it ignores every other."""
 
 
 @dataclass(frozen=True)
@@ -75,7 +76,7 @@ class OverDesignWatch:
     def observe(self, schema_name: str, payload: bytes, t_ns: int) -> list[tuple[int, str]]:
         """The over-design findings a recorded message closes (usually none), as
         ``(window end, words)``."""
-        if schema_name not in _WATCHED or (schema_name == "p_y" and b'"switch"' not in payload
+        if schema_name not in WATCHED_TYPES or (schema_name == "p_y" and b'"switch"' not in payload
                                            and b'"design"' not in payload):
             return []
         try:
@@ -89,7 +90,7 @@ class OverDesignWatch:
     def observe_body(self, schema_name: str, body: dict) -> list[OverDesign]:
         """The steps over their design that one decoded message (envelope and body, as
         :meth:`RunSeries.add <adnmesh.results.summary.RunSeries.add>` takes it) closes."""
-        if schema_name not in _WATCHED:
+        if schema_name not in WATCHED_TYPES:
             return []
         if schema_name == "clock_start":
             if isinstance(body.get("end_ns"), int):

@@ -29,7 +29,7 @@ import re
 
 from adnmesh.names import AGENT_PATTERN, LAUNCHER, der_agent_id
 from adnmesh.recording.foxglove_log import log_record
-from adnmesh.results.design_watch import OverDesignWatch
+from adnmesh.results.design_watch import WATCHED_TYPES, OverDesignWatch
 from adnmesh.results.rules import (AVAILABILITY_KEYS, EVENTS, availability_change,
                                    available_ders, match_key, message_body)
 
@@ -78,6 +78,17 @@ class EventLog:
                                      if kind == "event" else kind, _agent(kind, body, captures)))
         self._previous[topic] = body
         return over + found
+
+    def quiet(self, topic: str, schema_name: str) -> bool:
+        """True if :meth:`observe` finds no event in any message of ``schema_name`` on
+        ``topic`` (a DER's state, a clock report or grant): the recorder need not ask
+        (:class:`~adnmesh.recording.writer.Recorder`'s ``events_quiet``)."""
+        if schema_name == _REJECTED or schema_name in WATCHED_TYPES:
+            return False
+        rules = self._rules.get(topic)
+        if rules is None:
+            rules = self._rules[topic] = self._plan(topic)
+        return not rules
 
     @staticmethod
     def _plan(topic: str) -> list:

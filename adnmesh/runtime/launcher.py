@@ -290,9 +290,10 @@ class _Launch:
         self.sessions = SessionWatch(options.identities if options.identities is not None
                                      else (*self.topology.agents, *self.peers))
         self.interrupted: list[int] = []
+        events = EventLog()
         self.recorder = Recorder(options.out, metadata=_metadata(options),
                                  schemas=recording_schemas(), events_topic=f"{self.keys.root}/log",
-                                 events=EventLog().observe)
+                                 events=events.observe, events_quiet=events.quiet)
         self.clock: SimClockDriver | None = None
         self.tap = RecorderTap(self.recorder, self.topology, self.result.series,
                                lambda: self.clock.recent_ns if self.clock else 0,

@@ -102,7 +102,7 @@ class RecorderTap:
         self._weigh_reports = weigh_reports
         self.rejected_key = f"{topology.keys.root}/rejected"
         self._agents = frozenset(topology.agents)
-        self._report_key = lambda agent: topology.keys.of("clock_report", agent)
+        self._report_keys = {a: topology.keys.of("clock_report", a) for a in topology.agents}
         # every key a party of the run sends, but up's own (recorded as it sends them)
         self._gate = Gate({r.key for r in topology.routes if r.sender != LAUNCHER},
                           topology.der_ids, outside_reason="unknown_key",
@@ -147,7 +147,7 @@ class RecorderTap:
             with self._lock:
                 count_reject(self._gate.rejected, key, "unknown_key")
             return []
-        return self.take(self._report_key(found.sender), attachment)
+        return self.take(self._report_keys[found.sender], attachment)
 
     def record_own(self, key: str, message: Envelope, payload: bytes) -> None:
         """Record a message ``up`` sent itself."""

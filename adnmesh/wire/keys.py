@@ -108,13 +108,17 @@ def _route(key: str) -> Route | None:
 
 
 _ROUTES: dict[str, Route | None] = {}
-_ROUTES_KEPT = 4096
+_ROUTES_KEPT = 32_768
+"""Keys :func:`route` remembers: every key of a 1,000-DER run (about 7 per DER: state,
+heartbeat, events, clock report, grant, kill and goodbye; 4,096 left most of them to a regex
+search of 3.5 us at every message), and a bound a flood of foreign keys cannot pass (a few MB)."""
 
 
 def route(key: str) -> Route | None:
     """The kind and legitimate sender of ``key``, or None if it is not an adnmesh message key.
 
-    Remembers the answer for at most 4,096 keys (a flood of foreign keys cannot grow it)."""
+    Remembers the answer for at most :data:`_ROUTES_KEPT` keys (a flood of foreign keys cannot
+    grow it further)."""
     found = _ROUTES.get(key, False)
     if found is False:
         found = _route(key)
