@@ -365,9 +365,16 @@ class AgentProcess:
         return found
 
     def startup(self, subscribe: bool = True) -> None:
-        """Subscribe, declare liveliness and send the first report (see the module docstring).
-        Hosted (``subscribe`` False), the host subscribes for it (:meth:`routes`,
-        :attr:`on_up_alive`) and the agent only declares its liveliness."""
+        """Subscribe, declare the publishers and liveliness, and send the first report (see
+        the module docstring). Hosted (``subscribe`` False), the host subscribes for it
+        (:meth:`routes`, :attr:`on_up_alive`) and the agent only declares its publishers and
+        liveliness.
+
+        Every key the agent sends gets its publisher here, on the main thread, before the
+        agent is ready: not in its first window, on a Zenoh callback thread while samples
+        stream in. A 1,000-DER run whose 20 hosts declared 2,000 publishers in the first window
+        once stalled there for good, a host's windows stopped between two samples of one
+        DER (1 of 10 runs of the 60 s cut of the example, at e9ce31c; not seen since)."""
         if not self.hosted and threading.current_thread() is threading.main_thread():
             self._signals = {s: signal.signal(s, self._on_signal)   # Ctrl-C stops it too
                              for s in (signal.SIGTERM, signal.SIGINT)}
@@ -375,6 +382,9 @@ class AgentProcess:
         if subscribe:
             self._handles = [session.declare_subscriber(key, callback)
                              for key, callback in self.routes().items()]
+        if self.publishers:   # declared here, not in a window: see below
+            for key in self.node.sends():
+                self._publisher(key)
         self._handles.append(session.liveliness().declare_token(keys.liveliness(self.agent)))
         # up declares its token after its recorder's subscriber, but behind a site router the
         # token can still arrive before the route: reports before the first one up hears are
@@ -579,11 +589,14 @@ class AgentProcess:
             self.session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK,
                              attachment=attachment)
             return
+        self._publisher(key).put(payload, attachment=attachment)
+
+    def _publisher(self, key: str) -> zenoh.Publisher:
         publisher = self._publishers.get(key)
         if publisher is None:
             publisher = self._publishers[key] = self.session.declare_publisher(
                 key, congestion_control=zenoh.CongestionControl.BLOCK)
-        publisher.put(payload, attachment=attachment)
+        return publisher
 
     def _publish_all(self, out: list[tuple[str, bytes]]) -> None:
         for key, frame in frames(out):

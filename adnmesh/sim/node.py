@@ -322,6 +322,10 @@ class Node:
         worst, self.worst_late = self.worst_late, (0, "")
         return worst
 
+    def sends(self) -> tuple[str, ...]:
+        """Every key the agent sends, clock protocol included (its topology's)."""
+        return self._topology.sends(self.node_id)
+
     def send_now(self, key: str, body: dict) -> list[tuple[str, bytes]]:
         """Send one message of the agent's at the node's current time (outside an event)."""
         out: list[tuple[str, bytes]] = []
