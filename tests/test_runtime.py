@@ -274,3 +274,54 @@ def test_a_report_attached_to_a_data_sample_is_taken_as_the_keys_sender_s_report
     topics = [m.topic for m in read_recording(path).messages]
     assert topics.count(topology.keys.of("clock_report", der)) == 1
     assert topics.count(state) == 1
+
+
+def test_within_writes_after_the_tap_checks_at_once_and_records_when_the_block_ends(
+        tmp_path, simbench_config):
+    """up's bus thread takes a batch inside ``writes_after``: the messages are checked and
+    returned at once (the clock needs the reports), written and fed to the series only when
+    the block ends -- in the order they came, up's own among them, also when the block
+    fails -- and the recording is the one written without the block."""
+    from payloads import payload
+
+    from adnmesh.recording import Recorder, read_recording
+    from adnmesh.runtime.tap import RecorderTap, recording_schemas
+    from adnmesh.sim.topology import Topology
+    from adnmesh.wire.envelope import encode
+    from adnmesh.wire.messages import MESSAGE_VERSION, ClockGrant
+
+    topology = Topology.from_config(simbench_config)
+    p_ip = topology.keys.of("p_ip")
+    grant_key = topology.keys.of("clock_grant", "measurement")
+
+    def batch(tap: RecorderTap, seqs) -> list:
+        taken = []
+        for seq in seqs:
+            taken += tap.take(p_ip, payload(p_ip, {"p_ip_w": 1e6 + seq}, seq=seq,
+                                            t_send_ns=seq))
+            grant = ClockGrant(MESSAGE_VERSION, "clock_grant", "up", seq, seq, seq,
+                               until_ns=seq + 1, expect=0)
+            tap.record_own(grant_key, grant, encode(grant))
+        return taken
+
+    recordings = []
+    for name, deferred in (("at-once", False), ("after", True)):
+        path = tmp_path / f"{name}.mcap"
+        with Recorder(path, metadata={"run_id": name}, schemas=recording_schemas()) as recorder:
+            series = RunSeries()
+            tap = RecorderTap(recorder, topology, series, lambda: 0)
+            if deferred:
+                with tap.writes_after():
+                    assert [m.seq for m in batch(tap, range(3))] == [0, 1, 2]
+                    assert recorder.counts() == {} and not series.p_ip_w   # not yet
+                assert list(series.p_ip_w) == [1e6, 1e6 + 1, 1e6 + 2]
+                with pytest.raises(RuntimeError), tap.writes_after():
+                    batch(tap, [3])
+                    raise RuntimeError("the bus thread fails")
+            else:
+                batch(tap, range(4))
+            assert recorder.counts() == {p_ip: 4, grant_key: 4}
+            assert list(series.p_ip_t_ns) == [0, 1, 2, 3]
+        recordings.append([(m.topic, m.log_time_ns, m.publish_time_ns, m.data)
+                           for m in read_recording(path).messages])
+    assert recordings[0] == recordings[1] and len(recordings[0]) == 8

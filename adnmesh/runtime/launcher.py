@@ -406,20 +406,22 @@ class _Launch:
     def on_samples(self, samples) -> None:
         """Samples from the agents, in the order they came: each through the tap (and a clock
         report that rides it, :meth:`RecorderTap.take_attached`); the batch's clock reports
-        to the sim clock at once, after the rest."""
+        to the sim clock at once, after the rest; the batch recorded once the grants that
+        follow are out (:meth:`RecorderTap.writes_after`)."""
         reports = []
-        for sample in samples:
-            key = str(sample.key_expr)
-            messages = self.tap.take(key, sample.payload.to_bytes())
-            attachment = sample.attachment     # an agent's clock report rides its last sample
-            if attachment is not None:
-                messages += self.tap.take_attached(key, attachment.to_bytes())
-            reports += self._take_messages(messages)
-        if reports and self.clock is not None:
-            self.clock.on_reports(reports)
-            for message in reports:
-                if message.killed_ns is not msgspec.UNSET:
-                    self.injector.on_killed(message)
+        with self.tap.writes_after():
+            for sample in samples:
+                key = str(sample.key_expr)
+                messages = self.tap.take(key, sample.payload.to_bytes())
+                attachment = sample.attachment   # an agent's clock report rides its last sample
+                if attachment is not None:
+                    messages += self.tap.take_attached(key, attachment.to_bytes())
+                reports += self._take_messages(messages)
+            if reports and self.clock is not None:
+                self.clock.on_reports(reports)
+                for message in reports:
+                    if message.killed_ns is not msgspec.UNSET:
+                        self.injector.on_killed(message)
 
     def _take_messages(self, messages) -> list:
         """What ``up`` does with the agents' messages; return the clock reports (for the sim

@@ -49,13 +49,13 @@ class LauncherOutbox:
         one hosting process): ``(key, recipient, t_ns, body)`` each, enveloped and recorded
         under its own key as :meth:`send` does; the attachment names the recipients."""
         with self.lock:
-            payloads = []
-            for key, _, t_ns, body in messages:
-                message = self._outbox.send(key, t_ns, body, None)
-                payloads.append(encode(message))
-                self._tap.record_own(key, message, payloads[-1])
+            sent = [(key, self._outbox.send(key, t_ns, body, None))
+                    for key, _, t_ns, body in messages]
+            payloads = [encode(message) for _, message in sent]
             self._publisher(sample_key).put(
                 b"\n".join(payloads), attachment="\n".join(r for _, r, _, _ in messages).encode())
+            for (key, message), payload in zip(sent, payloads):   # out first, then recorded
+                self._tap.record_own(key, message, payload)
 
     def _publisher(self, key: str) -> zenoh.Publisher:   # with the lock held
         publisher = self._publishers.get(key)

@@ -11,6 +11,14 @@ and recorded apart on the channel ``adn/<grid>/rejected`` (type ``rejected``: th
 reason, what was wrong, the payload's size and sha256 and its first
 :data:`REJECTED_PREFIX_BYTES` bytes in base64), so that nothing received is lost and nothing
 invalid is taken for a message.
+
+**Recording after the grants.** ``up``'s bus thread takes a batch of samples inside
+:meth:`RecorderTap.writes_after`: each sample is checked and counted at once (the clock's
+reports must be), but what it holds is written (and fed to the summary's series and the live
+view) when the batch is done -- after its reports went to the sim clock and the grants that
+follow were put on the bus. The agents then run their next window while ``up`` records: the
+recording is off the clock's critical path. Grants ``up`` sends in the batch are recorded then
+too. The recording is the same, message for message.
 """
 
 from __future__ import annotations
@@ -18,7 +26,8 @@ from __future__ import annotations
 import base64
 import hashlib
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from typing import Annotated
 
 import msgspec
@@ -114,6 +123,7 @@ class RecorderTap:
         self.rejected_unrecorded = 0            # beyond REJECTED_RECORDS_KEPT
         self._records_kept = 0
         self._lock = threading.Lock()
+        self._after: list | None = None   # within writes_after: (key, type, records, messages)
         self.record_errors = 0
         self.problems: list[str] = []
 
@@ -126,10 +136,10 @@ class RecorderTap:
         with self._lock:
             accepted, rejects = self._gate.admit_sample(key, sample)
             accepted, rejects = self._tally(key, accepted, rejects)
-            records = [(payload, m.t_deliver_ns, m.t_send_ns) for payload, m in accepted]
-            if records and self._write(key, accepted[0][1].type, records):
-                for _, message in accepted:
-                    self._feed(message)
+            if accepted:
+                self._record(key, accepted[0][1].type,
+                             [(payload, m.t_deliver_ns, m.t_send_ns) for payload, m in accepted],
+                             [message for _, message in accepted])
             suspects = self._note_rejects(key, rejects, now_ns)
         if self._on_suspect is not None:
             for agent, why in suspects:
@@ -152,9 +162,23 @@ class RecorderTap:
     def record_own(self, key: str, message: Envelope, payload: bytes) -> None:
         """Record a message ``up`` sent itself."""
         with self._lock:
-            if self._write(key, message.type, [(payload, message.t_deliver_ns,
-                                                message.t_send_ns)]):
-                self._feed(message)
+            self._record(key, message.type,
+                         [(payload, message.t_deliver_ns, message.t_send_ns)], [message])
+
+    @contextmanager
+    def writes_after(self) -> Iterator[None]:
+        """Within the block, what :meth:`take` and :meth:`record_own` accept is recorded, fed
+        to the series and shown when the block ends, in the order it came (see the module
+        docstring); what they check and count, and return, is as without it."""
+        with self._lock:
+            self._after = []
+        try:
+            yield
+        finally:
+            with self._lock:
+                after, self._after = self._after, None
+                for key, type_name, records, messages in after:
+                    self._write_and_feed(key, type_name, records, messages)
 
     def count_rejected(self, key: str, reason: str) -> None:
         """Count a payload rejected elsewhere in ``up`` (e.g. a malformed fault request)."""
@@ -243,8 +267,16 @@ class RecorderTap:
         t_send, t_deliver = times if times is not None else (now_ns,) * 2
         return encode(record), max(t_send, t_deliver), t_send
 
-    def _feed(self, message: Envelope) -> None:
-        self.series.take(message)
+    def _record(self, key: str, type_name: str, records: list, messages: list) -> None:
+        if self._after is not None:
+            self._after.append((key, type_name, records, messages))
+        else:
+            self._write_and_feed(key, type_name, records, messages)
+
+    def _write_and_feed(self, key: str, type_name: str, records: list, messages: list) -> None:
+        if self._write(key, type_name, records):
+            for message in messages:
+                self.series.take(message)
 
     def _write(self, key: str, type_name: str, records: list) -> bool:
         try:
