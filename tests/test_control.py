@@ -12,6 +12,7 @@ import pytest
 from adnmesh.config import DER, Config, load_config
 from adnmesh.control.registry import build_agent
 from adnmesh.control.availability_monitor import AvailabilityMonitor
+from adnmesh.names import der_id_of
 from adnmesh.control.cpfc_controller import (CPFC, HANDOVER_BOUND, HANDOVER_RESPONSE_TIMES,
                                              GainSchedule, initial_p_ref_w, output_limits)
 from adnmesh.control.der_controller import DERController
@@ -683,3 +684,77 @@ def test_cpfc_announces_the_ders_it_keeps_when_no_entry_has_gains_for_them(confi
     assert [(t, b["entry"], b["ders"]) for t, b in sent] == [
         (0, 0, ["SGen1", "SGen2"]), (4500 * MS, 0, ["SGen1"])]
     assert sent[1][1]["capacity_w"] == config.ders_by_id(["SGen1"])[0].p_inst_w
+
+
+class _MonitorByScans(AvailabilityMonitor):
+    """The monitor as it was before SI and the deadlines were kept up to date DER by DER: SI
+    rebuilt and every deadline scanned at each call (the reference)."""
+
+    def si(self):
+        return {d: self.flag[d] and d not in self.expired for d in self.der_ids}
+
+    def next_timer_ns(self):
+        times = [t for d, t in self.deadline_ns.items() if d not in self.expired]
+        times.append(self._next_repeat_ns)
+        if self._send_ns is not None:
+            times.append(self._send_ns)
+        return min(times)
+
+    def on_message(self, t_ns, message):
+        der_id = der_id_of(message.src)
+        if der_id not in self.flag:
+            return []
+        self.flag[der_id] = message.available and message.mode != "watchdog"
+        self.reason[der_id] = "" if self.flag[der_id] else (
+            "in watchdog fallback" if message.mode == "watchdog" else
+            "its heartbeat says it is not available")
+        self.deadline_ns[der_id] = t_ns + self.timeout_ns
+        self.expired.discard(der_id)
+        if self.si() != self._sent and t_ns >= self._quiet_until_ns:
+            self._send_ns = t_ns
+        return []
+
+    def on_timer(self, t_ns):
+        self._send_ns = None
+        for der_id, deadline in self.deadline_ns.items():
+            if deadline <= t_ns and der_id not in self.expired:
+                self.expired.add(der_id)
+                self.reason[der_id] = f"no heartbeat for {self.timeout_ns / 1e9:g} s"
+        repeat = t_ns >= self._next_repeat_ns
+        if repeat:
+            self._next_repeat_ns = t_ns + self.period_ns
+        return self._publish(t_ns, repeat)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_availability_monitor_keeps_si_as_rebuilding_it_at_every_heartbeat_would(
+        seed: int, config) -> None:
+    """SI, its changes and the monitor's timers, kept DER by DER and in a heap, equal those of
+    the monitor that rebuilt SI and scanned every deadline at each heartbeat, over random
+    heartbeats (late, missing, unavailable, in watchdog fallback, repeated at one instant) and
+    a restart (resume)."""
+    from adnmesh.wire.messages import MESSAGE_VERSION, Heartbeat
+
+    rng = random.Random(seed)
+    kept, scanned = AvailabilityMonitor(config), _MonitorByScans(config)
+    ders = list(config.der_ids())
+    t, seen, timed_out = 0, 0, 0
+    for step in range(3000):
+        if step == 1500:
+            kept.resume(t), scanned.resume(t)
+        due = scanned.next_timer_ns()
+        assert kept.next_timer_ns() == due
+        if due is not None and due <= t:
+            assert kept.on_timer(due) == scanned.on_timer(due)
+            assert kept.si() == scanned.si()
+            timed_out += bool(scanned.expired)
+            continue
+        der = rng.choice(ders[: rng.choice([2, len(ders)])])   # some DERs fall silent
+        mode = rng.choices(["control", "schedule", "watchdog"], [8, 1, 1])[0]
+        beat = Heartbeat(MESSAGE_VERSION, "heartbeat", f"der/{der}", step, t, t,
+                         available=rng.random() > 0.15, mode=mode)
+        assert kept.on_message(t, beat) == scanned.on_message(t, beat)
+        assert kept.si() == scanned.si() and kept.expired == scanned.expired
+        seen += 1
+        t += rng.choice([0, 0, 1, 10_000_000, 400_000_000, 3_000_000_000])
+    assert seen > 1000 and timed_out > 10      # heartbeats timed out too

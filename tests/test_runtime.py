@@ -325,3 +325,46 @@ def test_within_writes_after_the_tap_checks_at_once_and_records_when_the_block_e
         recordings.append([(m.topic, m.log_time_ns, m.publish_time_ns, m.data)
                            for m in read_recording(path).messages])
     assert recordings[0] == recordings[1] and len(recordings[0]) == 8
+
+
+def test_what_is_held_is_all_written_though_the_series_fails_and_others_record_meanwhile(
+        tmp_path, simbench_config):
+    """Within ``writes_after``, a message of up's own recorded from another thread (the
+    injector, a grant after a kill) is held and written in its place; a series that raises on
+    one message loses none of the others, and the error is raised once all are written."""
+    import threading
+
+    from payloads import payload
+
+    from adnmesh.recording import Recorder
+    from adnmesh.runtime.tap import RecorderTap, recording_schemas
+    from adnmesh.sim.topology import Topology
+    from adnmesh.wire.envelope import encode
+    from adnmesh.wire.messages import MESSAGE_VERSION, ClockGrant
+
+    class FailingSeries(RunSeries):
+        def take(self, message) -> None:
+            if message.type == "p_ip" and message.seq == 1:
+                raise KeyError("a bug in the series")
+            super().take(message)
+
+    topology = Topology.from_config(simbench_config)
+    p_ip = topology.keys.of("p_ip")
+    grant_key = topology.keys.of("clock_grant", "measurement")
+    grant = ClockGrant(MESSAGE_VERSION, "clock_grant", "up", 0, 0, 0, until_ns=1, expect=0)
+    with Recorder(tmp_path / "tap.mcap", metadata={"run_id": "tap"},
+                  schemas=recording_schemas()) as recorder:
+        series = FailingSeries()
+        tap = RecorderTap(recorder, topology, series, lambda: 0)
+        with pytest.raises(KeyError), tap.writes_after():
+            for seq in range(3):
+                tap.take(p_ip, payload(p_ip, {"p_ip_w": 1e6}, seq=seq, t_send_ns=seq))
+            other = threading.Thread(target=tap.record_own,
+                                     args=(grant_key, grant, encode(grant)))
+            other.start()
+            other.join(10)
+            assert not other.is_alive() and recorder.counts() == {}
+        assert recorder.counts() == {p_ip: 3, grant_key: 1}
+        assert list(series.p_ip_t_ns) == [0, 2]
+        tap.record_own(grant_key, grant, encode(grant))     # outside a block: at once
+        assert recorder.counts()[grant_key] == 2

@@ -372,3 +372,13 @@ def test_a_shared_decode_parses_a_payload_once_and_every_gate_keeps_its_own_rule
     assert shared.decoded == 7
     with pytest.raises(ValueError):
         SharedDecode(size=0)
+    by_bytes = SharedDecode(size=64, max_bytes=2 * len(good) + 10)   # bounded in bytes too
+    for seq in range(5):
+        by_bytes(key, raw(key, EXAMPLES[key], seq=seq))
+    assert len(by_bytes._memo) == 2 and by_bytes._bytes <= by_bytes.max_bytes
+    huge = b" " * (MAX_ENVELOPE_BYTES + 1)                            # rejected unread, not kept
+    for _ in range(2):
+        with pytest.raises(MessageError) as info:
+            by_bytes(key, huge)
+        assert info.value.reason == "too_large"
+    assert all(len(p) <= MAX_ENVELOPE_BYTES for _, p in by_bytes._memo)

@@ -379,12 +379,12 @@ class AgentProcess:
             self._signals = {s: signal.signal(s, self._on_signal)   # Ctrl-C stops it too
                              for s in (signal.SIGTERM, signal.SIGINT)}
         keys, session = self.keys, self.session
-        if subscribe:
-            self._handles = [session.declare_subscriber(key, callback)
-                             for key, callback in self.routes().items()]
         if self.publishers:   # declared here, not in a window: see below
             for key in self.node.sends():
                 self._publisher(key)
+        if subscribe:
+            self._handles = [session.declare_subscriber(key, callback)
+                             for key, callback in self.routes().items()]
         self._handles.append(session.liveliness().declare_token(keys.liveliness(self.agent)))
         # up declares its token after its recorder's subscriber, but behind a site router the
         # token can still arrive before the route: reports before the first one up hears are

@@ -124,6 +124,7 @@ class RecorderTap:
         self._records_kept = 0
         self._lock = threading.Lock()
         self._after: list | None = None   # within writes_after: (key, type, records, messages)
+        self._writing = threading.Lock()  # held while records are written (after the tap's)
         self.record_errors = 0
         self.problems: list[str] = []
 
@@ -175,10 +176,28 @@ class RecorderTap:
         try:
             yield
         finally:
+            self._write_after()
+
+    def _write_after(self) -> None:
+        """Write what :meth:`writes_after` held, outside the tap's lock (a thread that holds
+        the clock's lock and records a message of ``up``'s own waits for the tap's lock, not
+        for a batch's writing: it adds to what is held meanwhile, written next, in order);
+        every record is written even if one raises, and the first error is raised after."""
+        error = None
+        while True:
             with self._lock:
-                after, self._after = self._after, None
+                after = self._after
+                self._after = [] if after else None
+            if not after:
+                break
+            with self._writing:
                 for key, type_name, records, messages in after:
-                    self._write_and_feed(key, type_name, records, messages)
+                    try:
+                        self._write_and_feed(key, type_name, records, messages)
+                    except Exception as exc:   # a bug in the series or the view: said after
+                        error = error or exc
+        if error is not None:
+            raise error
 
     def count_rejected(self, key: str, reason: str) -> None:
         """Count a payload rejected elsewhere in ``up`` (e.g. a malformed fault request)."""
@@ -246,7 +265,7 @@ class RecorderTap:
                     self.suspects[agent] = f"{reject.reason} on {key}: {reject.detail}"
                     suspects.append((agent, self.suspects[agent]))
         if records:
-            self._write(self.rejected_key, REJECTED_TYPE, records)
+            self._record(self.rejected_key, REJECTED_TYPE, records, [])
         return suspects
 
     def cut_off(self, agent: str, from_ns: int) -> None:
@@ -271,7 +290,8 @@ class RecorderTap:
         if self._after is not None:
             self._after.append((key, type_name, records, messages))
         else:
-            self._write_and_feed(key, type_name, records, messages)
+            with self._writing:
+                self._write_and_feed(key, type_name, records, messages)
 
     def _write_and_feed(self, key: str, type_name: str, records: list, messages: list) -> None:
         if self._write(key, type_name, records):

@@ -107,21 +107,21 @@ def _route(key: str) -> Route | None:
     return None
 
 
-_ROUTES: dict[str, Route | None] = {}
+_ROUTES: dict[str, Route] = {}
 _ROUTES_KEPT = 32_768
 """Keys :func:`route` remembers: every key of a 1,000-DER run (about 7 per DER: state,
 heartbeat, events, clock report, grant, kill and goodbye; 4,096 left most of them to a regex
-search of 3.5 us at every message), and a bound a flood of foreign keys cannot pass (a few MB)."""
+search of 3.5 us at every message). Only keys that route are kept (their ids are short), so a
+flood of foreign keys of any length neither grows it nor fills it."""
 
 
 def route(key: str) -> Route | None:
     """The kind and legitimate sender of ``key``, or None if it is not an adnmesh message key.
 
-    Remembers the answer for at most :data:`_ROUTES_KEPT` keys (a flood of foreign keys cannot
-    grow it further)."""
-    found = _ROUTES.get(key, False)
-    if found is False:
+    Remembers the answer for at most :data:`_ROUTES_KEPT` keys that route."""
+    found = _ROUTES.get(key)
+    if found is None:
         found = _route(key)
-        if len(_ROUTES) < _ROUTES_KEPT:
+        if found is not None and len(_ROUTES) < _ROUTES_KEPT:
             _ROUTES[key] = found
     return found

@@ -5,7 +5,10 @@ that Foxglove and any JSON Schema validator read them without adnmesh. They are 
 the structs of the protocol table (:mod:`adnmesh.wire.protocol`) by msgspec, so they say exactly what decoding
 accepts: field types, bounds, string and mapping lengths, required fields, no other fields. The
 one check a schema cannot state (``t_deliver_ns >= t_send_ns``, and the sender of a key) is in
-each schema's description.
+each schema's description. One pattern a schema states is checked after decoding: the DER ids
+in the CPFC's weights, SI, a switch's ``keep`` and the grid guard's lists
+(:data:`~adnmesh.wire.messages.RunDER`), which every receiver's gate checks against the run's
+own DERs instead (``unknown_der``).
 """
 
 from __future__ import annotations

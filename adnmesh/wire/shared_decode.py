@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import threading
 
-from adnmesh.wire.envelope import MessageError, decode
+from adnmesh.wire.envelope import MAX_ENVELOPE_BYTES, MessageError, decode
 from adnmesh.wire.messages import Envelope
 
 __all__ = ["SharedDecode"]
@@ -22,8 +22,10 @@ __all__ = ["SharedDecode"]
 class SharedDecode:
     """``decode(key, payload)`` remembered for the last ``size`` distinct ``(key, payload)``
     (a sample fans out to its receivers one after the other, while other keys' samples arrive
-    on Zenoh's other threads: thread-safe). A rejected payload raises a new
-    :class:`~adnmesh.wire.envelope.MessageError` with the same reason and detail each time.
+    on Zenoh's other threads: thread-safe), holding at most ``max_bytes`` of payloads; a
+    payload longer than an envelope may be is not kept (it is rejected unread anyway). A
+    rejected payload raises a new :class:`~adnmesh.wire.envelope.MessageError` with the same
+    reason and detail each time.
 
     Attributes
     ----------
@@ -31,16 +33,20 @@ class SharedDecode:
         Payloads decoded, and decodes spared (a remembered one given again).
     """
 
-    def __init__(self, size: int = 64) -> None:
+    def __init__(self, size: int = 64, max_bytes: int = 4 * 1024 * 1024) -> None:
         if size < 1:
             raise ValueError(f"size must be at least 1, got {size}")
         self.size = size
+        self.max_bytes = max_bytes
+        self._bytes = 0
         self.decoded = 0
         self.shared = 0
         self._memo: dict[tuple[str, bytes], Envelope | MessageError] = {}
         self._lock = threading.Lock()
 
     def __call__(self, key: str, payload: bytes) -> Envelope:
+        if len(payload) > MAX_ENVELOPE_BYTES:
+            return decode(key, payload)        # too_large, unread
         memo_key = (key, payload)
         with self._lock:
             found = self._memo.get(memo_key)
@@ -53,8 +59,11 @@ class SharedDecode:
                 found = exc
             with self._lock:
                 self.decoded += 1
-                self._memo[memo_key] = found
-                if len(self._memo) > self.size:
+                if memo_key not in self._memo:
+                    self._memo[memo_key] = found
+                    self._bytes += len(payload)
+                while len(self._memo) > self.size or self._bytes > self.max_bytes:
+                    self._bytes -= len(next(iter(self._memo))[1])
                     del self._memo[next(iter(self._memo))]
         if isinstance(found, MessageError):
             raise MessageError(found.reason, found.detail)
