@@ -21,7 +21,12 @@ Ranges over the repeats are printed with the 1-minute load average before and af
 
 With ``--source`` another config is cut (and ``--table`` spares the tuning: a table tuned for
 the source's whole scenario serves its cuts to fewer seconds, not to fewer DERs);
-``--ders-per-process N`` runs every cut in scale mode.
+``--ders-per-process N`` runs every cut in scale mode. ``--baseline-rev REV`` runs the code of
+commit REV too (a ``git worktree``, ``PYTHONPATH`` set to it), alternating run by run with this
+tree, a row each; a run that did not finish (a stall) is said with its last line.
+
+    .venv/bin/python benchmarks/bench_scale.py --source configs/examples/scale/adn-1000.yaml \
+        --table T1000.json --ders 1000 --duration 60 --repeats 3 --baseline-rev e9ce31c
 """
 from __future__ import annotations
 
@@ -132,9 +137,10 @@ def tuning_cpu_per_subset(config_path: Path) -> list[float]:
     return out
 
 
-def run_up(config_path: Path, work: Path, timeout_s: float, table: Path | None = None) -> dict:
-    """One ``adnmesh up`` run (sim clock; without ``table`` it tunes on demand) with its
-    figures."""
+def run_up(config_path: Path, work: Path, timeout_s: float, table: Path | None = None,
+           env: dict | None = None) -> dict:
+    """One ``adnmesh up`` run (sim clock; without ``table`` it tunes on demand; ``env``: of
+    another source tree) with its figures."""
     summary = work / "summary.json"
     argv = ["nice", "-n", "5", sys.executable, "-m", "adnmesh", "up", str(config_path),
             "--out", str(work / "run.mcap"), "--summary-json", str(summary),
@@ -142,7 +148,7 @@ def run_up(config_path: Path, work: Path, timeout_s: float, table: Path | None =
     load0 = os.getloadavg()[0]
     t0 = time.monotonic()
     proc = subprocess.Popen(argv, cwd=work, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True)
+                            text=True, env=env)
     sampler = _Sampler(proc.pid)
     sampler.start()
     try:
@@ -165,7 +171,8 @@ def run_up(config_path: Path, work: Path, timeout_s: float, table: Path | None =
             "agents": extra.get("agents"), "processes": sampler.processes,
             "pss_sum_mb": sampler.peak_sum_kb / 1024, "rss_max_mb": sampler.peak_one_kb / 1024,
             "steps": data.get("steps", []), "load": (load0, os.getloadavg()[0]),
-            "stderr_tail": err.strip().splitlines()[-1:] if proc.returncode else []}
+            "stderr_tail": err.strip().splitlines()[-1:] if proc.returncode else [],
+            "ended": extra.get("ended")}
 
 
 def _compensated(step: dict, overshoot_max_pct: float, band: float) -> bool:
@@ -201,6 +208,8 @@ def main(argv=None) -> int:
                         "CONFIG --subsets scenario')")
     parser.add_argument("--ders-per-process", type=int, metavar="N",
                         help="set runtime.ders_per_process (scale mode) in every cut")
+    parser.add_argument("--baseline-rev", metavar="REV",
+                        help="also run commit REV, alternating with this tree")
     args = parser.parse_args(argv)
     try:
         counts = [int(x) for x in args.ders.split(",")]
@@ -215,6 +224,11 @@ def main(argv=None) -> int:
     from adnmesh.config import load_config
     constraints = load_config(args.source).constraints      # with the defaults
     limit, band = constraints.overshoot_max_pct, constraints.settling_band_pct / 100.0
+    trees = {"this tree": None}
+    if args.baseline_rev:
+        sys.path.insert(0, str(Path(__file__).resolve().parent))
+        from bench_runtime import tree_env, worktree
+        trees[args.baseline_rev] = tree_env(worktree(args.baseline_rev))
     print(f"{'DERs':>4} {'procs':>5} {'wall s':>13} {'startup s':>11} {'speed x':>9} "
           f"{'PSS sum MB':>11} {'RSS max MB':>10} {'tune CPU s/subset':>18} {'steps ok':>8} "
           f"{'load':>9}")
@@ -223,34 +237,43 @@ def main(argv=None) -> int:
             work = Path(tmp)
             cfg = work / f"adn-{n}.yaml"
             cfg.write_text(yaml.safe_dump(cut_down(document, n, args.duration), sort_keys=False))
-            runs, cpu = [], []
+            by_tree: dict[str, list] = {name: [] for name in trees}
+            cpu = []
             for _ in range(args.repeats):
                 if args.table is None:
                     cpu += tuning_cpu_per_subset(cfg)
-                runs.append(run_up(cfg, work, args.timeout, args.table))
-                for r in runs[-1:]:
-                    if r["exit"] != 0:
-                        print(f"  up exited {r['exit']}: {' '.join(r['stderr_tail'])}")
-            ok = [bool(r["steps"]) and all(_compensated(s, limit, band) for s in r["steps"])
-                  for r in runs]
-            for r in runs:
-                for s in r["steps"]:
-                    if not _compensated(s, limit, band):
-                        fig = s.get("figures") or {}
-                        print(f"  step at {s.get('t_s')} s not compensated: overshoot "
-                              f"{fig.get('overshoot_pct')} % (limit {limit} %), settling "
-                              f"{fig.get('settling_time_s')} s, steady error "
-                              f"{s.get('steady_error_w')} W")
-            loads = [x for r in runs for x in r["load"]]
-            print(f"{n:>4} {_range([r['processes'] for r in runs], 'd'):>5} "
-                  f"{_range([r['wall_s'] for r in runs]):>13} "
-                  f"{_range([r['startup_s'] for r in runs]):>11} "
-                  f"{_range([r['speed'] for r in runs]):>9} "
-                  f"{_range([r['pss_sum_mb'] for r in runs], '.0f'):>11} "
-                  f"{_range([r['rss_max_mb'] for r in runs], '.0f'):>10} "
-                  f"{_range(cpu, '.2f'):>18} {f'{sum(ok)}/{len(ok)}':>8} {_range(loads):>9}",
-                  flush=True)
+                for name, env in trees.items():      # alternating run by run
+                    r = run_up(cfg, work, args.timeout, args.table, env)
+                    by_tree[name].append(r)
+                    if r["exit"] != 0 or r["ended"] != "finished":
+                        print(f"  {name}: up exited {r['exit']}, ended {r['ended']!r}: "
+                              f"{' '.join(r['stderr_tail'])[:300]}")
+            for name, runs in by_tree.items():
+                _row(n, runs, cpu, limit, band, name if len(trees) > 1 else "")
     return 0
+
+
+def _row(n: int, runs: list, cpu: list, limit: float, band: float, name: str) -> None:
+    """The printed figures of one DER count's runs (of one source tree, ``name``)."""
+    ok = [bool(r["steps"]) and all(_compensated(s, limit, band) for s in r["steps"])
+          for r in runs]
+    for r in runs:
+        for s in r["steps"]:
+            if not _compensated(s, limit, band):
+                fig = s.get("figures") or {}
+                print(f"  step at {s.get('t_s')} s not compensated: overshoot "
+                      f"{fig.get('overshoot_pct')} % (limit {limit} %), settling "
+                      f"{fig.get('settling_time_s')} s, steady error "
+                      f"{s.get('steady_error_w')} W")
+    loads = [x for r in runs for x in r["load"]]
+    print(f"{n:>4} {_range([r['processes'] for r in runs], 'd'):>5} "
+          f"{_range([r['wall_s'] for r in runs]):>13} "
+          f"{_range([r['startup_s'] for r in runs]):>11} "
+          f"{_range([r['speed'] for r in runs]):>9} "
+          f"{_range([r['pss_sum_mb'] for r in runs], '.0f'):>11} "
+          f"{_range([r['rss_max_mb'] for r in runs], '.0f'):>10} "
+          f"{_range(cpu, '.2f'):>18} {f'{sum(ok)}/{len(ok)}':>8} {_range(loads):>9}"
+          f"  {name}", flush=True)
 
 
 if __name__ == "__main__":
