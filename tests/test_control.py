@@ -701,18 +701,13 @@ class _MonitorByScans(AvailabilityMonitor):
         return min(times)
 
     def on_message(self, t_ns, message):
-        der_id = der_id_of(message.src)
-        if der_id not in self.flag:
-            return []
-        self.flag[der_id] = message.available and message.mode != "watchdog"
-        self.reason[der_id] = "" if self.flag[der_id] else (
-            "in watchdog fallback" if message.mode == "watchdog" else
-            "its heartbeat says it is not available")
-        self.deadline_ns[der_id] = t_ns + self.timeout_ns
-        self.expired.discard(der_id)
-        if self.si() != self._sent and t_ns >= self._quiet_until_ns:
+        send_ns = self._send_ns                 # flags, reasons and deadlines as the monitor
+        out = AvailabilityMonitor.on_message(self, t_ns, message)   # sets them; when SI goes
+        self._send_ns = send_ns                 # out, by comparing it whole
+        if (der_id_of(message.src) in self.flag and self.si() != self._sent
+                and t_ns >= self._quiet_until_ns):
             self._send_ns = t_ns
-        return []
+        return out
 
     def on_timer(self, t_ns):
         self._send_ns = None
