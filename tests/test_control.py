@@ -753,3 +753,33 @@ def test_the_availability_monitor_keeps_si_as_rebuilding_it_at_every_heartbeat_w
         seen += 1
         t += rng.choice([0, 0, 1, 10_000_000, 400_000_000, 3_000_000_000])
     assert seen > 1000 and timed_out > 10      # heartbeats timed out too
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_the_cpfcs_available_set_after_each_heartbeat_is_the_one_a_pass_over_all_acks_gives(
+        seed: int, config, table) -> None:
+    """The CPFC keeps the DERs in watchdog fallback as a set, not by a pass over every
+    acknowledgement at each heartbeat: after every heartbeat (random modes and flags, SI now
+    and then, SI going stale) the pending set is the one the pass gives."""
+    rng = random.Random(seed)
+    cpfc = CPFC(config, GainSchedule(config, table))
+    keys, ders = Keys(config.grid), list(config.der_ids())
+    t, checked = 0, 0
+    for _ in range(400):
+        t += rng.choice([10 * MS, 100 * MS, 2000 * MS])
+        while cpfc.next_timer_ns() <= t:
+            cpfc.on_timer(cpfc.next_timer_ns())
+        if rng.random() < 0.1:
+            cpfc.on_message(t, message(keys.of("si"), t, {"si": {d: rng.random() > 0.3
+                                                               for d in ders}},
+                                       src="availability"))
+            continue
+        der = rng.choice(ders)
+        mode = rng.choices(["control", "schedule", "watchdog"], [5, 1, 2])[0]
+        cpfc.on_message(t, message(keys.of("heartbeat", der), t, {
+            "available": rng.random() > 0.2, "mode": mode, "p_y": 0.0}, src=f"der/{der}"))
+        base = cpfc._heard(t) if cpfc.si_stale else cpfc.si_available
+        by_pass = frozenset(d for d in base if cpfc.acks.get(d, (0, "control"))[1] != "watchdog")
+        assert cpfc._pending == (None if by_pass == cpfc.available else by_pass)
+        checked += 1
+    assert checked > 300
