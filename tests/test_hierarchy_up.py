@@ -464,3 +464,56 @@ def test_one_levels_certificate_takes_nothing_of_anothers_keys(ran) -> None:
     assert all(s["extra"]["rejected_by_agents"] == 0 for s in summary["levels"].values())
     assert not any(json.loads(m.data)["seq"] == FORGED_SEQ for m in recording.messages
                    if m.topic in FORGED)
+
+
+def test_a_site_recorder_takes_each_level_on_one_subscriber_and_only_its_agents_keys(
+        ran, tmp_path) -> None:
+    """One subscriber per level, not per key: a report rides the last sample of its window on
+    any of its agent's keys, and per-key subscribers (a Zenoh delivery thread each) let a
+    later report overtake an earlier one, which the site's tap then rejected as replayed.
+    Every key the site's agents send falls under exactly one subscriber; what else a pattern
+    brings (up's grants to them) is not queued."""
+    import queue
+
+    import zenoh
+
+    from adnmesh.runtime.site_recorder import SiteRecorder
+    from adnmesh.sim.hierarchy_levels import load_levels
+
+    folder = ran[0]
+    recorder = SiteRecorder(tmp_path / "site.mcap", load_levels(folder / "run.levels.json"),
+                            "mixed", "r")
+    declared = []
+
+    class Session:
+        def declare_subscriber(self, key, callback):
+            declared.append((key, callback))
+            return type("Handle", (), {"undeclare": lambda self: None})()
+
+    class Bytes(bytes):
+        def to_bytes(self) -> bytes:
+            return bytes(self)
+
+    class Queued(queue.Queue):
+        def __init__(self) -> None:
+            super().__init__()
+            self.keys: list = []
+
+        def put_nowait(self, item) -> None:
+            self.keys.append(item[0])
+            super().put_nowait(item)
+
+    recorder._queue = Queued()
+    recorder.declare(Session())
+    try:
+        assert len(declared) == 2
+        for key in recorder.keys:
+            assert sum(zenoh.KeyExpr(p).intersects(zenoh.KeyExpr(key))
+                       for p, _ in declared) == 1, key
+        on_sample = declared[0][1]
+        for key in ("adn/mixed/clock/grant/der/SGen2", "adn/mixed/der/SGen2/state"):
+            on_sample(type("Sample", (), {"key_expr": key, "payload": Bytes(b"{}"),
+                                          "attachment": None})())
+        assert recorder._queue.keys == ["adn/mixed/der/SGen2/state"]
+    finally:
+        recorder.close()

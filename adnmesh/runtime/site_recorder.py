@@ -73,8 +73,14 @@ class SiteRecorder:
         own = {adn: Topology.from_config(levels.adns[adn], HIERARCHY),
                upper: Topology.from_config(levels.upper, HIERARCHY)}
         members = {adn: own[adn].agents, upper: (der_agent_id(adn),)}
-        self.keys = sorted({k for grid, agents in members.items() for a in agents
-                            for k in own[grid].sends(a)})
+        self.keys = frozenset(k for grid, agents in members.items() for a in agents
+                              for k in own[grid].sends(a))
+        # one subscriber per level, not one per key: each has a Zenoh delivery thread of its
+        # own, and an agent's clock report rides the last sample of its window on any of its
+        # keys, so per-key subscribers let a later report overtake an earlier one (the witness
+        # then rejected the earlier as replayed: 1 of 4 CI runs of the example)
+        self.patterns = (f"{own[adn].keys.root}/**",
+                         f"{own[upper].keys.root}/**/{der_agent_id(adn)}/**")
         self.taps = {grid: RecorderTap(self.recorder, t, _NoSeries(), lambda: 0,
                                        weigh_reports=False)   # a witness, not the clock's
                      for grid, t in own.items()}
@@ -84,18 +90,24 @@ class SiteRecorder:
         self._thread: threading.Thread | None = None
 
     def declare(self, session: zenoh.Session) -> None:
-        """Subscribe to the keys the site's agents publish; record on a thread of its own, in
-        the order the samples came (one queue for every key)."""
+        """Subscribe to the keys the site's agents publish, one subscriber per level
+        (:attr:`patterns`, of which only those keys are taken); record on a thread of its own,
+        in the order the samples came (one queue for both)."""
+        keys = self.keys
+
         def on_sample(sample: zenoh.Sample) -> None:
+            key = str(sample.key_expr)
+            if key not in keys:          # up's grants to the site's agents, say
+                return
             attachment = sample.attachment
             try:
-                self._queue.put_nowait((str(sample.key_expr), sample.payload.to_bytes(),
+                self._queue.put_nowait((key, sample.payload.to_bytes(),
                                         None if attachment is None else attachment.to_bytes()))
             except queue.Full:
                 self.dropped += 1
 
-        for key in self.keys:
-            self._handles.append(session.declare_subscriber(key, on_sample))
+        for pattern in self.patterns:
+            self._handles.append(session.declare_subscriber(pattern, on_sample))
         self._thread = threading.Thread(target=self._record, daemon=True,
                                         name="adnmesh-site-recorder")
         self._thread.start()
