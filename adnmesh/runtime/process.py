@@ -372,14 +372,13 @@ class AgentProcess:
 
         Every key the agent sends gets its publisher here, on the main thread, before the
         agent is ready: not in its first window, on a Zenoh callback thread while samples
-        stream in. A 1,000-DER run whose 20 hosts declared 2,000 publishers in the first window
-        once stalled there for good, a host's windows stopped between two samples of one
-        DER (1 of 10 runs of the 60 s cut of the example, at e9ce31c; not seen since)."""
+        stream in (a 1,000-DER run whose hosts declared 2,000 publishers so in its first window
+        could stall there for good; docs/runtime.md#sim-default-deterministic)."""
         if not self.hosted and threading.current_thread() is threading.main_thread():
             self._signals = {s: signal.signal(s, self._on_signal)   # Ctrl-C stops it too
                              for s in (signal.SIGTERM, signal.SIGINT)}
         keys, session = self.keys, self.session
-        if self.publishers:   # declared here, not in a window: see below
+        if self.publishers:   # declared here, not in a window: see above
             for key in self.node.sends():
                 self._publisher(key)
         if subscribe:

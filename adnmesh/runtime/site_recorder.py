@@ -77,8 +77,8 @@ class SiteRecorder:
                               for k in own[grid].sends(a))
         # one subscriber per level, not one per key: each has a Zenoh delivery thread of its
         # own, and an agent's clock report rides the last sample of its window on any of its
-        # keys, so per-key subscribers let a later report overtake an earlier one (the witness
-        # then rejected the earlier as replayed: 1 of 4 CI runs of the example)
+        # keys, so per-key subscribers let a later report overtake an earlier one (which the
+        # witness then rejected as replayed)
         self.patterns = (f"{own[adn].keys.root}/**",
                          f"{own[upper].keys.root}/**/{der_agent_id(adn)}/**")
         self.taps = {grid: RecorderTap(self.recorder, t, _NoSeries(), lambda: 0,
