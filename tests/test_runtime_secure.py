@@ -361,7 +361,8 @@ def test_a_stolen_der_key_costs_that_der_and_nothing_else(tmp_path) -> None:
     access control lets them through: the keys are that DER's), with high sequence numbers,
     send times in the future and 10 MW on a 2 MW plant. The run completes; SGen2 is
     quarantined (a fault in the summary, an event), its DER counts as unavailable, the CPFC
-    switches to SGen1's gains, and the step after it is followed by SGen1 alone."""
+    switches to SGen1's gains, and the step after it is followed by SGen1 alone; no other
+    agent misses a message."""
     changes = {"scenario": {"duration_s": 300, "p_ref_steps": [{"t_s": 200, "delta_w": 5e5}],
                             "availability": []}}
     config, _ = write_case(tmp_path, "stolen", **changes)
@@ -395,6 +396,10 @@ def test_a_stolen_der_key_costs_that_der_and_nothing_else(tmp_path) -> None:
     assert {r["reason"] for r in rejected} <= {"ahead_of_clock", "implausible", "quarantined",
                                                "replayed"}
     assert len(rejected) <= 34                       # one per rogue message at most
+    # nothing else lost a message: the forged ones SGen2's receivers counted stood in for
+    # messages still in flight until the clock cut SGen2's keys (the CPFC then missed SI)
+    kinds = {json.loads(m.data)["kind"] for m in run.messages if "/event/" in m.topic}
+    assert not kinds & {"si_stale", "hold", "overrun"}, kinds
     summary = json.loads((tmp_path / "stolen.json").read_text())
     (step,) = summary["steps"]
     figures = step["figures"]

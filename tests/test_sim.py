@@ -573,6 +573,83 @@ def test_a_forged_fault_shuts_out_none_of_ups_own(config: Config) -> None:
     assert node.counts.received == 3 and node.counts.rejected == {faults: {"replayed": 1}}
 
 
+def test_a_quarantined_senders_messages_leave_the_count_on_both_sides(config: Config) -> None:
+    """Someone with der/SGen2's identity sends 3 states the measurement counts and no report
+    of SGen2's accounts for. Once the clock quarantines SGen2, the measurement's next grant cuts
+    SGen2's state key: the node takes out all it counted there (SGen2's 4 genuine states and
+    the 3 forged) and the clock all SGen2's reports counted, so the grant waits for the 2
+    states of SGen1 still in flight. Without the cut the 3 forged ones stood in for them: the
+    measurement went ahead without them, and they came in its past (a CI run of the stolen key
+    test lost its SI messages so, and its last step never settled)."""
+    topo = Topology.from_config(config)
+    keys = topo.keys
+    k1, k2 = keys.of("der_state", "SGen1"), keys.of("der_state", "SGen2")
+    node = Node(Ticker(keys.of("p_ip")), topo, seed=0)
+    clock = Coordinator(topo, end_ns=ns(10.0))
+    for agent in topo.agents:
+        clock.take_report(node.report() if agent == "measurement" else Report(agent, 0, 0, {}))
+    clock.start()
+    sent = {"der/SGen1": {k1: (5, ns(0.1))}, "der/SGen2": {k2: (4, ns(0.1))}}
+    for der in ("der/SGen1", "der/SGen2"):
+        clock.take_report(Report(der, ns(0.1), 0, sent[der], granted_ns=ns(0.1)))
+    for seq in range(3):
+        node.receive(k1, state("SGen1", ns(0.1) + seq, seq))           # 2 of SGen1's in flight
+    for seq in range(4):
+        node.receive(k2, state("SGen2", ns(0.1) + seq, seq))
+    for seq in range(3):                                                   # the forger's
+        node.receive(k2, state("SGen2", ns(5.0) + seq, 10**9 + seq))
+    assert node.counts.received == 10
+    queue = clock.quarantine("der/SGen2", ns(0.1))
+    while queue[0].agent != "measurement":     # the others answer; SGen1 sends nothing more
+        g = queue.pop(0)
+        queue += clock.on_report(Report(g.agent, g.until_ns, g.expect, {}, granted_ns=g.until_ns,
+                                        cuts=g.cuts))
+    grant = queue[0]
+    assert (grant.expect, grant.cut_keys, grant.cuts) == (5, (k2,), 1)
+    node.take_cut(grant.cut_keys, grant.cuts)
+    assert node.counts.received == 3 < grant.expect                    # it waits
+    node.receive(k2, state("SGen2", ns(6.0), 10**9 + 5))                # not counted any more
+    node.receive(k1, state("SGen1", ns(0.1) + 3, 3))
+    node.receive(k1, state("SGen1", ns(0.1) + 4, 4))
+    assert node.counts.received == grant.expect == 5
+    report = node.report()
+    assert report.cuts == 1 and report.received == 5
+    node.take_cut(grant.cut_keys, grant.cuts)                          # the same cut again
+    assert node.counts.received == 5
+
+
+def test_a_report_from_before_a_cut_counts_as_missing_messages(config: Config) -> None:
+    """A report made before its agent took a quarantine's cut counts messages the clock no
+    longer expects: the clock takes it as not having every message (a grant that syncs), not
+    as having them all."""
+    topo = Topology.from_config(config)
+    k2 = topo.keys.of("der_state", "SGen2")
+    clock = Coordinator(topo, end_ns=ns(10.0))
+    for agent in topo.agents:
+        clock.take_report(Report(agent, 0, 0, {}))
+    clock.start()
+    clock.take_report(Report("der/SGen2", ns(0.1), 0, {k2: (4, ns(0.1))}, granted_ns=ns(0.1)))
+    clock.quarantine("der/SGen2", ns(0.1))
+    assert clock._expected[clock._index["measurement"]] == 0
+    clock.take_report(Report("measurement", ns(0.2), 4, {}, granted_ns=0))   # cuts=0: stale
+    assert clock._received[clock._index["measurement"]] == -1
+    clock.take_report(Report("cpfc", ns(0.2), 0, {}, granted_ns=0, cuts=1))
+    assert clock._received[clock._index["cpfc"]] == 0
+
+
+def test_a_node_counts_per_key_from_its_last_first_report(config: Config) -> None:
+    """What a node counted before its last first report is in the clock's baseline: a later
+    cut takes out only what came after it."""
+    topo = Topology.from_config(config)
+    k2 = topo.keys.of("der_state", "SGen2")
+    node = Node(Ticker(topo.keys.of("p_ip")), topo, seed=0)
+    node.receive(k2, state("SGen2", 10, 0))
+    assert node.report().received == 1                                 # a first report
+    node.receive(k2, state("SGen2", 11, 1))
+    node.take_cut((k2,), 1)
+    assert node.counts.received == 1 and node.report().cuts == 1
+
+
 def test_a_quarantine_cuts_the_agent_off_also_from_what_the_node_holds(config: Config) -> None:
     """``up`` quarantines der/SGen1 (a kill with origin ``quarantine``) at 50 ns: what SGen1
     sent before stays, what it sent from then on is dropped, also if it was already held."""

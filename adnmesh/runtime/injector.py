@@ -99,7 +99,7 @@ class FaultInjector:
                 with self._lock:
                     self.dying[agent] = at      # its process's end is ours, not a loss
                     self.gone_at[agent] = at
-                launch.clock.kill(agent, at)
+                launch.clock.quarantine(agent, at)
         if launch.clock is not None:
             self._end_process(agent)
         text = (f"{agent} quarantined at {at / 1e9:g} s: {why}; nothing it sends from then on "

@@ -120,7 +120,7 @@ class SimClockDriver:
                 agent = message.src if name is None else name(message.src)
                 report = Report(agent, message.next_ns, message.received,
                                 {k: (v[0], v[1]) for k, v in message.sent.items()}, killed,
-                                message.granted_ns)
+                                message.granted_ns, message.cuts)
                 try:
                     changed = self.coordinator.take_report(report) or changed
                 except ClockError as exc:
@@ -158,10 +158,16 @@ class SimClockDriver:
             self.coordinator.inject(agents)
 
     def kill(self, agent: str, at_ns: int | None = None) -> None:
-        """``agent``'s process ended without a last report (or is quarantined, at ``at_ns``):
-        it is dead; grants follow."""
+        """``agent``'s process ended without a last report: it is dead; grants follow."""
         with self.lock:
             self._send(self.coordinator.kill(agent, at_ns))
+
+    def quarantine(self, agent: str, at_ns: int) -> None:
+        """``agent`` is quarantined at ``at_ns``: dead, and out of every count
+        (:meth:`Coordinator.quarantine <adnmesh.sim.clock.Coordinator.quarantine>`); grants
+        follow."""
+        with self.lock:
+            self._send(self.coordinator.quarantine(agent, at_ns))
 
     def cancel_restart(self, agent: str) -> None:
         with self.lock:
@@ -200,10 +206,12 @@ def publish_grants(keys: Keys, outbox: LauncherOutbox, host_of, grants, t: int) 
     for agent, g in grants:
         key = keys.of("clock_grant", agent)
         host = host_of(agent)
+        body = {"until_ns": g.until_ns, "expect": g.expect}
+        if g.cuts:
+            body.update(cut_keys=g.cut_keys, cuts=g.cuts)
         if host is None:
-            outbox.send(key, t, until_ns=g.until_ns, expect=g.expect)
+            outbox.send(key, t, **body)
         else:
-            hosted.setdefault(host, []).append(
-                (key, agent, t, {"until_ns": g.until_ns, "expect": g.expect}))
+            hosted.setdefault(host, []).append((key, agent, t, body))
     for host, messages in hosted.items():
         outbox.send_together(keys.host_grants(host), messages)

@@ -163,6 +163,10 @@ class LevelClock:
         """``agent`` of this level is dead (see :meth:`SimClockDriver.kill`)."""
         self.shared.kill(self._name(agent), at_ns)
 
+    def quarantine(self, agent: str, at_ns: int) -> None:
+        """``agent`` of this level is quarantined (see :meth:`SimClockDriver.quarantine`)."""
+        self.shared.quarantine(self._name(agent), at_ns)
+
     def inject(self, agents) -> None:
         """``up`` sent one message to each of this level's ``agents``."""
         self.shared.inject([self._name(a) for a in agents])

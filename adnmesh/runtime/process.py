@@ -535,6 +535,7 @@ class AgentProcess:
 
     def _take_clock(self, key: str, message) -> None:   # with the lock held
         if message.type == "clock_grant":      # processed here: the main thread sleeps on
+            self.node.take_cut(message.cut_keys, message.cuts)
             self.grants.append(message)
             self._run_granted()
             return
@@ -615,6 +616,8 @@ class AgentProcess:
                 "received": r.received, "sent": {k: tuple(v) for k, v in r.sent.items()}}
         if r.killed_ns is not None:
             body["killed_ns"] = r.killed_ns
+        if r.cuts:
+            body["cuts"] = r.cuts
         return self._own_payload(self.keys.of("clock_report", self.agent), body)
 
     def _report(self) -> None:

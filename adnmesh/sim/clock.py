@@ -47,6 +47,17 @@ once every live agent has processed everything before ``R``; a restarted node re
 messages sent before ``R``. So whatever the wall-clock time a new process needs to start, every
 message of the run is the same. Messages that ``up`` sends to the agents (injected faults) are
 counted with :meth:`Coordinator.inject`.
+
+**Quarantined agents.** A receiver's count can hold messages no report accounts for: someone
+sending with a quarantined agent's identity, or that agent's own messages of the window in
+which the clock declared it dead. Left in, they would let the receiver take a grant before the
+messages it waits for have come. So :meth:`Coordinator.quarantine` takes the agent out of
+every count: it subtracts what the agent's reports counted for each live receiver, and every
+later grant to a receiver of the agent's keys names them (``cut_keys``) with the number of
+quarantines so far (``cuts``); the receiver stops counting those keys and takes out what it
+counted on them, both since its first report, and says in its reports how many quarantines it
+has applied. A report that has not applied them all does not say what the receiver holds:
+the clock takes it as missing messages until a grant brings the receiver up to date.
 """
 
 from __future__ import annotations
@@ -69,11 +80,14 @@ class ClockError(RuntimeError):
 @dataclass(frozen=True, slots=True)
 class Grant:
     """Permission for ``agent`` to process every event before ``until_ns`` once it has received
-    ``expect`` messages in total."""
+    ``expect`` messages in total, not counting those on ``cut_keys`` (the keys of quarantined
+    senders it receives; ``cuts``: the quarantines so far)."""
 
     agent: str
     until_ns: int
     expect: int
+    cut_keys: tuple[str, ...] = ()
+    cuts: int = 0
 
 
 @dataclass(frozen=True, slots=True)
@@ -95,6 +109,8 @@ class Report:
         The end of the last grant the agent had taken when it reported, ns (None: not known,
         as in-process). A report behind the coordinator's last grant to the agent is a
         repeated first report that crossed that grant on the bus, and is dropped.
+    cuts : int
+        How many quarantines (:attr:`Grant.cuts`) it has taken out of ``received``.
     """
 
     agent: str
@@ -103,6 +119,7 @@ class Report:
     sent: Mapping[str, tuple[int, int]]
     killed_ns: int | None = None
     granted_ns: int | None = None
+    cuts: int = 0
 
 
 class Coordinator:
@@ -161,6 +178,11 @@ class Coordinator:
         self._rejoining: dict[int, Report] = {}   # first reports of restarted agents, held
         self._holds: dict[int, int] = {}          # time no grant may pass -> holds on it
         self.sent_totals: list[dict[str, int]] = [{} for _ in range(n)]
+        self._cuts = 0                             # quarantines so far
+        self._cut_keys: dict[int, tuple[str, ...]] = {}   # receiver -> quarantined keys it gets
+        self._quarantined: set[int] = set()
+        # for a rejoined agent: what each sender's reports had counted on its keys then
+        self._rejoin_totals: dict[int, dict[tuple[int, str], int]] = {}
         self.killed_at: dict[str, int] = {}
         self.rejoined: list[tuple[str, int]] = []   # (agent, restart ns) taken back since
         self._started = False
@@ -211,7 +233,8 @@ class Coordinator:
         self._hello[i] = not self._reported[i] or self._hello[i]   # a first report, or again
         self.reports_received += 1
         self._next[i] = _INF if report.next_ns is None else report.next_ns
-        self._received[i] = report.received
+        # a report that has not applied every cut does not say what the agent holds
+        self._received[i] = report.received if report.cuts >= self._cuts else -1
         self._idle[i] = True
         self._reported[i] = True
         expected, pending, pending_new = self._expected, self._pending, self._pending_new
@@ -240,6 +263,28 @@ class Coordinator:
         if not self._dead[i]:
             self._die(i, self.now_ns() if at_ns is None else at_ns)
         return self._after_change()
+
+    def quarantine(self, agent: str, at_ns: int) -> list[Grant]:
+        """Declare ``agent`` dead at ``at_ns`` and take it out of every count (see the module
+        docstring): its keys are cut; return grants."""
+        i = self._index[agent]
+        if not self._dead[i]:
+            self._die(i, int(at_ns))
+        if i in self._quarantined:
+            return self._after_change()
+        self._quarantined.add(i)
+        self._cuts += 1
+        for key in self.topology.publishes(agent):
+            for r in self._receivers.get(key, ()):
+                self._cut_keys[r] = (*self._cut_keys.get(r, ()), key)
+                if not self._dead[r]:
+                    self._expected[r] -= self._counted_for(r, i, key)
+        return self._after_change()
+
+    def _counted_for(self, r: int, i: int, key: str) -> int:
+        """What ``i``'s reports counted on ``key`` since ``r`` last (re)joined."""
+        base = self._rejoin_totals.get(r, {})
+        return self.sent_totals[i].get(key, 0) - base.get((i, key), 0)
 
     def plan_restart(self, agent: str, at_ns: int) -> None:
         """A new process of ``agent`` will start at sim time ``at_ns`` (a barrier until then)."""
@@ -299,7 +344,8 @@ class Coordinator:
             if not self._dead[b] and self._received[b] < self._expected[b]:
                 self._grant_expect[b] = self._expected[b]
                 self._idle[b] = self._hello[b] = False
-                out.append(Grant(agent, self._granted[b], self._expected[b]))
+                out.append(Grant(agent, self._granted[b], self._expected[b],
+                                 self._cut_keys.get(b, ()), self._cuts))
         self.grants_issued += len(out)
         return out
 
@@ -400,6 +446,9 @@ class Coordinator:
             self._next[i] = _INF if report.next_ns is None else report.next_ns
             self._pending[i] = self._pending_new[i] = _INF
             self._expected[i] = self._received[i] = report.received
+            self._rejoin_totals[i] = {
+                (p, key): total for p, totals in enumerate(self.sent_totals)
+                for key, total in totals.items() if i in self._receivers.get(key, ())}
             self._granted[i] = at
             self._idle[i] = self._reported[i] = self._hello[i] = True
             self.reports_received += 1
@@ -465,7 +514,8 @@ class Coordinator:
             self.grants_per_agent[b] += 1
             self._idle[b] = self._hello[b] = False
             self._pending_new[b] = _INF
-            out.append(Grant(self.agents[b], until, self._expected[b]))
+            out.append(Grant(self.agents[b], until, self._expected[b],
+                             self._cut_keys.get(b, ()), self._cuts))
         self.grants_issued += len(out)
         if not out and self._holds and all(self._idle):
             return self._synced_at_hold()

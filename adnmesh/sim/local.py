@@ -68,6 +68,7 @@ class NodesOnOneClock:
 
     def step(self, grant) -> list:
         node = self.run.nodes[grant.agent]
+        node.take_cut(grant.cut_keys, grant.cuts)
         if node.counts.received < grant.expect:
             raise RuntimeError(f"{grant.agent}: expected {grant.expect} messages, "
                                f"received {node.counts.received}")

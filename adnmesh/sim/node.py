@@ -23,7 +23,8 @@ sends on, ``der_offline`` of its own DER every ICT link it sends on *and* every 
 delivered to it in the window; ``kill`` of its own agent stops :meth:`Node.advance` at the
 kill time for good (:attr:`Node.killed`; the process then dies); a kill that is a quarantine
 (``origin`` ``quarantine``: ``up`` found someone sending with that agent's identity) of
-another agent cuts that agent off in the node's gate from the kill on. A node started late
+another agent cuts that agent off in the node's gate from the kill on; the grant that names the
+agent's keys (``cut_keys``, :meth:`Node.take_cut`) takes them out of the node's count. A node started late
 (``start_ns``, a restarted agent) begins at that time and rejects messages sent before it (it
 did not exist then).
 """
@@ -55,7 +56,8 @@ class NodeCounts:
         Messages handed to the bus per key.
     received : int
         Genuine messages received (valid, from the key's sender), and those dropped because
-        their sender is quarantined: what the sim clock counts.
+        their sender is quarantined, less those on keys the clock cut (a quarantined sender's,
+        :meth:`Node.take_cut`): what the sim clock counts.
     rejected : dict
         ``key -> {reason -> count}`` of payloads rejected (the node's gate's counts).
     lost : int
@@ -146,6 +148,11 @@ class Node:
         self.kill_ns: int | None = None
         self.start_ns = self.now_ns = self.granted_ns = int(start_ns)
         self.strict = strict
+        self._arrivals = 0                 # messages held so far: the inbox's last tie-break
+        self._counted: dict[str, int] = {}   # per key, counted since the first report
+        self._cut_keys: set[str] = set()     # keys not counted (quarantined senders')
+        self.cuts = 0                        # the quarantines taken out of the count
+        self._granted_once = False
         if start_ns:
             agent.resume(self.start_ns)
 
@@ -177,8 +184,9 @@ class Node:
             message = self.gate.admit(key, payload, hold=True)
         except MessageError as exc:
             if exc.reason == "quarantined":
-                self.counts.received += 1
+                self._count(key, 1)
             return
+        self._count(key, 1)
         self._take(key, message)
 
     def receive_sample(self, key: str, sample: bytes) -> None:
@@ -186,16 +194,39 @@ class Node:
         :func:`~adnmesh.wire.envelope.frames`); its rejects count once per reason, and those
         of a quarantined sender count as received (:meth:`receive`)."""
         accepted, rejects = self.gate.admit_sample(key, sample, hold=True)
+        n = len(accepted)
         for reject in rejects:
             if reject.reason == "quarantined":
-                self.counts.received += reject.envelopes
+                n += reject.envelopes
+        if n:
+            self._count(key, n)
         for _, message in accepted:
             self._take(key, message)
+
+    def _count(self, key: str, n: int) -> None:
+        """Count ``n`` messages on ``key`` for the clock (none on a cut key)."""
+        if key in self._cut_keys:
+            return
+        self.counts.received += n
+        counted = self._counted
+        counted[key] = counted.get(key, 0) + n
+
+    def take_cut(self, cut_keys, cuts: int) -> None:
+        """A grant's cut (:class:`~adnmesh.sim.clock.Grant`): stop counting ``cut_keys`` and
+        take out what was counted on them since the first report; ``cuts`` quarantines are
+        taken. Call on every grant, before comparing the count with its ``expect``."""
+        self._granted_once = True
+        if cuts <= self.cuts:
+            return
+        for key in cut_keys:
+            if key not in self._cut_keys:
+                self._cut_keys.add(key)
+                self.counts.received -= self._counted.pop(key, 0)
+        self.cuts = cuts
 
     def _take(self, key: str, message) -> None:
         """Hold a genuine message until its delivery time (apply a fault at once)."""
         counts = self.counts
-        counts.received += 1
         if message.type == "fault":
             self.gate.taken_unordered(key, message)
             self._apply(message)
@@ -209,7 +240,8 @@ class Node:
         elif t < self.granted_ns:   # realtime: its instant was already processed
             counts.late += 1
             t = max(t, self.now_ns)
-        self._inbox.append((t, key, message.seq, counts.received, message))
+        self._arrivals += 1
+        self._inbox.append((t, key, message.seq, self._arrivals, message))
         self._inbox_sorted = False
 
     def _apply(self, fault) -> None:
@@ -372,5 +404,7 @@ class Node:
             sending.window_count = 0
         self._window_keys = []
         killed = self.kill_ns if self.killed else None
+        if not self._granted_once:       # the clock counts from the last first report on
+            self._counted.clear()
         return Report(self.node_id, None if killed is not None else self.next_event_ns(),
-                      self.counts.received, sent, killed)
+                      self.counts.received, sent, killed, cuts=self.cuts)

@@ -61,6 +61,9 @@ MESSAGE_VERSION = 1
 MAX_DERS = 1000
 """Most DERs a mapping in a message (weights, SI) may name."""
 
+CUT_KEYS_MAX = 4 * MAX_DERS
+"""Most keys a clock grant may cut (the keys of every quarantined DER a receiver takes)."""
+
 NS = Annotated[int, Meta(ge=0, le=NS_MAX, description="ns of sim time")]
 Count = Annotated[int, Meta(ge=0, le=NS_MAX)]
 Power = Annotated[float, Meta(ge=-1e15, le=1e15, description="W")]
@@ -383,7 +386,8 @@ class Event(Envelope):
 class ClockReport(Envelope):
     """Sim clock: an agent's next event, how far it was granted, what it received so far and,
     per key, how many messages it sent in the window and the earliest delivery among them;
-    ``killed_ns`` when an injected kill ends it there."""
+    ``killed_ns`` when an injected kill ends it there; ``cuts``: the quarantines its count
+    leaves out (:class:`ClockGrant`)."""
 
     type: Literal["clock_report"]
     next_ns: NS | None
@@ -392,14 +396,19 @@ class ClockReport(Envelope):
     sent: Annotated[dict[Key, tuple[Annotated[int, Meta(ge=1, le=NS_MAX)], NS]],
                     Meta(max_length=64)]
     killed_ns: NS | UnsetType = UNSET
+    cuts: Count = 0
 
 
 class ClockGrant(Envelope):
-    """Sim clock: process every event before ``until_ns`` once ``expect`` messages arrived."""
+    """Sim clock: process every event before ``until_ns`` once ``expect`` messages arrived,
+    not counting those on ``cut_keys`` (quarantined senders' keys; ``cuts``: the quarantines
+    so far, :mod:`adnmesh.sim.clock`)."""
 
     type: Literal["clock_grant"]
     until_ns: NS
     expect: Count
+    cut_keys: Annotated[tuple[Key, ...], Meta(max_length=CUT_KEYS_MAX)] = ()
+    cuts: Count = 0
 
 
 class ClockStart(Envelope):
