@@ -637,17 +637,54 @@ def test_a_report_from_before_a_cut_counts_as_missing_messages(config: Config) -
     assert clock._received[clock._index["cpfc"]] == 0
 
 
-def test_a_node_counts_per_key_from_its_last_first_report(config: Config) -> None:
-    """What a node counted before its last first report is in the clock's baseline: a later
-    cut takes out only what came after it."""
+def test_a_node_counts_per_key_from_its_first_report(config: Config) -> None:
+    """What a node counted before its first report is in the clock's baseline (a restarted
+    agent's first report: the clock keeps that one): a later cut takes out only what came
+    after it."""
     topo = Topology.from_config(config)
     k2 = topo.keys.of("der_state", "SGen2")
     node = Node(Ticker(topo.keys.of("p_ip")), topo, seed=0)
     node.receive(k2, state("SGen2", 10, 0))
     assert node.report().received == 1                                 # a first report
     node.receive(k2, state("SGen2", 11, 1))
+    node.receive(k2, state("SGen2", 12, 2))
+    assert node.report().received == 3                                 # a first report, again
     node.take_cut((k2,), 1)
     assert node.counts.received == 1 and node.report().cuts == 1
+
+
+def test_a_quarantine_marks_its_idle_receivers_as_lacking_messages(config: Config) -> None:
+    """A receiver idle at the quarantine reported a count the clock no longer expects: it
+    counts as lacking messages (at a hold it gets a grant that syncs it), and a stalled run
+    says so."""
+    topo = Topology.from_config(config)
+    k2 = topo.keys.of("der_state", "SGen2")
+    clock = Coordinator(topo, end_ns=ns(10.0))
+    for agent in topo.agents:
+        clock.take_report(Report(agent, 0, 0, {}))
+    clock.start()
+    clock.take_report(Report("der/SGen2", ns(0.1), 0, {k2: (4, ns(0.1))}, granted_ns=ns(0.1)))
+    m = clock._index["measurement"]
+    clock.take_report(Report("measurement", 0, 4, {}, granted_ns=0))
+    assert clock._received[m] == clock._expected[m] == 4
+    clock.quarantine("der/SGen2", ns(0.1))
+    assert (clock._received[m], clock._expected[m]) == (-1, 0)
+    assert clock._received[clock._index["der/SGen1"]] == 0              # not a receiver
+
+
+def test_a_quarantined_agent_is_never_taken_back(config: Config) -> None:
+    """A restart planned for an agent that is then quarantined does not happen: a report in
+    its name (perhaps the forger's) is not taken at the barrier, and the barrier is gone."""
+    topo = Topology.from_config(config)
+    clock = Coordinator(topo, end_ns=ns(10.0))
+    for agent in topo.agents:
+        clock.take_report(Report(agent, 0, 0, {}))
+    clock.start()
+    clock.plan_restart("der/SGen2", ns(0.05))
+    clock.quarantine("der/SGen2", ns(0.02))
+    assert not clock.take_report(Report("der/SGen2", ns(0.05), 0, {}))
+    assert clock._barrier() == math.inf and clock.take_rejoined() == []
+    assert clock.is_dead("der/SGen2")
 
 
 def test_a_quarantine_cuts_the_agent_off_also_from_what_the_node_holds(config: Config) -> None:

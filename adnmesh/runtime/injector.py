@@ -88,6 +88,7 @@ class FaultInjector:
                 return
             self.quarantined.add(agent)
             self.killed.add(agent)              # its counts cannot be verified
+            self._restart_at.pop(agent, None)   # never back (the clock takes none either)
         launch = self.launch
         with launch.clock_lock():
             at = self._earliest_ns()

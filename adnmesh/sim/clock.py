@@ -55,9 +55,10 @@ messages it waits for have come. So :meth:`Coordinator.quarantine` takes the age
 every count: it subtracts what the agent's reports counted for each live receiver, and every
 later grant to a receiver of the agent's keys names them (``cut_keys``) with the number of
 quarantines so far (``cuts``); the receiver stops counting those keys and takes out what it
-counted on them, both since its first report, and says in its reports how many quarantines it
-has applied. A report that has not applied them all does not say what the receiver holds:
-the clock takes it as missing messages until a grant brings the receiver up to date.
+counted on them since its first report (the clock's baseline for it: the run's start, or its
+rejoin), and says in its reports how many quarantines it has applied. A report from before a
+quarantine does not say what the receiver holds: the clock takes it as missing messages until
+a grant brings the receiver up to date. A quarantined agent is never taken back.
 """
 
 from __future__ import annotations
@@ -270,6 +271,8 @@ class Coordinator:
         i = self._index[agent]
         if not self._dead[i]:
             self._die(i, int(at_ns))
+        self._restarts.pop(i, None)       # never back: a report in its name may be forged
+        self._rejoining.pop(i, None)
         if i in self._quarantined:
             return self._after_change()
         self._quarantined.add(i)
@@ -279,6 +282,9 @@ class Coordinator:
                 self._cut_keys[r] = (*self._cut_keys.get(r, ()), key)
                 if not self._dead[r]:
                     self._expected[r] -= self._counted_for(r, i, key)
+                    # its last report no longer says what it holds (see take_report)
+                    self._received[r] = -1
+                    self._pending[r] = min(self._pending[r], self._pending_new[r])
         return self._after_change()
 
     def _counted_for(self, r: int, i: int, key: str) -> int:
@@ -372,9 +378,10 @@ class Coordinator:
         out = []
         for agent in self.busy():
             i = self._index[agent]
+            before = (f"{self._received[i]} at its report before" if self._received[i] >= 0
+                      else "its report before was made before a quarantine")
             out.append(f"{agent} (granted to {self._granted[i] / 1e9:.6g} s once it has "
-                       f"{self._grant_expect[i]} messages; {self._received[i]} at its report "
-                       "before)")
+                       f"{self._grant_expect[i]} messages; {before})")
         return out
 
     def is_dead(self, agent: str) -> bool:

@@ -150,9 +150,9 @@ class Node:
         self.strict = strict
         self._arrivals = 0                 # messages held so far: the inbox's last tie-break
         self._counted: dict[str, int] = {}   # per key, counted since the first report
+        self._reported_once = False
         self._cut_keys: set[str] = set()     # keys not counted (quarantined senders')
         self.cuts = 0                        # the quarantines taken out of the count
-        self._granted_once = False
         if start_ns:
             agent.resume(self.start_ns)
 
@@ -215,7 +215,6 @@ class Node:
         """A grant's cut (:class:`~adnmesh.sim.clock.Grant`): stop counting ``cut_keys`` and
         take out what was counted on them since the first report; ``cuts`` quarantines are
         taken. Call on every grant, before comparing the count with its ``expect``."""
-        self._granted_once = True
         if cuts <= self.cuts:
             return
         for key in cut_keys:
@@ -404,7 +403,8 @@ class Node:
             sending.window_count = 0
         self._window_keys = []
         killed = self.kill_ns if self.killed else None
-        if not self._granted_once:       # the clock counts from the last first report on
+        if not self._reported_once:      # the clock's baseline (a restarted agent: its first)
             self._counted.clear()
+            self._reported_once = True
         return Report(self.node_id, None if killed is not None else self.next_event_ns(),
                       self.counts.received, sent, killed, cuts=self.cuts)
