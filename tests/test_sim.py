@@ -618,17 +618,24 @@ def test_a_quarantined_senders_messages_leave_the_count_on_both_sides(config: Co
     assert node.counts.received == 5
 
 
-def test_a_report_from_before_a_cut_counts_as_missing_messages(config: Config) -> None:
-    """A report made before its agent took a quarantine's cut counts messages the clock no
-    longer expects: the clock takes it as not having every message (a grant that syncs), not
-    as having them all."""
+def clock_after_4_states_of_sgen2(config: Config) -> Coordinator:
+    """A started clock whose der/SGen2 reported 4 states sent to the measurement."""
     topo = Topology.from_config(config)
-    k2 = topo.keys.of("der_state", "SGen2")
     clock = Coordinator(topo, end_ns=ns(10.0))
     for agent in topo.agents:
         clock.take_report(Report(agent, 0, 0, {}))
     clock.start()
-    clock.take_report(Report("der/SGen2", ns(0.1), 0, {k2: (4, ns(0.1))}, granted_ns=ns(0.1)))
+    clock.take_report(Report("der/SGen2", ns(0.1), 0,
+                             {topo.keys.of("der_state", "SGen2"): (4, ns(0.1))},
+                             granted_ns=ns(0.1)))
+    return clock
+
+
+def test_a_report_from_before_a_cut_counts_as_missing_messages(config: Config) -> None:
+    """A report made before its agent took a quarantine's cut counts messages the clock no
+    longer expects: the clock takes it as not having every message (a grant that syncs), not
+    as having them all."""
+    clock = clock_after_4_states_of_sgen2(config)
     clock.quarantine("der/SGen2", ns(0.1))
     assert clock._expected[clock._index["measurement"]] == 0
     clock.take_report(Report("measurement", ns(0.2), 4, {}, granted_ns=0))   # cuts=0: stale
@@ -655,15 +662,8 @@ def test_a_node_counts_per_key_from_its_first_report(config: Config) -> None:
 
 def test_a_quarantine_marks_its_idle_receivers_as_lacking_messages(config: Config) -> None:
     """A receiver idle at the quarantine reported a count the clock no longer expects: it
-    counts as lacking messages (at a hold it gets a grant that syncs it), and a stalled run
-    says so."""
-    topo = Topology.from_config(config)
-    k2 = topo.keys.of("der_state", "SGen2")
-    clock = Coordinator(topo, end_ns=ns(10.0))
-    for agent in topo.agents:
-        clock.take_report(Report(agent, 0, 0, {}))
-    clock.start()
-    clock.take_report(Report("der/SGen2", ns(0.1), 0, {k2: (4, ns(0.1))}, granted_ns=ns(0.1)))
+    counts as lacking messages (at a hold it gets a grant that syncs it)."""
+    clock = clock_after_4_states_of_sgen2(config)
     m = clock._index["measurement"]
     clock.take_report(Report("measurement", 0, 4, {}, granted_ns=0))
     assert clock._received[m] == clock._expected[m] == 4
