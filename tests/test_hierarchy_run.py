@@ -512,6 +512,29 @@ def test_the_hierarchy_topology_links_each_site_to_its_adn() -> None:
         hierarchy_topology(upper, {"b": lower}, {"b": 0.0})
 
 
+def test_a_level_quarantines_its_der_on_the_shared_clock() -> None:
+    """A level's launch quarantines its DER by its own id: on the hierarchy's one clock the
+    qualified agent is dead, and its keys are cut at its receivers, which the clock names
+    qualified too."""
+    import threading
+
+    from adnmesh.runtime.level_clock import LevelClock, SharedClock
+
+    lower = load_config(EXAMPLES / "wt-chp.yaml").model_copy(update={"grid": "a"})
+    upper = load_config(EXAMPLES.parent / "simbench.yaml").model_copy(
+        update={"grid": "hv", "ders": (lower.ders[0].model_copy(update={"id": "a"}),)})
+    topology = hierarchy_topology(upper, {"a": lower}, {"a": 0.05})
+    shared = SharedClock(topology, ns(10.0), threading.Event())
+    der = lower.ders[0].id
+    LevelClock(shared, "a").quarantine(f"der/{der}", ns(1.0))
+    clock = shared.coordinator
+    assert clock.is_dead(qualified("a", f"der/{der}"))
+    state = f"adn/a/der/{der}/state"
+    cut = {clock.agents[r]: keys for r, keys in clock._cut_keys.items()}
+    assert cut[qualified("a", "measurement")] == (state,)
+    assert all(state in cut[a] for a in topology.receivers[state])
+
+
 def test_an_adn_named_as_its_hierarchy_is_a_one_line_error(tmp_path, capsys) -> None:
     path = tmp_path / "h.yaml"
     path.write_text(HIERARCHY.replace("id: mixed", "id: hv"))
