@@ -24,9 +24,9 @@ delivered to it in the window; ``kill`` of its own agent stops :meth:`Node.advan
 kill time for good (:attr:`Node.killed`; the process then dies); a kill that is a quarantine
 (``origin`` ``quarantine``: ``up`` found someone sending with that agent's identity) of
 another agent cuts that agent off in the node's gate from the kill on; the grant that names the
-agent's keys (``cut_keys``, :meth:`Node.take_cut`) takes them out of the node's count. A node started late
-(``start_ns``, a restarted agent) begins at that time and rejects messages sent before it (it
-did not exist then).
+agent's keys (``cut_keys``, :meth:`Node.take_cut`) takes them out of the node's count. A node
+started late (``start_ns``, a restarted agent) begins at that time and rejects messages sent
+before it (it did not exist then).
 """
 
 from __future__ import annotations
