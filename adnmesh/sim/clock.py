@@ -179,7 +179,6 @@ class Coordinator:
         self._rejoining: dict[int, Report] = {}   # first reports of restarted agents, held
         self._holds: dict[int, int] = {}          # time no grant may pass -> holds on it
         self.sent_totals: list[dict[str, int]] = [{} for _ in range(n)]
-        self._cuts = 0                             # quarantines so far
         self._cut_keys: dict[int, tuple[str, ...]] = {}   # receiver -> quarantined keys it gets
         self._quarantined: set[int] = set()
         # for a rejoined agent: what each sender's reports had counted on its keys then
@@ -235,7 +234,7 @@ class Coordinator:
         self.reports_received += 1
         self._next[i] = _INF if report.next_ns is None else report.next_ns
         # a report that has not applied every cut does not say what the agent holds
-        self._received[i] = report.received if report.cuts >= self._cuts else -1
+        self._received[i] = report.received if report.cuts >= len(self._quarantined) else -1
         self._idle[i] = True
         self._reported[i] = True
         expected, pending, pending_new = self._expected, self._pending, self._pending_new
@@ -276,7 +275,6 @@ class Coordinator:
         if i in self._quarantined:
             return self._after_change()
         self._quarantined.add(i)
-        self._cuts += 1
         for key in self.topology.publishes(agent):
             for r in self._receivers.get(key, ()):
                 self._cut_keys[r] = (*self._cut_keys.get(r, ()), key)
@@ -286,6 +284,11 @@ class Coordinator:
                     self._received[r] = -1
                     self._pending[r] = min(self._pending[r], self._pending_new[r])
         return self._after_change()
+
+    def _grant(self, b: int, until_ns: int) -> Grant:
+        """The grant to ``b`` up to ``until_ns``: every message sent to it, the cut keys."""
+        return Grant(self.agents[b], until_ns, self._expected[b], self._cut_keys.get(b, ()),
+                     len(self._quarantined))
 
     def _counted_for(self, r: int, i: int, key: str) -> int:
         """What ``i``'s reports counted on ``key`` since ``r`` last (re)joined."""
@@ -350,8 +353,7 @@ class Coordinator:
             if not self._dead[b] and self._received[b] < self._expected[b]:
                 self._grant_expect[b] = self._expected[b]
                 self._idle[b] = self._hello[b] = False
-                out.append(Grant(agent, self._granted[b], self._expected[b],
-                                 self._cut_keys.get(b, ()), self._cuts))
+                out.append(self._grant(b, self._granted[b]))
         self.grants_issued += len(out)
         return out
 
@@ -521,8 +523,7 @@ class Coordinator:
             self.grants_per_agent[b] += 1
             self._idle[b] = self._hello[b] = False
             self._pending_new[b] = _INF
-            out.append(Grant(self.agents[b], until, self._expected[b],
-                             self._cut_keys.get(b, ()), self._cuts))
+            out.append(self._grant(b, until))
         self.grants_issued += len(out)
         if not out and self._holds and all(self._idle):
             return self._synced_at_hold()
