@@ -382,3 +382,45 @@ def test_a_shared_decode_parses_a_payload_once_and_every_gate_keeps_its_own_rule
             by_bytes(key, huge)
         assert info.value.reason == "too_large"
     assert all(len(p) <= MAX_ENVELOPE_BYTES for _, p in by_bytes._memo)
+
+
+def test_a_sample_is_held_to_its_senders_bounds_envelope_by_envelope() -> None:
+    """The gate asks the clock's reach and the quarantine once per sample, and still judges
+    each envelope of the sample by its own send time and values; a decoder that lets another
+    sender through (no check of ``src``) has that sender's bounds applied, not the key's."""
+    from payloads import payload
+
+    from adnmesh.wire.envelope import decode_as
+    from adnmesh.wire.gate import Gate
+
+    key = KEYS.of("der_state", "SGen1")
+    asked: list[str] = []
+
+    def reach(agent: str) -> int:
+        asked.append(agent)
+        return 30
+
+    gate = Gate({key}, frozenset({"SGen1", "SGen2"}), outside_reason="not_subscribed",
+                capacity_w={"SGen1": 2e5, "SGen2": 1e6}, clock_reach_ns=reach)
+    gate.cut_off("der/SGen1", 20)
+    body = {"p_w": 1e5, "setpoint_w": 2e5, "mode": "control"}
+    sample = b"\n".join([payload(key, body, seq=0, t_send_ns=0),
+                         payload(key, {**body, "p_w": 3e5}, seq=1, t_send_ns=5),
+                         payload(key, body, seq=2, t_send_ns=10),
+                         payload(key, body, seq=3, t_send_ns=20)])
+    accepted, rejects = gate.admit_sample(key, sample)
+    assert [m.seq for _, m in accepted] == [0, 2]
+    assert [(r.reason, r.envelopes) for r in rejects] == [("implausible", 1), ("quarantined", 1)]
+    assert asked == ["der/SGen1"]
+    lax = Gate({key}, frozenset({"SGen1", "SGen2"}), outside_reason="not_subscribed",
+               capacity_w={"SGen1": 2e5, "SGen2": 1e6}, clock_reach_ns=reach,
+               decoder=lambda k, p: decode_as("der_state", p))
+    lax.cut_off("der/SGen1", 0)
+    other = payload(key, {**body, "p_w": 3e5}, src="der/SGen2", seq=4, t_send_ns=25)
+    accepted, rejects = lax.admit_sample(key, other + b"\n" + payload(key, body, seq=5,
+                                                                       t_send_ns=40))
+    assert [m.src for _, m in accepted] == ["der/SGen2"]
+    assert [r.reason for r in rejects] == ["quarantined"]
+    with pytest.raises(MessageError) as info:
+        lax.admit(key, payload(key, body, src="der/SGen2", seq=6, t_send_ns=31))
+    assert info.value.reason == "ahead_of_clock"

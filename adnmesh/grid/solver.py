@@ -357,26 +357,33 @@ class GridSolver:
 
     def _powers(self, values, what: str) -> np.ndarray:
         out = np.asarray(values, dtype=float)
-        if out.shape != (self.n_actuators,) or not np.all(np.isfinite(out)):
+        if out.shape != (self.n_actuators,) or not np.isfinite(out).all():
             raise GridError(f"grid solver: expected {self.n_actuators} finite actuator {what}, "
                             f"got {values!r}")
         return out
 
     def _sample(self, iterations: int) -> GridSample:
+        """The last solve as a :class:`GridSample`: the loadings as :meth:`line_loading_pct`
+        and :meth:`trafo_loading_pct` give them, each extreme by one ``argmin``/``argmax``
+        (the measurement takes one at every sample: a NaN is the maximum, as ``max()``)."""
         grid, d = self._grid, self.data
         p_gen, q_gen, _ = grid.get_gen_res()
-        vm = self.bus_vm_pu()
-        line = self.line_loading_pct()
-        trafo = self.trafo_loading_pct()
-        low, high = int(np.argmin(vm)), int(np.argmax(vm))
+        vm = np.abs(self._v[self._report_bus])
+        with np.errstate(invalid="ignore", over="ignore"):
+            line = np.maximum(grid.get_line_res1()[3], grid.get_line_res2()[3])
+            line *= self._line_factor
+            trafo = np.maximum(grid.get_trafo_res1()[3] * self._hv_factor,
+                               grid.get_trafo_res2()[3] * self._lv_factor)
+        low, high = int(vm.argmin()), int(vm.argmax())
+        line_max, line_at = _extreme(line, d.line_names)
+        trafo_max, trafo_at = _extreme(trafo, d.trafo_names)
         return GridSample(p_ip_w=float(-p_gen[d.slack_gen] * 1e6),
                           q_ip_var=float(-q_gen[d.slack_gen] * 1e6),
                           vm_min_pu=float(vm[low]), vm_max_pu=float(vm[high]),
-                          line_loading_max_pct=_max(line), trafo_loading_max_pct=_max(trafo),
+                          line_loading_max_pct=line_max, trafo_loading_max_pct=trafo_max,
                           converged=True, iterations=iterations,
                           vm_min_at=self._bus_names[low], vm_max_at=self._bus_names[high],
-                          line_max_at=_at_max(line, d.line_names),
-                          trafo_max_at=_at_max(trafo, d.trafo_names))
+                          line_max_at=line_at, trafo_max_at=trafo_at)
 
 
 def _without_slack(report_bus: np.ndarray, grid, slack_gen: int) -> np.ndarray:
@@ -387,13 +394,13 @@ def _without_slack(report_bus: np.ndarray, grid, slack_gen: int) -> np.ndarray:
     return keep if keep.any() else np.ones(report_bus.shape, dtype=bool)
 
 
-def _max(values: np.ndarray) -> float:
-    return float(values.max()) if values.size else math.nan
-
-
-def _at_max(values: np.ndarray, names) -> str:
-    """The name of the largest of ``values`` ("" if there are none)."""
-    return names[int(np.argmax(values))] if values.size else ""
+def _extreme(values: np.ndarray, names) -> tuple[float, str]:
+    """The largest of ``values`` (NaN if one is NaN, as ``max()``) and its name; NaN and ""
+    if there are none."""
+    if not values.size:
+        return math.nan, ""
+    at = int(values.argmax())
+    return float(values[at]), names[at]
 
 
 def _not_converged(iterations: int) -> GridSample:

@@ -177,9 +177,12 @@ class Gate:
         rejects, one per reason (each counted once, see the module docstring)."""
         accepted: list[tuple[bytes, Envelope]] = []
         rejects: dict[str, SampleReject] = {}
+        bounds = None                  # what the key's sender may send, once per sample
         for payload in split_frame(sample):
             try:
-                accepted.append((payload, self._check(key, payload, hold)))
+                if bounds is None:
+                    bounds = self._bounds(key)
+                accepted.append((payload, self._check_bounded(key, payload, hold, bounds)))
             except MessageError as exc:
                 found = rejects.get(exc.reason)
                 rejects[exc.reason] = SampleReject(exc.reason, exc.detail, payload, 1) \
@@ -234,27 +237,48 @@ class Gate:
         return sum(sum(r.values()) for r in self.rejected.values())
 
     def _check(self, key: str, payload: bytes, hold: bool) -> Envelope:
+        return self._check_bounded(key, payload, hold, self._bounds(key))
+
+    def _bounds(self, key: str) -> _Bounds:
+        """Rule 1 on ``key``, and what rules 4 to 6 allow its sender now (the same for every
+        envelope of one sample)."""
         if key not in self.accepts:
             raise MessageError(*self.outside)
+        found = route(key)
+        if found is None:                      # rule 2 rejects every envelope (unknown key)
+            return _Bounds(None, None, None, None)
+        sender = found.sender
+        if found.kind.link is None:            # the clock protocol: rules 4 and 5 do not apply
+            return _Bounds(sender, None, None, self.capacity_w.get(der_id_of(sender) or ""))
+        reach = None if self.clock_reach_ns is None else self.clock_reach_ns(sender)
+        return _Bounds(sender, self._cut_off.get(sender), reach,
+                       self.capacity_w.get(der_id_of(sender) or ""))
+
+    def _check_bounded(self, key: str, payload: bytes, hold: bool,
+                       bounds: _Bounds) -> Envelope:
         message = self.decoder(key, payload)
         if not names_known_ders(message, self.der_ids):
             raise MessageError("unknown_der", "names a DER this run does not have")
         sender, t_send = message.src, message.t_send_ns
-        data = route(key).kind.link is not None    # what an agent's node sends (not the clock)
-        cut = self._cut_off.get(sender) if data else None
+        if sender != bounds.sender:            # (a decoder that does not check the sender)
+            bounds = self._bounds_of(key, sender)
+        cut = bounds.cut_ns
         if cut is not None and t_send >= cut:
             raise MessageError("quarantined", f"{sender} is quarantined from {cut} ns")
-        if self.clock_reach_ns is not None and data:
-            reach = self.clock_reach_ns(sender)
-            if reach is not None and t_send > reach:
-                raise MessageError("ahead_of_clock", f"sent at {t_send} ns, but {sender} "
-                                   f"was granted only to {reach} ns")
-        if message.type == "der_state" and not self._possible(message):
+        reach = bounds.reach_ns
+        if reach is not None and t_send > reach:
+            raise MessageError("ahead_of_clock", f"sent at {t_send} ns, but {sender} "
+                               f"was granted only to {reach} ns")
+        if message.type == "der_state" and not _possible(message, bounds.p_inst_w):
             raise MessageError("implausible", f"infeed {message.p_w:.6g} W or setpoint "
                                f"{message.setpoint_w:.6g} W beyond what {sender} can do")
         stamp = (t_send, message.seq)
         last = self._processed.get(key)
-        held = self._held.setdefault(key, set()) if hold else None
+        held = None
+        if hold:
+            held = self._held.get(key)
+            if held is None:
+                held = self._held[key] = set()
         if (last is not None and stamp <= last) or (held is not None and stamp in held) \
                 or stamp in self._taken.get(key, ()):
             raise MessageError("replayed", f"(t_send_ns, seq) {stamp} already seen")
@@ -268,10 +292,27 @@ class Gate:
             self._processed[key] = stamp
         return message
 
-    def _possible(self, message) -> bool:
-        """A DER's infeed and setpoint within [0, P_inst] (plus rounding)."""
-        p_inst = self.capacity_w.get(der_id_of(message.src) or "")
-        if p_inst is None:
-            return True
-        low, high = -_SLACK_W, p_inst * (1 + 1e-9) + _SLACK_W
-        return low <= message.p_w <= high and low <= message.setpoint_w <= high
+    def _bounds_of(self, key: str, sender: str) -> _Bounds:
+        """:meth:`_bounds` for a message whose sender is not the key's."""
+        data = route(key).kind.link is not None
+        reach = self.clock_reach_ns(sender) if self.clock_reach_ns is not None and data \
+            else None
+        return _Bounds(sender, self._cut_off.get(sender) if data else None, reach,
+                       self.capacity_w.get(der_id_of(sender) or ""))
+
+
+class _Bounds(NamedTuple):
+    """What a gate lets one sender send on one key now: rules 4 to 6."""
+
+    sender: str | None
+    cut_ns: int | None          # quarantined from, ns (rule 4)
+    reach_ns: int | None        # granted to, ns (rule 5)
+    p_inst_w: float | None      # the sender DER's installed power, W (rule 6)
+
+
+def _possible(message, p_inst_w: float | None) -> bool:
+    """A DER's infeed and setpoint within [0, P_inst] (plus rounding)."""
+    if p_inst_w is None:
+        return True
+    low, high = -_SLACK_W, p_inst_w * (1 + 1e-9) + _SLACK_W
+    return low <= message.p_w <= high and low <= message.setpoint_w <= high
