@@ -379,3 +379,34 @@ def test_the_re_entry_transient_shrinks_with_the_handover(simbench_config, tmp_p
                                               "PV SGen9 returns"]
     path = plot_handover(panels, tmp_path / "der-handover.png")
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.parametrize("der_type", ["WT", "CHP", "PV", "PT1"])
+def test_infeed_and_held_at_once_are_the_two_calls_bit_for_bit(der_type):
+    """The DER agent takes a sample's infeed and hold flag from one evaluation of the model
+    (:func:`~adnmesh.dermodels.limits.infeed_and_held`): the same numbers as ``infeed_at``
+    then ``held_at``, through setpoint steps that hit the rate and ramp limits both ways."""
+    from adnmesh.dermodels.limits import held_at, infeed_and_held
+
+    p_inst, t_delay, t_rise = MODELS["WT" if der_type == "PT1" else der_type]
+    params = dm.reference_pt1(p_inst, t_delay, t_rise / math.log(9.0)) if der_type == "PT1" \
+        else defaults(der_type)
+    if der_type == "PV":                     # its defaults have no rate limit: give it one
+        params = dm.params_with(params, rate_up_w_per_s=5e5, rate_down_w_per_s=5e5)
+    rng = np.random.default_rng(5)
+    span = 6 * t_rise
+    steps = sorted(zip(rng.uniform(0, span, 10), rng.uniform(0, p_inst, 10)))
+    times = np.sort(rng.uniform(0, span, 400))
+    one, two = dm.steady_state(params, 0.5 * p_inst), dm.steady_state(params, 0.5 * p_inst)
+    events = sorted([(int(round(t * S)), 0, p) for t, p in steps]
+                    + [(int(round(t * S)), 1, None) for t in times])
+    flags = set()
+    for t_ns, kind, p in events:
+        if kind == 0:
+            dm.set_point(params, one, t_ns, p)
+            dm.set_point(params, two, t_ns, p)
+            continue
+        got = infeed_and_held(params, one, t_ns)
+        assert got == (dm.infeed_at(params, two, t_ns), held_at(params, two, t_ns))
+        flags.add(got[1])
+    assert flags == ({0} if der_type == "PT1" else {-1, 0, 1})

@@ -68,7 +68,7 @@ from adnmesh.control.base import Agent, Outgoing
 from adnmesh.control.der_model import der_params, usable_available_w
 from adnmesh.control.plant_device import PlantDevice
 from adnmesh.dermodels import infeed_at, reference_pt1, set_point, steady_state
-from adnmesh.dermodels.limits import held_at
+from adnmesh.dermodels.limits import infeed_and_held
 from adnmesh.reactive import capability_of, limit_pq, q_dynamics
 from adnmesh.names import der_agent_id
 from adnmesh.wire.keys import Keys
@@ -227,15 +227,14 @@ class DERController(Agent):
             device = self._last_device
             # the model runs beside a device too (it gives the hold flag): advancing it
             # here also consumes its queue of set-point changes, which would otherwise grow
-            p_w = infeed_at(self.params, self.state, t_ns)
+            p_w, held = infeed_and_held(self.params, self.state, t_ns)
             if device is not None:
                 p_w = self.der.p_sched_w if device.p_w is None else min(max(device.p_w, 0.0),
                                                                         self.der.p_inst_w)
             state = {"p_w": p_w, "setpoint_w": self.setpoint_w, "mode": self.mode}
             if self.mode == "control" and self.weight > 0:   # a device's by its model (below)
                 said = None if device is None else device.held
-                state["held"] = self._clamped or (
-                    held_at(self.params, self.state, t_ns) if said is None else said)
+                state["held"] = self._clamped or (held if said is None else said)
             if self.reactive is not None:
                 q_var = infeed_at(self.q_params, self.q_state, t_ns)
                 if device is not None:

@@ -3,15 +3,18 @@
 ``held_at(params, state, t_ns)`` is +1 while a limit keeps the output from rising as its
 dynamics would (a rate or ramp limit on the way up), -1 while one keeps it from falling, 0
 otherwise; the absolute limits act on the setpoint and are the DER controller's to report. The
-state is not changed. Used for the CPFC's anti-windup (:mod:`adnmesh.control.der_controller`).
+state is not changed. Used for the CPFC's anti-windup (:mod:`adnmesh.control.der_controller`),
+which takes the infeed and the flag of a sample at once (:func:`infeed_and_held`).
 """
 
 from __future__ import annotations
 
-from adnmesh.dermodels import chp, pv, wt
-from adnmesh.dermodels.state import DerState
+import math
 
-__all__ = ["held_at"]
+from adnmesh.dermodels import chp, infeed_at, pv, wt
+from adnmesh.dermodels.state import DerState, evaluate_core
+
+__all__ = ["held_at", "infeed_and_held"]
 
 
 def _core_at(module, params, state: DerState, t_ns: int) -> tuple[tuple, float]:
@@ -39,17 +42,37 @@ def _sign(wanted: float, rate_up: float, rate_down: float) -> int:
 
 def held_at(params, state, t_ns: int) -> int:
     """+1 / -1 / 0 (see the module docstring)."""
-    if isinstance(params, wt.WTParams):
-        (r, x), u = _core_at(wt, params, state, t_ns)
+    module = _MODULES.get(type(params))
+    if module is None:
+        return 0                                         # the reference PT1 has no such limit
+    return _held(params, *_core_at(module, params, state, t_ns))
+
+
+def infeed_and_held(params, state, t_ns: int) -> tuple[float, int]:
+    """``(infeed_at(params, state, t_ns), held_at(params, state, t_ns))`` (W and +1 / -1 / 0)
+    from one evaluation of the model's core, with what ``infeed_at`` does to ``state``: the
+    two calls in a row give the same numbers, the dynamics run twice."""
+    module = _MODULES.get(type(params))
+    if module is None:
+        return infeed_at(params, state, t_ns), 0
+    core = evaluate_core(module.advance, params, state, t_ns)
+    return module.output(params, core), _held(params, core, state.u_w)
+
+
+def _held(params, core: tuple, u: float) -> int:
+    """+1 / -1 / 0 of a detailed model with ``core`` at its limited setpoint ``u``."""
+    if type(params) is wt.WTParams:
+        r, x = core
         ramp = 1 if r < u - 1e-9 * params.p_inst_w else -1 if r > u + 1e-9 * params.p_inst_w \
-            and params.ramp_down_w_per_s != float("inf") else 0
+            and params.ramp_down_w_per_s != math.inf else 0
         return ramp or _sign((r - x) / params.t_lag_s, params.rate_up_w_per_s,
                              params.rate_down_w_per_s)
-    if isinstance(params, chp.CHPParams):
-        (m, _), u = _core_at(chp, params, state, t_ns)
+    if type(params) is chp.CHPParams:
+        m, _ = core
         return _sign((u - m) / params.t_fuel_s, params.rate_up_w_per_s,
                      params.rate_down_w_per_s)
-    if isinstance(params, pv.PVParams):
-        (x,), u = _core_at(pv, params, state, t_ns)
-        return _sign((u - x) / params.t_lag_s, params.rate_up_w_per_s, params.rate_down_w_per_s)
-    return 0                                             # the reference PT1 has no such limit
+    (x,) = core
+    return _sign((u - x) / params.t_lag_s, params.rate_up_w_per_s, params.rate_down_w_per_s)
+
+
+_MODULES = {wt.WTParams: wt, chp.CHPParams: chp, pv.PVParams: pv}

@@ -73,6 +73,13 @@ def set_point(params, state: DerState, t_ns: int, setpoint_w: float) -> None:
 def evaluate(advance, output, params, state: DerState, t_ns: int) -> float:
     """Infeed at ``t_ns`` (>= every earlier call), W, with the model's ``advance`` and
     ``output`` (see the module docstring)."""
+    return output(params, evaluate_core(advance, params, state, t_ns))
+
+
+def evaluate_core(advance, params, state: DerState, t_ns: int) -> tuple:
+    """The model's core at ``t_ns`` (>= every earlier call) with its ``advance``: what
+    :func:`evaluate` gives ``output``; the setpoint changes due by then are taken into
+    ``state`` (its core at the last one)."""
     if t_ns < state.t_last_ns:
         raise ValueError(f"cannot go back in time ({t_ns} < {state.t_last_ns} ns)")
     state.t_last_ns = t_ns
@@ -86,7 +93,7 @@ def evaluate(advance, output, params, state: DerState, t_ns: int) -> float:
     core = state.core
     if t_ns > state.t_ns:
         core = advance(params, core, state.u_w, (t_ns - state.t_ns) * 1e-9)
-    return output(params, core)
+    return core
 
 
 def infeed_function(advance, output):

@@ -95,6 +95,7 @@ first one (they had no route to the recorder yet; not in the published counts)."
 _POLL_S = 0.1   # longest wait between checks of the processes, s
 _BUS_QUEUE = 65536    # samples from the agents queued for up's bus thread (then senders wait)
 _BATCH = 4096         # most samples the bus thread takes in one go
+_HOLD_SAMPLES = 4096  # most samples taken before what they hold is recorded
 _STOP_AGAIN_S = 1.0   # realtime: the stop is said again this often to agents without goodbye
 _LATE_BYES = 3        # ... and up to this many shutdown timeouts waited for them, not kept up
 _EXIT_GRACE_S = 3.0   # agents with their goodbye in get at least this long to exit, s (103
@@ -389,16 +390,28 @@ class _Launch:
     def _take_bus(self, channel) -> None:
         """The bus thread: every sample the agents send, in order, taken in batches of what
         has queued (:meth:`on_samples`); ends when the subscriber is undeclared and its queue
-        is empty. A failure here is a bug: said, and the run stops (:meth:`failure`)."""
+        is empty. A failure here is a bug: said, and the run stops (:meth:`failure`).
+
+        What the batches accept is recorded once the queue is empty (or after
+        :data:`_HOLD_SAMPLES` samples): a sample that comes while ``up`` would record is
+        taken first, so that the grants its report lets out are not behind the recording."""
         try:
+            sample = None
             while True:
-                try:
-                    batch = [channel.recv()]
-                except zenoh.ZError:             # closed and empty
-                    return
-                while len(batch) < _BATCH and (sample := channel.try_recv()) is not None:
-                    batch.append(sample)
-                self.on_samples(batch)
+                if sample is None:
+                    try:
+                        sample = channel.recv()
+                    except zenoh.ZError:             # closed and empty
+                        return
+                held = 0
+                with self.tap.writes_after():
+                    while sample is not None and held < _HOLD_SAMPLES:
+                        batch = [sample]
+                        while len(batch) < _BATCH and (sample := channel.try_recv()) is not None:
+                            batch.append(sample)
+                        self._take_samples(batch)
+                        held += len(batch)
+                        sample = channel.try_recv()
         except Exception as exc:
             self.bus_error = f"{type(exc).__name__}: {exc}"
             self.roster.changed.set()
@@ -408,20 +421,24 @@ class _Launch:
         report that rides it, :meth:`RecorderTap.take_attached`); the batch's clock reports
         to the sim clock at once, after the rest; the batch recorded once the grants that
         follow are out (:meth:`RecorderTap.writes_after`)."""
-        reports = []
         with self.tap.writes_after():
-            for sample in samples:
-                key = str(sample.key_expr)
-                messages = self.tap.take(key, sample.payload.to_bytes())
-                attachment = sample.attachment   # an agent's clock report rides its last sample
-                if attachment is not None:
-                    messages += self.tap.take_attached(key, attachment.to_bytes())
-                reports += self._take_messages(messages)
-            if reports and self.clock is not None:
-                self.clock.on_reports(reports)
-                for message in reports:
-                    if message.killed_ns is not msgspec.UNSET:
-                        self.injector.on_killed(message)
+            self._take_samples(samples)
+
+    def _take_samples(self, samples) -> None:
+        """:meth:`on_samples` but the recording (within :meth:`RecorderTap.writes_after`)."""
+        reports = []
+        for sample in samples:
+            key = str(sample.key_expr)
+            messages = self.tap.take(key, sample.payload.to_bytes())
+            attachment = sample.attachment   # an agent's clock report rides its last sample
+            if attachment is not None:
+                messages += self.tap.take_attached(key, attachment.to_bytes())
+            reports += self._take_messages(messages)
+        if reports and self.clock is not None:
+            self.clock.on_reports(reports)
+            for message in reports:
+                if message.killed_ns is not msgspec.UNSET:
+                    self.injector.on_killed(message)
 
     def _take_messages(self, messages) -> list:
         """What ``up`` does with the agents' messages; return the clock reports (for the sim
