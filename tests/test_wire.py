@@ -412,6 +412,18 @@ def test_a_sample_is_held_to_its_senders_bounds_envelope_by_envelope() -> None:
     assert [m.seq for _, m in accepted] == [0, 2]
     assert [(r.reason, r.envelopes) for r in rejects] == [("implausible", 1), ("quarantined", 1)]
     assert asked == ["der/SGen1"]
+    gate.cut_off("der/SGen1", 0)                   # the next sample sees the new bounds
+    accepted, rejects = gate.admit_sample(key, payload(key, body, seq=4, t_send_ns=25))
+    assert not accepted and [r.reason for r in rejects] == ["quarantined"]
+    clock_key = KEYS.of("clock_report", "der/SGen1")   # the clock protocol: no rules 4 and 5
+    plain = Gate({clock_key}, frozenset({"SGen1"}), outside_reason="not_subscribed",
+                 clock_reach_ns=reach)
+    plain.cut_off("der/SGen1", 0)
+    report = {"next_ns": 50, "granted_ns": 40, "received": 0, "sent": {}}
+    accepted, rejects = plain.admit_sample(clock_key, b"junk\n" + payload(
+        clock_key, report, seq=0, t_send_ns=40))
+    assert [m.seq for _, m in accepted] == [0] and [r.reason for r in rejects] == ["malformed"]
+    assert asked == ["der/SGen1"] * 2               # once per sample of a data key
     lax = Gate({key}, frozenset({"SGen1", "SGen2"}), outside_reason="not_subscribed",
                capacity_w={"SGen1": 2e5, "SGen2": 1e6}, clock_reach_ns=reach,
                decoder=lambda k, p: decode_as("der_state", p))

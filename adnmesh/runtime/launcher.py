@@ -389,12 +389,15 @@ class _Launch:
 
     def _take_bus(self, channel) -> None:
         """The bus thread: every sample the agents send, in order, taken in batches of what
-        has queued (:meth:`on_samples`); ends when the subscriber is undeclared and its queue
-        is empty. A failure here is a bug: said, and the run stops (:meth:`failure`).
+        has queued (:meth:`_take_samples`); ends when the subscriber is undeclared and its
+        queue is empty. A failure here is a bug: said, and the run stops (:meth:`failure`).
 
-        What the batches accept is recorded once the queue is empty (or after
-        :data:`_HOLD_SAMPLES` samples): a sample that comes while ``up`` would record is
-        taken first, so that the grants its report lets out are not behind the recording."""
+        Each batch is recorded once the grants that follow it are out
+        (:meth:`RecorderTap.writes_after`). On the sim clock, what the batches accept is
+        recorded once the queue is empty (or after :data:`_HOLD_SAMPLES` samples): a sample
+        that comes while ``up`` would record is taken first, so that the grants its report
+        lets out are not behind the recording. On the realtime clock, which has no grants,
+        each batch is recorded at once (the live view and the shutdown's counts see it)."""
         try:
             sample = None
             while True:
@@ -403,29 +406,25 @@ class _Launch:
                         sample = channel.recv()
                     except zenoh.ZError:             # closed and empty
                         return
+                hold = _HOLD_SAMPLES if self.clock is not None else 1
                 held = 0
                 with self.tap.writes_after():
-                    while sample is not None and held < _HOLD_SAMPLES:
+                    while sample is not None and held < hold:
                         batch = [sample]
-                        while len(batch) < _BATCH and (sample := channel.try_recv()) is not None:
+                        while len(batch) < _BATCH and (sample := _queued(channel)) is not None:
                             batch.append(sample)
                         self._take_samples(batch)
                         held += len(batch)
-                        sample = channel.try_recv()
+                        sample = _queued(channel) if held < hold else None
         except Exception as exc:
             self.bus_error = f"{type(exc).__name__}: {exc}"
             self.roster.changed.set()
 
-    def on_samples(self, samples) -> None:
+    def _take_samples(self, samples) -> None:
         """Samples from the agents, in the order they came: each through the tap (and a clock
         report that rides it, :meth:`RecorderTap.take_attached`); the batch's clock reports
-        to the sim clock at once, after the rest; the batch recorded once the grants that
-        follow are out (:meth:`RecorderTap.writes_after`)."""
-        with self.tap.writes_after():
-            self._take_samples(samples)
-
-    def _take_samples(self, samples) -> None:
-        """:meth:`on_samples` but the recording (within :meth:`RecorderTap.writes_after`)."""
+        to the sim clock at once, after the rest. What the tap accepts is recorded by the
+        caller's :meth:`RecorderTap.writes_after`."""
         reports = []
         for sample in samples:
             key = str(sample.key_expr)
@@ -951,6 +950,15 @@ def _weak_callback(method: Callable[[zenoh.Sample], None]) -> Callable[[zenoh.Sa
         if bound is not None:
             bound(sample)
     return call
+
+
+def _queued(channel):
+    """The next sample queued on ``channel``, or None (none queued, or the subscriber was
+    undeclared: Zenoh's ``try_recv`` raises once the channel is closed and empty)."""
+    try:
+        return channel.try_recv()
+    except zenoh.ZError:
+        return None
 
 
 def run(options: UpOptions) -> UpResult:
