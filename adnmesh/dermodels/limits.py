@@ -49,9 +49,9 @@ def held_at(params, state, t_ns: int) -> int:
 
 
 def infeed_and_held(params, state, t_ns: int) -> tuple[float, int]:
-    """``(infeed_at(params, state, t_ns), held_at(params, state, t_ns))`` (W and +1 / -1 / 0)
-    from one evaluation of the model's core, with what ``infeed_at`` does to ``state``: the
-    two calls in a row give the same numbers, the dynamics run twice."""
+    """``(infeed_at(params, state, t_ns), held_at(params, state, t_ns))`` (W and +1 / -1 / 0),
+    the same numbers as those two calls in a row and the same change to ``state``, from one
+    evaluation of the model's core (the two calls evaluate it twice)."""
     module = _MODULES.get(type(params))
     if module is None:
         return infeed_at(params, state, t_ns), 0
