@@ -30,15 +30,16 @@ from adnmesh.dermodels.risetime import ModelFunctions
 from adnmesh.dermodels.state import DerState
 from adnmesh.dermodels.wt import WTParams
 
-__all__ = ["MODULES", "CHPParams", "DerState", "PVParams", "WTParams", "default_params",
-           "params_with", "functions", "steady_state", "set_point", "infeed_at",
+__all__ = ["MODULES", "MODULE_OF_PARAMS", "CHPParams", "DerState", "PVParams", "WTParams",
+           "default_params", "params_with", "functions", "steady_state", "set_point", "infeed_at",
            "reference_pt1"]
 
 #: Model module of each DER type of the config: a hydro plant's governor and penstock are
 #: modelled like a CHP's two stages (two lags in series with a rate limit), a generator of
 #: another kind like a PV plant (a delay and a lag with limits) — docs/models.md#der-types.
 MODULES = {"WT": wt, "CHP": chp, "PV": pv, "HYDRO": chp, "GEN": pv}
-_BY_PARAMS = {WTParams: wt, CHPParams: chp, PVParams: pv}
+#: Model module of each detailed model's parameter type.
+MODULE_OF_PARAMS = {WTParams: wt, CHPParams: chp, PVParams: pv}
 
 
 def default_params(der_type: str, p_inst_w: float, t_delay_s: float, t_rise_s: float,
@@ -66,8 +67,8 @@ def params_with(params, **overrides):
 
 def functions(params) -> ModelFunctions:
     """The model functions that go with ``params`` (any model here, or the reference PT1)."""
-    if type(params) in _BY_PARAMS:
-        return _BY_PARAMS[type(params)].FUNCTIONS
+    if type(params) in MODULE_OF_PARAMS:
+        return MODULE_OF_PARAMS[type(params)].FUNCTIONS
     if isinstance(params, pt1.PT1DelayParams):
         return _PT1_FUNCTIONS
     raise TypeError(f"no DER model has parameters of type {type(params).__name__}")

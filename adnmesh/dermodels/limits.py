@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 
-from adnmesh.dermodels import chp, infeed_at, pv, wt
+from adnmesh.dermodels import MODULE_OF_PARAMS, chp, infeed_at, wt
 from adnmesh.dermodels.state import DerState, evaluate_core
 
 __all__ = ["held_at", "infeed_and_held"]
@@ -42,7 +42,7 @@ def _sign(wanted: float, rate_up: float, rate_down: float) -> int:
 
 def held_at(params, state, t_ns: int) -> int:
     """+1 / -1 / 0 (see the module docstring)."""
-    module = _MODULES.get(type(params))
+    module = MODULE_OF_PARAMS.get(type(params))
     if module is None:
         return 0                                         # the reference PT1 has no such limit
     return _held(params, *_core_at(module, params, state, t_ns))
@@ -52,7 +52,7 @@ def infeed_and_held(params, state, t_ns: int) -> tuple[float, int]:
     """``(infeed_at(params, state, t_ns), held_at(params, state, t_ns))`` (W and +1 / -1 / 0),
     the same numbers as those two calls in a row and the same change to ``state``, from one
     evaluation of the model's core (the two calls evaluate it twice)."""
-    module = _MODULES.get(type(params))
+    module = MODULE_OF_PARAMS.get(type(params))
     if module is None:
         return infeed_at(params, state, t_ns), 0
     core = evaluate_core(module.advance, params, state, t_ns)
@@ -74,5 +74,3 @@ def _held(params, core: tuple, u: float) -> int:
     (x,) = core
     return _sign((u - x) / params.t_lag_s, params.rate_up_w_per_s, params.rate_down_w_per_s)
 
-
-_MODULES = {wt.WTParams: wt, chp.CHPParams: chp, pv.PVParams: pv}

@@ -301,18 +301,23 @@ class GridSolver:
     def line_loading_pct(self) -> np.ndarray:
         """Every line's loading at the last solve (pandapower's definition), %; NaN after a
         solve that did not converge."""
-        grid = self._grid
         with np.errstate(invalid="ignore", over="ignore"):
-            return (np.maximum(grid.get_line_res1()[3], grid.get_line_res2()[3])
-                    * self._line_factor)
+            return self._line_loading()
 
     def trafo_loading_pct(self) -> np.ndarray:
         """Every transformer's loading at the last solve (pandapower's definition), %; NaN
         after a solve that did not converge."""
-        grid = self._grid
         with np.errstate(invalid="ignore", over="ignore"):
-            return np.maximum(grid.get_trafo_res1()[3] * self._hv_factor,
-                              grid.get_trafo_res2()[3] * self._lv_factor)
+            return self._trafo_loading()
+
+    def _line_loading(self) -> np.ndarray:   # (the caller silences NaN's warnings)
+        grid = self._grid
+        return np.maximum(grid.get_line_res1()[3], grid.get_line_res2()[3]) * self._line_factor
+
+    def _trafo_loading(self) -> np.ndarray:
+        grid = self._grid
+        return np.maximum(grid.get_trafo_res1()[3] * self._hv_factor,
+                          grid.get_trafo_res2()[3] * self._lv_factor)
 
     def solve(self, p_actuator_w, q_actuator_var=None) -> GridSample:
         """Solve the power flow with the actuators at ``p_actuator_w`` (W, construction order)
@@ -363,17 +368,13 @@ class GridSolver:
         return out
 
     def _sample(self, iterations: int) -> GridSample:
-        """The last solve as a :class:`GridSample`: the loadings as :meth:`line_loading_pct`
-        and :meth:`trafo_loading_pct` give them, each extreme by one ``argmin``/``argmax``
+        """The last solve as a :class:`GridSample`: each extreme by one ``argmin``/``argmax``
         (the measurement takes one at every sample: a NaN is the maximum, as ``max()``)."""
         grid, d = self._grid, self.data
         p_gen, q_gen, _ = grid.get_gen_res()
-        vm = np.abs(self._v[self._report_bus])
+        vm = self.bus_vm_pu()
         with np.errstate(invalid="ignore", over="ignore"):
-            line = np.maximum(grid.get_line_res1()[3], grid.get_line_res2()[3])
-            line *= self._line_factor
-            trafo = np.maximum(grid.get_trafo_res1()[3] * self._hv_factor,
-                               grid.get_trafo_res2()[3] * self._lv_factor)
+            line, trafo = self._line_loading(), self._trafo_loading()
         low, high = int(vm.argmin()), int(vm.argmax())
         line_max, line_at = _extreme(line, d.line_names)
         trafo_max, trafo_at = _extreme(trafo, d.trafo_names)

@@ -247,12 +247,7 @@ class Gate:
         found = route(key)
         if found is None:                      # rule 2 rejects every envelope (unknown key)
             return _Bounds(None, None, None, None)
-        sender = found.sender
-        if found.kind.link is None:            # the clock protocol: rules 4 and 5 do not apply
-            return _Bounds(sender, None, None, self.capacity_w.get(der_id_of(sender) or ""))
-        reach = None if self.clock_reach_ns is None else self.clock_reach_ns(sender)
-        return _Bounds(sender, self._cut_off.get(sender), reach,
-                       self.capacity_w.get(der_id_of(sender) or ""))
+        return self._bounds_of(found, found.sender)
 
     def _check_bounded(self, key: str, payload: bytes, hold: bool,
                        bounds: _Bounds) -> Envelope:
@@ -261,7 +256,7 @@ class Gate:
             raise MessageError("unknown_der", "names a DER this run does not have")
         sender, t_send = message.src, message.t_send_ns
         if sender != bounds.sender:            # (a decoder that does not check the sender)
-            bounds = self._bounds_of(key, sender)
+            bounds = self._bounds_of(route(key), sender)
         cut = bounds.cut_ns
         if cut is not None and t_send >= cut:
             raise MessageError("quarantined", f"{sender} is quarantined from {cut} ns")
@@ -292,13 +287,13 @@ class Gate:
             self._processed[key] = stamp
         return message
 
-    def _bounds_of(self, key: str, sender: str) -> _Bounds:
-        """:meth:`_bounds` for a message whose sender is not the key's."""
-        data = route(key).kind.link is not None
-        reach = self.clock_reach_ns(sender) if self.clock_reach_ns is not None and data \
-            else None
-        return _Bounds(sender, self._cut_off.get(sender) if data else None, reach,
-                       self.capacity_w.get(der_id_of(sender) or ""))
+    def _bounds_of(self, found, sender: str) -> _Bounds:
+        """What rules 4 to 6 allow ``sender`` now on the key ``found`` routes."""
+        p_inst = self.capacity_w.get(der_id_of(sender) or "")
+        if found.kind.link is None:            # the clock protocol: rules 4 and 5 do not apply
+            return _Bounds(sender, None, None, p_inst)
+        reach = None if self.clock_reach_ns is None else self.clock_reach_ns(sender)
+        return _Bounds(sender, self._cut_off.get(sender), reach, p_inst)
 
 
 class _Bounds(NamedTuple):
