@@ -10,8 +10,11 @@ set-ups, all sessions on 127.0.0.1 in this one process:
 
 each in the open profile (TCP) and the secure profile (mutual TLS, the run's access control on
 both routers, certificates made for the benchmark). Every round trip is timed; reported are the
-median and the 10th/90th percentiles in microseconds, and what the second router adds to one
-way (half the difference of the medians). The set-ups alternate, ``--repeat`` times, so that
+median and the 10th/90th percentiles in microseconds, what the second router adds to one
+way (half the difference of the medians), and the CPU time of one round trip: this process's
+(every session and router of the set-up is in it) over the timed pings, microseconds: what
+two samples cost that cross the router from one client to another, as an agent's report and
+the grant it lets out do in a sim-clock run. The set-ups alternate, ``--repeat`` times, so that
 changes of the machine's speed hit them alike. It measures; it asserts nothing. Usage::
 
     .venv/bin/python benchmarks/bench_latency.py [--pings 2000] [--repeat 3] [--json PATH]
@@ -60,8 +63,10 @@ def routers(topology: Topology, certs: Path | None, two: bool):
     return [second, first], a, b
 
 
-def round_trips(topology: Topology, certs: Path | None, two: bool, pings: int) -> list[float]:
-    """``pings`` timed round trips, microseconds (after 100 untimed ones)."""
+def round_trips(topology: Topology, certs: Path | None, two: bool,
+                pings: int) -> tuple[list[float], float]:
+    """``pings`` timed round trips, microseconds (after 100 untimed ones), and this process's
+    CPU time per timed round trip, microseconds."""
     keys = topology.keys
     sessions, cpfc_at, der_at = routers(topology, certs, two)
     answered = threading.Event()
@@ -72,8 +77,10 @@ def round_trips(topology: Topology, certs: Path | None, two: bool, pings: int) -
         der.declare_subscriber(keys.of("p_y"), lambda s: der.put(keys.of("heartbeat", DER),
                                                            s.payload.to_bytes()))
         cpfc.declare_subscriber(keys.of("heartbeat", DER), lambda s: answered.set())
-        times = []
+        times, cpu = [], 0.0
         for i in range(pings + 100):
+            if i == 100:
+                cpu = time.process_time()
             answered.clear()
             t0 = time.perf_counter_ns()
             cpfc.put(keys.of("p_y"), str(i).encode())
@@ -81,16 +88,17 @@ def round_trips(topology: Topology, certs: Path | None, two: bool, pings: int) -
                 cpfc.put(keys.of("p_y"), str(i).encode())
             if i >= 100:
                 times.append((time.perf_counter_ns() - t0) / 1e3)
-        return times
+        return times, (time.process_time() - cpu) / pings * 1e6
     finally:
         for session in sessions:
             session.close()
 
 
-def figures(times: list[float]) -> dict:
+def figures(found: tuple[list[float], float]) -> dict:
+    times, cpu_us = found
     deciles = statistics.quantiles(times, n=10)
     return {"median_us": round(statistics.median(times), 1), "p10_us": round(deciles[0], 1),
-            "p90_us": round(deciles[-1], 1), "pings": len(times)}
+            "p90_us": round(deciles[-1], 1), "cpu_us": round(cpu_us, 1), "pings": len(times)}
 
 
 def main() -> int:
@@ -116,11 +124,14 @@ def main() -> int:
         one = [r["median_us"] for r in results[f"{profile}, one router"]]
         two = [r["median_us"] for r in results[f"{profile}, two routers"]]
         added = sorted((b - a) / 2 for a, b in zip(one, two))
+        cpu = sorted(r["cpu_us"] for r in results[f"{profile}, one router"])
         summary[profile] = {"one_router_median_us": one, "two_routers_median_us": two,
-                            "added_one_way_us": [round(x, 1) for x in added]}
+                            "added_one_way_us": [round(x, 1) for x in added],
+                            "one_router_cpu_us": cpu}
         print(f"{profile}: round trip median {min(one):g} .. {max(one):g} us with one router, "
               f"{min(two):g} .. {max(two):g} us with two; the second router adds "
-              f"{added[0]:.0f} .. {added[-1]:.0f} us one way", flush=True)
+              f"{added[0]:.0f} .. {added[-1]:.0f} us one way; CPU per round trip with one "
+              f"router {cpu[0]:g} .. {cpu[-1]:g} us", flush=True)
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps({"runs": results, "summary": summary},

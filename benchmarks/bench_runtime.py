@@ -31,7 +31,13 @@ Measures, each printed as it comes:
    every ``--baseline-rev``, and the HELICS baseline, in a rotating order, repeated: speed
    factor, wall time, CPU of every process (``RUSAGE_CHILDREN``), start-up, the clock
    protocol's Zenoh samples per DER and window (from each recording), and the ratios of the
-   medians to HELICS's.
+   medians to HELICS's. Beside each run of this tree, the CPU time of its run phase alone
+   (from "agents ready" for the run's wall time) and the speed that allows on this machine's
+   cores (``cores x simulated s / run-phase CPU s``: no run can be faster, however its work
+   is spread), and at the end the same scenario with all agents in this one process and no
+   bus at all (:func:`adnmesh.sim.local.run_local`, the same messages): its CPU time is the
+   work itself, and the rest of a run's CPU is what processes, the bus, the clock and the
+   recording cost. With HELICS measured, what a given multiple of its speed asks of that.
 
 It measures; it asserts nothing (targets, issue 41: speed factor >= 30 on a quiet machine,
 >= 6x HELICS's in the same run, summed CPU -40 %, start-up <= HELICS's). Every measurement
@@ -69,6 +75,7 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -605,8 +612,8 @@ def clock_traffic(recording: Path) -> dict:
 def speed_run(tree: Path, config_path: Path, table: Path, workdir: Path) -> dict:
     """One ``python -m adnmesh up CONFIG`` of ``tree`` on the sim clock, in a subprocess: its
     wall time and speed factor (as it prints them), start-up, the CPU time of ``up`` and every
-    agent (``RUSAGE_CHILDREN``: ``up`` reaps its agents) and the clock's samples per DER and
-    window (:func:`clock_traffic`)."""
+    agent (``RUSAGE_CHILDREN``: ``up`` reaps its agents), the CPU time of its run phase alone
+    (:class:`RunPhaseCpu`) and the clock's samples per DER and window (:func:`clock_traffic`)."""
     import resource
 
     out = workdir / "speed.mcap"
@@ -614,20 +621,99 @@ def speed_run(tree: Path, config_path: Path, table: Path, workdir: Path) -> dict
             "--out", str(out)]
     load_before = load()
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
-    done = subprocess.run(argv, env=tree_env(tree), cwd=tree, capture_output=True, text=True,
-                          timeout=1800, check=False)
+    proc = subprocess.Popen(argv, env=tree_env(tree), cwd=tree, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    phase = RunPhaseCpu(proc.pid)
+    said: dict[str, list[str]] = {"stdout": [], "stderr": []}
+
+    def read(stream, lines: list[str]) -> None:
+        for line in stream:
+            lines.append(line)
+            if "agents ready in" in line:   # logged as the run phase starts
+                phase.start()
+
+    readers = [threading.Thread(target=read, args=(stream, said[name]), daemon=True)
+               for name, stream in (("stdout", proc.stdout), ("stderr", proc.stderr))]
+    for reader in readers:
+        reader.start()
+    try:
+        proc.wait(timeout=1800)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        phase.stop()
+    for reader in readers:
+        reader.join(10)
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
-    found = re.search(r"run: ([0-9.]+) s simulated in ([0-9.]+) s wall", done.stdout)
-    ready = re.search(r"agents ready in ([0-9.]+) s", done.stderr)
-    if done.returncode != 0 or not found:
-        raise SystemExit(f"adnmesh up ({tree}) failed with exit code {done.returncode}: "
-                         f"{done.stderr[-2000:]}")
+    stdout, stderr = "".join(said["stdout"]), "".join(said["stderr"])
+    found = re.search(r"run: ([0-9.]+) s simulated in ([0-9.]+) s wall", stdout)
+    ready = re.search(r"agents ready in ([0-9.]+) s", stderr)
+    if proc.returncode != 0 or not found:
+        raise SystemExit(f"adnmesh up ({tree}) failed with exit code {proc.returncode}: "
+                         f"{stderr[-2000:]}")
     sim_s, wall_s = float(found.group(1)), float(found.group(2))
-    return {"speed_factor": round(sim_s / wall_s, 2), "wall_s": wall_s,
+    return {"speed_factor": round(sim_s / wall_s, 2), "wall_s": wall_s, "sim_s": sim_s,
             "startup_s": float(ready.group(1)) if ready else None,
             "cpu_s_total": round(after.ru_utime + after.ru_stime - before.ru_utime
                                  - before.ru_stime, 2),
+            "cpu_s_run": phase.over(wall_s),
             "clock": clock_traffic(out), "load_before": load_before, "load": load()}
+
+
+class RunPhaseCpu:
+    """The CPU time ``up`` and its processes spend in the run phase alone: from "agents
+    ready" (:meth:`start`, which takes the process tree then) for the run's wall time
+    (:meth:`over`), read from ``/proc`` every :attr:`PERIOD_S` and interpolated (a process
+    started later, e.g. a restarted agent, is not counted)."""
+
+    PERIOD_S = 0.05
+
+    def __init__(self, root: int) -> None:
+        self.root = root
+        self.samples: list[tuple[float, float]] = []   # (monotonic s, CPU s of the tree)
+        self._pids: list[int] = []
+        self._done = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> None:
+        if self._thread is not None:                    # once
+            return
+        self._pids = [self.root, *descendants(self.root)]
+        self.samples.append((time.monotonic(), self._cpu_s()))
+        self._thread = threading.Thread(target=self._sample, daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._done.set()
+        if self._thread is not None:
+            self._thread.join()
+
+    def over(self, wall_s: float) -> float | None:
+        """CPU s of the tree from the start to ``wall_s`` later (None: not measured)."""
+        if len(self.samples) < 2:
+            return None
+        t0, c0 = self.samples[0]
+        end = t0 + wall_s
+        for (ta, ca), (tb, cb) in zip(self.samples, self.samples[1:]):
+            if tb >= end:
+                return round(ca + (cb - ca) * (end - ta) / (tb - ta) - c0, 2)
+        return None
+
+    def _sample(self) -> None:
+        while not self._done.wait(self.PERIOD_S):
+            self.samples.append((time.monotonic(), self._cpu_s()))
+
+    def _cpu_s(self) -> float:
+        """utime + stime of the tree's processes and of the children they reaped, s."""
+        ticks = 0
+        for pid in self._pids:
+            try:
+                fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+            except (OSError, IndexError):
+                continue
+            ticks += sum(int(f) for f in fields[11:15])
+        return ticks / os.sysconf("SC_CLK_TCK")
 
 
 def speed_compare(args, table: Path, workdir: Path) -> dict:
@@ -652,16 +738,20 @@ def speed_compare(args, table: Path, workdir: Path) -> dict:
                       f"(load {r['load_before']})", flush=True)
             else:
                 r = speed_run(trees[name], config_path, table, workdir)
+                r["cpu_bound"] = cpu_bound(r["sim_s"], r["cpu_s_run"])
                 c = r["clock"]
                 print(f"  {name:>12}: speed factor {r['speed_factor']}x, wall {r['wall_s']} s, "
-                      f"CPU {r['cpu_s_total']} s, start-up {r['startup_s']} s; per DER and "
-                      f"window: clock samples in {c['clock_in_per_window']}, out "
-                      f"{c['clock_out_per_window']} (load {r['load_before']})", flush=True)
+                      f"CPU {r['cpu_s_total']} s ({r['cpu_s_run']} s in the run phase: "
+                      f"{r['cpu_bound']}x at most on {os.cpu_count()} cores), "
+                      f"start-up {r['startup_s']} s; per DER and window: clock samples in "
+                      f"{c['clock_in_per_window']}, out {c['clock_out_per_window']} "
+                      f"(load {r['load_before']})", flush=True)
             runs[name].append(r)
     summary = {}
     for name, found in runs.items():
         out = summary[name] = {k: spread(found, k) for k in
-                               ("speed_factor", "wall_s", "cpu_s_total", "startup_s")}
+                               ("speed_factor", "wall_s", "cpu_s_total", "startup_s")
+                               + (("cpu_s_run", "cpu_bound") if name != "HELICS" else ())}
         print(f"  {name}: " + ", ".join(
             f"{k} {v['min']:g}..{v['max']:g} (median {v['median']:g})"
             for k, v in out.items()), flush=True)
@@ -678,7 +768,54 @@ def speed_compare(args, table: Path, workdir: Path) -> dict:
             summary[name]["to_helics"] = ratio
             print(f"  {name} / HELICS (medians): speed {ratio['speed']}x, CPU "
                   f"{ratio['cpu']}x, start-up {ratio['startup']}x", flush=True)
+    work = bus_free(config_path, table, args.repeat)
+    summary["bus_free"] = work
+    sim_s = runs["this tree"][0]["sim_s"]
+    ours = summary["this tree"]["cpu_s_run"]["median"]
+    print(f"  all agents in one process, no bus (run_local): CPU {work['min']:g}..{work['max']:g}"
+          f" s (median {work['median']:g}), {sim_s / work['median']:.1f}x on one core; of this "
+          f"tree's run phase ({ours:g} s CPU, median), {ours - work['median']:.1f} s "
+          f"({(ours - work['median']) / ours:.0%}) is processes, bus, clock and recording",
+          flush=True)
+    if "HELICS" in summary:
+        target = 6 * summary["HELICS"]["speed_factor"]["median"]
+        allowed = os.cpu_count() * sim_s / target
+        print(f"  6x HELICS's median speed is {target:.1f}x: on {os.cpu_count()} cores the run "
+              f"phase may then take at most {allowed:.1f} s of CPU, {allowed - work['median']:.1f}"
+              f" s beyond the work itself (today {ours - work['median']:.1f} s)", flush=True)
     return {"runs": runs, "summary": summary}
+
+
+def cpu_bound(sim_s: float, cpu_s: float) -> float:
+    """The speed factor ``cpu_s`` of CPU time allows on this machine's cores for ``sim_s``
+    of simulated time (all cores busy all the time with the run's work)."""
+    return round((os.cpu_count() or 1) * sim_s / cpu_s, 1)
+
+
+def bus_free(config_path: Path, table: Path, repeat: int) -> dict:
+    """The CPU time of the scenario with every agent in one fresh interpreter and no bus
+    (:func:`adnmesh.sim.local.run_local`: the same nodes, clock and messages as ``up``), s,
+    as a :func:`spread` over ``repeat`` runs."""
+    program = (
+        "import sys, time\n"
+        "from adnmesh.config import load_config\n"
+        "from adnmesh.control.cpfc_controller import GainSchedule\n"
+        "from adnmesh.sim.local import run_local\n"
+        "from adnmesh.tuning.table import load_table\n"
+        "config = load_config(sys.argv[1])\n"
+        "schedule = GainSchedule(config, load_table(sys.argv[2], config))\n"
+        "cpu = time.process_time()\n"
+        "run_local(config, schedule)\n"
+        "print(time.process_time() - cpu)\n")
+    runs = []
+    for _ in range(repeat):
+        done = subprocess.run([sys.executable, "-c", program, str(config_path), str(table)],
+                              env=tree_env(REPO), cwd=REPO, capture_output=True, text=True,
+                              timeout=1800, check=False)
+        if done.returncode != 0:
+            raise SystemExit(f"run_local failed: {done.stderr[-2000:]}")
+        runs.append({"cpu_s": round(float(done.stdout.split()[-1]), 2)})
+    return spread(runs, "cpu_s")
 
 
 def run_helics(python: str, steps: int, nfeds: int, core: str) -> dict:
