@@ -34,10 +34,10 @@ Measures, each printed as it comes:
    medians to HELICS's. Beside each run of this tree, the CPU time of its run phase alone
    (from "agents ready" for the run's wall time) and the speed that allows on this machine's
    cores (``cores x simulated s / run-phase CPU s``: no run can be faster, however its work
-   is spread), and at the end the same scenario with all agents in this one process and no
-   bus at all (:func:`adnmesh.sim.local.run_local`, the same messages): its CPU time is the
+   is spread); in the same rotation, the scenario with all agents in one fresh interpreter and
+   no bus at all (:func:`adnmesh.sim.local.run_local`, the same messages): its CPU time is the
    work itself, and the rest of a run's CPU is what processes, the bus, the clock and the
-   recording cost. With HELICS measured, what a given multiple of its speed asks of that.
+   recording cost. With HELICS measured, what 6x its speed asks of that.
 
 It measures; it asserts nothing (targets, issue 41: speed factor >= 30 on a quiet machine,
 >= 6x HELICS's in the same run, summed CPU -40 %, start-up <= HELICS's). Every measurement
@@ -103,9 +103,12 @@ def load() -> str:
     return " ".join(Path("/proc/loadavg").read_text().split()[:3])
 
 
-def spread(runs: list[dict], key: str) -> dict:
-    """``{"min", "median", "max"}`` of ``key`` over ``runs``."""
-    values = sorted(run[key] for run in runs)
+def spread(runs: list[dict], key: str) -> dict | None:
+    """``{"min", "median", "max"}`` of ``key`` over ``runs`` (the runs where it is known;
+    None if it is known in none)."""
+    values = sorted(run[key] for run in runs if run.get(key) is not None)
+    if not values:
+        return None
     return {"min": values[0], "median": statistics.median(values), "max": values[-1]}
 
 
@@ -621,30 +624,33 @@ def speed_run(tree: Path, config_path: Path, table: Path, workdir: Path) -> dict
             "--out", str(out)]
     load_before = load()
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
-    proc = subprocess.Popen(argv, env=tree_env(tree), cwd=tree, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
-    phase = RunPhaseCpu(proc.pid)
     said: dict[str, list[str]] = {"stdout": [], "stderr": []}
+    with subprocess.Popen(argv, env=tree_env(tree), cwd=tree, stdout=subprocess.PIPE,
+                          stderr=subprocess.PIPE, text=True) as proc:
+        phase = RunPhaseCpu(proc.pid)
 
-    def read(stream, lines: list[str]) -> None:
-        for line in stream:
-            lines.append(line)
-            if "agents ready in" in line:   # logged as the run phase starts
-                phase.start()
+        def read(stream, lines: list[str]) -> None:
+            for line in stream:
+                lines.append(line)
+                if "agents ready in" in line:   # logged as the run phase starts
+                    phase.start()
 
-    readers = [threading.Thread(target=read, args=(stream, said[name]), daemon=True)
-               for name, stream in (("stdout", proc.stdout), ("stderr", proc.stderr))]
-    for reader in readers:
-        reader.start()
-    try:
-        proc.wait(timeout=1800)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-        phase.stop()
-    for reader in readers:
-        reader.join(10)
+        readers = [threading.Thread(target=read, args=(stream, said[name]), daemon=True)
+                   for name, stream in (("stdout", proc.stdout), ("stderr", proc.stderr))]
+        for reader in readers:
+            reader.start()
+        try:
+            proc.wait(timeout=1800)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+            phase.stop()
+            for reader in readers:
+                reader.join(30)
+        if any(reader.is_alive() for reader in readers):
+            raise SystemExit(f"adnmesh up ({tree}): its output stayed open after it ended "
+                             "(a process of the run lives on)")
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     stdout, stderr = "".join(said["stdout"]), "".join(said["stderr"])
     found = re.search(r"run: ([0-9.]+) s simulated in ([0-9.]+) s wall", stdout)
@@ -664,8 +670,13 @@ def speed_run(tree: Path, config_path: Path, table: Path, workdir: Path) -> dict
 class RunPhaseCpu:
     """The CPU time ``up`` and its processes spend in the run phase alone: from "agents
     ready" (:meth:`start`, which takes the process tree then) for the run's wall time
-    (:meth:`over`), read from ``/proc`` every :attr:`PERIOD_S` and interpolated (a process
-    started later, e.g. a restarted agent, is not counted)."""
+    (:meth:`over`), read from ``/proc`` every :attr:`PERIOD_S` and interpolated.
+
+    ``up`` says "agents ready" just before it starts its run timer (a collection of its heap
+    comes between, tens of milliseconds), and the line reaches this process a little later:
+    the window is that much late against ``up``'s, well under 1 % of a SimBench run. Only the
+    processes there at the start are read: if one of them ends within the window (a killed
+    agent, whose restart would not be counted), :meth:`over` says None."""
 
     PERIOD_S = 0.05
 
@@ -673,6 +684,7 @@ class RunPhaseCpu:
         self.root = root
         self.samples: list[tuple[float, float]] = []   # (monotonic s, CPU s of the tree)
         self._pids: list[int] = []
+        self._ended_at: float | None = None            # when the first of them was gone
         self._done = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -695,6 +707,8 @@ class RunPhaseCpu:
             return None
         t0, c0 = self.samples[0]
         end = t0 + wall_s
+        if self._ended_at is not None and self._ended_at <= end:
+            return None
         for (ta, ca), (tb, cb) in zip(self.samples, self.samples[1:]):
             if tb >= end:
                 return round(ca + (cb - ca) * (end - ta) / (tb - ta) - c0, 2)
@@ -705,12 +719,15 @@ class RunPhaseCpu:
             self.samples.append((time.monotonic(), self._cpu_s()))
 
     def _cpu_s(self) -> float:
-        """utime + stime of the tree's processes and of the children they reaped, s."""
+        """utime + stime of the tree's processes and of the children they reaped, s (notes
+        when the first of them is gone)."""
         ticks = 0
         for pid in self._pids:
             try:
                 fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
             except (OSError, IndexError):
+                if self._ended_at is None:
+                    self._ended_at = time.monotonic()
                 continue
             ticks += sum(int(f) for f in fields[11:15])
         return ticks / os.sysconf("SC_CLK_TCK")
@@ -725,7 +742,7 @@ def speed_compare(args, table: Path, workdir: Path) -> dict:
     trees = {"this tree": REPO}
     for rev in [r.strip() for r in (args.baseline_rev or "").split(",") if r.strip()]:
         trees[rev] = worktree(rev)
-    names = list(trees) + ([] if args.skip_helics else ["HELICS"])
+    names = list(trees) + [BUS_FREE] + ([] if args.skip_helics else ["HELICS"])
     runs: dict[str, list] = {name: [] for name in names}
     for i in range(args.repeat):
         order = names[i % len(names):] + names[:i % len(names)]
@@ -736,66 +753,85 @@ def speed_compare(args, table: Path, workdir: Path) -> dict:
                 print(f"  {name:>12}: speed factor {r['speed_factor']}x, wall {r['wall_s']} s, "
                       f"CPU {r['cpu_s_total']} s, start-up {r['startup_s']} s "
                       f"(load {r['load_before']})", flush=True)
+            elif name == BUS_FREE:
+                r = bus_free(config_path, table)
+                print(f"  {name:>12}: CPU {r['cpu_s']} s, all agents in one process, no bus "
+                      f"(load {r['load_before']})", flush=True)
             else:
                 r = speed_run(trees[name], config_path, table, workdir)
                 r["cpu_bound"] = cpu_bound(r["sim_s"], r["cpu_s_run"])
                 c = r["clock"]
                 print(f"  {name:>12}: speed factor {r['speed_factor']}x, wall {r['wall_s']} s, "
                       f"CPU {r['cpu_s_total']} s ({r['cpu_s_run']} s in the run phase: "
-                      f"{r['cpu_bound']}x at most on {os.cpu_count()} cores), "
+                      f"{r['cpu_bound']}x at most on {cores()} cores), "
                       f"start-up {r['startup_s']} s; per DER and window: clock samples in "
                       f"{c['clock_in_per_window']}, out {c['clock_out_per_window']} "
                       f"(load {r['load_before']})", flush=True)
             runs[name].append(r)
     summary = {}
     for name, found in runs.items():
-        out = summary[name] = {k: spread(found, k) for k in
-                               ("speed_factor", "wall_s", "cpu_s_total", "startup_s")
-                               + (("cpu_s_run", "cpu_bound") if name != "HELICS" else ())}
+        keys = (("cpu_s",) if name == BUS_FREE else
+                ("speed_factor", "wall_s", "cpu_s_total", "startup_s")
+                + (("cpu_s_run", "cpu_bound") if name != "HELICS" else ()))
+        out = summary[name] = {k: spread(found, k) for k in keys}
         print(f"  {name}: " + ", ".join(
-            f"{k} {v['min']:g}..{v['max']:g} (median {v['median']:g})"
+            f"{k} {v['min']:g}..{v['max']:g} (median {v['median']:g})" if v else f"{k} n/a"
             for k, v in out.items()), flush=True)
     if "HELICS" in summary:
         theirs = summary["HELICS"]
         for name in trees:
             ours = summary[name]
-            ratio = {"speed": round(ours["speed_factor"]["median"]
-                                    / theirs["speed_factor"]["median"], 2),
-                     "cpu": round(ours["cpu_s_total"]["median"]
-                                  / theirs["cpu_s_total"]["median"], 2),
-                     "startup": round(ours["startup_s"]["median"]
-                                      / theirs["startup_s"]["median"], 2)}
+            ratio = {label: round(ours[key]["median"] / theirs[key]["median"], 2)
+                     if ours[key] and theirs[key] else None
+                     for label, key in (("speed", "speed_factor"), ("cpu", "cpu_s_total"),
+                                        ("startup", "startup_s"))}
             summary[name]["to_helics"] = ratio
             print(f"  {name} / HELICS (medians): speed {ratio['speed']}x, CPU "
                   f"{ratio['cpu']}x, start-up {ratio['startup']}x", flush=True)
-    work = bus_free(config_path, table, args.repeat)
-    summary["bus_free"] = work
-    sim_s = runs["this tree"][0]["sim_s"]
-    ours = summary["this tree"]["cpu_s_run"]["median"]
-    print(f"  all agents in one process, no bus (run_local): CPU {work['min']:g}..{work['max']:g}"
-          f" s (median {work['median']:g}), {sim_s / work['median']:.1f}x on one core; of this "
-          f"tree's run phase ({ours:g} s CPU, median), {ours - work['median']:.1f} s "
-          f"({(ours - work['median']) / ours:.0%}) is processes, bus, clock and recording",
-          flush=True)
-    if "HELICS" in summary:
-        target = 6 * summary["HELICS"]["speed_factor"]["median"]
-        allowed = os.cpu_count() * sim_s / target
-        print(f"  6x HELICS's median speed is {target:.1f}x: on {os.cpu_count()} cores the run "
-              f"phase may then take at most {allowed:.1f} s of CPU, {allowed - work['median']:.1f}"
-              f" s beyond the work itself (today {ours - work['median']:.1f} s)", flush=True)
+    asks(summary, runs["this tree"][0]["sim_s"])
     return {"runs": runs, "summary": summary}
 
 
-def cpu_bound(sim_s: float, cpu_s: float) -> float:
-    """The speed factor ``cpu_s`` of CPU time allows on this machine's cores for ``sim_s``
-    of simulated time (all cores busy all the time with the run's work)."""
-    return round((os.cpu_count() or 1) * sim_s / cpu_s, 1)
+BUS_FREE = "bus-free"
+"""``--compare``'s name for the scenario with all agents in one process and no bus."""
 
 
-def bus_free(config_path: Path, table: Path, repeat: int) -> dict:
-    """The CPU time of the scenario with every agent in one fresh interpreter and no bus
-    (:func:`adnmesh.sim.local.run_local`: the same nodes, clock and messages as ``up``), s,
-    as a :func:`spread` over ``repeat`` runs."""
+def asks(summary: dict, sim_s: float) -> None:
+    """Print what the work itself takes of this tree's run phase (medians) and, with HELICS
+    measured, what 6x its speed allows."""
+    work, ours = summary[BUS_FREE]["cpu_s"], summary["this tree"]["cpu_s_run"]
+    if work is None or ours is None:
+        print("  run-phase CPU not measured: no comparison with the work itself", flush=True)
+        return
+    work, ours = work["median"], ours["median"]
+    print(f"  the work itself (all agents in one process, no bus): {work:g} s CPU (median), "
+          f"{sim_s / work:.1f}x on one core; of this tree's run phase ({ours:g} s CPU, "
+          f"median), {ours - work:.1f} s ({(ours - work) / ours:.0%}) is processes, bus, clock "
+          "and recording", flush=True)
+    if "HELICS" in summary:
+        target = 6 * summary["HELICS"]["speed_factor"]["median"]
+        allowed = cores() * sim_s / target
+        print(f"  6x HELICS's median speed is {target:.1f}x: on {cores()} cores the run phase "
+              f"may then take at most {allowed:.1f} s of CPU, {allowed - work:.1f} s beyond "
+              f"the work itself (today {ours - work:.1f} s)", flush=True)
+
+
+def cores() -> int:
+    """The CPUs this process (and the runs it starts) may run on."""
+    return len(os.sched_getaffinity(0))
+
+
+def cpu_bound(sim_s: float, cpu_s: float | None) -> float | None:
+    """The speed factor ``cpu_s`` of CPU time allows on :func:`cores` for ``sim_s`` of
+    simulated time (all of them busy all the time with the run's work); None if ``cpu_s``
+    is."""
+    return None if cpu_s is None else round(cores() * sim_s / cpu_s, 1)
+
+
+def bus_free(config_path: Path, table: Path) -> dict:
+    """The CPU time of the scenario with every agent in one fresh interpreter of this tree
+    and no bus (:func:`adnmesh.sim.local.run_local`: the same nodes, clock and messages as
+    ``up``), s, and the load before."""
     program = (
         "import sys, time\n"
         "from adnmesh.config import load_config\n"
@@ -807,15 +843,13 @@ def bus_free(config_path: Path, table: Path, repeat: int) -> dict:
         "cpu = time.process_time()\n"
         "run_local(config, schedule)\n"
         "print(time.process_time() - cpu)\n")
-    runs = []
-    for _ in range(repeat):
-        done = subprocess.run([sys.executable, "-c", program, str(config_path), str(table)],
-                              env=tree_env(REPO), cwd=REPO, capture_output=True, text=True,
-                              timeout=1800, check=False)
-        if done.returncode != 0:
-            raise SystemExit(f"run_local failed: {done.stderr[-2000:]}")
-        runs.append({"cpu_s": round(float(done.stdout.split()[-1]), 2)})
-    return spread(runs, "cpu_s")
+    load_before = load()
+    done = subprocess.run([sys.executable, "-c", program, str(config_path), str(table)],
+                          env=tree_env(REPO), cwd=REPO, capture_output=True, text=True,
+                          timeout=1800, check=False)
+    if done.returncode != 0:
+        raise SystemExit(f"run_local failed: {done.stderr[-2000:]}")
+    return {"cpu_s": round(float(done.stdout.split()[-1]), 2), "load_before": load_before}
 
 
 def run_helics(python: str, steps: int, nfeds: int, core: str) -> dict:
