@@ -38,6 +38,11 @@ Measures, each printed as it comes:
    no bus at all (:func:`adnmesh.sim.local.run_local`, the same messages): its CPU time is the
    work itself, and the rest of a run's CPU is what processes, the bus, the clock and the
    recording cost. With HELICS measured, what 6x its speed asks of that.
+9. with ``--timeline``: the SimBench scenario of this tree with every agent noting when its
+   windows ran (``ADNMESH_WINDOW_TIMES``, :mod:`adnmesh.runtime.window_times`): the loop's
+   stages (the DERs' windows, the measurement's, the CPFC's) and the hand-overs through ``up``
+   between them, median and 10th percentile, and the speed their chain allows with nothing
+   else costing anything.
 
 It measures; it asserts nothing (targets, issue 41: speed factor >= 30 on a quiet machine,
 >= 6x HELICS's in the same run, summed CPU -40 %, start-up <= HELICS's). Every measurement
@@ -58,6 +63,8 @@ time. Usage::
         --only-pairs --agents '' --skip-helics
     .venv/bin/python benchmarks/bench_runtime.py --compare --baseline-rev 2a8b912 \
         --only-pairs --agents ''   # this tree, the baseline and HELICS in turn
+    .venv/bin/python benchmarks/bench_runtime.py --timeline --only-pairs --agents '' \
+        --skip-helics
 
 The gain table for the SimBench config is ``configs/tables/simbench.<design hash>.json`` if ``adnmesh tune``
 made one that holds the subsets the scenario needs; otherwise those two entries (all DERs; CHPs
@@ -612,11 +619,13 @@ def clock_traffic(recording: Path) -> dict:
             "data_out_per_window": mean("data_out")}
 
 
-def speed_run(tree: Path, config_path: Path, table: Path, workdir: Path) -> dict:
+def speed_run(tree: Path, config_path: Path, table: Path, workdir: Path,
+              env: dict[str, str] | None = None) -> dict:
     """One ``python -m adnmesh up CONFIG`` of ``tree`` on the sim clock, in a subprocess: its
     wall time and speed factor (as it prints them), start-up, the CPU time of ``up`` and every
     agent (``RUSAGE_CHILDREN``: ``up`` reaps its agents), the CPU time of its run phase alone
-    (:class:`RunPhaseCpu`) and the clock's samples per DER and window (:func:`clock_traffic`)."""
+    (:class:`RunPhaseCpu`) and the clock's samples per DER and window (:func:`clock_traffic`);
+    ``env``: more environment for the run."""
     import resource
 
     out = workdir / "speed.mcap"
@@ -625,7 +634,8 @@ def speed_run(tree: Path, config_path: Path, table: Path, workdir: Path) -> dict
     load_before = load()
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     said: dict[str, list[str]] = {"stdout": [], "stderr": []}
-    with subprocess.Popen(argv, env=tree_env(tree), cwd=tree, stdout=subprocess.PIPE,
+    with subprocess.Popen(argv, env={**tree_env(tree), **(env or {})}, cwd=tree,
+                          stdout=subprocess.PIPE,
                           stderr=subprocess.PIPE, text=True) as proc:
         phase = RunPhaseCpu(proc.pid)
 
@@ -852,6 +862,79 @@ def bus_free(config_path: Path, table: Path) -> dict:
     return {"cpu_s": round(float(done.stdout.split()[-1]), 2), "load_before": load_before}
 
 
+def timeline(config_path: Path, table: Path, workdir: Path, repeat: int) -> list[dict]:
+    """``--timeline``: the SimBench scenario of this tree with every agent noting when its
+    windows ran (:mod:`adnmesh.runtime.window_times`), ``repeat`` times; per run the speed
+    factor and the cycle's stages (:func:`stage_timeline`)."""
+    from adnmesh.runtime.window_times import ENV
+
+    found = []
+    for i in range(repeat):
+        directory = workdir / f"windows-{i}"
+        directory.mkdir()
+        run = speed_run(REPO, config_path, table, workdir, {ENV: str(directory)})
+        stages = stage_timeline(directory)
+        found.append({"speed_factor": run["speed_factor"], **stages})
+        print(f"  speed factor {run['speed_factor']}x (load {run['load_before']}); "
+              f"{stages['cycles']} cycles of {stages['cycle_s']:g} s of sim time, ms "
+              "(median / p10):", flush=True)
+        for name, figure in stages["stages"].items():
+            print(f"    {name:44s} {figure['median_ms']:6.2f} / {figure['p10_ms']:5.2f}",
+                  flush=True)
+        print(f"  the chain with nothing else costing anything (the DERs' windows spread over "
+              f"{cores()} cores, the hand-overs at their p10): {stages['chain_ms']:.2f} ms a "
+              f"cycle, {stages['chain_speed']:.1f}x at most", flush=True)
+    return found
+
+
+def stage_timeline(directory: Path) -> dict:
+    """The cycle of the SimBench loop from the window times in ``directory``: the DERs'
+    windows, then the measurement's (no delay on the physical link), then the CPFC's, then the
+    DERs' of the next cycle, and the hand-overs between them through ``up``; each as the
+    median and 10th percentile over the cycles every agent ran whole, ms, and the cycle the
+    chain allows with nothing else costing anything."""
+    windows: dict[str, list] = {}
+    for path in directory.glob("*.json"):
+        data = json.loads(path.read_text())
+        windows[data["agent"]] = [tuple(w) for w in data["windows"]]
+    ders = {a: {w[0]: w for w in ws} for a, ws in windows.items() if a.startswith("der/")}
+    measurement, cpfc = windows["measurement"], sorted(windows["cpfc"], key=lambda w: w[1])
+    ends = sorted(w[0] for w in measurement)
+    cycle = int(statistics.median(b - a for a, b in zip(ends, ends[1:])))
+    stages: dict[str, list[int]] = {k: [] for k in (
+        "the DERs' windows, first grant to last end", "one DER's window",
+        "-> measurement's grant", "measurement's window", "-> CPFC's grant", "CPFC's window",
+        "-> the next cycle's first DER grant", "whole cycle")}
+    for until, granted, began, ended in measurement:
+        mine = [d.get(until) for d in ders.values()]
+        after = [d.get(until + cycle) for d in ders.values()]
+        c = next((w for w in cpfc if w[1] >= ended), None)
+        if None in mine or None in after or c is None:
+            continue
+        last_der = max(w[3] for w in mine)
+        first_next = min(w[1] for w in after)
+        put = [(k, v) for k, v in zip(stages, (
+            max(w[3] for w in after) - first_next, None, granted - last_der, ended - began,
+            c[1] - ended, c[3] - c[2], first_next - c[3], max(w[3] for w in after) - last_der))]
+        for key, value in put:
+            if value is not None:
+                stages[key].append(value)
+        stages["one DER's window"] += [w[3] - w[2] for w in after]
+
+    def figure(values: list[int]) -> dict:
+        ordered = sorted(values)
+        return {"median_ms": statistics.median(ordered) / 1e6,
+                "p10_ms": ordered[len(ordered) // 10] / 1e6}
+
+    out = {k: figure(v) for k, v in stages.items()}
+    hand_overs = sum(out[k]["p10_ms"] for k in ("-> measurement's grant", "-> CPFC's grant",
+                                                "-> the next cycle's first DER grant"))
+    chain = (len(ders) * out["one DER's window"]["median_ms"] / cores() + hand_overs
+             + out["measurement's window"]["median_ms"] + out["CPFC's window"]["median_ms"])
+    return {"cycles": len(stages["whole cycle"]), "cycle_s": cycle / 1e9, "stages": out,
+            "chain_ms": chain, "chain_speed": cycle / 1e6 / chain}
+
+
 def run_helics(python: str, steps: int, nfeds: int, core: str) -> dict:
     """One run of the HELICS baseline: the JSON line of ``run_helics.py``."""
     load_before = load()
@@ -932,6 +1015,10 @@ def main() -> int:
                         help="the SimBench scenario of this tree, every --baseline-rev and "
                         "HELICS in a rotating order (speed, CPU, start-up, clock samples per "
                         "DER and window), then the ratios to HELICS")
+    parser.add_argument("--timeline", action="store_true",
+                        help="the SimBench scenario of this tree with every agent noting when "
+                        "its windows ran: the loop's stages and hand-overs, and the speed "
+                        "their chain allows")
     parser.add_argument("--json", metavar="PATH", help="also write every figure as JSON")
     args = parser.parse_args()
 
@@ -956,6 +1043,10 @@ def main() -> int:
                       f"{'' if args.skip_helics else 'and HELICS '}in a rotating order, "
                       f"{args.repeat} rounds ...", flush=True)
                 figures["compare"] = speed_compare(args, table, workdir)
+            if args.timeline:
+                print(f"SimBench scenario, this tree, the windows' wall times, {args.repeat} "
+                      "runs ...", flush=True)
+                figures["timeline"] = timeline(config_path, table, workdir, args.repeat)
             if args.memory:
                 print(f"memory and start-up per agent kind, {args.repeat} runs per tree, "
                       "alternating ...", flush=True)

@@ -38,11 +38,17 @@ from up_runs import (
 
 @pytest.fixture(scope="module")
 def reference_run(tmp_path_factory):
-    """One sim run of the test case, shared by the tests that only read it."""
+    """One sim run of the test case, shared by the tests that only read it; its agents note
+    when their windows ran (adnmesh.runtime.window_times), which changes none of its messages
+    (test_distributed_run_equals_the_in_process_run)."""
+    from adnmesh.runtime.window_times import ENV
+
     tmp_path = tmp_path_factory.mktemp("up")
     config, table = write_case(tmp_path)
+    (tmp_path / "windows").mkdir()
     result, recording, summary = run_up(tmp_path, config, table, "reference",
-                                        "--view", str(tmp_path / "live.rrd"))
+                                        "--view", str(tmp_path / "live.rrd"),
+                                        env={ENV: str(tmp_path / "windows")})
     return tmp_path, config, table, result, recording, summary
 
 
@@ -89,6 +95,31 @@ def test_distributed_run_equals_the_in_process_run(reference_run) -> None:
     expected = sorted(local.messages, key=lambda m: (json.loads(m[1])["t_deliver_ns"], m[0],
                                                      json.loads(m[1])["seq"]))
     assert data_messages(recording) == expected
+
+
+def test_every_agent_noted_when_its_windows_ran(reference_run) -> None:
+    """With ADNMESH_WINDOW_TIMES set, each agent writes one file at its end: every window it
+    ran, in order of sim time, each granted before it began and ended after; its windows are
+    those its recorded clock reports say it was granted (one report a window, and the ones
+    before the start)."""
+    from adnmesh.sim.topology import Topology
+
+    tmp_path, config_path, _, _, recording, _ = reference_run
+    topology = Topology.from_config(load_config(config_path))
+    files = {json.loads(p.read_text())["agent"]: json.loads(p.read_text())["windows"]
+             for p in (tmp_path / "windows").glob("*.json")}
+    assert sorted(files) == sorted(topology.agents)
+    end_ns = max(m.log_time_ns for m in recording.messages)
+    for agent, windows in files.items():
+        assert windows, agent
+        untils = [w[0] for w in windows]
+        assert untils == sorted(untils) and len(set(untils)) == len(untils), agent
+        assert 0 < untils[0] and untils[-1] <= end_ns + 10 ** 9, agent
+        assert all(granted <= began <= ended for _, granted, began, ended in windows), agent
+        reports = [m for m in recording.messages
+                   if m.topic == topology.keys.of("clock_report", agent)]
+        granted = {json.loads(m.data)["granted_ns"] for m in reports}
+        assert granted - {0} == set(untils), agent   # 0: its reports before the start
 
 
 def test_recording_holds_every_published_message(reference_run) -> None:

@@ -54,14 +54,17 @@ def up_argv(config: Path, table: Path, out: Path, *extra: str) -> list[str]:
             "--out", str(out), *extra]
 
 
-def run_up(tmp_path: Path, config: Path, table: Path, name: str, *extra: str):
-    """Run ``adnmesh up`` to the end; return (completed process, recording, summary)."""
+def run_up(tmp_path: Path, config: Path, table: Path, name: str, *extra: str,
+           env: dict[str, str] | None = None):
+    """Run ``adnmesh up`` to the end (``env``: more environment for it); return (completed
+    process, recording, summary)."""
     from adnmesh.recording import read_recording
 
     out = tmp_path / f"{name}.mcap"
     summary = tmp_path / f"{name}.summary.json"
     result = subprocess.run(up_argv(config, table, out, "--summary-json", str(summary), *extra),
                             cwd=tmp_path, capture_output=True, text=True,
+                            env={**os.environ, **(env or {})},
                             timeout=RUN_TIMEOUT_S, check=False)
     assert result.returncode == 0, result.stderr
     return result, read_recording(out), json.loads(summary.read_text())

@@ -59,6 +59,7 @@ import zenoh
 
 from adnmesh.runtime.children import EXIT_INTERNAL_ERROR, SESSION_GRACE_S
 from adnmesh.runtime.realtime import OverrunWatch, ScaledClock
+from adnmesh.runtime.window_times import WindowTimes
 from adnmesh.runtime.os_scheduling import (PRIORITIES, PRIORITY_ENV, SpinPlan, freeze_heap,
                                        raise_priority, spin_ns_from_env, tighten_timers)
 from adnmesh.sim.node import Node
@@ -281,6 +282,7 @@ class AgentProcess:
         self.kill_acked = False              # ... and up has the last report
         self.reported = False                # the first report is sent (up was seen)
         self.window_cpu_s = 0.0              # CPU time spent processing grants
+        self.window_times = WindowTimes.from_env(self.agent)   # the stage timeline, if asked
         # Zenoh samples put and taken: data, and the clock protocol's own (reports, grants)
         self.samples = {"data_out": 0, "clock_out": 0, "data_in": 0, "clock_in": 0}
         self._publishers: dict[str, zenoh.Publisher] = {}
@@ -312,8 +314,21 @@ class AgentProcess:
                 self._die()
             else:
                 self.goodbye()
+                self._write_window_times()
         except Exception as exc:   # the agent's own code (realtime: on this thread)
             self._crash(exc)
+
+    def _write_window_times(self) -> None:
+        """Write the windows' wall times, if asked (:mod:`.window_times`); a directory that
+        cannot take them is said in one line."""
+        if self.window_times is None:
+            return
+        with self.lock:
+            try:
+                self.window_times.write()
+            except OSError as exc:
+                self._say(f"cannot write the window times to {self.window_times.directory}: "
+                          f"{exc.strerror or exc}")
 
     def guarded(self, callback):
         """``callback`` for Zenoh: an exception in it ends the process (:meth:`_crash`)."""
@@ -535,6 +550,8 @@ class AgentProcess:
 
     def _take_clock(self, key: str, message) -> None:   # with the lock held
         if message.type == "clock_grant":      # processed here: the main thread sleeps on
+            if self.window_times is not None:
+                self.window_times.granted(message.until_ns)
             self.node.take_cut(message.cut_keys, message.cuts)
             self.grants.append(message)
             self._run_granted()
@@ -652,9 +669,12 @@ class AgentProcess:
         grants = self.grants
         while (self.mode == "sim" and grants and self.stop is None and not self.dying
                and self.node.counts.received >= grants[0].expect):
-            cpu = time.thread_time()
-            self._run_window(grants.popleft().until_ns)
+            until_ns = grants.popleft().until_ns
+            cpu, began_ns = time.thread_time(), time.monotonic_ns()
+            self._run_window(until_ns)
             self.window_cpu_s += time.thread_time() - cpu
+            if self.window_times is not None:
+                self.window_times.ran(until_ns, began_ns, time.monotonic_ns())
 
     def _run_realtime(self) -> None:
         """Process every event at its time on the scaled wall clock (:mod:`.realtime`); an
