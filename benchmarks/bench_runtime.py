@@ -75,6 +75,7 @@ and PVs) are built here from gains checked against both design constraints (stab
 from __future__ import annotations
 
 import argparse
+import bisect
 import json
 import os
 import re
@@ -875,51 +876,75 @@ def timeline(config_path: Path, table: Path, workdir: Path, repeat: int) -> list
         run = speed_run(REPO, config_path, table, workdir, {ENV: str(directory)})
         stages = stage_timeline(directory)
         found.append({"speed_factor": run["speed_factor"], **stages})
-        print(f"  speed factor {run['speed_factor']}x (load {run['load_before']}); "
-              f"{stages['cycles']} cycles of {stages['cycle_s']:g} s of sim time, ms "
+        print(f"  speed factor {run['speed_factor']}x (load {run['load_before']})", flush=True)
+        if "missing" in stages:
+            print(f"  no timeline: {stages['missing']}", flush=True)
+            continue
+        print(f"  {stages['cycles']} cycles of {stages['cycle_s']:g} s of sim time, ms "
               "(median / p10):", flush=True)
         for name, figure in stages["stages"].items():
             print(f"    {name:44s} {figure['median_ms']:6.2f} / {figure['p10_ms']:5.2f}",
                   flush=True)
-        print(f"  the chain with nothing else costing anything (the DERs' windows spread over "
-              f"{cores()} cores, the hand-overs at their p10): {stages['chain_ms']:.2f} ms a "
-              f"cycle, {stages['chain_speed']:.1f}x at most", flush=True)
+        work = stages["window_cpu_ms"]
+        print(f"  a window's CPU time (median): a DER's {work['der']:.2f} ms, the "
+              f"measurement's {work['measurement']:.2f} ms, the CPFC's {work['cpfc']:.2f} ms",
+              flush=True)
+        print(f"  the chain with nothing else costing anything (the windows at their median "
+              f"CPU time, the DERs' spread over {cores()} cores, the hand-overs at their p10): "
+              f"{stages['chain_ms']:.2f} ms a cycle, {stages['chain_speed']:.1f}x at most",
+              flush=True)
     return found
 
 
 def stage_timeline(directory: Path) -> dict:
     """The cycle of the SimBench loop from the window times in ``directory``: the DERs'
     windows, then the measurement's (no delay on the physical link), then the CPFC's, then the
-    DERs' of the next cycle, and the hand-overs between them through ``up``; each as the
-    median and 10th percentile over the cycles every agent ran whole, ms, and the cycle the
-    chain allows with nothing else costing anything."""
+    DERs' of the next cycle, and the hand-overs between them through ``up`` (from a window's
+    end to the next stage's grant; a window begins once its grant and the messages it expects
+    are in); each as the median and 10th percentile over the cycles every agent ran whole, ms.
+    The chain: a cycle with the DERs' windows spread over :func:`cores`, every window at its
+    median CPU time (its thread's), the hand-overs at their 10th percentile and nothing else
+    costing anything. ``{"missing": why}`` if the files do not give a cycle."""
     windows: dict[str, list] = {}
-    for path in directory.glob("*.json"):
+    for path in directory.glob("*.json"):   # a killed and restarted agent: two files
         data = json.loads(path.read_text())
-        windows[data["agent"]] = [tuple(w) for w in data["windows"]]
+        windows.setdefault(data["agent"], []).extend(tuple(w) for w in data["windows"])
     ders = {a: {w[0]: w for w in ws} for a, ws in windows.items() if a.startswith("der/")}
-    measurement, cpfc = windows["measurement"], sorted(windows["cpfc"], key=lambda w: w[1])
-    ends = sorted(w[0] for w in measurement)
-    cycle = int(statistics.median(b - a for a, b in zip(ends, ends[1:])))
-    stages: dict[str, list[int]] = {k: [] for k in (
-        "the DERs' windows, first grant to last end", "one DER's window",
-        "-> measurement's grant", "measurement's window", "-> CPFC's grant", "CPFC's window",
-        "-> the next cycle's first DER grant", "whole cycle")}
-    for until, granted, began, ended in measurement:
+    if not ders or not windows.get("measurement") or not windows.get("cpfc"):
+        return {"missing": f"window times of {sorted(windows) or 'no agent'} only"}
+    measurement = sorted(windows["measurement"])
+    cpfc = sorted(windows["cpfc"])
+    cpfc_untils = [w[0] for w in cpfc]
+    ends = [w[0] for w in measurement]
+    cycle = int(statistics.median(b - a for a, b in zip(ends, ends[1:]))) if len(ends) > 1 \
+        else 0
+    names = ("the DERs' windows, first grant to last end", "one DER's window",
+             "-> measurement's grant", "measurement: grant to begin", "measurement's window",
+             "-> CPFC's grant", "CPFC: grant to begin", "CPFC's window",
+             "-> the next cycle's first DER grant", "whole cycle")
+    stages: dict[str, list[int]] = {k: [] for k in names}
+    cpu: dict[str, list[int]] = {"der": [], "measurement": [], "cpfc": []}
+    for until, granted, began, ended, spent in measurement:
         mine = [d.get(until) for d in ders.values()]
         after = [d.get(until + cycle) for d in ders.values()]
-        c = next((w for w in cpfc if w[1] >= ended), None)
-        if None in mine or None in after or c is None:
+        at = bisect.bisect_right(cpfc_untils, until)   # the CPFC's next window in sim time
+        c = cpfc[at] if at < len(cpfc) and cpfc[at][0] <= until + cycle else None
+        if not cycle or None in mine or None in after or c is None or granted is None \
+                or c[1] is None or any(w[1] is None for w in after):
             continue
-        last_der = max(w[3] for w in mine)
-        first_next = min(w[1] for w in after)
-        put = [(k, v) for k, v in zip(stages, (
-            max(w[3] for w in after) - first_next, None, granted - last_der, ended - began,
-            c[1] - ended, c[3] - c[2], first_next - c[3], max(w[3] for w in after) - last_der))]
-        for key, value in put:
+        last_der, first_next = max(w[3] for w in mine), min(w[1] for w in after)
+        for key, value in zip(names, (
+                max(w[3] for w in after) - first_next, None, granted - last_der,
+                began - granted, ended - began, c[1] - ended, c[2] - c[1], c[3] - c[2],
+                first_next - c[3], max(w[3] for w in after) - last_der)):
             if value is not None:
                 stages[key].append(value)
         stages["one DER's window"] += [w[3] - w[2] for w in after]
+        cpu["der"] += [w[4] for w in after]
+        cpu["measurement"].append(spent)
+        cpu["cpfc"].append(c[4])
+    if not stages["whole cycle"]:
+        return {"missing": "no cycle that every agent ran whole"}
 
     def figure(values: list[int]) -> dict:
         ordered = sorted(values)
@@ -927,12 +952,12 @@ def stage_timeline(directory: Path) -> dict:
                 "p10_ms": ordered[len(ordered) // 10] / 1e6}
 
     out = {k: figure(v) for k, v in stages.items()}
+    work = {k: statistics.median(v) / 1e6 for k, v in cpu.items()}
     hand_overs = sum(out[k]["p10_ms"] for k in ("-> measurement's grant", "-> CPFC's grant",
                                                 "-> the next cycle's first DER grant"))
-    chain = (len(ders) * out["one DER's window"]["median_ms"] / cores() + hand_overs
-             + out["measurement's window"]["median_ms"] + out["CPFC's window"]["median_ms"])
+    chain = len(ders) * work["der"] / cores() + work["measurement"] + work["cpfc"] + hand_overs
     return {"cycles": len(stages["whole cycle"]), "cycle_s": cycle / 1e9, "stages": out,
-            "chain_ms": chain, "chain_speed": cycle / 1e6 / chain}
+            "window_cpu_ms": work, "chain_ms": chain, "chain_speed": cycle / 1e6 / chain}
 
 
 def run_helics(python: str, steps: int, nfeds: int, core: str) -> dict:

@@ -376,9 +376,9 @@ def test_what_is_held_is_all_written_though_the_series_fails_and_others_record_m
 def test_window_times_note_each_window_from_its_grant_and_write_one_file(tmp_path,
                                                                         monkeypatch) -> None:
     """adnmesh.runtime.window_times: a window's grant time is the first arrival of its grant
-    (a window without one counts from its start); the file is named by agent and PID; off
-    unless ADNMESH_WINDOW_TIMES is set; a directory that is not there raises OSError (the agent
-    process says it in one line)."""
+    (null for a window whose grant was not seen), beside its begin, end and thread CPU; the
+    file is named by agent and PID and written whole; off unless ADNMESH_WINDOW_TIMES is set;
+    a directory that is not there raises OSError (the agent process says it in one line)."""
     import os
 
     from adnmesh.runtime.window_times import ENV, WindowTimes
@@ -391,11 +391,13 @@ def test_window_times_note_each_window_from_its_grant_and_write_one_file(tmp_pat
     times.granted(200)
     first = times._granted[200]
     times.granted(200)                        # the same grant again: the first arrival counts
-    times.ran(200, first + 5, first + 9)
-    times.ran(400, 50, 60)                    # no grant noted
+    times.ran(200, first + 5, first + 9, 3)
+    times.ran(400, 50, 60, 7)                 # no grant seen
     path = times.write()
     assert path == tmp_path / f"der.SGen1.{os.getpid()}.json"
+    assert sorted(p.name for p in tmp_path.iterdir()) == [path.name]
     assert json.loads(path.read_text()) == {
-        "agent": "der/SGen1", "windows": [[200, first, first + 5, first + 9], [400, 50, 50, 60]]}
+        "agent": "der/SGen1",
+        "windows": [[200, first, first + 5, first + 9, 3], [400, None, 50, 60, 7]]}
     with pytest.raises(OSError):
         WindowTimes("cpfc", tmp_path / "missing").write()

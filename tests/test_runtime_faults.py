@@ -22,6 +22,7 @@ from adnmesh.config import load_config
 from adnmesh.control.cpfc_controller import GainSchedule
 from adnmesh.recording import read_recording
 from adnmesh.runtime.tap import REJECTED_RECORDS_KEPT
+from adnmesh.runtime.window_times import ENV
 from adnmesh.sim.local import _LocalRunner
 from adnmesh.tuning.table import load_table
 from adnmesh.wire.units import ns
@@ -322,7 +323,9 @@ def test_config_faults_with_restarts_give_the_in_process_run_exactly(tmp_path: P
         {"kind": "ict_outage", "t_s": 10, "duration_s": 0.3},
     ]
     config, table = write_case(tmp_path, "faulty", runtime={"faults": faults})
-    result, recording, summary = run_up(tmp_path, config, table, "faulty")
+    (tmp_path / "windows").mkdir()                 # the stage timeline on: it changes nothing
+    result, recording, summary = run_up(tmp_path, config, table, "faulty",
+                                        env={ENV: str(tmp_path / "windows")})
     loaded = load_config(config)
     # the faults take the run to a set of DERs the test table lacks: tuned on demand, as the
     # CPFC process does
@@ -333,6 +336,9 @@ def test_config_faults_with_restarts_give_the_in_process_run_exactly(tmp_path: P
     kinds = [(e["src"], e["kind"]) for e in events(recording)]
     assert kinds.count(("up", "fault_injected")) == len(faults)
     assert kinds.count(("up", "killed")) == 2 and kinds.count(("up", "rejoined")) == 2
+    noted = [json.loads(p.read_text())["agent"] for p in (tmp_path / "windows").glob("*.json")]
+    assert noted.count("der/SGen1") == 2
+    assert noted.count("cpfc") == 2 and noted.count("measurement") == 1   # killed: one more
     assert "counts not verified" in result.stderr          # the killed processes' keys
 
 

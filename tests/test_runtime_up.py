@@ -40,7 +40,8 @@ from up_runs import (
 def reference_run(tmp_path_factory):
     """One sim run of the test case, shared by the tests that only read it; its agents note
     when their windows ran (adnmesh.runtime.window_times), which changes none of its messages
-    (test_distributed_run_equals_the_in_process_run)."""
+    (test_distributed_run_equals_the_in_process_run; runs without it equal the in-process run
+    in tests/test_runtime_faults.py)."""
     from adnmesh.runtime.window_times import ENV
 
     tmp_path = tmp_path_factory.mktemp("up")
@@ -99,23 +100,25 @@ def test_distributed_run_equals_the_in_process_run(reference_run) -> None:
 
 def test_every_agent_noted_when_its_windows_ran(reference_run) -> None:
     """With ADNMESH_WINDOW_TIMES set, each agent writes one file at its end: every window it
-    ran, in order of sim time, each granted before it began and ended after; its windows are
+    ran, in order of sim time, its grant seen before it began, ended after; its windows are
     those its recorded clock reports say it was granted (one report a window, and the ones
     before the start)."""
     from adnmesh.sim.topology import Topology
 
     tmp_path, config_path, _, _, recording, _ = reference_run
     topology = Topology.from_config(load_config(config_path))
+    paths = sorted((tmp_path / "windows").glob("*.json"))
     files = {json.loads(p.read_text())["agent"]: json.loads(p.read_text())["windows"]
-             for p in (tmp_path / "windows").glob("*.json")}
-    assert sorted(files) == sorted(topology.agents)
+             for p in paths}
+    assert len(paths) == len(topology.agents) and sorted(files) == sorted(topology.agents)
     end_ns = max(m.log_time_ns for m in recording.messages)
     for agent, windows in files.items():
         assert windows, agent
         untils = [w[0] for w in windows]
         assert untils == sorted(untils) and len(set(untils)) == len(untils), agent
         assert 0 < untils[0] and untils[-1] <= end_ns + 10 ** 9, agent
-        assert all(granted <= began <= ended for _, granted, began, ended in windows), agent
+        assert all(granted is not None and granted < began <= ended and cpu >= 0
+                   for _, granted, began, ended, cpu in windows), agent
         reports = [m for m in recording.messages
                    if m.topic == topology.keys.of("clock_report", agent)]
         granted = {json.loads(m.data)["granted_ns"] for m in reports}

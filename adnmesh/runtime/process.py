@@ -439,6 +439,7 @@ class AgentProcess:
                 self.lock.wait(max(0.0, deadline - time.monotonic()))
             if self.hosted:
                 self.left = True
+        self._write_window_times()
         if not self.hosted:
             os.kill(os.getpid(), signal.SIGKILL)
         self.close()
@@ -670,11 +671,12 @@ class AgentProcess:
         while (self.mode == "sim" and grants and self.stop is None and not self.dying
                and self.node.counts.received >= grants[0].expect):
             until_ns = grants.popleft().until_ns
-            cpu, began_ns = time.thread_time(), time.monotonic_ns()
+            cpu, began_ns = time.thread_time_ns(), time.monotonic_ns()
             self._run_window(until_ns)
-            self.window_cpu_s += time.thread_time() - cpu
+            spent = time.thread_time_ns() - cpu
+            self.window_cpu_s += spent * 1e-9
             if self.window_times is not None:
-                self.window_times.ran(until_ns, began_ns, time.monotonic_ns())
+                self.window_times.ran(until_ns, began_ns, time.monotonic_ns(), spent)
 
     def _run_realtime(self) -> None:
         """Process every event at its time on the scaled wall clock (:mod:`.realtime`); an
