@@ -387,14 +387,22 @@ def pss_kb(pid: int) -> int | None:
     return None
 
 
+def stat_fields(pid: int) -> list[str] | None:
+    """The fields of ``/proc/PID/stat`` after the process's name (``[0]`` its state, ``[1]``
+    its parent, ``[11:15]`` utime, stime, cutime, cstime in ticks); None if it is gone."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return None
+
+
 def descendants(parent: int) -> set[int]:
     """Every process below ``parent`` (from /proc)."""
     parents = {}
     for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            parents[int(stat.parent.name)] = int(stat.read_text().rsplit(")", 1)[1].split()[1])
-        except (OSError, IndexError, ValueError):
-            continue
+        fields = stat_fields(int(stat.parent.name))
+        if fields is not None:
+            parents[int(stat.parent.name)] = int(fields[1])
     below, todo = set(), [parent]
     while todo:
         here = todo.pop()
@@ -734,9 +742,8 @@ class RunPhaseCpu:
         when the first of them is gone)."""
         ticks = 0
         for pid in self._pids:
-            try:
-                fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-            except (OSError, IndexError):
+            fields = stat_fields(pid)
+            if fields is None:
                 if self._ended_at is None:
                     self._ended_at = time.monotonic()
                 continue
@@ -918,11 +925,12 @@ def stage_timeline(directory: Path) -> dict:
     ends = [w[0] for w in measurement]
     cycle = int(statistics.median(b - a for a, b in zip(ends, ends[1:]))) if len(ends) > 1 \
         else 0
-    names = ("the DERs' windows, first grant to last end", "one DER's window",
+    names = ("the DERs' windows, first grant to last end",
              "-> measurement's grant", "measurement: grant to begin", "measurement's window",
              "-> CPFC's grant", "CPFC: grant to begin", "CPFC's window",
              "-> the next cycle's first DER grant", "whole cycle")
-    stages: dict[str, list[int]] = {k: [] for k in names}
+    stages: dict[str, list[int]] = {names[0]: [], "one DER's window": [],
+                                    **{k: [] for k in names[1:]}}
     cpu: dict[str, list[int]] = {"der": [], "measurement": [], "cpfc": []}
     for until, granted, began, ended, spent in measurement:
         mine = [d.get(until) for d in ders.values()]
@@ -933,12 +941,12 @@ def stage_timeline(directory: Path) -> dict:
                 or c[1] is None or any(w[1] is None for w in after):
             continue
         last_der, first_next = max(w[3] for w in mine), min(w[1] for w in after)
+        last_next = max(w[3] for w in after)
         for key, value in zip(names, (
-                max(w[3] for w in after) - first_next, None, granted - last_der,
-                began - granted, ended - began, c[1] - ended, c[2] - c[1], c[3] - c[2],
-                first_next - c[3], max(w[3] for w in after) - last_der)):
-            if value is not None:
-                stages[key].append(value)
+                last_next - first_next, granted - last_der, began - granted, ended - began,
+                c[1] - ended, c[2] - c[1], c[3] - c[2], first_next - c[3],
+                last_next - last_der)):
+            stages[key].append(value)
         stages["one DER's window"] += [w[3] - w[2] for w in after]
         cpu["der"] += [w[4] for w in after]
         cpu["measurement"].append(spent)

@@ -73,4 +73,3 @@ def _held(params, core: tuple, u: float) -> int:
                      params.rate_down_w_per_s)
     (x,) = core
     return _sign((u - x) / params.t_lag_s, params.rate_up_w_per_s, params.rate_down_w_per_s)
-

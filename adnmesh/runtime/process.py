@@ -670,13 +670,14 @@ class AgentProcess:
         grants = self.grants
         while (self.mode == "sim" and grants and self.stop is None and not self.dying
                and self.node.counts.received >= grants[0].expect):
-            until_ns = grants.popleft().until_ns
-            cpu, began_ns = time.thread_time_ns(), time.monotonic_ns()
+            until_ns, times = grants.popleft().until_ns, self.window_times
+            began_ns = 0 if times is None else time.monotonic_ns()
+            cpu = time.thread_time_ns()
             self._run_window(until_ns)
             spent = time.thread_time_ns() - cpu
             self.window_cpu_s += spent * 1e-9
-            if self.window_times is not None:
-                self.window_times.ran(until_ns, began_ns, time.monotonic_ns(), spent)
+            if times is not None:
+                times.ran(until_ns, began_ns, time.monotonic_ns(), spent)
 
     def _run_realtime(self) -> None:
         """Process every event at its time on the scaled wall clock (:mod:`.realtime`); an
