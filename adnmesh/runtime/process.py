@@ -433,13 +433,13 @@ class AgentProcess:
         """The injected kill: wait (bounded) until ``up`` has the last report, then SIGKILL
         the process -- or, hosted, leave it: withdraw the agent's liveliness and take nothing
         more (its process goes on with the other agents)."""
-        deadline = time.monotonic() + _KILL_WAIT_S
+        self._write_window_times()   # its windows are done: written before the wait, so
+        deadline = time.monotonic() + _KILL_WAIT_S   # the kill follows up's ack at once
         with self.lock:
             while not self.kill_acked and time.monotonic() < deadline:
                 self.lock.wait(max(0.0, deadline - time.monotonic()))
             if self.hosted:
                 self.left = True
-        self._write_window_times()
         if not self.hosted:
             os.kill(os.getpid(), signal.SIGKILL)
         self.close()
